@@ -1,0 +1,26 @@
+#!/usr/bin/env bash
+# Installs the Debian 12 packages Chimera builds with (see README, "Dependencies").
+# Idempotent: packages already installed are not fetched again.
+set -euo pipefail
+packages=(
+  meson ninja-build pkg-config g++              # build
+  libgtest-dev libgmock-dev libbenchmark-dev     # tests and bench/
+  libeigen3-dev liborocos-kdl-dev libkdl-parser-dev liburdfdom-dev  # robotics modules
+  libgpiod-dev gpiod                             # PIO driver (optional)
+  liblttng-ust-dev lttng-tools babeltrace2       # tracing (optional)
+  libncurses-dev                                 # chimtop
+  libedit-dev                                    # sbs line editing
+  libcli11-dev nlohmann-json3-dev                # option parsing, --json output
+  linux-libc-dev                                 # SocketCAN, perf_event, futex headers
+  rt-tests tmux util-linux                       # cyclictest (bench), terminal tests, taskset
+)
+missing=()
+for p in "${packages[@]}"; do
+  dpkg-query -W -f='${Status}' "$p" 2>/dev/null | grep -q "install ok installed" || missing+=("$p")
+done
+if ((${#missing[@]})); then
+  echo "setup: installing ${missing[*]}"
+  export DEBIAN_FRONTEND=noninteractive
+  apt-get update -qq
+  apt-get install -y -qq --no-install-recommends "${missing[@]}"
+fi

@@ -1,0 +1,239 @@
+// The configuration-file reader (see include/chimera/cfg.hpp for the format).
+#include "chimera/cfg.hpp"
+
+#include <cerrno>
+#include <charconv>
+#include <cstdlib>
+#include <fstream>
+#include <sstream>
+
+namespace chimera::cfg {
+
+namespace {
+
+std::string make_what(const std::string& file, int line, const std::string& message) {
+    return file + ":" + std::to_string(line) + ": " + message;
+}
+
+// Removes a comment: '#' at the start of the line or after whitespace.
+std::string_view strip_comment(std::string_view s) {
+    for (std::size_t i = 0; i < s.size(); ++i) {
+        if (s[i] == '#' && (i == 0 || s[i - 1] == ' ' || s[i - 1] == '\t')) return s.substr(0, i);
+    }
+    return s;
+}
+
+std::string_view trim(std::string_view s) {
+    const auto first = s.find_first_not_of(" \t\r\n");
+    if (first == std::string_view::npos) return {};
+    const auto last = s.find_last_not_of(" \t\r\n");
+    return s.substr(first, last - first + 1);
+}
+
+std::vector<std::string> split(std::string_view s) {
+    std::vector<std::string> out;
+    std::size_t i = 0;
+    while (i < s.size()) {
+        while (i < s.size() && (s[i] == ' ' || s[i] == '\t')) ++i;
+        std::size_t j = i;
+        while (j < s.size() && s[j] != ' ' && s[j] != '\t') ++j;
+        if (j > i) out.emplace_back(s.substr(i, j - i));
+        i = j;
+    }
+    return out;
+}
+
+std::string quote(std::string_view s) { return "'" + std::string(s) + "'"; }
+
+}  // namespace
+
+ParseError::ParseError(std::string file, int line, std::string message)
+    : std::runtime_error(make_what(file, line, message)),
+      file_(std::move(file)),
+      line_(line),
+      message_(std::move(message)) {}
+
+std::optional<double> parse_double(std::string_view token) noexcept {
+    if (token.empty()) return std::nullopt;
+    // strtod accepts hex, inf and nan; the format wants plain decimal numbers.
+    for (char c : token) {
+        if (!((c >= '0' && c <= '9') || c == '.' || c == '-' || c == '+' || c == 'e' || c == 'E'))
+            return std::nullopt;
+    }
+    std::string copy(token);
+    char* end = nullptr;
+    errno = 0;
+    const double v = std::strtod(copy.c_str(), &end);
+    if (end != copy.c_str() + copy.size() || errno == ERANGE) return std::nullopt;
+    return v;
+}
+
+std::optional<std::int64_t> parse_int(std::string_view token) noexcept {
+    if (!token.empty() && token.front() == '+') token.remove_prefix(1);
+    std::int64_t v = 0;
+    int base = 10;
+    bool negative = false;
+    std::string_view digits = token;
+    if (!digits.empty() && digits.front() == '-') {
+        negative = true;
+        digits.remove_prefix(1);
+    }
+    if (digits.size() > 2 && digits[0] == '0' && (digits[1] == 'x' || digits[1] == 'X')) {
+        base = 16;
+        digits.remove_prefix(2);
+    }
+    if (digits.empty()) return std::nullopt;
+    auto [ptr, ec] = std::from_chars(digits.data(), digits.data() + digits.size(), v, base);
+    if (ec != std::errc() || ptr != digits.data() + digits.size()) return std::nullopt;
+    return negative ? -v : v;
+}
+
+Reader::Reader(std::string file, std::vector<std::string> raw_lines)
+    : file_(std::move(file)), raw_(std::move(raw_lines)) {}
+
+Reader Reader::from_file(const std::string& path) {
+    std::ifstream in(path);
+    if (!in) throw ParseError(path, 0, "cannot open file");
+    std::vector<std::string> lines;
+    std::string line;
+    while (std::getline(in, line)) lines.push_back(line);
+    return Reader(path, std::move(lines));
+}
+
+Reader Reader::from_string(std::string_view text, std::string name) {
+    std::vector<std::string> lines;
+    std::istringstream in{std::string(text)};
+    std::string line;
+    while (std::getline(in, line)) lines.push_back(line);
+    return Reader(std::move(name), std::move(lines));
+}
+
+void Reader::fail(int line, const std::string& message) const {
+    throw ParseError(file_, line, message);
+}
+
+void Reader::fill() {
+    if (pending_ || at_eof_) return;
+    while (pos_ < raw_.size()) {
+        const int number = static_cast<int>(pos_) + 1;
+        const std::string_view content = trim(strip_comment(raw_[pos_++]));
+        if (content.empty()) continue;
+        std::vector<std::string> tokens = split(content);
+        Line line;
+        line.number = number;
+        line.keyword = tokens.front();
+        const auto after_keyword = content.substr(content.find(line.keyword) + line.keyword.size());
+        line.text = std::string(trim(after_keyword));
+
+        if (line.keyword == "EOF") {
+            if (tokens.size() != 1) fail(number, "EOF takes no arguments, found " + quote(line.text));
+            // Only comments and blank lines may follow the safety line.
+            for (std::size_t i = pos_; i < raw_.size(); ++i) {
+                if (!trim(strip_comment(raw_[i])).empty())
+                    fail(static_cast<int>(i) + 1,
+                         "expected nothing after EOF, found " + quote(trim(raw_[i])));
+            }
+            at_eof_ = true;
+            eof_line_ = number;
+            return;
+        }
+        if (line.keyword == "DEFINE") {
+            if (tokens.size() != 3)
+                fail(number, "DEFINE takes a name and a value, found " + quote(line.text));
+            if (defines_.count(tokens[1]))
+                fail(number, "DEFINE " + tokens[1] + " is already defined");
+            std::string value = tokens[2];
+            if (auto it = defines_.find(value); it != defines_.end()) value = it->second;
+            defines_[tokens[1]] = value;
+            continue;
+        }
+        for (std::size_t i = 1; i < tokens.size(); ++i) {
+            std::string& t = tokens[i];
+            if (auto it = defines_.find(t); it != defines_.end()) {
+                t = it->second;
+            } else if (t.size() > 1 && t[0] == '-') {
+                if (auto neg = defines_.find(std::string_view(t).substr(1)); neg != defines_.end()) {
+                    const std::string& v = neg->second;
+                    t = (!v.empty() && v[0] == '-') ? v.substr(1) : "-" + v;
+                }
+            }
+            line.args.push_back(std::move(t));
+        }
+        pending_ = std::move(line);
+        return;
+    }
+    const int last = static_cast<int>(raw_.size());
+    eof_line_ = last;
+    fail(last, "truncated file: expected EOF as the last line, found end of file");
+}
+
+const Line* Reader::peek() {
+    fill();
+    return pending_ ? &*pending_ : nullptr;
+}
+
+std::optional<Line> Reader::next() {
+    fill();
+    std::optional<Line> out = std::move(pending_);
+    pending_.reset();
+    return out;
+}
+
+bool Reader::next_is(std::string_view keyword) {
+    const Line* l = peek();
+    return l && l->keyword == keyword;
+}
+
+Line Reader::expect(std::string_view keyword) { return expect_one_of({keyword}); }
+
+Line Reader::expect_one_of(std::initializer_list<std::string_view> keywords) {
+    std::string wanted;
+    for (auto k : keywords) {
+        if (!wanted.empty()) wanted += " or ";
+        wanted += k;
+    }
+    const Line* l = peek();
+    if (!l) fail(eof_line_, "expected " + wanted + ", found EOF");
+    for (auto k : keywords) {
+        if (l->keyword == k) return *next();
+    }
+    fail(*l, "expected " + wanted + ", found " + l->keyword);
+}
+
+std::optional<Line> Reader::accept(std::string_view keyword) {
+    if (next_is(keyword)) return next();
+    return std::nullopt;
+}
+
+void Reader::expect_end() {
+    if (const Line* l = peek()) fail(*l, "expected EOF, found " + l->keyword);
+}
+
+void Reader::require_args(const Line& line, std::size_t count) const {
+    require_args(line, count, count);
+}
+
+void Reader::require_args(const Line& line, std::size_t min, std::size_t max) const {
+    const std::size_t n = line.args.size();
+    if (n >= min && n <= max) return;
+    std::string expected = std::to_string(min);
+    if (max != min) expected += max == SIZE_MAX ? " or more" : " to " + std::to_string(max);
+    fail(line, line.keyword + " takes " + expected + " argument" + (max == 1 && min == 1 ? "" : "s") +
+                   ", found " + std::to_string(n));
+}
+
+double Reader::to_double(const Line& line, std::size_t arg, std::string_view what) const {
+    if (arg >= line.args.size())
+        fail(line, "expected a number for " + std::string(what) + ", found nothing");
+    if (auto v = parse_double(line.args[arg])) return *v;
+    fail(line, "expected a number for " + std::string(what) + ", found " + quote(line.args[arg]));
+}
+
+std::int64_t Reader::to_int(const Line& line, std::size_t arg, std::string_view what) const {
+    if (arg >= line.args.size())
+        fail(line, "expected an integer for " + std::string(what) + ", found nothing");
+    if (auto v = parse_int(line.args[arg])) return *v;
+    fail(line, "expected an integer for " + std::string(what) + ", found " + quote(line.args[arg]));
+}
+
+}  // namespace chimera::cfg
