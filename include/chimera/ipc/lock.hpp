@@ -1,0 +1,153 @@
+// chimera/ipc/lock.hpp — the table lock (the thesis's xmLock, §5.3, §6.6).
+//
+// A spin-lock in shared memory whose word holds the owner, (pid << 32 | tid),
+// 0 when free. Acquiring it uncontended is one compare-and-swap: no system
+// call, no allocation (the caller's pid/tid are cached per thread). Under
+// contention the caller spins a bounded number of times with the CPU's polling
+// pause, then polls with short sleeps until its timeout.
+//
+// What the thesis's xmLock did on timeout — reset the lock blindly — can tear
+// data that was consistent. Here, while polling, the waiter checks whether the
+// holder still exists (tgkill(pid, tid, 0), then /proc/<pid>/task/<tid>/stat to
+// tell a zombie); a holder that died is detected and the lock taken over, and
+// the caller is TOLD (LockStatus::recovered) so it can repair what the holder
+// was writing (the SVAR table rolls back an undo record). A timeout is
+// reported (LockStatus::timed_out) and the lock is left alone; only a caller
+// that asks for it (LockOptions::reset_on_timeout) gets the thesis's blind
+// reset, reported as LockStatus::forced. Every recovery, timeout and reset
+// also bumps a counter in the lock and calls the process-wide handler, if one
+// is set: never silent.
+//
+// Limits: the owner is identified by the pid/tid of the caller's PID
+// namespace; all users of one lock must share it (one machine, one container).
+#pragma once
+
+#include <atomic>
+#include <cstdint>
+
+namespace chimera::ipc {
+
+/// The lock as laid out in shared memory: one cache line.
+struct alignas(64) LockWord {
+    std::atomic<std::uint64_t> owner{0};       ///< pid << 32 | tid; 0 = free
+    std::atomic<std::uint32_t> recoveries{0};  ///< dead holders taken over
+    std::atomic<std::uint32_t> timeouts{0};    ///< acquisitions that timed out
+    std::atomic<std::uint32_t> forced{0};      ///< blind resets after a timeout
+    std::uint32_t reserved0 = 0;
+    std::atomic<std::uint64_t> acquisitions{0};///< slow-path acquisitions (after contention)
+    std::uint8_t reserved[32] = {};
+};
+static_assert(sizeof(LockWord) == 64);
+static_assert(std::atomic<std::uint64_t>::is_always_lock_free);
+
+enum class LockStatus : int {
+    acquired = 0,  ///< the caller holds the lock
+    recovered,     ///< the caller holds the lock, taken over from a dead holder
+    forced,        ///< the caller holds the lock, reset blindly after a timeout
+    busy,          ///< try_lock only: held by someone else
+    timed_out,     ///< not acquired within the timeout
+    already_held,  ///< the calling thread holds it already (not recursive)
+};
+
+/// True for the statuses in which the caller now holds the lock.
+constexpr bool holds(LockStatus s) noexcept {
+    return s == LockStatus::acquired || s == LockStatus::recovered || s == LockStatus::forced;
+}
+const char* to_string(LockStatus s) noexcept;
+
+struct LockOptions {
+    /// Total time to wait; negative waits forever (still recovering dead holders).
+    std::int64_t timeout_ns = 10'000'000;
+    /// Spins with the CPU's pause instruction before the first sleep.
+    std::uint32_t spin_count = 200;
+    /// First sleep between polls; doubles up to max_sleep_ns.
+    std::int64_t min_sleep_ns = 2'000;
+    std::int64_t max_sleep_ns = 200'000;
+    /// How often, while polling, to check that the holder is alive.
+    std::int64_t liveness_check_ns = 1'000'000;
+    /// The thesis's blind reset when the timeout passes (reported as forced).
+    bool reset_on_timeout = false;
+};
+
+/// Reported to the process-wide handler.
+struct LockEvent {
+    enum class Kind { recovered, timed_out, forced } kind;
+    const LockWord* lock;
+    std::int32_t previous_pid;   ///< the holder at the time
+    std::int32_t previous_tid;
+    std::int64_t waited_ns;
+};
+using LockEventHandler = void (*)(const LockEvent& event, void* context) noexcept;
+
+/// Installs a handler for every recovery/timeout/reset in this process (nullptr
+/// removes it). The handler runs in the thread that saw the event.
+void set_lock_event_handler(LockEventHandler handler, void* context = nullptr) noexcept;
+
+/// This thread's owner word (pid << 32 | tid), cached per thread and reset in a
+/// child after fork().
+std::uint64_t self_owner_id() noexcept;
+constexpr std::int32_t owner_pid(std::uint64_t word) noexcept {
+    return static_cast<std::int32_t>(word >> 32);
+}
+constexpr std::int32_t owner_tid(std::uint64_t word) noexcept {
+    return static_cast<std::int32_t>(word & 0xffffffffu);
+}
+
+/// True when the thread named by an owner word still exists (and is not a
+/// zombie). A system call: for slow paths only.
+bool owner_alive(std::uint64_t word) noexcept;
+
+/// One attempt; no waiting, no liveness check.
+inline LockStatus try_lock(LockWord& lock) noexcept {
+    std::uint64_t expected = 0;
+    const std::uint64_t me = self_owner_id();
+    if (lock.owner.compare_exchange_strong(expected, me, std::memory_order_acquire,
+                                           std::memory_order_relaxed))
+        return LockStatus::acquired;
+    return expected == me ? LockStatus::already_held : LockStatus::busy;
+}
+
+/// The contended path of lock(); out of line.
+LockStatus lock_slow(LockWord& lock, const LockOptions& options) noexcept;
+
+/// Acquires the lock: one CAS when free, else spin, poll, recover or time out.
+inline LockStatus lock(LockWord& lock, const LockOptions& options = {}) noexcept {
+    std::uint64_t expected = 0;
+    if (lock.owner.compare_exchange_strong(expected, self_owner_id(), std::memory_order_acquire,
+                                           std::memory_order_relaxed)) [[likely]]
+        return LockStatus::acquired;
+    return lock_slow(lock, options);
+}
+
+/// Releases the lock: true; false (and nothing changed) when the caller does
+/// not hold it, e.g. because a waiter reset it after a timeout.
+inline bool unlock(LockWord& lock) noexcept {
+    std::uint64_t expected = self_owner_id();
+    return lock.owner.compare_exchange_strong(expected, 0, std::memory_order_release,
+                                              std::memory_order_relaxed);
+}
+
+/// Takes the lock over from a holder known to be dead (CAS from its word);
+/// counts and reports the recovery. Exposed for services that find a dead
+/// owner by other means.
+LockStatus take_over(LockWord& lock, std::uint64_t dead_owner, std::int64_t waited_ns) noexcept;
+
+/// RAII holder for set-up code (not for cycle code that must look at the status).
+class LockGuard {
+public:
+    explicit LockGuard(LockWord& lock, const LockOptions& options = {}) noexcept
+        : lock_(lock), status_(ipc::lock(lock, options)) {}
+    ~LockGuard() {
+        if (holds(status_)) unlock(lock_);
+    }
+    LockGuard(const LockGuard&) = delete;
+    LockGuard& operator=(const LockGuard&) = delete;
+    LockStatus status() const noexcept { return status_; }
+    bool owns() const noexcept { return holds(status_); }
+
+private:
+    LockWord& lock_;
+    LockStatus status_;
+};
+
+}  // namespace chimera::ipc

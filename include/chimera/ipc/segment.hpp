@@ -1,0 +1,208 @@
+// chimera/ipc/segment.hpp — a POSIX shared-memory segment with a common header.
+//
+// Every shared object (SVAR table, TBUF, mailbox, status block...) is one
+// segment named `/chimera.<subsystem>.<object>` (ARCHITECTURE §2). At offset 0
+// sits a SegmentHeader that says what the segment is (magic, object type,
+// layout version, byte order) so that a process attaching to it with another
+// build of the library gets a clear error instead of reading garbage:
+//   "segment /chimera.x.y: layout version 3, this library expects 2".
+// Inside a segment every reference is an Offset<T> from the segment's start,
+// never a pointer: each process maps the segment at its own address.
+//
+// Life cycle: create() maps a new, zero-filled segment whose header is marked
+// "being built"; the creator fills the body and calls publish(). Until then
+// attach() refuses it, and if the creating Segment is destroyed (an exception
+// during set-up) the name is unlinked, so a failed creation leaves nothing
+// behind. attach() counts users in the header; detach_destroy_if_last() gives
+// services "destroyed by the last user" semantics.
+#pragma once
+
+#include <sys/types.h>
+
+#include <atomic>
+#include <cstddef>
+#include <cstdint>
+#include <stdexcept>
+#include <string>
+#include <string_view>
+
+namespace chimera::ipc {
+
+/// "CHIM" in memory order on a little-endian machine.
+inline constexpr std::uint32_t kSegmentMagic = 0x4D494843u;
+/// Written in native order; a reader of the other byte order sees 0x04030201.
+inline constexpr std::uint32_t kByteOrderCode = 0x01020304u;
+
+/// Object types of the segments the project defines (one registry, so two
+/// services never reuse a number).
+enum class ObjectType : std::uint32_t {
+    test = 1,
+    svar_table = 2,
+    tbuf = 3,
+    xmail_mailbox = 4,
+    xmail_shm = 5,
+    xmail_sem = 6,
+    xmail_msg = 7,
+    prof_status = 8,
+    sbs_control = 9,
+    name_server = 10,
+};
+
+/// The name of an ObjectType for messages ("svar_table"), or "type N".
+std::string object_type_name(ObjectType type);
+
+/// State of a segment's header.
+enum class SegmentState : std::uint32_t {
+    building = 0,   ///< created, body being filled; attach() refuses it
+    ready = 1,      ///< published
+    destroyed = 2,  ///< the last user is unlinking it; attach() refuses it
+};
+
+/// At offset 0 of every segment. Plain data: no pointers, fixed sizes.
+struct SegmentHeader {
+    std::uint32_t magic;            ///< kSegmentMagic
+    std::uint32_t layout_version;   ///< version of the object's layout
+    std::uint32_t object_type;      ///< ObjectType
+    std::uint32_t byte_order;       ///< kByteOrderCode as written by the creator
+    std::uint64_t total_size;       ///< bytes, header included
+    std::atomic<std::uint32_t> attach_count;  ///< mapped users, creator included
+    std::int32_t creator_pid;
+    std::atomic<std::uint32_t> state;         ///< SegmentState
+    std::uint32_t header_size;      ///< sizeof(SegmentHeader) of the creator
+    std::uint64_t created_ns;       ///< CLOCK_MONOTONIC at creation
+    std::uint8_t reserved[16];
+};
+static_assert(sizeof(SegmentHeader) == 64, "SegmentHeader is part of every layout");
+static_assert(std::atomic<std::uint32_t>::is_always_lock_free);
+
+/// An offset from the start of a segment to a T inside it.
+template <typename T>
+struct Offset {
+    std::uint64_t value = 0;
+
+    T* in(void* base) const noexcept {
+        return reinterpret_cast<T*>(static_cast<std::byte*>(base) + value);
+    }
+    const T* in(const void* base) const noexcept {
+        return reinterpret_cast<const T*>(static_cast<const std::byte*>(base) + value);
+    }
+    explicit operator bool() const noexcept { return value != 0; }
+};
+static_assert(sizeof(Offset<int>) == 8);
+
+/// Rounds `n` up to a multiple of `align` (a power of two).
+constexpr std::size_t align_up(std::size_t n, std::size_t align) noexcept {
+    return (n + align - 1) & ~(align - 1);
+}
+
+/// An error creating, attaching or validating a segment; what() names it.
+class SegmentError : public std::runtime_error {
+public:
+    SegmentError(std::string name, std::string message, int error_number = 0);
+    const std::string& name() const noexcept { return name_; }
+    /// errno of the failing call, or 0.
+    int error_number() const noexcept { return errno_; }
+
+private:
+    std::string name_;
+    int errno_;
+};
+
+/// "/chimera.<subsystem>.<object>"; throws SegmentError when either part is
+/// empty or holds '/', or the result is longer than NAME_MAX.
+std::string segment_name(std::string_view subsystem, std::string_view object);
+
+/// What the attaching process expects to find.
+struct SegmentKind {
+    ObjectType type;
+    std::uint32_t layout_version;
+};
+
+struct CreateOptions {
+    mode_t mode = 0600;   ///< owner only, by default
+    bool prefault = true; ///< touch every page now, not in the first cycle
+    bool lock = false;    ///< mlock the mapping (best effort: see Segment::locked())
+};
+
+struct AttachOptions {
+    bool prefault = true;
+    bool lock = false;
+    /// How long attach() waits for a segment still being built.
+    std::int64_t ready_timeout_ns = 1'000'000'000;
+};
+
+/// One mapping of a segment (RAII). Move-only. Destruction detaches (and
+/// unlinks a segment that was created but never published).
+class Segment {
+public:
+    Segment() noexcept = default;
+    Segment(Segment&& other) noexcept;
+    Segment& operator=(Segment&& other) noexcept;
+    Segment(const Segment&) = delete;
+    Segment& operator=(const Segment&) = delete;
+    ~Segment();
+
+    /// Creates a new segment of `size` bytes (header included, >= 64); fails
+    /// if the name exists ("segment /x: already exists").
+    static Segment create(const std::string& name, std::size_t size, SegmentKind kind,
+                          const CreateOptions& options = {});
+    /// Attaches to a published segment and validates magic, byte order,
+    /// object type, layout version and size.
+    static Segment attach(const std::string& name, SegmentKind kind,
+                          const AttachOptions& options = {});
+
+    /// Marks a created segment ready for attach(). Call once, after the body
+    /// is complete (release ordering: attachers see the whole body).
+    void publish() noexcept;
+
+    /// Unmaps and decrements the attach count. The name stays.
+    void detach() noexcept;
+    /// Unmaps; if this was the last user, unlinks the name. Returns true when
+    /// the segment was destroyed. (An attach racing with it either fails with
+    /// "is being destroyed" or keeps the segment alive as a new user.)
+    bool detach_destroy_if_last() noexcept;
+    /// Removes a name; false when it did not exist.
+    static bool unlink(const std::string& name) noexcept;
+    /// True when a segment of this name exists.
+    static bool exists(const std::string& name) noexcept;
+
+    bool valid() const noexcept { return base_ != nullptr; }
+    const std::string& name() const noexcept { return name_; }
+    std::size_t size() const noexcept { return size_; }
+    void* base() const noexcept { return base_; }
+    SegmentHeader& header() const noexcept { return *static_cast<SegmentHeader*>(base_); }
+    /// True when the mapping is mlock'ed (asked for and permitted).
+    bool locked() const noexcept { return locked_; }
+    /// True when this mapping created the segment.
+    bool creator() const noexcept { return creator_; }
+
+    template <typename T>
+    T* at(Offset<T> offset) const noexcept {
+        return offset.in(base_);
+    }
+    template <typename T = std::byte>
+    T* at_bytes(std::size_t offset) const noexcept {
+        return reinterpret_cast<T*>(static_cast<std::byte*>(base_) + offset);
+    }
+
+private:
+    bool release(bool destroy_if_last) noexcept;
+
+    std::string name_;
+    void* base_ = nullptr;
+    std::size_t size_ = 0;
+    bool locked_ = false;
+    bool creator_ = false;
+    bool published_ = false;
+};
+
+/// Checks a header against what a process expects; throws SegmentError with
+/// the mismatch named. Used by attach(), and by objects laid over
+/// caller-supplied memory.
+void validate_header(const std::string& name, const SegmentHeader& header, SegmentKind kind,
+                     std::size_t mapped_size);
+
+/// Fills a header for a new object of `total_size` bytes (state: building).
+void init_header(SegmentHeader& header, SegmentKind kind, std::size_t total_size) noexcept;
+
+}  // namespace chimera::ipc

@@ -1,0 +1,164 @@
+#include <gtest/gtest.h>
+
+#include <cstring>
+
+#include "chimera/ipc/segment.hpp"
+#include "test_util.hpp"
+
+using namespace chimera::ipc;
+using chimera::ipc::test::fork_child;
+using chimera::ipc::test::unique_name;
+using chimera::ipc::test::wait_child;
+
+namespace {
+
+constexpr SegmentKind kKind{ObjectType::test, 2};
+
+struct Body {
+    SegmentHeader header;
+    std::uint64_t value;
+};
+
+template <typename F>
+std::string error_of(F&& f) {
+    try {
+        f();
+    } catch (const SegmentError& e) {
+        return e.what();
+    }
+    return "";
+}
+
+// Creates and publishes a segment holding a Body.
+Segment make(const std::string& name, std::uint64_t value = 42) {
+    Segment s = Segment::create(name, sizeof(Body), kKind);
+    s.at_bytes<Body>(0)->value = value;
+    s.publish();
+    return s;
+}
+
+}  // namespace
+
+TEST(IpcSegment, NameIsChimeraSubsystemObject) {
+    EXPECT_EQ(segment_name("arm", "svar"), "/chimera.arm.svar");
+    EXPECT_NE(error_of([] { segment_name("", "svar"); }), "");
+    EXPECT_NE(error_of([] { segment_name("a/b", "svar"); }), "");
+    EXPECT_NE(error_of([] { segment_name("a", std::string(300, 'x')); }), "");
+}
+
+TEST(IpcSegment, CreatePublishAttachSeesBodyAndHeader) {
+    const std::string name = unique_name("seg1");
+    Segment a = make(name, 1234);
+    EXPECT_TRUE(a.creator());
+    EXPECT_EQ(a.header().magic, kSegmentMagic);
+    EXPECT_EQ(a.header().byte_order, kByteOrderCode);
+    EXPECT_EQ(a.header().creator_pid, getpid());
+    EXPECT_EQ(a.header().total_size, sizeof(Body));
+    Segment b = Segment::attach(name, kKind);
+    EXPECT_FALSE(b.creator());
+    EXPECT_NE(a.base(), b.base());  // two mappings, one memory
+    EXPECT_EQ(b.at_bytes<Body>(0)->value, 1234u);
+    b.at_bytes<Body>(0)->value = 7;
+    EXPECT_EQ(a.at_bytes<Body>(0)->value, 7u);
+    EXPECT_EQ(a.header().attach_count.load(), 2u);
+    b.detach();
+    EXPECT_EQ(a.header().attach_count.load(), 1u);
+    EXPECT_TRUE(a.detach_destroy_if_last());
+    EXPECT_FALSE(Segment::exists(name));
+}
+
+TEST(IpcSegment, CreateRefusesAnExistingName) {
+    const std::string name = unique_name("seg2");
+    Segment a = make(name);
+    EXPECT_EQ(error_of([&] { Segment::create(name, 128, kKind); }),
+              "segment " + name + ": already exists");
+    a.detach_destroy_if_last();
+}
+
+TEST(IpcSegment, AttachToMissingSegmentNamesIt) {
+    const std::string name = unique_name("missing");
+    EXPECT_EQ(error_of([&] { Segment::attach(name, kKind); }),
+              "segment " + name + ": does not exist");
+}
+
+TEST(IpcSegment, LayoutVersionMismatchIsAClearError) {
+    const std::string name = unique_name("ver");
+    Segment a = make(name);
+    a.header().layout_version = 3;
+    EXPECT_EQ(error_of([&] { Segment::attach(name, kKind); }),
+              "segment " + name + ": layout version 3, this library expects 2");
+    EXPECT_EQ(a.header().attach_count.load(), 1u);  // a refused attach leaves no count behind
+    a.detach_destroy_if_last();
+}
+
+TEST(IpcSegment, MagicTypeAndByteOrderMismatchesAreClearErrors) {
+    const std::string name = unique_name("magic");
+    Segment a = make(name);
+    a.header().object_type = static_cast<std::uint32_t>(ObjectType::tbuf);
+    EXPECT_EQ(error_of([&] { Segment::attach(name, kKind); }),
+              "segment " + name + ": holds a tbuf, expected a test");
+    a.header().object_type = static_cast<std::uint32_t>(ObjectType::test);
+    a.header().byte_order = __builtin_bswap32(kByteOrderCode);
+    EXPECT_NE(error_of([&] { Segment::attach(name, kKind); }).find("other byte order"),
+              std::string::npos);
+    a.header().byte_order = kByteOrderCode;
+    a.header().magic = 0xdeadbeef;
+    EXPECT_NE(error_of([&] { Segment::attach(name, kKind); }).find("not a chimera segment"),
+              std::string::npos);
+    a.header().magic = kSegmentMagic;
+    EXPECT_NO_THROW(Segment::attach(name, kKind));
+    a.detach_destroy_if_last();
+}
+
+TEST(IpcSegment, UnpublishedCreationIsUnlinkedWhenAbandoned) {
+    const std::string name = unique_name("abandon");
+    {
+        Segment s = Segment::create(name, 256, kKind);
+        EXPECT_TRUE(Segment::exists(name));
+        // attach refuses a segment still being built
+        AttachOptions quick;
+        quick.ready_timeout_ns = 5'000'000;
+        EXPECT_NE(error_of([&] { Segment::attach(name, kKind, quick); }).find("still being built"),
+                  std::string::npos);
+    }  // e.g. an exception during set-up
+    EXPECT_FALSE(Segment::exists(name));
+}
+
+TEST(IpcSegment, LastUserAcrossProcessesDestroys) {
+    const std::string name = unique_name("last");
+    Segment a = make(name, 5);
+    const pid_t child = fork_child([&] {
+        Segment b = Segment::attach(name, kKind);
+        if (b.at_bytes<Body>(0)->value != 5) return 2;
+        b.at_bytes<Body>(0)->value = 6;
+        // not the last user: the parent still holds it
+        return b.detach_destroy_if_last() ? 3 : 0;
+    });
+    ASSERT_EQ(wait_child(child), 0);
+    EXPECT_TRUE(Segment::exists(name));
+    EXPECT_EQ(a.at_bytes<Body>(0)->value, 6u);
+    EXPECT_EQ(a.header().attach_count.load(), 1u);
+    EXPECT_TRUE(a.detach_destroy_if_last());
+    EXPECT_FALSE(Segment::exists(name));
+}
+
+TEST(IpcSegment, DetachKeepsTheNameForLaterUsers) {
+    const std::string name = unique_name("keep");
+    make(name, 9).detach();
+    Segment b = Segment::attach(name, kKind);
+    EXPECT_EQ(b.at_bytes<Body>(0)->value, 9u);
+    EXPECT_TRUE(b.detach_destroy_if_last());
+}
+
+TEST(IpcSegment, OffsetsResolveInEveryMapping) {
+    const std::string name = unique_name("off");
+    Segment a = Segment::create(name, 4096, kKind);
+    Offset<std::uint32_t> off{256};
+    *a.at(off) = 77;
+    a.publish();
+    Segment b = Segment::attach(name, kKind);
+    EXPECT_EQ(*b.at(off), 77u);
+    EXPECT_EQ(align_up(65, 64), 128u);
+    b.detach();
+    a.detach_destroy_if_last();
+}
