@@ -1,0 +1,236 @@
+// chimera/module.hpp — port-based objects (control modules), thesis §3.5–3.6.
+//
+// A control module is a class deriving from chimera::Module that overrides the
+// methods it needs, exported with one macro so the subsystem finds it by name:
+//
+//     #include <chimera/module.hpp>
+//
+//     class Diff : public chimera::Module {
+//     public:
+//         chimera::Result init(chimera::Task& t) override {
+//             z_ = t.translate<float>("Z");           // ports translated once, in init
+//             zdot_ = t.translate<float>("Z^");
+//             gain_ = t.local().number("GAIN", 1.0);  // LOCAL section of the .rmod
+//             return chimera::Result::OK;
+//         }
+//         chimera::Result cycle(chimera::Task& t) override {
+//             *zdot_ = gain_ * (*z_ - last_) * float(t.freq());  // algorithm only
+//             last_ = *z_;
+//             return chimera::Result::OK;
+//         }
+//     private:
+//         float* z_ = nullptr; float* zdot_ = nullptr; float last_ = 0; double gain_ = 1;
+//     };
+//     CHIMERA_MODULE(diff, Diff)
+//
+// Built as a shared object named `diff.so` or `libdiff.so`, it is loaded when a
+// .rmod says `MODULE diff` (see sbs.hpp for the module path). One instance of the
+// class is created per task, so several .rmod files (SVARALIAS, LOCAL) can use
+// the same code side by side.
+//
+// What the runtime does around each method (Figure 3.10):
+//   spawn:  in-consts -> init -> out-consts                 => OFF
+//           an error in init calls kill and the task stays NOT-CREATED
+//   on:     in-vars AND out-vars -> on -> out-vars          => ON  (on() == OFF: stays OFF)
+//   wakeup: in-vars -> cycle -> out-vars                    (every period / event)
+//   off:    off -> out-vars                                 => OFF
+//   kill:   (off -> out-vars when ON) -> kill               => NOT-CREATED
+//   error:  an error in on/cycle/off/sync/reinit calls error(); its result:
+//           OFF => OFF (off() is not called), CONTINUE => carry on,
+//           ERROR => ERROR: suspended until clear(); clear() returns OFF or ERROR
+//   reinit: in-consts -> reinit, when a task producing one of this task's
+//           in-consts is replaced by one producing a different value
+// A method reports an error by returning Result::ERROR, by calling
+// task.error(...) / CHIMERA_ERR (global error handling, err.hpp; a handler may
+// let it continue), or by throwing. Signals and other commands are applied only
+// between method calls, never inside one.
+//
+// Real-time path: cycle() (and sync() for synchronous tasks) should not allocate,
+// block, or take locks other than through the runtime.
+#pragma once
+
+#include <chimera/err.hpp>
+#include <chimera/sbs_files.hpp>
+
+#include <cstddef>
+#include <cstdint>
+#include <string>
+#include <string_view>
+
+#if __has_include(<chimera/svar.hpp>)
+#include <chimera/svar.hpp>
+#endif
+
+namespace chimera {
+
+namespace svar {
+class LocalTable;
+}
+namespace sbs::detail {
+class TaskCore;
+}
+
+/// Return code of every module method (the thesis's I_OK, SBS_OFF, SBS_CONTINUE, SBS_ERROR).
+enum class Result : int {
+    OK = 0,        ///< success
+    OFF = 1,       ///< on(): cannot start yet, stay OFF; error()/clear(): go to OFF;
+                   ///< cycle(): goal reached, turn myself off (SIG_OFF to the master)
+    CONTINUE = 2,  ///< error(): cleared, continue where the error happened
+    ERROR = 3,     ///< failure; from error()/clear(): suspend in the ERROR state
+};
+
+/// Task states of Figure 3.10.
+enum class State : std::uint8_t { NOT_CREATED = 0, OFF = 1, ON = 2, ERROR = 3 };
+std::string_view to_string(State s) noexcept;   ///< "NOT-CREATED", "OFF", "ON", "ERROR"
+std::string_view to_string(Result r) noexcept;  ///< "OK", "OFF", "CONTINUE", "ERROR"
+
+/// SBS signals, task -> master (§4.5.3): 32 in all, a bitmap; bit n = 1u << n.
+namespace sig {
+inline constexpr int OFF = 0;       ///< task reached its goal and shut itself off
+inline constexpr int FINISH = 1;    ///< task reached its goal and continues to cycle
+inline constexpr int ERROR = 2;     ///< task entered the ERROR state
+inline constexpr int WARNING = 3;   ///< task generated a warning and continues
+inline constexpr int SHUTDOWN = 4;  ///< task hit a fatal error and began a graceful shutdown
+inline constexpr int ILLEGAL = 5;   ///< task set the illegal-configuration flag
+inline constexpr int LEGAL = 6;     ///< task cleared the illegal-configuration flag
+inline constexpr int USER = 7;      ///< first user-defined signal (USER .. 31)
+inline constexpr int COUNT = 32;
+inline constexpr std::uint32_t ALL = 0xffffffffu;
+constexpr std::uint32_t bit(int s) noexcept { return s >= 0 && s < COUNT ? (1u << s) : 0u; }
+std::string_view name(int s) noexcept;  ///< "OFF", ..., "USER7", ...; "" when out of range
+}  // namespace sig
+
+/// The task as its module sees it (the thesis's sbsTask_t). Passed to every
+/// method; valid for the task's whole life. All fields are always available,
+/// whichever method runs. For a combined task (several objects, §3.8.1) each
+/// object gets its own view (its own rmod, aliases and LOCAL), sharing the task.
+class Task {
+public:
+    // --- identity and configuration -------------------------------------
+    std::string_view rmod() const noexcept;    ///< rmod name (file stem)
+    std::string_view module() const noexcept;  ///< MODULE name
+    std::string_view rtpu() const noexcept;    ///< RTPU name
+    TaskType type() const noexcept;
+    /// The LOCAL section of this object's .rmod (updated by sbsSet).
+    const LocalConfig& local() const noexcept;
+    /// This object's parsed .rmod.
+    const RmodFile& rmod_file() const noexcept;
+
+    // --- state -----------------------------------------------------------
+    State state() const noexcept;       ///< state while this method runs
+    State next_state() const noexcept;  ///< state after it returns, if it succeeds
+    int crit() const noexcept;          ///< criticality (scheduler priority)
+    std::uint64_t cycle_count() const noexcept;  ///< cycles since the task was turned on
+    std::uint32_t warnings() const noexcept;     ///< warnings since the task was turned on
+    double freq() const noexcept;    ///< Hz (0 for an event-driven task without one)
+    double period() const noexcept;  ///< seconds
+    /// Last error or warning: number (0 when none) and message.
+    int error_number() const noexcept;
+    std::string_view error_message() const noexcept;
+
+    // --- local state-variable table ---------------------------------------
+    /// A typed pointer into the local table for a port name (SVARALIAS applied).
+    /// Fails (throws, at init time — never in the cycle) on an unknown name, a
+    /// name that is not one of this task's ports, or a wrong type.
+    /// Requires <chimera/svar.hpp>.
+    template <typename T, typename Table = svar::LocalTable>
+    T* translate(std::string_view port) const {
+        Table& table = *static_cast<Table*>(local_table_ptr());
+        return table.template translate<T>(global_name(port));
+    }
+    /// The global name a port name stands for.
+    std::string global_name(std::string_view port) const;
+    /// The task's local table (shared by all objects of a combined task).
+    svar::LocalTable& local_table() const noexcept { return *static_cast<svar::LocalTable*>(local_table_ptr()); }
+
+    // --- signals, arguments, flags -----------------------------------------
+    std::uint32_t signals() const noexcept;  ///< bitmap of signals this task has sent
+    std::uint32_t sigmask() const noexcept;  ///< bitmap the master catches from this task
+    /// Sends an SBS signal to the master (sbsSigSend); masked signals are
+    /// dropped. Real-time safe: no allocation.
+    void send_signal(int signal) noexcept;
+    /// Argument of the current set/get/control call (text; empty when none).
+    std::string_view arg() const noexcept;
+    /// Answer of get(); the default answer is the LOCAL value of the key asked.
+    void reply(std::string text);
+    /// The illegal-configuration flag (§3.10): a reconfiguration is in progress
+    /// or a task has halted on an error. Critical modules read it each cycle and
+    /// run their local-stability loop while it is set.
+    bool illegal_configuration() const noexcept;
+    /// Sets/clears the flag and sends sig::ILLEGAL / sig::LEGAL.
+    void set_illegal_configuration(bool illegal) noexcept;
+    /// True when the master has a signal waiting for this task; a blocking
+    /// sync() should poll it and return so the signal can be applied.
+    bool command_pending() const noexcept;
+
+    // --- errors and warnings -------------------------------------------------
+    /// Raises an error through global error handling (errInvoke) with this
+    /// module's name. Returns only if a handler (or error()) says continue.
+    void error(int code, std::string_view message, const char* file = nullptr, int line = 0) const;
+    /// Records a warning (count, message), sends sig::WARNING, prints it when
+    /// the RTPU's ERRPRINT asks for warnings. The task carries on.
+    void warning(std::string_view message) noexcept;
+
+    /// For the runtime only.
+    Task(sbs::detail::TaskCore* core, std::size_t object) noexcept : core_(core), object_(object) {}
+
+private:
+    void* local_table_ptr() const noexcept;
+    sbs::detail::TaskCore* core_;
+    std::size_t object_;
+};
+
+/// Base class of every control module. Every method has a default, so a module
+/// overrides only what it needs. Defaults: OK for init, reinit, on, cycle, off,
+/// kill, set, get, sync; error() returns ERROR (suspend, operator needed);
+/// clear() returns OFF (the operator's clear is trusted).
+class Module {
+public:
+    virtual ~Module() = default;
+
+    virtual Result init(Task&) { return Result::OK; }
+    virtual Result reinit(Task&) { return Result::OK; }
+    virtual Result on(Task&) { return Result::OK; }
+    virtual Result cycle(Task&) { return Result::OK; }
+    virtual Result off(Task&) { return Result::OK; }
+    virtual Result kill(Task&) { return Result::OK; }
+    /// Called for an error in on/cycle/off/sync/reinit: OFF, CONTINUE or ERROR.
+    virtual Result error(Task&, const err::Error&) { return Result::ERROR; }
+    /// Called on a clear signal in the ERROR state with the error that caused
+    /// it: OFF (cleared) or ERROR (still broken).
+    virtual Result clear(Task&, const err::Error&) { return Result::OFF; }
+    /// sbsSet: the LOCAL entry is already updated; task.arg() is "KEY value...".
+    virtual Result set(Task&) { return Result::OK; }
+    /// sbsGet: task.arg() is the key; answer with task.reply().
+    virtual Result get(Task&) { return Result::OK; }
+    /// Synchronous tasks: block until the external event, then return; the
+    /// cycle follows.
+    virtual Result sync(Task&) { return Result::OK; }
+};
+
+/// The C-ABI table exported by CHIMERA_MODULE (the thesis's _sbsFunc_t).
+struct ChimeraModuleAbi {
+    std::uint32_t magic;    ///< CHIMERA_MODULE_MAGIC
+    std::uint32_t version;  ///< CHIMERA_MODULE_ABI_VERSION
+    const char* name;       ///< MODULE name
+    std::size_t size;       ///< sizeof the class (informative)
+    Module* (*create)();
+    void (*destroy)(Module*);
+};
+inline constexpr std::uint32_t CHIMERA_MODULE_MAGIC = 0x43484d4dU;  // "CHMM"
+inline constexpr std::uint32_t CHIMERA_MODULE_ABI_VERSION = 1;
+
+/// Symbol name looked up for MODULE `name`: "chimera_module_<name>".
+std::string module_symbol(std::string_view name);
+
+}  // namespace chimera
+
+/// Exports `Class` as the module `name` (an identifier; must equal the .rmod's
+/// MODULE). Use once per module, at global scope, in the module's shared object
+/// (or in the program itself: modules linked into the executable are found too).
+#define CHIMERA_MODULE(name, Class)                                                             \
+    extern "C" __attribute__((visibility("default"), used))                                     \
+    const ::chimera::ChimeraModuleAbi chimera_module_##name = {                                 \
+        ::chimera::CHIMERA_MODULE_MAGIC, ::chimera::CHIMERA_MODULE_ABI_VERSION, #name,          \
+        sizeof(Class), []() -> ::chimera::Module* { return new Class(); },                      \
+        [](::chimera::Module* m) { delete m; }};

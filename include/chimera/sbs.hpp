@@ -1,0 +1,233 @@
+// chimera/sbs.hpp — the subsystem (SBS) master API, thesis §4.2–4.5.
+//
+// The autonomous-program interface of §4.4.4, one call per thesis routine:
+//
+//   sbsInit      Subsystem::init(".sbs")     reads the .sbs, creates the SVAR table
+//   sbsSpawn     spawn(rmod, rtpu)            NOT-CREATED -> (in-consts, init, out-consts) -> OFF
+//   sbsControl   control(task, Control::on)   on / off / kill / clear, synchronous
+//   sbsReconfig  reconfig({...})              ordered list; stops at the first failure
+//   sbsFreqGet/Set, sbsGet/Set, sbsStatus/StatusAll, sbsSigWait, sbsFinish
+//
+//     auto sbs = chimera::sbs::Subsystem::init("examples/fig3_7_pid/pid.sbs");
+//     auto robot = sbs->spawn("robotsim.rmod", "cpu1");
+//     auto traj = sbs->spawn("jtraj.rmod", "cpu0");
+//     auto pid = sbs->spawn("jpid.rmod", "cpu0");
+//     sbs->reconfig({{traj, Control::on}, {pid, Control::on}, {robot, Control::on}});
+//     std::this_thread::sleep_for(2s);
+//     for (auto& s : sbs->status_all()) std::cout << format_status(s) << '\n';
+//     sbs->finish();
+//
+// Each task is one pthread pinned to its RTPU's CPU. A control signal is
+// checked against the task's state machine (Figure 3.10) by the master; an
+// invalid one (on to an ON task, clear to a task not in ERROR, ...) is refused
+// with sbs::Refused and the task is untouched. A valid one is applied by the
+// task between method calls, and control() returns when it has been.
+//
+// Module path: a MODULE name is first looked up in the running program (modules
+// linked in), then as `<name>.so` / `lib<name>.so` in: the folders of the
+// CHIMERA_MODULE_PATH environment variable (colon-separated), folders added
+// with add_module_path(), the .rmod's own folder, and the installed module
+// folder.
+//
+// Scheduling: tasks get SCHED_FIFO priorities ordered by frequency (rate
+// monotonic) unless the RTPU's BACKEND is `other`; without real-time privilege
+// the subsystem says so once on stderr and runs best-effort (status shows the
+// policy each task really got).
+#pragma once
+
+#include <chimera/module.hpp>
+#include <chimera/sbs_files.hpp>
+
+#include <chrono>
+#include <cstdint>
+#include <initializer_list>
+#include <memory>
+#include <optional>
+#include <span>
+#include <stdexcept>
+#include <string>
+#include <string_view>
+#include <vector>
+
+namespace chimera::sbs {
+
+/// A task of the subsystem; ids are never reused within a subsystem.
+struct TaskId {
+    int value = -1;
+    explicit operator bool() const noexcept { return value >= 0; }
+    friend bool operator==(TaskId, TaskId) = default;
+};
+
+/// Control signals master -> task (sbsControl).
+enum class Control : std::uint8_t { on, off, kill, clear };
+std::string_view to_string(Control c) noexcept;
+
+/// Any failure of a master call; what() names the task/file and the reason.
+class Error : public std::runtime_error {
+public:
+    using std::runtime_error::runtime_error;
+};
+/// A signal invalid for the task's current state (nothing happened).
+class Refused : public Error {
+public:
+    using Error::Error;
+};
+/// §3.3.1 verification failed: the variable and the modules are named.
+class VerifyError : public Error {
+public:
+    using Error::Error;
+};
+
+/// One item of sbsReconfig.
+struct ReconfigItem {
+    TaskId task;
+    Control signal = Control::on;
+    std::string arg;  ///< passed to the method as task.arg()
+};
+
+/// Result of reconfig(): ok, or the index of the item that failed and why.
+/// Items before `failed` were applied; it and those after it were not sent.
+struct ReconfigResult {
+    bool ok = true;
+    std::size_t processed = 0;  ///< items applied
+    std::size_t failed = 0;     ///< index of the failing item (when !ok)
+    std::string message;        ///< "item 2 (on pid): ..." when !ok
+    explicit operator bool() const noexcept { return ok; }
+};
+
+/// sbsStatus: the fields of §4.4.1 the runtime knows.
+struct TaskStatus {
+    TaskId id;
+    std::string rmod;     ///< rmod name ("a+b" for a combined task)
+    std::string module;
+    std::string rtpu;
+    int cpu = -1;
+    long tid = 0;         ///< Linux thread id
+    char type = 'P';      ///< P periodic, Y synchronous, S sporadic, D deferrable, B background
+    int crit = 0;
+    State state = State::NOT_CREATED;
+    std::uint64_t cycles = 0;   ///< since turned on
+    std::uint64_t misses = 0;   ///< releases that came while the previous cycle still ran
+    double ref_freq = 0, ref_period = 0;
+    double mez_freq = 0;        ///< measured cycles per second since turned on
+    double mez_period = 0;      ///< mean measured period between releases
+    double max_cycle_time = 0;  ///< seconds, wall time of the longest cycle (in-vars..out-vars)
+    std::uint32_t warnings = 0;
+    std::string warning;        ///< first warning since the last status() call
+    int error_code = 0;
+    std::string error;          ///< message of the error that put the task in ERROR
+    std::string policy;         ///< scheduling the thread really got, e.g. "SCHED_FIFO 42"
+};
+
+/// "rmod rtpu tid S crit state cycle miss refF mezF ..." in one line, plus
+/// WARNING> / ERROR> lines as §4.4.1 prints them.
+std::string format_status(const TaskStatus& s);
+
+/// A signal received by sig_wait().
+struct SignalEvent {
+    int signal = -1;
+    TaskId task;
+    std::string rmod;
+};
+
+namespace detail {
+class SubsystemCore;
+}
+
+class Subsystem {
+public:
+    /// sbsInit: reads the .sbs, creates the subsystem's SVAR table from its
+    /// SVARFILE. Throws cfg::ParseError (FILE:LINE:) or sbs::Error.
+    static std::unique_ptr<Subsystem> init(const std::string& sbs_path);
+    /// Same from a parsed file.
+    static std::unique_ptr<Subsystem> init(SbsFile file);
+    /// sbsFinish if not done.
+    ~Subsystem();
+    Subsystem(const Subsystem&) = delete;
+    Subsystem& operator=(const Subsystem&) = delete;
+
+    const SbsFile& file() const noexcept;
+    const std::string& name() const noexcept;
+
+    /// Adds a folder to search for module shared objects.
+    void add_module_path(std::string dir);
+
+    /// sbsSpawn: creates a task from a .rmod on an RTPU (empty: the MASTER
+    /// RTPU), runs in-consts, init, out-consts and returns once the task is
+    /// OFF. Throws sbs::Error (bad file, module not found, init failed — the
+    /// task is then NOT-CREATED) or VerifyError (an in-const nobody produces).
+    TaskId spawn(const std::string& rmod_path, std::string_view rtpu = {});
+    /// A combined task (§3.8.1): several objects, one thread, one local table;
+    /// their methods run in the order given. Ports one object produces and
+    /// another consumes stay in the local table (never copied to the global
+    /// one). All must have the same TASKTYPE and frequency.
+    TaskId spawn_combined(const std::vector<std::string>& rmod_paths, std::string_view rtpu = {});
+
+    /// Looks a task up by rmod name (the latest one created with that name).
+    std::optional<TaskId> find(std::string_view rmod) const;
+
+    /// sbsControl: applies one signal and waits until the task has done it.
+    /// Throws Refused when invalid for the state, VerifyError when turning the
+    /// task on would give one variable two producers, Error when the method
+    /// failed (the task's new state is then in status()).
+    void control(TaskId task, Control signal, std::string_view arg = {});
+
+    /// sbsReconfig: verifies the configuration that would result (§3.3.1,
+    /// both equations, over the tasks ON afterwards), raises the
+    /// illegal-configuration flag, applies the items in order, stops at the
+    /// first failure, lowers the flag (unless a task is in ERROR).
+    ReconfigResult reconfig(std::span<const ReconfigItem> items);
+    ReconfigResult reconfig(std::initializer_list<ReconfigItem> items) {
+        return reconfig(std::span<const ReconfigItem>(items.begin(), items.size()));
+    }
+
+    /// §3.3.1 over a set of tasks: throws VerifyError naming the variable and
+    /// the modules when two produce one variable or an input has no producer.
+    void verify(std::span<const TaskId> tasks) const;
+
+    /// sbsFreqGet / sbsFreqSet (Hz; takes effect at the next release).
+    double freq_get(TaskId task) const;
+    void freq_set(TaskId task, double hz);
+
+    /// sbsGet / sbsSet: the LOCAL configuration of the task, through the
+    /// module's get()/set() (applied between method calls).
+    std::string get(TaskId task, std::string_view key);
+    void set(TaskId task, std::string_view key, std::string_view value);
+
+    /// Wakes an aperiodic (sporadic, deferrable, background) task: one cycle
+    /// per event. Callable from any thread, real-time safe.
+    void event(TaskId task) noexcept;
+
+    /// sbsStatus / sbsStatusAll (live tasks, creation order).
+    TaskStatus status(TaskId task) const;
+    std::vector<TaskStatus> status_all() const;
+
+    /// Signal masks: bits set are the signals the master catches. A task whose
+    /// own mask was never set uses the subsystem-wide mask (initially ALL).
+    void set_sigmask(std::uint32_t mask);
+    void set_sigmask(TaskId task, std::uint32_t mask);
+    void clear_task_sigmask(TaskId task);
+
+    /// sbsSigWait: the oldest caught signal whose bit is in `wanted` (from
+    /// `from` only, if given); caught signals that do not match are discarded.
+    /// nullopt on timeout (a negative timeout waits forever).
+    std::optional<SignalEvent> sig_wait(std::uint32_t wanted = sig::ALL, std::optional<TaskId> from = {},
+                                        std::chrono::nanoseconds timeout = std::chrono::nanoseconds(-1));
+    /// sbsSigSend from the master side (for drivers and tests).
+    void sig_send(TaskId from, int signal);
+
+    /// The illegal-configuration flag (§3.10).
+    bool illegal_configuration() const noexcept;
+
+    /// sbsFinish: turns every ON task off, kills every task, joins the threads,
+    /// removes the shared segments. Idempotent.
+    void finish();
+
+    /// For the runtime.
+    explicit Subsystem(std::unique_ptr<detail::SubsystemCore> core);
+
+private:
+    std::unique_ptr<detail::SubsystemCore> core_;
+};
+
+}  // namespace chimera::sbs

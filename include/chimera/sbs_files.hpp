@@ -1,0 +1,166 @@
+// chimera/sbs_files.hpp — the .rmod (thesis §3.8) and .sbs (§4.5.1) files.
+//
+// Both are read with chimera::cfg::Reader (DEFINE, `#` comments, final EOF);
+// every error is a cfg::ParseError whose what() reads `FILE:LINE: message`, and
+// nothing is returned from a bad file.
+//
+// .rmod — one reconfigurable module (keywords in this order; [] = optional):
+//
+//   MODULE    name                 C++ module (its CHIMERA_MODULE name)
+//   DESC      one line of text
+//   [SVARALIAS internal=GLOBAL]    any number; renames a port (Z=Q_MEZ)
+//   [INCONST  name... | none]      absent is the same as `none`
+//   [OUTCONST name... | none]
+//   [INVAR    name... | none]
+//   [OUTVAR   name... | none]
+//   TASKTYPE  periodic | synchronous | sporadic | deferrable | background
+//   FREQ hz  |  PERIOD seconds     exactly one of them; required for periodic and
+//                                  synchronous tasks, optional for aperiodic ones
+//                                  (their server period)
+//   [LOCAL]                        free `KEY value...` lines up to EOF, read by the
+//                                  module (module-dependent configuration)
+//   EOF
+//
+// Port names in INCONST..OUTVAR are the module's internal names; SVARALIAS maps
+// them onto the global table's names (an unaliased name is used as is).
+//
+// .sbs — one subsystem:
+//
+//   SUBSYSTEM name
+//   SVARFILE  file.svar            relative paths are taken from the .sbs's folder
+//   [MASTER   rtpu]                the RTPU hosting the SBS interface (default:
+//                                  the first RTPU)
+//   then one block per RTPU, each starting with
+//   RTPU      name [cpu]           cpu: the Linux CPU number the RTPU stands for.
+//                                  When omitted the name must be `cpuN` (CPU N).
+//   followed, in any order, each at most once, by
+//   [SCHEDULER RM | EDF | MUF]           default MUF
+//   [USAGE     exclusive | shared]       default exclusive
+//   [ERRPRINT  errors | warnings | none] default warnings
+//   [MINFREQ   hz]                       default 1.0
+//   [MAXFREQ   hz]                       default 1000.0 (must exceed MINFREQ)
+//   [BACKEND   fifo | deadline | other]  Linux scheduling backend (ARCHITECTURE §5);
+//                                        `other` runs best-effort (SCHED_OTHER);
+//                                        default fifo
+//   EOF
+#pragma once
+
+#include <chimera/cfg.hpp>
+
+#include <cstdint>
+#include <optional>
+#include <string>
+#include <string_view>
+#include <utility>
+#include <vector>
+
+namespace chimera {
+
+/// TASKTYPE of a .rmod file.
+enum class TaskType : std::uint8_t { periodic, synchronous, sporadic, deferrable, background };
+
+/// "periodic", ...; and the one-letter status code of §4.4.1 (P, Y, S, D, B).
+std::string_view to_string(TaskType t) noexcept;
+char status_letter(TaskType t) noexcept;
+/// True for sporadic, deferrable and background: woken by an event, not a clock.
+inline bool is_aperiodic(TaskType t) noexcept {
+    return t == TaskType::sporadic || t == TaskType::deferrable || t == TaskType::background;
+}
+
+/// The LOCAL section of a .rmod: free `KEY value...` lines, in file order.
+/// Keys are unique. Values are kept as text (DEFINEs substituted).
+class LocalConfig {
+public:
+    struct Entry {
+        std::string key;
+        std::vector<std::string> values;  ///< whitespace-separated tokens
+        int line = 0;                     ///< line in the .rmod (0 when set at run time)
+    };
+
+    bool has(std::string_view key) const noexcept { return find(key) != nullptr; }
+    const Entry* find(std::string_view key) const noexcept;
+    /// All values of `key`, joined by one space; nullopt when absent.
+    std::optional<std::string> text(std::string_view key) const;
+    /// The values of `key` as numbers. Throws std::invalid_argument naming the
+    /// file, line and key when absent or not numeric.
+    std::vector<double> numbers(std::string_view key) const;
+    /// The single numeric value of `key`, or `fallback` when the key is absent;
+    /// throws std::invalid_argument when present but not one number.
+    double number(std::string_view key, double fallback) const;
+    /// Replaces (or adds) `key` (used by sbsSet; `line` 0 for run-time values).
+    void set(std::string_view key, std::vector<std::string> values, int line = 0);
+    const std::vector<Entry>& entries() const noexcept { return entries_; }
+
+    std::string file;  ///< the .rmod, for messages
+
+private:
+    std::vector<Entry> entries_;
+};
+
+/// A parsed .rmod file.
+struct RmodFile {
+    std::string path;    ///< as opened
+    std::string name;    ///< the rmod name: the file name without folder and `.rmod`
+    std::string module;  ///< MODULE
+    std::string desc;    ///< DESC
+    std::vector<std::pair<std::string, std::string>> aliases;  ///< internal -> global
+    std::vector<std::string> in_consts, out_consts, in_vars, out_vars;  ///< internal names
+    TaskType type = TaskType::periodic;
+    double freq = 0.0;    ///< Hz (0 for an aperiodic task without FREQ/PERIOD)
+    double period = 0.0;  ///< seconds, always 1/freq when freq > 0
+    LocalConfig local;
+
+    /// The global SVAR name of an internal port name (SVARALIAS applied).
+    std::string global_name(std::string_view internal) const;
+    /// The four lists with SVARALIAS applied.
+    std::vector<std::string> global_in_consts() const;
+    std::vector<std::string> global_out_consts() const;
+    std::vector<std::string> global_in_vars() const;
+    std::vector<std::string> global_out_vars() const;
+};
+
+/// Reads a .rmod; throws cfg::ParseError.
+RmodFile read_rmod(const std::string& path);
+/// Parses from a reader (for text held in memory); `path` names the rmod.
+RmodFile parse_rmod(cfg::Reader& reader, const std::string& path);
+
+enum class Scheduler : std::uint8_t { RM, EDF, MUF };
+enum class Usage : std::uint8_t { exclusive, shared };
+enum class ErrPrint : std::uint8_t { errors, warnings, none };
+enum class Backend : std::uint8_t { fifo, deadline, other };
+
+std::string_view to_string(Scheduler s) noexcept;
+std::string_view to_string(Usage u) noexcept;
+std::string_view to_string(ErrPrint e) noexcept;
+std::string_view to_string(Backend b) noexcept;
+
+/// One RTPU block of a .sbs file.
+struct RtpuSpec {
+    std::string name;
+    int cpu = 0;  ///< Linux CPU number
+    Scheduler scheduler = Scheduler::MUF;
+    Usage usage = Usage::exclusive;
+    ErrPrint errprint = ErrPrint::warnings;
+    double minfreq = 1.0;
+    double maxfreq = 1000.0;
+    Backend backend = Backend::fifo;
+    int line = 0;  ///< line of the RTPU keyword
+};
+
+/// A parsed .sbs file.
+struct SbsFile {
+    std::string path;
+    std::string subsystem;  ///< SUBSYSTEM
+    std::string svarfile;   ///< SVARFILE, resolved against the .sbs's folder
+    std::string master;     ///< MASTER (the first RTPU when absent)
+    std::vector<RtpuSpec> rtpus;
+
+    const RtpuSpec* find_rtpu(std::string_view name) const noexcept;
+};
+
+/// Reads a .sbs; throws cfg::ParseError.
+SbsFile read_sbs(const std::string& path);
+/// Parses from a reader; relative SVARFILE paths are resolved against `base_dir`.
+SbsFile parse_sbs(cfg::Reader& reader, const std::string& base_dir);
+
+}  // namespace chimera

@@ -1,0 +1,356 @@
+// The .rmod and .sbs readers (see include/chimera/sbs_files.hpp for the formats).
+#include "chimera/sbs_files.hpp"
+
+#include <algorithm>
+#include <cctype>
+#include <cmath>
+#include <filesystem>
+#include <set>
+#include <stdexcept>
+
+namespace chimera {
+
+namespace {
+
+std::string join(const std::vector<std::string>& v, std::string_view sep) {
+    std::string out;
+    for (std::size_t i = 0; i < v.size(); ++i) {
+        if (i) out += sep;
+        out += v[i];
+    }
+    return out;
+}
+
+// INCONST/OUTCONST/INVAR/OUTVAR: names, or the single word `none`.
+std::vector<std::string> port_list(const cfg::Reader& r, const cfg::Line& l, std::set<std::string>& seen) {
+    if (l.args.empty()) r.fail(l, l.keyword + " needs port names or 'none'");
+    if (l.args.size() == 1 && l.args[0] == "none") return {};
+    for (const auto& a : l.args) {
+        if (a == "none") r.fail(l, l.keyword + ": 'none' cannot be mixed with port names");
+        if (!seen.insert(a).second) r.fail(l, "port '" + a + "' is listed twice");
+    }
+    return l.args;
+}
+
+bool positive_finite(double v) { return std::isfinite(v) && v > 0.0; }
+
+}  // namespace
+
+std::string_view to_string(TaskType t) noexcept {
+    switch (t) {
+        case TaskType::periodic: return "periodic";
+        case TaskType::synchronous: return "synchronous";
+        case TaskType::sporadic: return "sporadic";
+        case TaskType::deferrable: return "deferrable";
+        case TaskType::background: return "background";
+    }
+    return "?";
+}
+
+char status_letter(TaskType t) noexcept {
+    switch (t) {
+        case TaskType::periodic: return 'P';
+        case TaskType::synchronous: return 'Y';
+        case TaskType::sporadic: return 'S';
+        case TaskType::deferrable: return 'D';
+        case TaskType::background: return 'B';
+    }
+    return '?';
+}
+
+std::string_view to_string(Scheduler s) noexcept {
+    switch (s) {
+        case Scheduler::RM: return "RM";
+        case Scheduler::EDF: return "EDF";
+        case Scheduler::MUF: return "MUF";
+    }
+    return "?";
+}
+std::string_view to_string(Usage u) noexcept { return u == Usage::exclusive ? "exclusive" : "shared"; }
+std::string_view to_string(ErrPrint e) noexcept {
+    switch (e) {
+        case ErrPrint::errors: return "errors";
+        case ErrPrint::warnings: return "warnings";
+        case ErrPrint::none: return "none";
+    }
+    return "?";
+}
+std::string_view to_string(Backend b) noexcept {
+    switch (b) {
+        case Backend::fifo: return "fifo";
+        case Backend::deadline: return "deadline";
+        case Backend::other: return "other";
+    }
+    return "?";
+}
+
+// ---------------------------------------------------------------- LocalConfig
+
+const LocalConfig::Entry* LocalConfig::find(std::string_view key) const noexcept {
+    for (const auto& e : entries_)
+        if (e.key == key) return &e;
+    return nullptr;
+}
+
+std::optional<std::string> LocalConfig::text(std::string_view key) const {
+    const Entry* e = find(key);
+    if (!e) return std::nullopt;
+    return join(e->values, " ");
+}
+
+std::vector<double> LocalConfig::numbers(std::string_view key) const {
+    const Entry* e = find(key);
+    const std::string where = file.empty() ? std::string("LOCAL") : file;
+    if (!e) throw std::invalid_argument(where + ": LOCAL key '" + std::string(key) + "' is missing");
+    std::vector<double> out;
+    out.reserve(e->values.size());
+    for (const auto& v : e->values) {
+        auto d = cfg::parse_double(v);
+        if (!d)
+            throw std::invalid_argument(where + ":" + std::to_string(e->line) + ": LOCAL " + e->key +
+                                        ": expected a number, found '" + v + "'");
+        out.push_back(*d);
+    }
+    return out;
+}
+
+double LocalConfig::number(std::string_view key, double fallback) const {
+    const Entry* e = find(key);
+    if (!e) return fallback;
+    auto v = numbers(key);
+    if (v.size() != 1)
+        throw std::invalid_argument((file.empty() ? std::string("LOCAL") : file) + ":" + std::to_string(e->line) +
+                                    ": LOCAL " + e->key + ": expected one number, found " +
+                                    std::to_string(v.size()));
+    return v[0];
+}
+
+void LocalConfig::set(std::string_view key, std::vector<std::string> values, int line) {
+    for (auto& e : entries_) {
+        if (e.key == key) {
+            e.values = std::move(values);
+            e.line = line;
+            return;
+        }
+    }
+    entries_.push_back(Entry{std::string(key), std::move(values), line});
+}
+
+// ---------------------------------------------------------------- .rmod
+
+std::string RmodFile::global_name(std::string_view internal) const {
+    for (const auto& [from, to] : aliases)
+        if (from == internal) return to;
+    return std::string(internal);
+}
+
+namespace {
+std::vector<std::string> map_names(const RmodFile& r, const std::vector<std::string>& v) {
+    std::vector<std::string> out;
+    out.reserve(v.size());
+    for (const auto& n : v) out.push_back(r.global_name(n));
+    return out;
+}
+}  // namespace
+
+std::vector<std::string> RmodFile::global_in_consts() const { return map_names(*this, in_consts); }
+std::vector<std::string> RmodFile::global_out_consts() const { return map_names(*this, out_consts); }
+std::vector<std::string> RmodFile::global_in_vars() const { return map_names(*this, in_vars); }
+std::vector<std::string> RmodFile::global_out_vars() const { return map_names(*this, out_vars); }
+
+RmodFile parse_rmod(cfg::Reader& r, const std::string& path) {
+    RmodFile f;
+    f.path = path;
+    f.name = std::filesystem::path(path).stem().string();
+    f.local.file = r.file();
+
+    cfg::Line l = r.expect("MODULE");
+    r.require_args(l, 1);
+    f.module = l.args[0];
+    for (char c : f.module)
+        if (!(std::isalnum(static_cast<unsigned char>(c)) || c == '_'))
+            r.fail(l, "MODULE name '" + f.module + "' must be an identifier (letters, digits, _)");
+
+    l = r.expect("DESC");
+    f.desc = l.text;
+
+    std::set<std::string> alias_from;
+    while (auto a = r.accept("SVARALIAS")) {
+        // Either `internal=GLOBAL` or `internal = GLOBAL`.
+        std::string joined = join(a->args, "");
+        auto eq = joined.find('=');
+        if (eq == std::string::npos || eq == 0 || eq + 1 == joined.size() ||
+            joined.find('=', eq + 1) != std::string::npos)
+            r.fail(*a, "SVARALIAS expects internal=GLOBAL, found '" + a->text + "'");
+        std::string from = joined.substr(0, eq), to = joined.substr(eq + 1);
+        if (!alias_from.insert(from).second) r.fail(*a, "SVARALIAS: '" + from + "' is aliased twice");
+        f.aliases.emplace_back(std::move(from), std::move(to));
+    }
+
+    std::set<std::string> seen_inputs, seen_outputs;
+    if (auto x = r.accept("INCONST")) f.in_consts = port_list(r, *x, seen_inputs);
+    if (auto x = r.accept("OUTCONST")) f.out_consts = port_list(r, *x, seen_outputs);
+    if (auto x = r.accept("INVAR")) f.in_vars = port_list(r, *x, seen_inputs);
+    if (auto x = r.accept("OUTVAR")) f.out_vars = port_list(r, *x, seen_outputs);
+
+    l = r.expect("TASKTYPE");
+    r.require_args(l, 1);
+    static const std::pair<std::string_view, TaskType> types[] = {
+        {"periodic", TaskType::periodic},     {"synchronous", TaskType::synchronous},
+        {"sporadic", TaskType::sporadic},     {"deferrable", TaskType::deferrable},
+        {"background", TaskType::background},
+    };
+    bool found = false;
+    for (auto [n, t] : types) {
+        if (l.args[0] == n) {
+            f.type = t;
+            found = true;
+        }
+    }
+    if (!found)
+        r.fail(l, "TASKTYPE must be periodic, synchronous, sporadic, deferrable or background, found '" +
+                      l.args[0] + "'");
+
+    const cfg::Line* next = r.peek();
+    if (next && (next->keyword == "FREQ" || next->keyword == "PERIOD")) {
+        cfg::Line t = *r.next();
+        r.require_args(t, 1);
+        double v = r.to_double(t, 0, t.keyword);
+        if (!positive_finite(v)) r.fail(t, t.keyword + " must be a positive number");
+        if (t.keyword == "FREQ") {
+            f.freq = v;
+            f.period = 1.0 / v;
+        } else {
+            f.period = v;
+            f.freq = 1.0 / v;
+        }
+        const cfg::Line* again = r.peek();
+        if (again && (again->keyword == "FREQ" || again->keyword == "PERIOD"))
+            r.fail(*again, "FREQ and PERIOD are exclusive: " + t.keyword + " already given at line " +
+                               std::to_string(t.number));
+    } else if (!is_aperiodic(f.type)) {
+        const int at = next ? next->number : r.end_line();
+        r.fail(at, "a " + std::string(to_string(f.type)) + " task needs FREQ or PERIOD, found " +
+                       (next ? next->keyword : std::string("EOF")));
+    }
+
+    if (r.accept("LOCAL")) {
+        std::set<std::string> keys;
+        while (r.peek() != nullptr) {
+            cfg::Line entry = *r.next();
+            if (!keys.insert(entry.keyword).second)
+                r.fail(entry, "LOCAL key '" + entry.keyword + "' given twice");
+            f.local.set(entry.keyword, entry.args, entry.number);
+        }
+    }
+    r.expect_end();
+    return f;
+}
+
+RmodFile read_rmod(const std::string& path) {
+    cfg::Reader r = cfg::Reader::from_file(path);
+    return parse_rmod(r, path);
+}
+
+// ---------------------------------------------------------------- .sbs
+
+const RtpuSpec* SbsFile::find_rtpu(std::string_view name) const noexcept {
+    for (const auto& r : rtpus)
+        if (r.name == name) return &r;
+    return nullptr;
+}
+
+SbsFile parse_sbs(cfg::Reader& r, const std::string& base_dir) {
+    SbsFile f;
+    f.path = r.file();
+
+    cfg::Line l = r.expect("SUBSYSTEM");
+    r.require_args(l, 1);
+    f.subsystem = l.args[0];
+    for (char c : f.subsystem)
+        if (!(std::isalnum(static_cast<unsigned char>(c)) || c == '_' || c == '-'))
+            r.fail(l, "SUBSYSTEM name '" + f.subsystem + "' may hold only letters, digits, _ and -");
+
+    l = r.expect("SVARFILE");
+    r.require_args(l, 1);
+    std::filesystem::path svar(l.args[0]);
+    if (svar.is_relative() && !base_dir.empty()) svar = std::filesystem::path(base_dir) / svar;
+    f.svarfile = svar.lexically_normal().string();
+
+    std::optional<cfg::Line> master = r.accept("MASTER");
+    if (master) r.require_args(*master, 1);
+
+    do {
+        cfg::Line rl = r.expect("RTPU");
+        r.require_args(rl, 1, 2);
+        RtpuSpec spec;
+        spec.name = rl.args[0];
+        spec.line = rl.number;
+        if (f.find_rtpu(spec.name)) r.fail(rl, "RTPU '" + spec.name + "' is defined twice");
+        if (rl.args.size() == 2) {
+            auto cpu = cfg::parse_int(rl.args[1]);
+            if (!cpu || *cpu < 0 || *cpu > 4095)
+                r.fail(rl, "RTPU " + spec.name + ": expected a CPU number, found '" + rl.args[1] + "'");
+            spec.cpu = static_cast<int>(*cpu);
+        } else {
+            auto cpu = spec.name.rfind("cpu", 0) == 0 ? cfg::parse_int(spec.name.substr(3)) : std::nullopt;
+            if (!cpu || *cpu < 0)
+                r.fail(rl, "RTPU " + spec.name + ": give the CPU it runs on (RTPU name CPU), or name it cpuN");
+            spec.cpu = static_cast<int>(*cpu);
+        }
+
+        std::set<std::string> given;
+        while (const cfg::Line* p = r.peek()) {
+            if (p->keyword == "RTPU") break;
+            cfg::Line o = r.expect_one_of({"SCHEDULER", "USAGE", "ERRPRINT", "MINFREQ", "MAXFREQ", "BACKEND"});
+            if (!given.insert(o.keyword).second)
+                r.fail(o, o.keyword + " given twice for RTPU " + spec.name);
+            r.require_args(o, 1);
+            const std::string& v = o.args[0];
+            if (o.keyword == "SCHEDULER") {
+                if (v == "RM") spec.scheduler = Scheduler::RM;
+                else if (v == "EDF") spec.scheduler = Scheduler::EDF;
+                else if (v == "MUF") spec.scheduler = Scheduler::MUF;
+                else r.fail(o, "SCHEDULER must be RM, EDF or MUF, found '" + v + "'");
+            } else if (o.keyword == "USAGE") {
+                if (v == "exclusive") spec.usage = Usage::exclusive;
+                else if (v == "shared") spec.usage = Usage::shared;
+                else r.fail(o, "USAGE must be exclusive or shared, found '" + v + "'");
+            } else if (o.keyword == "ERRPRINT") {
+                if (v == "errors") spec.errprint = ErrPrint::errors;
+                else if (v == "warnings") spec.errprint = ErrPrint::warnings;
+                else if (v == "none") spec.errprint = ErrPrint::none;
+                else r.fail(o, "ERRPRINT must be errors, warnings or none, found '" + v + "'");
+            } else if (o.keyword == "BACKEND") {
+                if (v == "fifo") spec.backend = Backend::fifo;
+                else if (v == "deadline") spec.backend = Backend::deadline;
+                else if (v == "other") spec.backend = Backend::other;
+                else r.fail(o, "BACKEND must be fifo, deadline or other, found '" + v + "'");
+            } else {
+                double hz = r.to_double(o, 0, o.keyword);
+                if (!positive_finite(hz)) r.fail(o, o.keyword + " must be a positive number of Hz");
+                (o.keyword == "MINFREQ" ? spec.minfreq : spec.maxfreq) = hz;
+            }
+        }
+        if (!(spec.minfreq < spec.maxfreq))
+            r.fail(rl, "RTPU " + spec.name + ": MINFREQ must be below MAXFREQ");
+        f.rtpus.push_back(std::move(spec));
+    } while (r.peek() != nullptr);
+    r.expect_end();
+
+    if (master) {
+        if (!f.find_rtpu(master->args[0]))
+            r.fail(*master, "MASTER names RTPU '" + master->args[0] + "', which is not defined in this file");
+        f.master = master->args[0];
+    } else {
+        f.master = f.rtpus.front().name;
+    }
+    return f;
+}
+
+SbsFile read_sbs(const std::string& path) {
+    cfg::Reader r = cfg::Reader::from_file(path);
+    return parse_sbs(r, std::filesystem::path(path).parent_path().string());
+}
+
+}  // namespace chimera
