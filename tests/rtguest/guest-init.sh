@@ -1,0 +1,58 @@
+#!/bin/sh
+# /init of the rtguest initramfs (busybox sh): set up the kernel interfaces the
+# guest tests need, run every program under /tests, print one result line,
+# power off. The host (rtguest.sh) reads the result line from the console.
+export PATH=/bin:/sbin
+mount -t proc proc /proc
+mount -t sysfs sysfs /sys
+mount -t devtmpfs devtmpfs /dev
+mkdir -p /dev/shm /dev/pts
+mount -t tmpfs tmpfs /dev/shm
+mount -t tmpfs tmpfs /tmp
+echo "=== chimera-rtguest begin: $(uname -r) $(uname -v), $(nproc) cpu(s)"
+
+fail=0
+setup_fail() { echo "rtguest setup: $*"; fail=$((fail + 1)); }
+
+for m in configfs can can-raw can-dev vcan gpio-sim; do
+    insmod /lib/modules/$m.ko || setup_fail "insmod $m"
+done
+mount -t configfs none /sys/kernel/config || setup_fail "mount configfs"
+
+ip link add dev vcan0 type vcan && ip link set vcan0 up || setup_fail "vcan0"
+ip link add dev vcan1 type vcan && ip link set vcan1 up || setup_fail "vcan1"
+
+# One simulated chip with two banks: bank0 has 8 lines, bank1 has 4 (a second
+# device for the database tests). The tests find them through these variables.
+g=/sys/kernel/config/gpio-sim/chimera
+if mkdir $g && mkdir $g/bank0 $g/bank1; then
+    echo 8 >$g/bank0/num_lines
+    echo 4 >$g/bank1/num_lines
+    echo 1 >$g/live
+    export CHIMERA_GPIOSIM_CHIP0="$(cat $g/bank0/chip_name)"
+    export CHIMERA_GPIOSIM_CHIP1="$(cat $g/bank1/chip_name)"
+    export CHIMERA_GPIOSIM_DEV="$(cat $g/dev_name)"
+    echo "gpio-sim: $CHIMERA_GPIOSIM_DEV banks $CHIMERA_GPIOSIM_CHIP0 $CHIMERA_GPIOSIM_CHIP1"
+else
+    setup_fail "gpio-sim configfs"
+fi
+export CHIMERA_VCAN=vcan0 CHIMERA_VCAN1=vcan1 CHIMERA_RTGUEST=1
+
+n=0
+for t in /tests/*; do
+    n=$((n + 1))
+    echo "=== run $t"
+    if "$t"; then
+        echo "=== ok $t"
+    else
+        echo "=== FAILED $t (status $?)"
+        fail=$((fail + 1))
+    fi
+done
+if [ $fail -eq 0 ]; then
+    echo "CHIMERA-RTGUEST-RESULT: PASS ($n programs)"
+else
+    echo "CHIMERA-RTGUEST-RESULT: FAIL ($fail failures, $n programs)"
+fi
+sync
+poweroff -f

@@ -1,0 +1,188 @@
+#!/usr/bin/env bash
+# Runs test programs inside a Debian PREEMPT_RT kernel booted under qemu.
+#
+#   rtguest.sh [--keep] TEST_PROGRAM...
+#
+# What it does (everything downloaded or built is cached under
+# $CHIMERA_RTGUEST_CACHE, default /var/cache/chimera-rtguest, so a second run
+# starts the guest straight away):
+#   1. installs qemu-system-x86, busybox-static and the linux-headers package
+#      matching Debian's linux-image-rt-amd64 (apt-get), downloads the kernel
+#      image and linux-source packages (apt-get download) and unpacks them into
+#      the cache (the host's own kernel is not touched);
+#   2. builds gpio-sim out of tree (Debian's RT config has it switched off):
+#      drivers/gpio/gpio-sim.c plus kernel/irq/irq_sim.c, whose use of the
+#      unexported irq_to_desc() is replaced by generic_handle_irq();
+#   3. builds an initramfs: busybox, the test programs with their shared
+#      libraries (ldd), the kernel modules configfs, can, can-raw, can-dev,
+#      vcan and gpio-sim, and guest-init.sh as /init;
+#   4. boots it with -accel tcg (kvm only when the CPU shows vmx/svm and
+#      /dev/kvm can be opened), the init script loads the modules, creates
+#      vcan0 and a gpio-sim chip, runs every test program, and powers off;
+#   5. returns the tests' status, read from the marker line the guest prints
+#      on its serial console. Exit 77 (meson's "skipped") when the guest
+#      cannot be prepared here (no root and no cache, no apt, no qemu).
+#
+# Timing numbers measured inside a TCG guest mean nothing; the guest tests
+# assert behaviour only.
+set -euo pipefail
+
+here="$(cd "$(dirname "$0")" && pwd)"
+cache="${CHIMERA_RTGUEST_CACHE:-/var/cache/chimera-rtguest}"
+timeout_s="${CHIMERA_RTGUEST_TIMEOUT:-600}"
+keep=0
+if [[ "${1:-}" == "--keep" ]]; then keep=1; shift; fi
+tests=("$@")
+if ((${#tests[@]} == 0)); then echo "usage: $0 [--keep] TEST_PROGRAM..." >&2; exit 2; fi
+
+say() { echo "rtguest: $*"; }
+skip() { say "SKIP: $*"; exit 77; }
+
+if [[ "$(uname -m)" != x86_64 ]]; then skip "x86_64 host needed"; fi
+mkdir -p "$cache" 2>/dev/null || skip "cannot create cache $cache"
+[[ -w "$cache" ]] || skip "cache $cache is not writable"
+
+# Serialise concurrent runs (two build trees testing at once share the cache).
+exec 9>"$cache/.lock"
+flock 9
+
+as_root() {
+    if [[ $EUID -ne 0 ]]; then return 1; fi
+    DEBIAN_FRONTEND=noninteractive "$@"
+}
+
+# --- 1. packages ----------------------------------------------------------
+kver=""
+if command -v apt-cache >/dev/null; then
+    # linux-image-rt-amd64 is a meta package: its dependency names the kernel.
+    kver="$(apt-cache depends linux-image-rt-amd64 2>/dev/null |
+        sed -n 's/^ *Depends: linux-image-\(.*-rt-amd64\)$/\1/p' | head -n1)"
+fi
+if [[ -z "$kver" && -f "$cache/kver" ]]; then kver="$(cat "$cache/kver")"; fi
+[[ -n "$kver" ]] || skip "cannot find the linux-image-rt-amd64 kernel version (apt-cache)"
+echo "$kver" >"$cache/kver"
+say "kernel $kver, cache $cache"
+
+need_pkgs=()
+command -v qemu-system-x86_64 >/dev/null || need_pkgs+=(qemu-system-x86)
+[[ -x /bin/busybox ]] || need_pkgs+=(busybox-static)
+[[ -e "/lib/modules/$kver/build/Makefile" ]] || need_pkgs+=("linux-headers-$kver")
+command -v make >/dev/null || need_pkgs+=(make)
+command -v gcc >/dev/null || need_pkgs+=(gcc)
+if ((${#need_pkgs[@]})); then
+    say "installing ${need_pkgs[*]}"
+    as_root apt-get install -y -qq --no-install-recommends "${need_pkgs[@]}" >"$cache/apt-install.log" 2>&1 ||
+    { as_root apt-get update -qq >/dev/null 2>&1 &&
+      as_root apt-get install -y -qq --no-install-recommends "${need_pkgs[@]}" >"$cache/apt-install.log" 2>&1; } ||
+        skip "could not install ${need_pkgs[*]} (see $cache/apt-install.log)"
+fi
+busybox_bin=/bin/busybox
+
+kdir="$cache/kernel-$kver"
+if [[ ! -f "$kdir/.done" ]]; then
+    mkdir -p "$cache/debs"
+    (cd "$cache/debs" && apt-get download "linux-image-$kver" >"$cache/apt-download.log" 2>&1) ||
+        skip "apt-get download linux-image-$kver failed (see $cache/apt-download.log)"
+    rm -rf "$kdir" && mkdir -p "$kdir"
+    dpkg -x "$cache/debs/linux-image-${kver}"_*.deb "$kdir"
+    touch "$kdir/.done"
+fi
+vmlinuz="$kdir/boot/vmlinuz-$kver"
+kmods="$kdir/lib/modules/$kver/kernel"
+[[ -f "$vmlinuz" ]] || skip "no $vmlinuz in the kernel package"
+
+# --- 2. gpio-sim, out of tree ----------------------------------------------
+gdir="$cache/gpio-sim-$kver"
+if [[ ! -f "$gdir/gpio-sim.ko" ]]; then
+    # The linux-source package built from the same source version as the image.
+    # (Built-Using names the linux source version; the image's own Version is the fallback.)
+    srcver="$(dpkg-deb -f "$cache/debs/linux-image-${kver}"_*.deb Built-Using 2>/dev/null |
+        sed -n 's/.*linux (= \([^)]*\)).*/\1/p')"
+    [[ -n "$srcver" ]] || srcver="$(dpkg-deb -f "$cache/debs/linux-image-${kver}"_*.deb Version)"
+    series="$(echo "$kver" | sed -n 's/^\([0-9]*\.[0-9]*\)\..*/\1/p')"
+    srcdeb="$(ls "$cache/debs/linux-source-${series}_${srcver}"_all.deb 2>/dev/null | head -n1 || true)"
+    if [[ -z "$srcdeb" ]]; then
+        (cd "$cache/debs" && apt-get download "linux-source-${series}=${srcver}" >>"$cache/apt-download.log" 2>&1) ||
+            skip "apt-get download linux-source-${series}=${srcver} failed"
+        srcdeb="$(ls "$cache/debs/linux-source-${series}_${srcver}"_all.deb | head -n1)"
+    fi
+    rm -rf "$gdir" && mkdir -p "$gdir/tmp"
+    dpkg-deb --fsys-tarfile "$srcdeb" | tar -x -C "$gdir/tmp" "./usr/src/linux-source-${series}.tar.xz"
+    tar -xJf "$gdir/tmp/usr/src/linux-source-${series}.tar.xz" -C "$gdir/tmp" \
+        "linux-source-${series}/drivers/gpio/gpio-sim.c" \
+        "linux-source-${series}/drivers/gpio/gpiolib.h" \
+        "linux-source-${series}/kernel/irq/irq_sim.c"
+    s="$gdir/tmp/linux-source-${series}"
+    cp "$s/drivers/gpio/gpio-sim.c" "$gdir/gpio-sim-main.c"
+    cp "$s/drivers/gpio/gpiolib.h" "$gdir/gpiolib.h"
+    # irq_to_desc() is not exported to modules; generic_handle_irq() is, and
+    # does the same for this simple-irq domain.
+    sed 's/handle_simple_irq(irq_to_desc(irqnum));/generic_handle_irq(irqnum);/' \
+        "$s/kernel/irq/irq_sim.c" >"$gdir/irq_sim.c"
+    grep -q 'generic_handle_irq(irqnum);' "$gdir/irq_sim.c" || skip "irq_sim.c did not patch"
+    rm -rf "$gdir/tmp"
+    printf 'obj-m := gpio-sim.o\ngpio-sim-y := gpio-sim-main.o irq_sim.o\n' >"$gdir/Kbuild"
+    say "building gpio-sim.ko against linux-headers-$kver"
+    make -C "/lib/modules/$kver/build" M="$gdir" -j1 modules >"$gdir/build.log" 2>&1 ||
+        { tail -n 30 "$gdir/build.log"; say "FAIL: gpio-sim build"; exit 1; }
+fi
+
+# --- 3. initramfs ------------------------------------------------------------
+work="$(mktemp -d "${TMPDIR:-/tmp}/chimera-rtguest.XXXXXX")"
+cleanup() { if ((keep)); then say "kept $work"; else rm -rf "$work"; fi; }
+trap cleanup EXIT
+root="$work/root"
+mkdir -p "$root"/{bin,sbin,dev,proc,sys,tmp,run,lib/modules,tests,etc}
+cp "$busybox_bin" "$root/bin/busybox"
+for applet in sh mount umount mkdir cat echo insmod ip ls sleep poweroff grep sed tr \
+              head tail dmesg mknod ln env printf uname nproc timeout cut seq basename \
+              date rm find wc test [ true false; do
+    ln -sf busybox "$root/bin/$applet"
+done
+copy_with_libs() {  # copy a program and the shared libraries it needs
+    local prog="$1" dest="$2"
+    cp "$prog" "$dest"
+    ldd "$prog" 2>/dev/null | grep -o '/[^ ]*' | while read -r lib; do
+        mkdir -p "$root$(dirname "$lib")"
+        [[ -e "$root$lib" ]] || cp -L "$lib" "$root$lib"
+    done
+}
+i=0
+for t in "${tests[@]}"; do
+    [[ -x "$t" ]] || { say "FAIL: $t is not an executable"; exit 1; }
+    i=$((i + 1))
+    copy_with_libs "$t" "$root/tests/$(printf '%02d' $i)-$(basename "$t")"
+done
+for m in fs/configfs/configfs.ko net/can/can.ko net/can/can-raw.ko \
+         drivers/net/can/dev/can-dev.ko drivers/net/can/vcan.ko; do
+    cp "$kmods/$m" "$root/lib/modules/"
+done
+cp "$gdir/gpio-sim.ko" "$root/lib/modules/"
+cp "$here/guest-init.sh" "$root/init"
+chmod +x "$root/init"
+(cd "$root" && find . | "$busybox_bin" cpio -o -H newc 2>/dev/null | gzip -1 >"$work/initramfs.gz")
+
+# --- 4. boot ------------------------------------------------------------------
+accel=tcg
+if grep -qE '\b(vmx|svm)\b' /proc/cpuinfo && [[ -r /dev/kvm && -w /dev/kvm ]] &&
+   (exec 8<>/dev/kvm) 2>/dev/null; then
+    accel=kvm
+fi
+say "booting ($accel, ${#tests[@]} test program(s)), console log: $work/console.log"
+start=$(date +%s)
+set +e
+timeout --kill-after=10 "$timeout_s" qemu-system-x86_64 \
+    -accel "$accel" -m 768 -smp 2 -nographic -no-reboot \
+    -kernel "$vmlinuz" -initrd "$work/initramfs.gz" \
+    -append "console=ttyS0 panic=-1 loglevel=4 rdinit=/init" \
+    -nic none -serial "file:$work/console.log" -monitor none -display none </dev/null
+qrc=$?
+set -e
+say "guest ran $(( $(date +%s) - start )) s (qemu status $qrc)"
+tr -d '\r' <"$work/console.log" | sed -n '/=== chimera-rtguest begin/,$p'
+result="$(tr -d '\r' <"$work/console.log" | sed -n 's/^CHIMERA-RTGUEST-RESULT: \([A-Z]*\).*/\1/p' | tail -n1)"
+case "$result" in
+    PASS) exit 0 ;;
+    FAIL) exit 1 ;;
+    *) keep=1; tail -n 40 "$work/console.log"; say "FAIL: no result line from the guest"; exit 1 ;;
+esac
