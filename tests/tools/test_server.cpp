@@ -1,0 +1,372 @@
+// The network interface (§4.4.2) against a recording executor: control
+// passing, the line protocol, malformed and oversized input, lost peers,
+// permissions and the TCP token. The interpreter is tested separately; here
+// only what the server itself decides is checked.
+#include "client.hpp"
+#include "server.hpp"
+
+#include <gtest/gtest.h>
+
+#include <sys/socket.h>
+#include <sys/stat.h>
+#include <sys/un.h>
+#include <unistd.h>
+
+#include <atomic>
+#include <chrono>
+#include <cstdlib>
+#include <future>
+#include <mutex>
+#include <thread>
+#include <vector>
+
+using namespace chimera::cli;
+using json = nlohmann::json;
+using namespace std::chrono_literals;
+
+namespace {
+
+class TempDir {
+public:
+    TempDir() {
+        char tmpl[] = "/tmp/chimera-cli-test-XXXXXX";
+        path_ = ::mkdtemp(tmpl);
+    }
+    ~TempDir() { std::system(("rm -rf " + path_).c_str()); }
+    const std::string& path() const { return path_; }
+
+private:
+    std::string path_;
+};
+
+struct Recorder {
+    std::mutex mutex;
+    std::vector<std::string> commands;
+
+    Reply operator()(std::string_view command) {
+        {
+            std::lock_guard lock(mutex);
+            commands.emplace_back(command);
+        }
+        Reply r;
+        r.command = std::string(command.substr(0, command.find(' ')));
+        if (command == "quit") r.action = Action::quit;
+        if (command == "finish") r.action = Action::finish;
+        if (command == "network") r.action = Action::network;
+        if (command == "boom") throw std::runtime_error("executor blew up");
+        if (command.substr(0, 5) == "echo ") r.text = std::string(command.substr(5));
+        if (command == "fail") return Reply::failure("fail", "it failed");
+        return r;
+    }
+    std::vector<std::string> seen() {
+        std::lock_guard lock(mutex);
+        return commands;
+    }
+};
+
+struct Network : ::testing::Test {
+    TempDir dir;
+    Recorder recorder;
+    std::string path = dir.path() + "/test.sock";
+
+    std::unique_ptr<NetworkServer> make(ServerOptions o = {}) {
+        o.subsystem = "testsys";
+        if (o.unix_path.empty() && !o.tcp) o.unix_path = path;
+        auto s = std::make_unique<NetworkServer>(o, [this](std::string_view c) { return recorder(c); });
+        s->start();
+        return s;
+    }
+};
+
+// Runs hand_over() on another thread, as the prompt's `network` command does.
+std::future<NetworkServer::SessionEnd> hand_over_async(NetworkServer& s, std::atomic<bool>* interrupt) {
+    auto f = std::async(std::launch::async, [&s, interrupt] { return s.hand_over(interrupt); });
+    std::this_thread::sleep_for(50ms);  // let the offer be made before peers connect
+    return f;
+}
+
+}  // namespace
+
+TEST_F(Network, UnixSocketIsOwnerOnly) {
+    auto s = make();
+    struct stat st {};
+    ASSERT_EQ(::stat(path.c_str(), &st), 0);
+    EXPECT_TRUE(S_ISSOCK(st.st_mode));
+    EXPECT_EQ(st.st_mode & 0777, 0600u);
+    s->stop();
+    EXPECT_NE(::access(path.c_str(), F_OK), 0) << "socket file must be removed on stop";
+}
+
+TEST_F(Network, PeerIsRefusedWhileTheCommandLineHasControl) {
+    auto s = make();
+    auto c = NetworkClient::connect_unix(path);
+    EXPECT_FALSE(c.hello()["ok"].get<bool>());
+    EXPECT_NE(c.hello()["error"].get<std::string>().find("command line"), std::string::npos);
+    EXPECT_THROW(c.read_line(1000), ClientError) << "refused peer must be disconnected";
+    EXPECT_TRUE(recorder.seen().empty());
+}
+
+TEST_F(Network, HandOverRunsCommandsUntilQuit) {
+    auto s = make();
+    std::atomic<bool> interrupt{false};
+    auto done = hand_over_async(*s, &interrupt);
+    auto c = NetworkClient::connect_unix(path);
+    ASSERT_TRUE(c.hello()["ok"].get<bool>()) << c.hello().dump();
+    EXPECT_EQ(c.hello()["subsystem"], "testsys");
+    EXPECT_EQ(c.hello()["auth"], "none");
+    auto r = c.request("echo hello world", 2000);
+    EXPECT_TRUE(r["ok"].get<bool>());
+    EXPECT_EQ(r["text"], "hello world");
+    r = c.request("fail", 2000);
+    EXPECT_FALSE(r["ok"].get<bool>());
+    EXPECT_EQ(r["error"], "it failed");
+    r = c.request("quit", 2000);
+    EXPECT_TRUE(r["ok"].get<bool>());
+    ASSERT_EQ(done.wait_for(2s), std::future_status::ready);
+    EXPECT_EQ(done.get(), NetworkServer::SessionEnd::peer_quit);
+    EXPECT_EQ(recorder.seen(), (std::vector<std::string>{"echo hello world", "fail", "quit"}));
+    // Control is back at the command line: the next peer is refused.
+    auto late = NetworkClient::connect_unix(path);
+    EXPECT_FALSE(late.hello()["ok"].get<bool>());
+}
+
+TEST_F(Network, LostConnectionHandsControlBackAndDropsTheHalfCommand) {
+    auto s = make();
+    auto done = hand_over_async(*s, nullptr);
+    {
+        auto c = NetworkClient::connect_unix(path);
+        ASSERT_TRUE(c.hello()["ok"].get<bool>());
+        EXPECT_TRUE(c.request("echo one", 2000)["ok"].get<bool>());
+        c.send_raw("echo half a comm");  // no newline: the peer dies mid-command
+    }
+    ASSERT_EQ(done.wait_for(2s), std::future_status::ready);
+    EXPECT_EQ(done.get(), NetworkServer::SessionEnd::peer_lost);
+    EXPECT_EQ(recorder.seen(), (std::vector<std::string>{"echo one"}));
+}
+
+TEST_F(Network, PeerThatDisconnectsBeforeReadingItsReply) {
+    auto s = make();
+    auto done = hand_over_async(*s, nullptr);
+    {
+        auto c = NetworkClient::connect_unix(path);
+        c.send_raw("echo 1\necho 2\necho 3\n");
+        ::shutdown(c.fd(), SHUT_RDWR);
+    }
+    ASSERT_EQ(done.wait_for(2s), std::future_status::ready);
+    EXPECT_EQ(done.get(), NetworkServer::SessionEnd::peer_lost);
+    // The server survives: a new hand-over works.
+    auto again = hand_over_async(*s, nullptr);
+    auto c = NetworkClient::connect_unix(path);
+    ASSERT_TRUE(c.hello()["ok"].get<bool>());
+    EXPECT_EQ(c.request("echo alive", 2000)["text"], "alive");
+    c.request("quit", 2000);
+    EXPECT_EQ(again.get(), NetworkServer::SessionEnd::peer_quit);
+}
+
+TEST_F(Network, MalformedRequestsGetErrorsAndTheSessionGoesOn) {
+    auto s = make();
+    auto done = hand_over_async(*s, nullptr);
+    auto c = NetworkClient::connect_unix(path);
+    auto r = c.request("{\"cmd\": ", 2000);
+    EXPECT_FALSE(r["ok"].get<bool>());
+    EXPECT_EQ(r["error"], "malformed JSON request");
+    r = c.request("{\"id\": 4, \"cmd\": 17}", 2000);
+    EXPECT_FALSE(r["ok"].get<bool>());
+    EXPECT_EQ(r["id"], 4);
+    r = c.request("[1,2]", 2000);  // not an object: passed on as a command, executor decides
+    r = c.request(std::string("echo a\x01") + "b", 2000);
+    EXPECT_FALSE(r["ok"].get<bool>());
+    EXPECT_EQ(r["error"], "request contains control characters");
+    r = c.request("echo \xff\xfe bytes", 2000);  // invalid UTF-8 must still give valid JSON
+    EXPECT_TRUE(r["ok"].get<bool>());
+    r = c.request("boom", 2000);
+    EXPECT_FALSE(r["ok"].get<bool>());
+    EXPECT_EQ(r["error"], "executor blew up");
+    r = c.request("{\"id\": \"x1\", \"cmd\": \"echo structured\"}", 2000);
+    EXPECT_TRUE(r["ok"].get<bool>());
+    EXPECT_EQ(r["id"], "x1");
+    EXPECT_EQ(r["text"], "structured");
+    r = c.request("network", 2000);
+    EXPECT_FALSE(r["ok"].get<bool>());
+    EXPECT_EQ(r["error"], "the network already has control");
+    c.request("quit", 2000);
+    EXPECT_EQ(done.get(), NetworkServer::SessionEnd::peer_quit);
+}
+
+TEST_F(Network, OversizedRequestIsRefusedWithoutBeingExecuted) {
+    ServerOptions o;
+    o.max_request = 64;
+    auto s = make(o);
+    auto done = hand_over_async(*s, nullptr);
+    auto c = NetworkClient::connect_unix(path);
+    EXPECT_EQ(c.hello()["max_request"], 64);
+    // Sent in pieces so the limit is hit before the newline arrives.
+    const std::string big(100000, 'x');
+    c.send_raw("echo ");
+    c.send_raw(big);
+    auto line = c.read_line(2000);
+    ASSERT_TRUE(line);
+    auto r = json::parse(*line);
+    EXPECT_FALSE(r["ok"].get<bool>());
+    EXPECT_EQ(r["error"], "request longer than 64 bytes");
+    c.send_raw(big + "\n");  // the rest of the oversized line is dropped silently
+    EXPECT_EQ(c.request("echo small", 2000)["text"], "small");
+    c.request("quit", 2000);
+    EXPECT_EQ(done.get(), NetworkServer::SessionEnd::peer_quit);
+    for (const auto& cmd : recorder.seen()) EXPECT_LT(cmd.size(), 64u);
+}
+
+TEST_F(Network, SecondPeerIsRefusedWhileOneHasControl) {
+    auto s = make();
+    auto done = hand_over_async(*s, nullptr);
+    auto first = NetworkClient::connect_unix(path);
+    ASSERT_TRUE(first.hello()["ok"].get<bool>());
+    auto second = NetworkClient::connect_unix(path);
+    EXPECT_FALSE(second.hello()["ok"].get<bool>());
+    EXPECT_NE(second.hello()["error"].get<std::string>().find("another network peer"), std::string::npos);
+    EXPECT_EQ(first.request("echo still", 2000)["text"], "still");
+    first.request("quit", 2000);
+    EXPECT_EQ(done.get(), NetworkServer::SessionEnd::peer_quit);
+}
+
+TEST_F(Network, CommandLineTakesControlBack) {
+    auto s = make();
+    std::atomic<bool> interrupt{false};
+    auto done = hand_over_async(*s, &interrupt);
+    auto c = NetworkClient::connect_unix(path);
+    ASSERT_TRUE(c.hello()["ok"].get<bool>());
+    interrupt = true;
+    ASSERT_EQ(done.wait_for(2s), std::future_status::ready);
+    EXPECT_EQ(done.get(), NetworkServer::SessionEnd::interrupted);
+    auto line = c.read_line(2000);
+    ASSERT_TRUE(line);
+    EXPECT_EQ(json::parse(*line)["error"], "control taken back by the command line");
+    EXPECT_THROW(c.read_line(2000), ClientError);
+
+    // Interrupt while nobody is connected.
+    std::atomic<bool> again{false};
+    auto waiting = hand_over_async(*s, &again);
+    again = true;
+    ASSERT_EQ(waiting.wait_for(2s), std::future_status::ready);
+    EXPECT_EQ(waiting.get(), NetworkServer::SessionEnd::interrupted);
+}
+
+TEST_F(Network, ServeForeverAcceptsOneSessionAfterAnotherUntilFinish) {
+    auto s = make();
+    auto done = std::async(std::launch::async, [&] { return s->serve_forever(nullptr); });
+    std::this_thread::sleep_for(50ms);
+    {
+        auto c = NetworkClient::connect_unix(path);
+        ASSERT_TRUE(c.hello()["ok"].get<bool>());
+        c.request("quit", 2000);
+    }
+    {
+        auto c = NetworkClient::connect_unix(path);  // dropped without quit
+        ASSERT_TRUE(c.hello()["ok"].get<bool>());
+    }
+    std::this_thread::sleep_for(100ms);
+    EXPECT_EQ(done.wait_for(0s), std::future_status::timeout);
+    auto c = NetworkClient::connect_unix(path);
+    ASSERT_TRUE(c.hello()["ok"].get<bool>());
+    EXPECT_TRUE(c.request("finish", 2000)["ok"].get<bool>());
+    ASSERT_EQ(done.wait_for(2s), std::future_status::ready);
+    EXPECT_EQ(done.get(), NetworkServer::SessionEnd::finish);
+    EXPECT_EQ(s->sessions_ended(), 3u);
+}
+
+TEST_F(Network, StaleSocketFileIsReplacedButALiveOneIsNot) {
+    {
+        // A socket file nobody listens on, as a crashed master leaves it.
+        const int fd = ::socket(AF_UNIX, SOCK_STREAM, 0);
+        sockaddr_un a{};
+        a.sun_family = AF_UNIX;
+        std::snprintf(a.sun_path, sizeof a.sun_path, "%s", path.c_str());
+        ASSERT_EQ(::bind(fd, reinterpret_cast<sockaddr*>(&a), sizeof a), 0);
+        ::close(fd);
+    }
+    auto s = make();
+    ServerOptions o;
+    o.subsystem = "testsys";
+    o.unix_path = path;
+    NetworkServer second(o, [this](std::string_view c) { return recorder(c); });
+    try {
+        second.start();
+        FAIL() << "a second server on a live socket must be refused";
+    } catch (const ServerError& e) {
+        EXPECT_NE(std::string(e.what()).find("another master"), std::string::npos) << e.what();
+    }
+    // The refused server did not remove the live socket.
+    auto done = hand_over_async(*s, nullptr);
+    auto c = NetworkClient::connect_unix(path);
+    EXPECT_TRUE(c.hello()["ok"].get<bool>());
+    c.request("quit", 2000);
+    done.get();
+}
+
+TEST_F(Network, TcpNeedsATokenOffLoopback) {
+    ServerOptions o;
+    o.subsystem = "testsys";
+    o.tcp = true;
+    o.tcp_host = "0.0.0.0";
+    NetworkServer s(o, [this](std::string_view c) { return recorder(c); });
+    try {
+        s.start();
+        FAIL() << "non-loopback TCP without a token must be refused";
+    } catch (const ServerError& e) {
+        EXPECT_NE(std::string(e.what()).find("needs a token"), std::string::npos) << e.what();
+    }
+    EXPECT_TRUE(is_loopback_host("127.0.0.1"));
+    EXPECT_TRUE(is_loopback_host("127.8.9.1"));
+    EXPECT_TRUE(is_loopback_host("::1"));
+    EXPECT_TRUE(is_loopback_host("localhost"));
+    EXPECT_FALSE(is_loopback_host("0.0.0.0"));
+    EXPECT_FALSE(is_loopback_host("10.0.0.1"));
+    EXPECT_FALSE(is_loopback_host("::"));
+}
+
+TEST_F(Network, TcpTokenIsCheckedBeforeAnyCommand) {
+    ServerOptions o;
+    o.tcp = true;
+    o.token = "s3cret-token";
+    auto s = make(o);
+    ASSERT_NE(s->tcp_port(), 0);
+    std::atomic<bool> interrupt{false};
+    auto done = hand_over_async(*s, &interrupt);
+    {
+        auto c = NetworkClient::connect_tcp("127.0.0.1", s->tcp_port());
+        EXPECT_EQ(c.hello()["auth"], "token");
+        auto r = c.request("echo sneaky", 2000);
+        EXPECT_FALSE(r["ok"].get<bool>());
+        EXPECT_EQ(r["error"], "authenticate first: token TOKEN");
+        EXPECT_THROW(c.read_line(2000), ClientError);
+    }
+    ASSERT_EQ(done.wait_for(2s), std::future_status::ready);
+    EXPECT_EQ(done.get(), NetworkServer::SessionEnd::peer_lost);
+    done = hand_over_async(*s, &interrupt);
+    {
+        auto c = NetworkClient::connect_tcp("127.0.0.1", s->tcp_port());
+        auto r = c.request("token s3cret-tokeX", 2000);
+        EXPECT_EQ(r["error"], "wrong token");
+        EXPECT_THROW(c.read_line(2000), ClientError);
+    }
+    done.get();
+    done = hand_over_async(*s, &interrupt);
+    auto c = NetworkClient::connect_tcp("localhost", s->tcp_port());
+    EXPECT_TRUE(c.request("token s3cret-token", 2000)["ok"].get<bool>());
+    EXPECT_EQ(c.request("echo in", 2000)["text"], "in");
+    c.request("quit", 2000);
+    EXPECT_EQ(done.get(), NetworkServer::SessionEnd::peer_quit);
+    EXPECT_EQ(recorder.seen(), (std::vector<std::string>{"echo in", "quit"}));
+}
+
+TEST_F(Network, StopDisconnectsTheControllingPeer) {
+    auto s = make();
+    auto done = hand_over_async(*s, nullptr);
+    auto c = NetworkClient::connect_unix(path);
+    ASSERT_TRUE(c.hello()["ok"].get<bool>());
+    s->stop();
+    auto line = c.read_line(2000);
+    ASSERT_TRUE(line);
+    EXPECT_NE(json::parse(*line)["error"].get<std::string>().find("shutting down"), std::string::npos);
+    EXPECT_EQ(done.get(), NetworkServer::SessionEnd::stopped);
+}

@@ -1,0 +1,33 @@
+#include "reply.hpp"
+
+namespace chimera::cli {
+
+nlohmann::json to_json(const Reply& reply, const nlohmann::json& id) {
+    nlohmann::json j = nlohmann::json::object();
+    if (!id.is_null()) j["id"] = id;
+    j["ok"] = reply.ok;
+    j["cmd"] = reply.command;
+    if (reply.ok) {
+        j["rmod"] = reply.rmod;
+        j["text"] = reply.text;
+        if (!reply.data.is_null()) j["data"] = reply.data;
+    } else {
+        j["error"] = reply.error;
+        if (!reply.text.empty()) j["text"] = reply.text;
+    }
+    return j;
+}
+
+std::string to_json_line(const Reply& reply, const nlohmann::json& id) {
+    return to_json(reply, id).dump(-1, ' ', false, nlohmann::json::error_handler_t::replace);
+}
+
+std::string to_text(const Reply& reply) {
+    if (reply.ok) return reply.text;
+    std::string out = reply.text;
+    if (!out.empty()) out += '\n';
+    out += "error: " + reply.error;
+    return out;
+}
+
+}  // namespace chimera::cli

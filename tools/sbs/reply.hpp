@@ -1,0 +1,49 @@
+// tools/sbs/reply.hpp — the result of one command, as the prompt prints it and
+// as the network protocol sends it (one JSON object per line).
+#pragma once
+
+#include <nlohmann/json.hpp>
+
+#include <string>
+#include <string_view>
+
+namespace chimera::cli {
+
+/// What the caller of the interpreter must do after a command, beyond printing.
+enum class Action {
+    none,
+    quit,     ///< leave this interface (the prompt, or a network session)
+    network,  ///< hand control to a network peer until it quits or is lost (§4.4.2)
+    finish,   ///< shut the subsystem down (sbsFinish) and exit
+};
+
+struct Reply {
+    bool ok = true;
+    std::string command;          ///< the command word, e.g. "status"
+    std::string text;             ///< what the prompt prints (may be several lines, no final newline)
+    nlohmann::json data;          ///< structured result for --json and the network; null when none
+    std::string error;            ///< one line, set when !ok
+    std::string rmod;             ///< the default RMOD after the command (may be empty)
+    Action action = Action::none;
+
+    static Reply failure(std::string command, std::string message) {
+        Reply r;
+        r.ok = false;
+        r.command = std::move(command);
+        r.error = std::move(message);
+        return r;
+    }
+};
+
+/// The reply as one JSON object: {"ok":true,"cmd":...,"rmod":...,"text":...,"data":...}
+/// or {"ok":false,"cmd":...,"error":...}; `id` is echoed when the request carried one.
+nlohmann::json to_json(const Reply& reply, const nlohmann::json& id = nullptr);
+
+/// to_json() serialised on one line (no newline); never throws on odd bytes
+/// (invalid UTF-8 is replaced).
+std::string to_json_line(const Reply& reply, const nlohmann::json& id = nullptr);
+
+/// The reply as a prompt shows it: the text, or "error: ..." for a failure.
+std::string to_text(const Reply& reply);
+
+}  // namespace chimera::cli

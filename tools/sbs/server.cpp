@@ -1,0 +1,544 @@
+#include "server.hpp"
+
+#include <arpa/inet.h>
+#include <fcntl.h>
+#include <netdb.h>
+#include <netinet/in.h>
+#include <poll.h>
+#include <pthread.h>
+#include <sched.h>
+#include <sys/eventfd.h>
+#include <sys/socket.h>
+#include <sys/stat.h>
+#include <sys/un.h>
+#include <unistd.h>
+
+#include <cerrno>
+#include <chrono>
+#include <cstdlib>
+#include <cstring>
+#include <memory>
+
+namespace chimera::cli {
+
+namespace {
+
+std::string errno_text(int err) { return std::strerror(err); }
+
+void set_cloexec_nonblock(int fd) {
+    ::fcntl(fd, F_SETFD, FD_CLOEXEC);
+    ::fcntl(fd, F_SETFL, ::fcntl(fd, F_GETFL) | O_NONBLOCK);
+}
+
+// A token comparison whose time does not depend on where the first
+// difference is, so the token cannot be guessed byte by byte.
+bool same_token(std::string_view a, std::string_view b) {
+    unsigned char diff = a.size() == b.size() ? 0 : 1;
+    const std::size_t n = a.size() > b.size() ? a.size() : b.size();
+    for (std::size_t i = 0; i < n; ++i) {
+        const unsigned char x = i < a.size() ? static_cast<unsigned char>(a[i]) : 0;
+        const unsigned char y = i < b.size() ? static_cast<unsigned char>(b[i]) : 0;
+        diff = static_cast<unsigned char>(diff | (x ^ y));
+    }
+    return diff == 0;
+}
+
+std::string error_line(std::string_view cmd, std::string message) {
+    return to_json_line(Reply::failure(std::string(cmd), std::move(message)));
+}
+
+}  // namespace
+
+std::string default_socket_path(std::string_view subsystem) {
+    std::string dir;
+    if (const char* xdg = std::getenv("XDG_RUNTIME_DIR"); xdg != nullptr && *xdg == '/') {
+        dir = std::string(xdg) + "/chimera";
+    } else {
+        dir = "/tmp/chimera-" + std::to_string(::getuid());
+    }
+    if (::mkdir(dir.c_str(), 0700) != 0 && errno != EEXIST) {
+        throw ServerError("cannot create socket directory " + dir + ": " + errno_text(errno));
+    }
+    struct stat st {};
+    if (::lstat(dir.c_str(), &st) != 0 || !S_ISDIR(st.st_mode)) {
+        throw ServerError("socket directory " + dir + " is not a directory");
+    }
+    // Another user's directory (or one others can write) could hold a
+    // socket planted by them: refuse rather than talk to it.
+    if (st.st_uid != ::getuid() || (st.st_mode & 0077) != 0) {
+        throw ServerError("socket directory " + dir +
+                          " must belong to this user with mode 0700");
+    }
+    return dir + "/" + std::string(subsystem) + ".sock";
+}
+
+bool is_loopback_host(std::string_view host) {
+    if (host == "localhost") return true;
+    const std::string h(host);
+    in_addr v4{};
+    if (::inet_pton(AF_INET, h.c_str(), &v4) == 1) {
+        return (ntohl(v4.s_addr) >> 24) == 127;
+    }
+    in6_addr v6{};
+    if (::inet_pton(AF_INET6, h.c_str(), &v6) == 1) return IN6_IS_ADDR_LOOPBACK(&v6);
+    return false;
+}
+
+struct NetworkServer::Peer {
+    int fd = -1;
+    std::string buffer;
+    bool discarding = false;   // inside an oversized line: drop until newline
+    bool authenticated = false;
+};
+
+NetworkServer::NetworkServer(ServerOptions options, Executor executor)
+    : options_(std::move(options)), executor_(std::move(executor)) {}
+
+NetworkServer::~NetworkServer() { stop(); }
+
+void NetworkServer::start() {
+    if (options_.tcp && !options_.token.empty() && options_.token.find_first_of(" \t\r\n") != std::string::npos) {
+        throw ServerError("the token must not contain white space");
+    }
+    if (options_.tcp && options_.token.empty() && !is_loopback_host(options_.tcp_host)) {
+        throw ServerError("TCP on the non-loopback address " + options_.tcp_host +
+                          " needs a token (--token)");
+    }
+    wake_fd_ = ::eventfd(0, EFD_CLOEXEC | EFD_NONBLOCK);
+    if (wake_fd_ < 0) throw ServerError("eventfd: " + errno_text(errno));
+
+    if (!options_.unix_path.empty()) {
+        sockaddr_un addr{};
+        addr.sun_family = AF_UNIX;
+        if (options_.unix_path.size() >= sizeof(addr.sun_path)) {
+            stop();
+            throw ServerError("socket path too long: " + options_.unix_path);
+        }
+        std::memcpy(addr.sun_path, options_.unix_path.c_str(), options_.unix_path.size() + 1);
+        struct stat st {};
+        if (::lstat(options_.unix_path.c_str(), &st) == 0) {
+            if (!S_ISSOCK(st.st_mode)) {
+                stop();
+                throw ServerError(options_.unix_path + " exists and is not a socket");
+            }
+            // A socket file left by a master that died: remove it, but never
+            // one somebody still answers on.
+            const int probe = ::socket(AF_UNIX, SOCK_STREAM | SOCK_CLOEXEC, 0);
+            const bool alive =
+                probe >= 0 && ::connect(probe, reinterpret_cast<sockaddr*>(&addr), sizeof addr) == 0;
+            if (probe >= 0) ::close(probe);
+            if (alive) {
+                stop();
+                throw ServerError("another master already serves " + options_.unix_path);
+            }
+            ::unlink(options_.unix_path.c_str());
+        }
+        unix_fd_ = ::socket(AF_UNIX, SOCK_STREAM | SOCK_CLOEXEC, 0);
+        if (unix_fd_ < 0) throw ServerError("socket: " + errno_text(errno));
+        const mode_t old = ::umask(0177);  // owner read/write only from the start
+        const int rc = ::bind(unix_fd_, reinterpret_cast<sockaddr*>(&addr), sizeof addr);
+        const int err = errno;
+        ::umask(old);
+        if (rc != 0) {
+            stop();
+            throw ServerError("cannot bind " + options_.unix_path + ": " + errno_text(err));
+        }
+        ::chmod(options_.unix_path.c_str(), 0600);
+        if (::listen(unix_fd_, 8) != 0) {
+            stop();
+            throw ServerError("listen: " + errno_text(errno));
+        }
+        set_cloexec_nonblock(unix_fd_);
+    }
+
+    if (options_.tcp) {
+        addrinfo hints{};
+        hints.ai_family = AF_UNSPEC;
+        hints.ai_socktype = SOCK_STREAM;
+        hints.ai_flags = AI_PASSIVE | AI_NUMERICSERV;
+        addrinfo* res = nullptr;
+        const std::string port = std::to_string(options_.tcp_port);
+        const int gai = ::getaddrinfo(options_.tcp_host.c_str(), port.c_str(), &hints, &res);
+        if (gai != 0) {
+            stop();
+            throw ServerError("TCP address " + options_.tcp_host + ": " + ::gai_strerror(gai));
+        }
+        std::unique_ptr<addrinfo, decltype(&::freeaddrinfo)> guard(res, ::freeaddrinfo);
+        int err = 0;
+        for (addrinfo* ai = res; ai != nullptr; ai = ai->ai_next) {
+            const int fd = ::socket(ai->ai_family, ai->ai_socktype | SOCK_CLOEXEC, ai->ai_protocol);
+            if (fd < 0) {
+                err = errno;
+                continue;
+            }
+            const int one = 1;
+            ::setsockopt(fd, SOL_SOCKET, SO_REUSEADDR, &one, sizeof one);
+            if (::bind(fd, ai->ai_addr, ai->ai_addrlen) == 0 && ::listen(fd, 8) == 0) {
+                tcp_fd_ = fd;
+                break;
+            }
+            err = errno;
+            ::close(fd);
+        }
+        if (tcp_fd_ < 0) {
+            stop();
+            throw ServerError("cannot listen on " + options_.tcp_host + ":" + port + ": " +
+                              errno_text(err));
+        }
+        sockaddr_storage ss{};
+        socklen_t len = sizeof ss;
+        ::getsockname(tcp_fd_, reinterpret_cast<sockaddr*>(&ss), &len);
+        bound_port_ = ss.ss_family == AF_INET6
+                          ? ntohs(reinterpret_cast<sockaddr_in6*>(&ss)->sin6_port)
+                          : ntohs(reinterpret_cast<sockaddr_in*>(&ss)->sin_port);
+        set_cloexec_nonblock(tcp_fd_);
+    }
+    stopping_ = false;
+    thread_ = std::thread([this] { run(); });
+}
+
+void NetworkServer::stop() {
+    stopping_ = true;
+    wake();
+    if (thread_.joinable()) thread_.join();
+    if (unix_fd_ >= 0) {
+        ::close(unix_fd_);
+        unix_fd_ = -1;
+        ::unlink(options_.unix_path.c_str());
+    }
+    if (tcp_fd_ >= 0) {
+        ::close(tcp_fd_);
+        tcp_fd_ = -1;
+    }
+    if (wake_fd_ >= 0) {
+        ::close(wake_fd_);
+        wake_fd_ = -1;
+    }
+    std::lock_guard lock(mutex_);
+    changed_.notify_all();
+}
+
+void NetworkServer::wake() {
+    if (wake_fd_ >= 0) {
+        const std::uint64_t one = 1;
+        [[maybe_unused]] const auto n = ::write(wake_fd_, &one, sizeof one);
+    }
+}
+
+std::uint64_t NetworkServer::sessions_ended() const {
+    std::lock_guard lock(mutex_);
+    return sessions_ended_;
+}
+
+bool NetworkServer::send_line(int fd, const std::string& line) {
+    std::string out = line;
+    out += '\n';
+    std::size_t done = 0;
+    // The peer socket is non-blocking; a peer that stops reading gets two
+    // seconds before it is dropped, so it cannot wedge the server.
+    const auto deadline = std::chrono::steady_clock::now() + std::chrono::seconds(2);
+    while (done < out.size()) {
+        const ssize_t n = ::send(fd, out.data() + done, out.size() - done, MSG_NOSIGNAL);
+        if (n > 0) {
+            done += static_cast<std::size_t>(n);
+            continue;
+        }
+        if (n < 0 && errno == EINTR) continue;
+        if (n < 0 && (errno == EAGAIN || errno == EWOULDBLOCK)) {
+            const auto left = std::chrono::duration_cast<std::chrono::milliseconds>(
+                deadline - std::chrono::steady_clock::now());
+            if (left.count() <= 0) return false;
+            pollfd p{fd, POLLOUT, 0};
+            ::poll(&p, 1, static_cast<int>(left.count()));
+            continue;
+        }
+        return false;
+    }
+    return true;
+}
+
+void NetworkServer::end_session(SessionEnd why) {
+    std::lock_guard lock(mutex_);
+    session_active_ = false;
+    last_end_ = why;
+    ++sessions_ended_;
+    offered_ = persistent_ && why != SessionEnd::finish && why != SessionEnd::interrupted;
+    take_back_ = false;
+    changed_.notify_all();
+}
+
+NetworkServer::SessionEnd NetworkServer::hand_over(const std::atomic<bool>* interrupt) {
+    return wait_session(interrupt, false);
+}
+
+NetworkServer::SessionEnd NetworkServer::serve_forever(const std::atomic<bool>* interrupt) {
+    return wait_session(interrupt, true);
+}
+
+NetworkServer::SessionEnd NetworkServer::wait_session(const std::atomic<bool>* interrupt,
+                                                      bool forever) {
+    std::unique_lock lock(mutex_);
+    const std::uint64_t start = sessions_ended_;
+    offered_ = true;
+    persistent_ = forever;
+    for (;;) {
+        if (stopping_) {
+            offered_ = false;
+            return SessionEnd::stopped;
+        }
+        if (sessions_ended_ != start) {
+            if (!forever || last_end_ == SessionEnd::finish) {
+                offered_ = false;
+                persistent_ = false;
+                return last_end_;
+            }
+        }
+        if (interrupt != nullptr && interrupt->load()) {
+            offered_ = false;
+            persistent_ = false;
+            if (!session_active_) return SessionEnd::interrupted;
+            // Take control back from a connected peer: the server thread
+            // tells it and closes the connection between two commands.
+            take_back_ = true;
+            lock.unlock();
+            wake();
+            lock.lock();
+            changed_.wait(lock, [&] { return !session_active_ || stopping_; });
+            return SessionEnd::interrupted;
+        }
+        changed_.wait_for(lock, std::chrono::milliseconds(50));
+    }
+}
+
+void NetworkServer::accept_from(int listen_fd) {
+    const int fd = ::accept4(listen_fd, nullptr, nullptr, SOCK_CLOEXEC | SOCK_NONBLOCK);
+    if (fd < 0) return;
+    if (listen_fd == unix_fd_) {
+        // File permissions keep other users out; root gets past them, so the
+        // peer's credentials are checked as well.
+        ucred cred{};
+        socklen_t len = sizeof cred;
+        if (::getsockopt(fd, SOL_SOCKET, SO_PEERCRED, &cred, &len) != 0 ||
+            (cred.uid != ::getuid() && cred.uid != 0)) {
+            send_line(fd, error_line("hello", "permission denied"));
+            ::close(fd);
+            return;
+        }
+    }
+    std::unique_lock lock(mutex_);
+    std::string refusal;
+    if (session_active_) {
+        refusal = "another network peer has control of subsystem " + options_.subsystem;
+    } else if (!offered_) {
+        refusal = "the command line of subsystem " + options_.subsystem +
+                  " has control (pid " + std::to_string(::getpid()) +
+                  "); type 'network' at its prompt to pass control";
+    }
+    if (!refusal.empty()) {
+        lock.unlock();
+        send_line(fd, error_line("hello", refusal));
+        ::close(fd);
+        return;
+    }
+    session_active_ = true;
+    lock.unlock();
+    nlohmann::json hello = {{"ok", true},
+                            {"cmd", "hello"},
+                            {"protocol", 1},
+                            {"subsystem", options_.subsystem},
+                            {"pid", ::getpid()},
+                            {"auth", options_.token.empty() ? "none" : "token"},
+                            {"max_request", options_.max_request}};
+    Peer* peer = new Peer;
+    peer->fd = fd;
+    peer->authenticated = options_.token.empty();
+    if (!send_line(fd, hello.dump())) {
+        ::close(fd);
+        delete peer;
+        end_session(SessionEnd::peer_lost);
+        return;
+    }
+    // The session runs in run() from here on.
+    peer_.reset(peer);
+}
+
+
+void NetworkServer::run() {
+    // The server is an ordinary thread whatever the process was started with:
+    // a flood of requests must never compete with the real-time tasks.
+    sched_param sp{};
+    sp.sched_priority = 0;
+    ::pthread_setschedparam(::pthread_self(), SCHED_OTHER, &sp);
+
+    while (!stopping_) {
+        pollfd fds[4];
+        nfds_t n = 0;
+        fds[n++] = {wake_fd_, POLLIN, 0};
+        if (unix_fd_ >= 0) fds[n++] = {unix_fd_, POLLIN, 0};
+        if (tcp_fd_ >= 0) fds[n++] = {tcp_fd_, POLLIN, 0};
+        if (peer_) fds[n++] = {peer_->fd, POLLIN, 0};
+        const int rc = ::poll(fds, n, 200);
+        if (rc < 0 && errno != EINTR) break;
+        if (stopping_) break;
+        std::uint64_t drained = 0;
+        [[maybe_unused]] const auto r = ::read(wake_fd_, &drained, sizeof drained);
+
+        bool take_back = false;
+        {
+            std::lock_guard lock(mutex_);
+            take_back = take_back_;
+        }
+        if (peer_ && take_back) {
+            send_line(peer_->fd, error_line("", "control taken back by the command line"));
+            ::close(peer_->fd);
+            peer_.reset();
+            end_session(SessionEnd::interrupted);
+            continue;
+        }
+        if (rc <= 0) continue;
+        for (nfds_t i = 1; i < n; ++i) {
+            if (fds[i].revents == 0) continue;
+            if (fds[i].fd == unix_fd_ || fds[i].fd == tcp_fd_) {
+                if (!peer_) {
+                    accept_from(fds[i].fd);
+                } else {
+                    // Busy: accept and refuse at once so the caller is not left hanging.
+                    const int fd = ::accept4(fds[i].fd, nullptr, nullptr, SOCK_CLOEXEC | SOCK_NONBLOCK);
+                    if (fd >= 0) {
+                        send_line(fd, error_line("hello", "another network peer has control of subsystem " +
+                                                              options_.subsystem));
+                        ::close(fd);
+                    }
+                }
+            } else if (peer_ && fds[i].fd == peer_->fd) {
+                if (!handle_input(*peer_)) {
+                    ::close(peer_->fd);
+                    peer_.reset();
+                }
+            }
+        }
+    }
+    if (peer_) {
+        send_line(peer_->fd, error_line("", "subsystem " + options_.subsystem + " is shutting down"));
+        ::close(peer_->fd);
+        peer_.reset();
+        end_session(SessionEnd::stopped);
+    }
+}
+
+bool NetworkServer::handle_input(Peer& peer) {
+    char buf[4096];
+    for (;;) {
+        const ssize_t got = ::recv(peer.fd, buf, sizeof buf, 0);
+        if (got == 0 || (got < 0 && errno != EAGAIN && errno != EWOULDBLOCK && errno != EINTR)) {
+            // Lost connection (possibly in the middle of a request): the
+            // unfinished line is dropped and control goes back (§4.4.2).
+            end_session(SessionEnd::peer_lost);
+            return false;
+        }
+        if (got < 0) {
+            if (errno == EINTR) continue;
+            return true;
+        }
+        std::string_view chunk(buf, static_cast<std::size_t>(got));
+        while (!chunk.empty()) {
+            const auto nl = chunk.find('\n');
+            const std::string_view part = chunk.substr(0, nl);
+            if (peer.discarding) {
+                if (nl != std::string_view::npos) peer.discarding = false;
+            } else if (peer.buffer.size() + part.size() > options_.max_request) {
+                peer.buffer.clear();
+                peer.discarding = nl == std::string_view::npos;
+                if (!send_line(peer.fd, error_line("", "request longer than " +
+                                                           std::to_string(options_.max_request) +
+                                                           " bytes"))) {
+                    end_session(SessionEnd::peer_lost);
+                    return false;
+                }
+            } else {
+                peer.buffer.append(part);
+                if (nl != std::string_view::npos) {
+                    std::string line = std::move(peer.buffer);
+                    peer.buffer.clear();
+                    if (!line.empty() && line.back() == '\r') line.pop_back();
+                    if (!handle_line(peer, line)) return false;
+                }
+            }
+            if (nl == std::string_view::npos) break;
+            chunk.remove_prefix(nl + 1);
+        }
+    }
+}
+
+bool NetworkServer::handle_line(Peer& peer, std::string_view line) {
+    nlohmann::json id = nullptr;
+    std::string command;
+    auto reply_error = [&](std::string cmd, std::string message) {
+        if (!send_line(peer.fd, to_json_line(Reply::failure(std::move(cmd), std::move(message)), id))) {
+            end_session(SessionEnd::peer_lost);
+            return false;
+        }
+        return true;
+    };
+    std::size_t first = line.find_first_not_of(" \t");
+    if (first == std::string_view::npos) return true;  // blank lines are keep-alives
+    if (line[first] == '{') {
+        // The structured form: {"cmd": "status", "id": 7}.
+        const auto j = nlohmann::json::parse(line, nullptr, false);
+        if (j.is_discarded() || !j.is_object()) return reply_error("", "malformed JSON request");
+        if (j.contains("id")) id = j["id"];
+        if (!j.contains("cmd") || !j["cmd"].is_string()) {
+            return reply_error("", "JSON request needs a string member \"cmd\"");
+        }
+        command = j["cmd"].get<std::string>();
+    } else {
+        command.assign(line);
+    }
+    for (unsigned char c : command) {
+        if (c < 0x20 && c != '\t') return reply_error("", "request contains control characters");
+    }
+    if (!peer.authenticated) {
+        // The first request must carry the token; anything else ends the
+        // connection so a guesser gets one try per connection.
+        const std::string_view cmd(command);
+        const bool is_token = cmd.substr(0, 6) == "token ";
+        if (is_token && same_token(cmd.substr(6), options_.token)) {
+            peer.authenticated = true;
+            Reply ok;
+            ok.command = "token";
+            ok.text = "authenticated";
+            if (!send_line(peer.fd, to_json_line(ok, id))) {
+                end_session(SessionEnd::peer_lost);
+                return false;
+            }
+            return true;
+        }
+        reply_error("token", is_token ? "wrong token" : "authenticate first: token TOKEN");
+        end_session(SessionEnd::peer_lost);
+        return false;
+    }
+    Reply reply;
+    try {
+        reply = executor_(command);
+    } catch (const std::exception& e) {
+        reply = Reply::failure("", e.what());
+    }
+    if (reply.action == Action::network) {
+        reply = Reply::failure(reply.command, "the network already has control");
+    }
+    if (!send_line(peer.fd, to_json_line(reply, id))) {
+        end_session(SessionEnd::peer_lost);
+        return false;
+    }
+    if (reply.action == Action::quit) {
+        end_session(SessionEnd::peer_quit);
+        return false;
+    }
+    if (reply.action == Action::finish) {
+        end_session(SessionEnd::finish);
+        return false;
+    }
+    return true;
+}
+
+}  // namespace chimera::cli
