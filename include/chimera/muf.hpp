@@ -1,7 +1,9 @@
 // chimera/muf.hpp — real-time scheduling (thesis chapter 6): the whole public face.
 //
+//   muf/sim.hpp        the discrete-event simulator (RM, EDF, MUF; Gantt charts)
 //   muf/analysis.hpp   utilisation, bounds, critical sets, MUF assignment, urgency,
 //                      aperiodic servers, soft-task effective execution time
 #pragma once
 
 #include "chimera/muf/analysis.hpp"
+#include "chimera/muf/sim.hpp"

@@ -154,7 +154,14 @@ Assignment assign(std::span<const TaskSpec> tasks, Policy policy, std::span<cons
     Assignment a;
     a.policy = policy;
     a.critical = critical_set(tasks, policy);
-    a.uprio = data_flow_user_priorities(tasks, flows);
+    // Step 4 is optional: without data flow, ties are first-come-first-served
+    // (rule 4), as in Figure 6.1; explicit user priorities always count.
+    if (!flows.empty()) {
+        a.uprio = data_flow_user_priorities(tasks, flows);
+    } else {
+        a.uprio.assign(tasks.size(), 0);
+        for (std::size_t i = 0; i < tasks.size(); ++i) a.uprio[i] = tasks[i].uprio.value_or(0);
+    }
     a.crit.assign(tasks.size(), crit::critical);
     a.uses_deadline = policy != Policy::rm;
     switch (policy) {

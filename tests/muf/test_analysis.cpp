@@ -106,7 +106,10 @@ TEST(MufAnalysis, MufAssignmentOfFigure6_1) {
     const auto ts = fig6_1();
     const auto a = assign(ts, Policy::muf);
     EXPECT_EQ(a.crit, (std::vector<int>{5, 5, 5, 3}));
-    EXPECT_EQ(a.uprio, (std::vector<int>{4, 3, 2, 1}));  // no flows: RM order
+    EXPECT_EQ(a.uprio, (std::vector<int>{0, 0, 0, 0}));  // no flows: first come, first served
+    const std::vector<Flow> flows = {{3, 0}};                // t4 feeds t1
+    // t1 waits for its producer t4: t2, t3, t4, t1.
+    EXPECT_EQ(assign(ts, Policy::muf, flows).uprio, (std::vector<int>{1, 4, 3, 2}));
     EXPECT_TRUE(a.uses_deadline);
 
     const auto rm = assign(ts, Policy::rm);

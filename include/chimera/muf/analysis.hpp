@@ -96,7 +96,8 @@ std::vector<int> data_flow_user_priorities(std::span<const TaskSpec> tasks,
 struct Assignment {
     Policy policy = Policy::muf;
     std::vector<int> crit;        ///< per task
-    std::vector<int> uprio;       ///< per task, unique
+    std::vector<int> uprio;       ///< per task: data_flow_user_priorities() when flows are
+                                  ///< given, else the explicit UPRIO or 0 (first come, first served)
     CriticalSet critical;
     bool uses_deadline = true;    ///< false for RM: the dynamic priority is not used
 };
