@@ -1,0 +1,117 @@
+// Inverse dynamics, gravity, inertia matrix, and the forward-dynamics simulator.
+#include "robotics/dynamics.hpp"
+
+#include <cmath>
+
+namespace chimera::robotics {
+
+namespace {
+KDL::Vector kdl_gravity(const RobotModel& m) {
+    return KDL::Vector(m.gravity().x(), m.gravity().y(), m.gravity().z());
+}
+}  // namespace
+
+Dynamics::Dynamics(const RobotModel& model)
+    : n_(model.chain().getNrOfJoints()),
+      rne_(model.chain(), kdl_gravity(model)),
+      dyn_(model.chain(), kdl_gravity(model)),
+      q_(static_cast<unsigned>(n_)),
+      qd_(static_cast<unsigned>(n_)),
+      qdd_(static_cast<unsigned>(n_)),
+      tau_(static_cast<unsigned>(n_)),
+      fext_(model.chain().getNrOfSegments(), KDL::Wrench::Zero()),
+      m_(static_cast<unsigned>(n_)) {
+    rotor_.assign(n_, 0.0);
+    damping_.assign(n_, 0.0);
+    if (model.links().size() == n_) {
+        for (std::size_t i = 0; i < n_; ++i) {
+            rotor_[i] = model.links()[i].rotor_inertia;
+            damping_[i] = model.links()[i].damping;
+        }
+    }
+}
+
+bool Dynamics::inverse(const Eigen::Ref<const Eigen::VectorXd>& q,
+                       const Eigen::Ref<const Eigen::VectorXd>& qd,
+                       const Eigen::Ref<const Eigen::VectorXd>& qdd,
+                       Eigen::Ref<Eigen::VectorXd> tau) noexcept {
+    const auto n = static_cast<Eigen::Index>(n_);
+    if (q.size() != n || qd.size() != n || qdd.size() != n || tau.size() != n) return false;
+    q_.data = q;
+    qd_.data = qd;
+    qdd_.data = qdd;
+    if (rne_.CartToJnt(q_, qd_, qdd_, fext_, tau_) < 0) return false;
+    for (Eigen::Index i = 0; i < n; ++i) {
+        tau[i] = tau_(static_cast<unsigned>(i)) + rotor_[i] * qdd[i] + damping_[i] * qd[i];
+    }
+    return true;
+}
+
+bool Dynamics::gravity(const Eigen::Ref<const Eigen::VectorXd>& q,
+                       Eigen::Ref<Eigen::VectorXd> tau) noexcept {
+    const auto n = static_cast<Eigen::Index>(n_);
+    if (q.size() != n || tau.size() != n) return false;
+    q_.data = q;
+    qd_.data.setZero();
+    qdd_.data.setZero();
+    if (rne_.CartToJnt(q_, qd_, qdd_, fext_, tau_) < 0) return false;
+    tau = tau_.data;
+    return true;
+}
+
+bool Dynamics::mass(const Eigen::Ref<const Eigen::VectorXd>& q,
+                    Eigen::Ref<Eigen::MatrixXd> m) noexcept {
+    const auto n = static_cast<Eigen::Index>(n_);
+    if (q.size() != n || m.rows() != n || m.cols() != n) return false;
+    q_.data = q;
+    if (dyn_.JntToMass(q_, m_) < 0) return false;
+    m = m_.data;
+    for (Eigen::Index i = 0; i < n; ++i) m(i, i) += rotor_[i];
+    return true;
+}
+
+ArmSimulator::ArmSimulator(const RobotModel& model)
+    : n_(model.chain().getNrOfJoints()),
+      dyn_(model),
+      q_(Eigen::VectorXd::Zero(static_cast<Eigen::Index>(n_))),
+      qd_(Eigen::VectorXd::Zero(static_cast<Eigen::Index>(n_))),
+      qdd_(Eigen::VectorXd::Zero(static_cast<Eigen::Index>(n_))),
+      bias_(Eigen::VectorXd::Zero(static_cast<Eigen::Index>(n_))),
+      zero_(Eigen::VectorXd::Zero(static_cast<Eigen::Index>(n_))),
+      rhs_(Eigen::VectorXd::Zero(static_cast<Eigen::Index>(n_))),
+      m_(Eigen::MatrixXd::Zero(static_cast<Eigen::Index>(n_), static_cast<Eigen::Index>(n_))),
+      llt_(static_cast<Eigen::Index>(n_)) {}
+
+void ArmSimulator::reset(const Eigen::Ref<const Eigen::VectorXd>& q,
+                         const Eigen::Ref<const Eigen::VectorXd>& qd) noexcept {
+    q_ = q;
+    qd_ = qd;
+    qdd_.setZero();
+    t_ = 0;
+}
+
+bool ArmSimulator::step(const Eigen::Ref<const Eigen::VectorXd>& tau, double dt,
+                        int substeps) noexcept {
+    if (tau.size() != q_.size() || substeps < 1 || !(dt > 0)) return false;
+    const double h = dt / substeps;
+    for (int s = 0; s < substeps; ++s) {
+        // bias = C(q,qd) qd + g(q) + B qd: inverse dynamics with zero acceleration.
+        if (!dyn_.inverse(q_, qd_, zero_, bias_)) return false;
+        if (!dyn_.mass(q_, m_)) return false;
+        llt_.compute(m_);
+        if (llt_.info() != Eigen::Success) return false;
+        rhs_ = tau - bias_;
+        llt_.solveInPlace(rhs_);
+        qdd_ = rhs_;
+        // Semi-implicit Euler: velocity first, then position with the new velocity.
+        qd_ += h * qdd_;
+        q_ += h * qd_;
+        t_ += h;
+    }
+    for (Eigen::Index i = 0; i < q_.size(); ++i) {
+        if (!std::isfinite(q_[i]) || !std::isfinite(qd_[i])) return false;
+    }
+    return true;
+}
+
+}  // namespace chimera::robotics
