@@ -56,8 +56,10 @@ constexpr bool holds(LockStatus s) noexcept {
 const char* to_string(LockStatus s) noexcept;
 
 struct LockOptions {
-    /// Total time to wait; negative waits forever (still recovering dead holders).
-    std::int64_t timeout_ns = 10'000'000;
+    /// Total time to wait; negative waits forever (still recovering dead
+    /// holders). 100 ms is far beyond any transfer, but survives a holder
+    /// preempted for a few time slices on a busy machine without SCHED_FIFO.
+    std::int64_t timeout_ns = 100'000'000;
     /// Spins with the CPU's pause instruction before the first sleep.
     std::uint32_t spin_count = 200;
     /// First sleep between polls; doubles up to max_sleep_ns.

@@ -1,0 +1,202 @@
+// Several processes hammering the same variables: no reader ever sees half
+// of a writer's set; a writer killed mid-set is rolled back.
+#include <gtest/gtest.h>
+#include <signal.h>
+
+#include <cstring>
+#include <random>
+#include <vector>
+
+#include "chimera/ipc/clock.hpp"
+#include "chimera/svar.hpp"
+#include "svar_test_util.hpp"
+
+using namespace chimera;
+using namespace chimera::svar;
+using namespace svar_test;
+
+namespace {
+
+const char* kTable =
+    "NAME A\nTYPE float\nDESC a\nUNITS none\nNELEM 32\n"
+    "NAME B\nTYPE float\nDESC b\nUNITS none\nNELEM 32\n"
+    "NAME C\nTYPE double\nDESC c\nUNITS none\nNELEM 8\n"
+    "NAME S\nTYPE struct[64]\nDESC s\nUNITS none\nNELEM 1\n"
+    "EOF\n";
+
+struct Board {
+    std::atomic<int> go{0};
+    std::atomic<long> checks{0};
+    std::atomic<long> writes{0};
+};
+
+// Fills a writer's whole set with one value.
+void fill(LocalTable& lt, double v) {
+    float* a = lt.translate<float>("A");
+    float* b = lt.translate<float>("B");
+    double* c = lt.translate<double>("C");
+    double* s = static_cast<double*>(lt.translate_any("S"));
+    for (int i = 0; i < 32; ++i) a[i] = b[i] = static_cast<float>(v);
+    for (int i = 0; i < 8; ++i) c[i] = s[i] = v;
+}
+
+// 0 when the set holds one value everywhere (and stores it in `v`).
+int consistent(LocalTable& lt, double& v) {
+    const float* a = lt.translate<float>("A");
+    const float* b = lt.translate<float>("B");
+    const double* c = lt.translate<double>("C");
+    const double* s = static_cast<const double*>(lt.translate_any("S"));
+    v = c[0];
+    for (int i = 0; i < 32; ++i)
+        if (a[i] != static_cast<float>(v) || b[i] != static_cast<float>(v)) return 1;
+    for (int i = 0; i < 8; ++i)
+        if (c[i] != v || s[i] != v) return 1;
+    return 0;
+}
+
+constexpr std::int64_t kRunNs = 700'000'000;
+
+// Four processes on a small, busy machine: a holder may be preempted for a
+// while; a timeout here would be load, not a fault.
+TableOptions patient() {
+    TableOptions o;
+    o.lock.timeout_ns = 10'000'000'000;
+    return o;
+}
+
+}  // namespace
+
+TEST(SvarHammer, ReadersNeverSeeHalfAWritersSet) {
+    const std::string name = unique_name("hammer");
+    Table table = Table::create(name, parse_svar_string(kTable, "hammer.svar"));
+    auto* board = shared_anon<Board>();
+    const std::vector<std::string> set_names = {"A", "B", "C", "S"};
+    std::vector<pid_t> kids;
+    for (int w = 1; w <= 2; ++w)
+        kids.push_back(fork_child([&, w] {
+            Table t = Table::attach(name, patient());
+            LocalTable lt(t, {}, {}, {}, set_names);
+            while (!board->go) std::this_thread::yield();
+            const std::int64_t end = ipc::now_ns() + kRunNs;
+            for (long i = 1; ipc::now_ns() < end; ++i) {
+                fill(lt, w * 4'000'000.0 + static_cast<double>(i));
+                if (!transferred(lt.copy_out_vars())) return 2;
+                board->writes++;
+            }
+            return 0;
+        }));
+    for (int r = 0; r < 2; ++r)
+        kids.push_back(fork_child([&] {
+            Table t = Table::attach(name, patient());
+            LocalTable lt(t, {}, {}, set_names, {});
+            double last[3] = {0, 0, 0};  // per writer: values only grow
+            while (!board->go) std::this_thread::yield();
+            const std::int64_t end = ipc::now_ns() + kRunNs;
+            while (ipc::now_ns() < end) {
+                if (!transferred(lt.copy_in_vars())) return 2;
+                double v;
+                if (consistent(lt, v) != 0) return 3;  // torn set
+                const int w = static_cast<int>(v / 4'000'000.0);
+                if (w < 0 || w > 2) return 4;
+                if (v < last[w]) return 5;  // older data after newer
+                last[w] = v;
+                board->checks++;
+            }
+            return 0;
+        }));
+    board->go = 1;
+    for (pid_t k : kids) EXPECT_EQ(wait_child(k), 0);
+    EXPECT_GT(board->writes.load(), 1000);
+    EXPECT_GT(board->checks.load(), 1000);
+    EXPECT_EQ(table.stats().recoveries, 0u);
+    EXPECT_EQ(table.stats().timeouts, 0u);
+    table.destroy();
+}
+
+TEST(SvarHammer, SingleVariableTransfersAreWholeToo) {
+    const std::string name = unique_name("single");
+    Table table = Table::create(name, parse_svar_string(kTable, "hammer.svar"));
+    auto* board = shared_anon<Board>();
+    const pid_t writer = fork_child([&] {
+        Table t = Table::attach(name, patient());
+        LocalTable lt(t, {"A"});
+        float* a = lt.translate<float>("A");
+        while (!board->go) std::this_thread::yield();
+        const std::int64_t end = ipc::now_ns() + kRunNs / 2;
+        for (int i = 1; ipc::now_ns() < end; ++i) {
+            for (int k = 0; k < 32; ++k) a[k] = static_cast<float>(i);
+            if (lt.write(a) != Status::ok) return 2;
+        }
+        return 0;
+    });
+    const pid_t reader = fork_child([&] {
+        Table t = Table::attach(name, patient());
+        LocalTable lt(t, {"A"});
+        const float* a = lt.translate<float>("A");
+        while (!board->go) std::this_thread::yield();
+        const std::int64_t end = ipc::now_ns() + kRunNs / 2;
+        while (ipc::now_ns() < end) {
+            if (lt.read_ix(0) != Status::ok) return 2;
+            for (int k = 1; k < 32; ++k)
+                if (a[k] != a[0]) return 3;
+            board->checks++;
+        }
+        return 0;
+    });
+    board->go = 1;
+    EXPECT_EQ(wait_child(writer), 0);
+    EXPECT_EQ(wait_child(reader), 0);
+    EXPECT_GT(board->checks.load(), 1000);
+    table.destroy();
+}
+
+// Writers of a large set killed at random moments: whatever moment the kill
+// lands on, the next user finds the last complete set (rolled back when the
+// kill interrupted the write), never a mixture.
+TEST(SvarHammer, WriterKilledAtRandomNeverLeavesATornSet) {
+    const std::string name = unique_name("kill");
+    const char* big =
+        "NAME X\nTYPE double\nDESC x\nUNITS none\nNELEM 65536\n"
+        "NAME Y\nTYPE double\nDESC y\nUNITS none\nNELEM 65536\n"
+        "EOF\n";
+    Table table = Table::create(name, parse_svar_string(big, "big.svar"));
+    LocalTable lt(table, {"X", "Y"});
+    const VarSet set = lt.make_set({"X", "Y"});
+    std::mt19937 rng(12345);
+    int recovered = 0;
+    for (int round = 0; round < 30 && (recovered < 3 || round < 10); ++round) {
+        auto* board = shared_anon<Board>();
+        const pid_t child = fork_child([&] {
+            Table t = Table::attach(name, patient());
+            LocalTable w(t, {"X", "Y"});
+            const VarSet ws = w.make_set({"X", "Y"});
+            double* x = w.translate<double>("X");
+            double* y = w.translate<double>("Y");
+            for (long i = 1;; ++i) {
+                const double v = round * 1e6 + static_cast<double>(i);
+                for (int k = 0; k < 65536; ++k) x[k] = y[k] = v;
+                (void)w.copy_to_global(ws);
+                board->writes++;
+            }
+            return 0;
+        });
+        ASSERT_TRUE(wait_for([&] { return board->writes.load() >= 2; }));
+        std::this_thread::sleep_for(std::chrono::microseconds(rng() % 3000));
+        kill(child, SIGKILL);
+        ASSERT_EQ(wait_child(child), 128 + SIGKILL);
+        const Status s = lt.copy_from_global(set);
+        ASSERT_TRUE(s == Status::ok || s == Status::recovered) << to_string(s);
+        if (s == Status::recovered) ++recovered;
+        const double* x = lt.translate<double>("X");
+        const double* y = lt.translate<double>("Y");
+        for (int k = 0; k < 65536; ++k) {
+            ASSERT_EQ(x[k], x[0]) << "round " << round << " element " << k;
+            ASSERT_EQ(y[k], x[0]) << "round " << round << " element " << k;
+        }
+    }
+    // The writer holds the lock nearly all the time, so most kills land inside it.
+    EXPECT_GE(recovered, 1);
+    EXPECT_EQ(table.stats().recoveries, static_cast<std::uint32_t>(recovered));
+    std::printf("kills recovered: %d, rolled back: %u\n", recovered, table.stats().rollbacks);
+    table.destroy();
+}
