@@ -141,15 +141,14 @@ long Device::control(Control cmd, long arg) noexcept {
     if (cmd == Control::SET_FLAGS) {
         auto f = static_cast<unsigned>(arg);
         if ((f & kDirectionMask) != (flags_ & kDirectionMask)) return -EINVAL;
+        // A flag set without a WAIT or size flag keeps the current one.
+        if (!(f & kWaitMask)) f |= flags_ & kWaitMask;
+        if (!(f & kSizeMask)) f |= flags_ & kSizeMask;
         try {
             if (!check_flags(f).empty()) return -EINVAL;
         } catch (...) {
             return -ENOMEM;
         }
-        // Defaults are filled in as at open, so a flag set without a WAIT or
-        // size flag means the class's default, not "none".
-        if (!(f & kWaitMask)) f |= flags_ & kWaitMask;
-        if (!(f & kSizeMask)) f |= flags_ & kSizeMask;
         flags_ = f;
         return 0;
     }

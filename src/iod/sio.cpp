@@ -50,6 +50,9 @@ int apply(int fd, const SioParam& p) noexcept {
     cfmakeraw(&t);
     speed_t in, out;
     if (!baud_code(p.baud_rx, in) || !baud_code(p.baud_tx, out)) return -EINVAL;
+    // glibc's termios does not pass a separate input rate to Linux (CIBAUD):
+    // refuse split rates rather than pretend to set them.
+    if (p.baud_rx != p.baud_tx) return -EINVAL;
     if (p.bits < 5 || p.bits > 8 || (p.stop != 1 && p.stop != 2) || p.parity > SIO_SPACE)
         return -EINVAL;
     cfsetispeed(&t, in);
