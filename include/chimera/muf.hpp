@@ -1,5 +1,6 @@
 // chimera/muf.hpp — real-time scheduling (thesis chapter 6): the whole public face.
 //
+//   muf/taskset.hpp    task-set files (TASK ... PERIOD ... WCET ..., FLOW, EOF)
 //   muf/sim.hpp        the discrete-event simulator (RM, EDF, MUF; Gantt charts)
 //   muf/analysis.hpp   utilisation, bounds, critical sets, MUF assignment, urgency,
 //                      aperiodic servers, soft-task effective execution time
@@ -7,3 +8,4 @@
 
 #include "chimera/muf/analysis.hpp"
 #include "chimera/muf/sim.hpp"
+#include "chimera/muf/taskset.hpp"
