@@ -136,16 +136,17 @@ public:
     long write(const void* buf, std::size_t count) noexcept override {
         if (!(flags() & WRITE)) return -EBADF;
         if (count < static_cast<std::size_t>(nports())) return -EINVAL;
+        long ports = 0;  // opened output ports, the return value
         for (int i = 0; i < nports(); ++i) {
             FrameState& s = frames_[static_cast<std::size_t>(port_frame_[static_cast<std::size_t>(i)])];
             if (s.spec.input) continue;
+            ++ports;
             const int k = start_port() + i - s.spec.first_port;
             const int bits = s.spec.port_bits;
             const std::uint64_t m = (bits >= 64 ? ~0ull : ((1ull << bits) - 1)) << (k * bits);
             const std::uint64_t v = static_cast<std::uint64_t>(element_to_port(buf, i, bits)) << (k * bits);
             s.payload = (s.payload & ~m) | (v & m);
         }
-        long n = 0;
         for (FrameState& s : frames_) {
             if (!s.in_range || s.spec.input) continue;
             can_frame f{};
@@ -158,16 +159,15 @@ public:
                 if (w < 0 && errno == EINTR) continue;
                 if (w < 0 && (errno == EAGAIN || errno == ENOBUFS)) {
                     const unsigned wait = flags() & kWaitMask;
-                    if (wait == WAITNONE || wait == WAITNOALL) return n > 0 ? n : -EAGAIN;
+                    if (wait == WAITNONE || wait == WAITNOALL) return -EAGAIN;  // transmit queue full
                     pollfd p{fd_, POLLOUT, 0};
                     if (::poll(&p, 1, 10) < 0 && errno != EINTR) return -errno;
                     continue;
                 }
                 return w < 0 ? -errno : -EIO;
             }
-            n += s.spec.ports;
         }
-        return n;
+        return ports;
     }
 
 protected:
