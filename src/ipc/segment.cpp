@@ -100,6 +100,9 @@ void validate_header(const std::string& name, const SegmentHeader& h, SegmentKin
     if (mapped_size < sizeof(SegmentHeader))
         throw SegmentError(name, "size " + std::to_string(mapped_size) +
                                      " bytes is smaller than a segment header");
+    if (h.magic == __builtin_bswap32(kSegmentMagic) && h.byte_order == __builtin_bswap32(kByteOrderCode))
+        throw SegmentError(name, "byte-order code 0x04030201: created by a machine of the other "
+                                 "byte order");
     if (h.magic != kSegmentMagic) {
         char buf[128];
         std::snprintf(buf, sizeof buf, "bad magic 0x%08x (expected 0x%08x): not a chimera segment",
