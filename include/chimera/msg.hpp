@@ -1,0 +1,179 @@
+// chimera/msg.hpp — prioritized message queues (thesis §5.4.3, Figure 5.2).
+//
+// A queue is one shared segment created by the XM server of the RTPU named
+// in "rtpu:name" (or laid over memory the caller supplies). Its layout is
+// Figure 5.2: `blknum` message headers (msgHead: type, priority, size, link
+// to the first block) on the lists headfree / headused (+ tailused), and
+// `blknum` data blocks of `blksize` bytes (each led by msgBHead with its own
+// link) on blkfree. A message longer than blksize takes several linked
+// blocks, up to blksize*blknum. Every link is an offset from the queue's base,
+// so each process maps the queue at its own address. Nothing is allocated on
+// send or receive.
+//
+// Insertion policy: FIFO (at tailused), LIFO (at the head) or HPF (insertion
+// sort; equal priorities stay FIFO). Receivers waiting on an empty queue are
+// served highest task priority first (FIFO among equals): a send hands its
+// message straight to that waiter. Senders waiting on a full queue are woken
+// highest message priority first.
+//
+// Timeouts everywhere: negative blocks, 0 never blocks (would_block), > 0
+// waits at most that long (timed_out).
+//
+// Robustness: a process killed inside send/receive leaves the lock to be
+// recovered by the next user, which then repairs the queue from per-header
+// states, as a journal: a message is in the queue iff its header is QUEUED
+// (the commit point of send), or HANDED to a live waiter; an interrupted
+// receive (READING) is rolled back into the queue; an interrupted send
+// (WRITING) is rolled back (its blocks freed); the lists are then rebuilt in
+// policy order from each message's sequence number and priority. Waiters that
+// died are dropped and a message handed to one goes back into the queue.
+#pragma once
+
+#include <cstddef>
+#include <cstdint>
+#include <string>
+#include <string_view>
+
+#include "chimera/ipc/lock.hpp"
+#include "chimera/ipc/segment.hpp"
+#include "chimera/xmail.hpp"
+
+namespace chimera::msg {
+
+using xm::Status;
+
+enum class Policy : std::uint32_t { fifo = 0, lifo = 1, hpf = 2 };
+
+/// msgCreate's arguments.
+struct Params {
+    std::uint32_t blknum = 64;   ///< headers and blocks (maximum messages)
+    std::uint32_t blksize = 64;  ///< bytes per block (rounded up to 8)
+    Policy policy = Policy::fifo;
+};
+
+/// What receive() says about the message it returned.
+struct Info {
+    std::uint32_t type = 0;
+    std::int32_t priority = 0;
+    std::size_t size = 0;
+};
+
+namespace layout {
+
+inline constexpr std::uint32_t kQueueVersion = 1;
+inline constexpr std::uint32_t kMaxWaiters = 16;  ///< per direction
+
+/// Header states: the journal that makes an interrupted operation repairable.
+enum HeadState : std::uint32_t {
+    kHeadFree = 0, kHeadWriting = 1, kHeadQueued = 2, kHeadHanded = 3, kHeadReading = 4,
+};
+
+/// msgHead: one message.
+struct MsgHead {
+    std::uint32_t link;       ///< next header on its list (offset), 0 = nil
+    std::uint32_t state;      ///< HeadState
+    std::uint32_t type;
+    std::int32_t priority;
+    std::uint32_t size;       ///< bytes
+    std::uint32_t blk;        ///< first block (offset), 0 = nil
+    std::uint32_t nblk;
+    std::uint32_t seq;        ///< commit order, for FIFO/LIFO order and repair
+    std::int32_t pid, tid;    ///< the thread in WRITING/READING
+};
+static_assert(sizeof(MsgHead) == 40);
+
+/// msgBHead: leads each data block.
+struct MsgBHead {
+    std::uint32_t link;   ///< next block of the same message / of blkfree
+    std::uint32_t owner;  ///< header index + 1 while the block holds a message
+};
+static_assert(sizeof(MsgBHead) == 8);
+
+/// The msgQueue object of Figure 5.2.
+struct QueueHeader {
+    ipc::SegmentHeader segment;
+    ipc::LockWord mutex;          ///< xmLock
+    char segname[64];             ///< "rtpu:name" (or a caller's label)
+    std::uint32_t blknum, blksize, flags, block_stride;
+    std::uint32_t headfree, headused, tailused, blkfree;
+    std::uint32_t nmsgs, nfree_heads, nfree_blks, next_seq;
+    std::uint32_t nhanded, recoveries, next_ticket, reclaimed_waiters;
+    std::uint32_t off_heads, off_blocks, sends, receives;
+    std::uint32_t reserved[12];
+    xm::layout::Waiter recv_waiters[kMaxWaiters];
+    xm::layout::Waiter send_waiters[kMaxWaiters];
+};
+static_assert(sizeof(QueueHeader) == 320 + 2 * 32 * kMaxWaiters);
+
+}  // namespace layout
+
+/// Counters of a queue.
+struct Stats {
+    std::uint32_t messages = 0;          ///< in headused
+    std::uint32_t handed = 0;            ///< handed to a waiter, not yet taken
+    std::uint32_t free_headers = 0, free_blocks = 0;
+    std::uint32_t receive_waiters = 0, send_waiters = 0;
+    std::uint32_t recoveries = 0;        ///< dead lock holders repaired after
+    std::uint32_t reclaimed_waiters = 0; ///< waiters found dead
+    std::uint32_t lock_recoveries = 0;   ///< the ipc lock's own count
+};
+
+/// A mapping of one queue (msgAttach's result). Move-only.
+class Queue {
+public:
+    Queue() = default;
+    Queue(Queue&&) noexcept;
+    Queue& operator=(Queue&&) noexcept;
+    ~Queue();
+
+    /// msgCreate: the XM server of the owning RTPU creates the queue.
+    static Queue create(xm::Rtpu& self, std::string_view full_name, const Params& params);
+    /// msgAttach.
+    static Queue attach(xm::Rtpu& self, std::string_view full_name);
+
+    /// Bytes a queue with these parameters needs.
+    static std::size_t memory_size(const Params& params);
+    /// Lays a new queue over caller-supplied memory (8-byte aligned, zeroed
+    /// or not); throws xm::Error on bad parameters or too little memory.
+    static Queue over(void* memory, std::size_t size, const Params& params,
+                      std::string_view label = "local");
+    /// Binds to a queue already laid over `memory` (validates the header).
+    static Queue bind(void* memory, std::size_t size);
+
+    /// msgSend: `size` bytes, up to blksize*blknum.
+    Status send(const void* data, std::size_t size, std::uint32_t type = 0,
+                std::int32_t priority = 0, std::int64_t timeout_ns = -1) noexcept;
+    /// msgReceive into `buffer`; too_big (message left queued, its size in
+    /// `info`) when it does not fit. `task_priority` orders waiting receivers.
+    Status receive(void* buffer, std::size_t capacity, Info* info = nullptr,
+                   std::int64_t timeout_ns = -1, std::int32_t task_priority = 0) noexcept;
+
+    Stats stats() noexcept;
+    /// Checks every structural invariant under the lock (after repairing a
+    /// dead holder's work); "" when consistent, else what is wrong.
+    std::string check();
+    /// Sequence of (priority, type, size) in headused order, for tests.
+    std::string dump();
+
+    /// msgDetach: unmap; the last user of a named queue frees it.
+    void detach() noexcept;
+    /// msgDestroy: remove the name through the owner's XM server.
+    void destroy(xm::Rtpu& self);
+
+    bool valid() const noexcept { return q_ != nullptr; }
+    const std::string& name() const noexcept { return name_; }
+    std::uint32_t blknum() const noexcept { return q_->blknum; }
+    std::uint32_t blksize() const noexcept { return q_->blksize; }
+    Policy policy() const noexcept { return static_cast<Policy>(q_->flags); }
+    layout::QueueHeader* header() const noexcept { return q_; }
+
+private:
+    Status lock() noexcept;
+    void repair() noexcept;
+
+    layout::QueueHeader* q_ = nullptr;
+    ipc::Segment segment_;  // invalid for a queue over caller memory
+    std::string name_;
+};
+
+}  // namespace chimera::msg

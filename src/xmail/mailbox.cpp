@@ -1,0 +1,434 @@
+// Express-mail mailboxes (thesis §5.3.1, Figure 5.1) over one POSIX shm
+// segment per RTPU process.
+#include <signal.h>
+#include <unistd.h>
+
+#include <algorithm>
+#include <cstring>
+#include <new>
+
+#include "chimera/ipc/clock.hpp"
+#include "chimera/ipc/futex.hpp"
+#include "chimera/xmail.hpp"
+
+namespace chimera::xm {
+
+using layout::MailboxHeader;
+using layout::RecordHeader;
+using layout::RingHeader;
+
+const char* to_string(Status s) noexcept {
+    switch (s) {
+        case Status::ok: return "ok";
+        case Status::would_block: return "would block";
+        case Status::timed_out: return "timed out";
+        case Status::not_alive: return "destination RTPU not alive";
+        case Status::full: return "destination buffer full";
+        case Status::too_big: return "message too big";
+        case Status::bad_argument: return "bad argument";
+        case Status::lock_timeout: return "lock timed out";
+        case Status::too_many_waiters: return "too many waiters";
+    }
+    return "unknown status";
+}
+
+namespace {
+
+constexpr ipc::SegmentKind kMailboxKind{ipc::ObjectType::xmail_mailbox, layout::kMailboxVersion};
+
+constexpr std::uint64_t round8(std::uint64_t n) noexcept { return (n + 7) & ~std::uint64_t{7}; }
+
+std::uint32_t ring_bytes(const MailboxConfig& c) noexcept {
+    return static_cast<std::uint32_t>(round8(std::max<std::uint32_t>(c.bufsize, 64)));
+}
+
+struct Offsets {
+    std::uint64_t wakeup, mbox, rings, stride, total;
+};
+
+Offsets offsets_for(const MailboxConfig& c) noexcept {
+    Offsets o{};
+    o.wakeup = sizeof(MailboxHeader);
+    o.mbox = o.wakeup + 4ull * c.ntasks;
+    o.rings = ipc::align_up(o.mbox + 4ull * c.nmbox, 64);
+    o.stride = ipc::align_up(sizeof(RingHeader) + ring_bytes(c), 64);
+    o.total = o.rings + o.stride * c.nrtpu;
+    return o;
+}
+
+// A process that exists and is not a zombie (pid == its main thread's tid).
+bool process_alive(std::int32_t pid) noexcept {
+    if (pid <= 0) return false;
+    const auto p = static_cast<std::uint64_t>(static_cast<std::uint32_t>(pid));
+    return ipc::owner_alive(p << 32 | p);
+}
+
+std::atomic<std::uint32_t>* wakeup_words(MailboxHeader* h) noexcept {
+    return reinterpret_cast<std::atomic<std::uint32_t>*>(reinterpret_cast<std::byte*>(h) +
+                                                         h->off_wakeup);
+}
+std::atomic<std::uint32_t>* mbox_words(MailboxHeader* h) noexcept {
+    return reinterpret_cast<std::atomic<std::uint32_t>*>(reinterpret_cast<std::byte*>(h) +
+                                                         h->off_mbox);
+}
+RingHeader* ring(MailboxHeader* h, std::uint32_t b) noexcept {
+    return reinterpret_cast<RingHeader*>(reinterpret_cast<std::byte*>(h) + h->off_rings +
+                                         h->ring_stride * b);
+}
+std::byte* ring_buffer(RingHeader* r) noexcept {
+    return reinterpret_cast<std::byte*>(r) + sizeof(RingHeader);
+}
+
+// Copies into / out of a ring buffer at position `pos`, wrapping.
+void ring_put(std::byte* buf, std::uint32_t size, std::uint64_t pos, const void* src,
+              std::size_t n) noexcept {
+    const auto at = static_cast<std::uint32_t>(pos % size);
+    const std::size_t first = std::min<std::size_t>(n, size - at);
+    std::memcpy(buf + at, src, first);
+    if (n > first) std::memcpy(buf, static_cast<const std::byte*>(src) + first, n - first);
+}
+void ring_get(const std::byte* buf, std::uint32_t size, std::uint64_t pos, void* dst,
+              std::size_t n) noexcept {
+    const auto at = static_cast<std::uint32_t>(pos % size);
+    const std::size_t first = std::min<std::size_t>(n, size - at);
+    std::memcpy(dst, buf + at, first);
+    if (n > first) std::memcpy(static_cast<std::byte*>(dst) + first, buf, n - first);
+}
+
+void copy_name(char (&dst)[32], std::string_view src) noexcept {
+    std::memset(dst, 0, sizeof dst);
+    std::memcpy(dst, src.data(), std::min(src.size(), sizeof dst - 1));
+}
+
+}  // namespace
+
+std::size_t layout::mailbox_size(const MailboxConfig& config) noexcept {
+    return offsets_for(config).total;
+}
+
+std::string Mailbox::segment_name(std::string_view sys, std::string_view rtpu) {
+    std::string object = "xm.";
+    object += rtpu;
+    return ipc::segment_name(sys, object);
+}
+
+Mailbox::Mailbox(std::string sys, std::string rtpu, std::uint32_t bid, MailboxConfig config)
+    : sys_(std::move(sys)), rtpu_(std::move(rtpu)), bid_(bid), config_(config) {
+    const std::string where = "mailbox of RTPU '" + rtpu_ + "'";
+    if (rtpu_.empty() || rtpu_.size() > layout::kNameMax || rtpu_.find(':') != std::string::npos)
+        throw Error(where + ": an RTPU name has 1.." + std::to_string(layout::kNameMax) +
+                    " characters and no ':'");
+    if (config_.nrtpu == 0 || config_.nrtpu > 64 || bid_ >= config_.nrtpu)
+        throw Error(where + ": bid " + std::to_string(bid_) + " not below nrtpu " +
+                    std::to_string(config_.nrtpu) + " (nrtpu 1..64)");
+    if (config_.ntasks == 0 || config_.ntasks > 256)
+        throw Error(where + ": ntasks must be 1..256");
+    if (config_.nmbox < kMboxUser || config_.nmbox > 32)
+        throw Error(where + ": nmbox must be 3..32");
+    config_.bufsize = ring_bytes(config_);
+    const std::string name = segment_name(sys_, rtpu_);
+
+    // A mailbox left behind by a process that died is ours to take over.
+    if (ipc::Segment::exists(name)) {
+        std::int32_t pid = 0;
+        try {
+            ipc::AttachOptions opt;
+            opt.ready_timeout_ns = 0;
+            auto old = ipc::Segment::attach(name, kMailboxKind, opt);
+            auto* h = static_cast<MailboxHeader*>(old.base());
+            pid = h->owner_pid.load();
+            if (h->alive.load() != 0 && process_alive(pid))
+                throw Error(where + ": RTPU already running (pid " + std::to_string(pid) + ")");
+        } catch (const ipc::SegmentError&) {
+            // A stale segment of another layout or half-built: replace it.
+        }
+        ipc::Segment::unlink(name);
+    }
+
+    const Offsets o = offsets_for(config_);
+    try {
+        segment_ = ipc::Segment::create(name, o.total, kMailboxKind);
+    } catch (const ipc::SegmentError& e) {
+        throw Error(where + ": " + e.what());
+    }
+    header_ = static_cast<MailboxHeader*>(segment_.base());
+    // The segment is zero-filled: atomics start at 0, rings empty.
+    copy_name(header_->rtpu, rtpu_);
+    header_->bid = bid_;
+    header_->nrtpu = config_.nrtpu;
+    header_->ntasks = config_.ntasks;
+    header_->nmbox = config_.nmbox;
+    header_->bufsize = config_.bufsize;
+    header_->off_wakeup = o.wakeup;
+    header_->off_mbox = o.mbox;
+    header_->off_rings = o.rings;
+    header_->ring_stride = o.stride;
+    header_->owner_pid.store(getpid());
+    header_->alive.store(1);
+    segment_.publish();
+}
+
+Mailbox::~Mailbox() {
+    if (!header_) return;
+    header_->alive.store(0);
+    // Wake senders waiting for space so they see "not alive" at once.
+    for (std::uint32_t b = 0; b < header_->nrtpu; ++b) {
+        RingHeader* r = ring(header_, b);
+        r->space_seq.fetch_add(1);
+        ipc::futex_wake_all(r->space_seq);
+    }
+    {
+        std::lock_guard lock(peers_mutex_);
+        peers_.clear();
+        retired_.clear();
+    }
+    const std::string name = segment_.name();
+    segment_.detach();
+    ipc::Segment::unlink(name);
+}
+
+Peer& Mailbox::peer(std::string_view rtpu) {
+    std::lock_guard lock(peers_mutex_);
+    auto it = peers_.find(rtpu);
+    if (it != peers_.end()) {
+        Peer& p = *it->second;
+        if (p.header_->alive.load() != 0 && process_alive(p.header_->owner_pid.load())) return p;
+        retired_.push_back(std::move(it->second));  // died or restarted: look again
+        peers_.erase(it);
+    }
+    const std::string name = segment_name(sys_, rtpu);
+    const std::string where = "RTPU '" + std::string(rtpu) + "'";
+    auto p = std::make_unique<Peer>();
+    p->rtpu_ = std::string(rtpu);
+    try {
+        p->segment_ = ipc::Segment::attach(name, kMailboxKind);
+    } catch (const ipc::SegmentError& e) {
+        if (e.error_number() == ENOENT) throw Error(where + ": no such RTPU is running");
+        throw Error(where + ": " + e.what());
+    }
+    p->header_ = static_cast<MailboxHeader*>(p->segment_.base());
+    MailboxHeader& h = *p->header_;
+    if (h.alive.load() == 0 || !process_alive(h.owner_pid.load()))
+        throw Error(where + ": not alive");
+    if (bid_ >= h.nrtpu)
+        throw Error(where + ": its mailbox takes bids below " + std::to_string(h.nrtpu) +
+                    ", this RTPU is bid " + std::to_string(bid_));
+    p->ring_ = ring(&h, bid_);
+    p->buffer_ = ring_buffer(p->ring_);
+    // Claim our ring: one producer per ring is what makes sending lock-free.
+    const std::int32_t me = getpid();
+    std::int32_t holder = p->ring_->producer_pid.load();
+    while (holder != me) {
+        if (holder != 0 && process_alive(holder))
+            throw Error(where + ": bid " + std::to_string(bid_) +
+                        " is already used by live process " + std::to_string(holder) +
+                        " (two RTPUs with the same bid)");
+        if (p->ring_->producer_pid.compare_exchange_strong(holder, me)) break;
+    }
+    p->probe_ok_ = true;
+    p->last_probe_ns_ = ipc::now_ns();
+    Peer& ref = *p;
+    peers_.emplace(std::string(rtpu), std::move(p));
+    return ref;
+}
+
+bool Mailbox::alive(Peer& peer) noexcept {
+    const bool ok = peer.header_->alive.load(std::memory_order_acquire) != 0 &&
+                    process_alive(peer.header_->owner_pid.load(std::memory_order_relaxed));
+    peer.probe_ok_ = ok;
+    peer.last_probe_ns_ = ipc::now_ns();
+    return ok;
+}
+
+// The cheap form of xmAlive for the hot path: the flag every time, the
+// process check at most once per probe period.
+bool Mailbox::probe(Peer& peer) noexcept {
+    if (peer.header_->alive.load(std::memory_order_acquire) == 0) return false;
+    if (ipc::now_ns() - peer.last_probe_ns_ < probe_period_ns_) return peer.probe_ok_;
+    return alive(peer);
+}
+
+void Mailbox::signal(MailboxHeader& h, std::uint32_t mbox) noexcept {
+    h.pending.fetch_or(1u << mbox, std::memory_order_seq_cst);
+    h.trigger.fetch_add(1, std::memory_order_seq_cst);
+    // The system call only when the owner sleeps (or is about to).
+    if (h.sleeping.load(std::memory_order_seq_cst) != 0) ipc::futex_wake_all(h.trigger);
+}
+
+Status Mailbox::write(Peer& peer, const void* data, std::size_t length,
+                      std::int64_t timeout_ns) noexcept {
+    MailboxHeader& h = *peer.header_;
+    const std::uint32_t size = h.bufsize;
+    const std::uint64_t need = sizeof(RecordHeader) + round8(length);
+    if (need > size) return Status::too_big;
+    if (!probe(peer)) return Status::not_alive;
+    RingHeader& r = *peer.ring_;
+    std::lock_guard local(peer.write_mutex_);
+    const std::uint64_t in = r.in.load(std::memory_order_relaxed);
+    std::uint64_t out = r.out.load(std::memory_order_acquire);
+    if (in - out + need > size) {
+        // Full: sleep on the consumer's space word, bounded, re-checking alive.
+        const std::int64_t deadline = ipc::now_ns() + std::max<std::int64_t>(timeout_ns, 0);
+        for (;;) {
+            const std::uint32_t seq = r.space_seq.load(std::memory_order_seq_cst);
+            r.producer_waiting.store(1, std::memory_order_seq_cst);
+            out = r.out.load(std::memory_order_seq_cst);
+            if (in - out + need <= size) break;
+            const std::int64_t now = ipc::now_ns();
+            if (now >= deadline) {
+                r.producer_waiting.store(0);
+                return Status::full;
+            }
+            if (!alive(peer)) {
+                r.producer_waiting.store(0);
+                return Status::not_alive;
+            }
+            ipc::futex_wait(r.space_seq, seq, std::min<std::int64_t>(deadline - now, 10'000'000));
+        }
+        r.producer_waiting.store(0, std::memory_order_relaxed);
+    }
+    RecordHeader rec{static_cast<std::uint32_t>(length), 0};
+    ring_put(peer.buffer_, size, in, &rec, sizeof rec);
+    ring_put(peer.buffer_, size, in + sizeof rec, data, length);
+    r.in.store(in + need, std::memory_order_release);  // the message is visible from here
+    signal(h, kMboxSigBuf);
+    return Status::ok;
+}
+
+Status Mailbox::read(void* buffer, std::size_t capacity, ReadInfo* info) noexcept {
+    MailboxHeader& h = *header_;
+    const std::uint32_t n = h.nrtpu;
+    for (std::uint32_t k = 0; k < n; ++k) {
+        const std::uint32_t b = (next_ring_ + k) % n;
+        RingHeader& r = *ring(header_, b);
+        const std::uint64_t out = r.out.load(std::memory_order_relaxed);
+        const std::uint64_t in = r.in.load(std::memory_order_acquire);
+        if (in == out) continue;
+        std::byte* buf = ring_buffer(&r);
+        RecordHeader rec;
+        ring_get(buf, h.bufsize, out, &rec, sizeof rec);
+        if (info) {
+            info->from_bid = b;
+            info->length = rec.length;
+        }
+        if (rec.length > capacity) return Status::too_big;
+        ring_get(buf, h.bufsize, out + sizeof rec, buffer, rec.length);
+        r.out.store(out + sizeof rec + round8(rec.length), std::memory_order_seq_cst);
+        if (r.producer_waiting.load(std::memory_order_seq_cst) != 0) {
+            r.space_seq.fetch_add(1, std::memory_order_seq_cst);
+            ipc::futex_wake_all(r.space_seq);
+        }
+        next_ring_ = (b + 1) % n;
+        return Status::ok;
+    }
+    return Status::would_block;
+}
+
+std::uint32_t Mailbox::take_interrupts() noexcept {
+    return header_->pending.exchange(0, std::memory_order_acq_rel);
+}
+
+std::uint32_t Mailbox::wait_interrupts(std::int64_t timeout_ns) noexcept {
+    MailboxHeader& h = *header_;
+    const std::int64_t deadline = timeout_ns < 0 ? -1 : ipc::now_ns() + timeout_ns;
+    for (;;) {
+        const std::uint32_t seq = h.trigger.load(std::memory_order_seq_cst);
+        h.sleeping.store(1, std::memory_order_seq_cst);
+        if (const std::uint32_t p = h.pending.exchange(0, std::memory_order_seq_cst)) {
+            h.sleeping.store(0, std::memory_order_relaxed);
+            return p;
+        }
+        if (deadline >= 0 && ipc::now_ns() >= deadline) {
+            h.sleeping.store(0, std::memory_order_relaxed);
+            return 0;
+        }
+        if (deadline < 0)
+            ipc::futex_wait(h.trigger, seq);
+        else
+            ipc::futex_wait_until(h.trigger, seq, deadline);
+        h.sleeping.store(0, std::memory_order_relaxed);
+    }
+}
+
+std::uint32_t Mailbox::mbox_value(std::uint32_t mbox) const noexcept {
+    if (mbox >= header_->nmbox) return 0;
+    return mbox_words(header_)[mbox].load(std::memory_order_acquire);
+}
+
+Status Mailbox::mbox_send(Peer& peer, std::uint32_t mbox, std::uint32_t value) noexcept {
+    MailboxHeader& h = *peer.header_;
+    if (mbox >= h.nmbox || value == 0) return Status::bad_argument;
+    if (!probe(peer)) return Status::not_alive;
+    mbox_words(&h)[mbox].store(value, std::memory_order_release);  // first write: the value
+    signal(h, mbox);                                                // second: the trigger
+    return Status::ok;
+}
+
+// Wakeup word: 0 idle, 1 woken (kept until the task blocks), 2 task asleep.
+Status Mailbox::wakeup(Peer& peer, std::uint32_t task) noexcept {
+    MailboxHeader& h = *peer.header_;
+    if (task >= h.ntasks) return Status::bad_argument;
+    if (!probe(peer)) return Status::not_alive;
+    auto& w = wakeup_words(&h)[task];
+    if (w.exchange(1, std::memory_order_seq_cst) == 2) ipc::futex_wake_all(w);
+    h.pending.fetch_or(1u << kMboxSigWkup, std::memory_order_relaxed);  // for observers
+    return Status::ok;
+}
+
+Status Mailbox::block(std::uint32_t task, std::int64_t timeout_ns) noexcept {
+    MailboxHeader& h = *header_;
+    if (task >= h.ntasks) return Status::bad_argument;
+    auto& w = wakeup_words(&h)[task];
+    const std::int64_t deadline = timeout_ns < 0 ? -1 : ipc::now_ns() + timeout_ns;
+    for (;;) {
+        std::uint32_t v = w.load(std::memory_order_acquire);
+        if (v == 1) {
+            if (w.compare_exchange_strong(v, 0, std::memory_order_acq_rel)) return Status::ok;
+            continue;
+        }
+        if (v == 0 && !w.compare_exchange_strong(v, 2, std::memory_order_acq_rel)) continue;
+        if (deadline >= 0 && ipc::now_ns() >= deadline) {
+            std::uint32_t two = 2;
+            if (w.compare_exchange_strong(two, 0, std::memory_order_acq_rel)) return Status::timed_out;
+            continue;  // a wakeup arrived meanwhile: take it
+        }
+        if (deadline < 0)
+            ipc::futex_wait(w, 2);
+        else
+            ipc::futex_wait_until(w, 2, deadline);
+    }
+}
+
+std::uint32_t Mailbox::claim_task() {
+    std::lock_guard lock(tasks_mutex_);
+    for (std::uint32_t t = 0; t < header_->ntasks; ++t) {
+        if (!(tasks_used_[t / 64] >> (t % 64) & 1)) {
+            tasks_used_[t / 64] |= std::uint64_t{1} << (t % 64);
+            wakeup_words(header_)[t].store(0);
+            return t;
+        }
+    }
+    throw Error("RTPU '" + rtpu_ + "': all " + std::to_string(header_->ntasks) +
+                " task slots are in use");
+}
+
+void Mailbox::release_task(std::uint32_t task) noexcept {
+    if (task >= header_->ntasks) return;
+    std::lock_guard lock(tasks_mutex_);
+    tasks_used_[task / 64] &= ~(std::uint64_t{1} << (task % 64));
+}
+
+void Mailbox::reset_buffers() noexcept {
+    for (std::uint32_t b = 0; b < header_->nrtpu; ++b) {
+        RingHeader& r = *ring(header_, b);
+        const std::uint64_t in = r.in.load(std::memory_order_acquire);
+        const std::uint64_t out = r.out.load(std::memory_order_relaxed);
+        r.discarded.fetch_add(in - out, std::memory_order_relaxed);
+        r.out.store(in, std::memory_order_seq_cst);
+        r.space_seq.fetch_add(1);
+        ipc::futex_wake_all(r.space_seq);
+    }
+    header_->resets.fetch_add(1);
+}
+
+}  // namespace chimera::xm

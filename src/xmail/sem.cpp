@@ -1,0 +1,230 @@
+// Remote semaphores (thesis §5.4.2).
+#include "chimera/sem.hpp"
+
+#include <cstring>
+#include <utility>
+
+#include "detail.hpp"
+
+namespace chimera::sem {
+
+using layout::SemHeader;
+using namespace xm::detail;
+
+namespace {
+
+constexpr ipc::SegmentKind kSemKind{ipc::ObjectType::xmail_sem, layout::kSemVersion};
+
+void check_args(std::string_view name, Kind kind, std::int32_t initial) {
+    if (kind != Kind::binary && kind != Kind::counting)
+        throw xm::Error("semaphore '" + std::string(name) + "': kind must be binary or counting");
+    if (initial < 0 || (kind == Kind::binary && initial > 1))
+        throw xm::Error("semaphore '" + std::string(name) + "': initial value " +
+                        std::to_string(initial) +
+                        (kind == Kind::binary ? " (binary: 0 or 1)" : " (counting: >= 0)"));
+}
+
+void init_body(SemHeader* h, Kind kind, std::int32_t initial, std::string_view label) noexcept {
+    std::memset(reinterpret_cast<std::byte*>(h) + sizeof(ipc::SegmentHeader), 0,
+                sizeof(SemHeader) - sizeof(ipc::SegmentHeader));
+    std::memcpy(h->name, label.data(), std::min(label.size(), sizeof h->name - 1));
+    h->kind = static_cast<std::uint32_t>(kind);
+    h->value = initial;
+}
+
+}  // namespace
+
+ipc::Segment create_segment_body(const std::string& segment, const std::string& full_name,
+                                 const xm::ObjectParams& params) {
+    const auto kind = static_cast<Kind>(params.a);
+    const auto initial = static_cast<std::int32_t>(static_cast<std::int64_t>(params.b));
+    check_args(full_name, kind, initial);
+    ipc::Segment seg = ipc::Segment::create(segment, sizeof(SemHeader), kSemKind);
+    init_body(static_cast<SemHeader*>(seg.base()), kind, initial, full_name);
+    seg.publish();
+    return seg;
+}
+
+Semaphore::Semaphore(Semaphore&& o) noexcept
+    : h_(std::exchange(o.h_, nullptr)), segment_(std::move(o.segment_)), name_(std::move(o.name_)) {}
+
+Semaphore& Semaphore::operator=(Semaphore&& o) noexcept {
+    if (this != &o) {
+        detach();
+        h_ = std::exchange(o.h_, nullptr);
+        segment_ = std::move(o.segment_);
+        name_ = std::move(o.name_);
+    }
+    return *this;
+}
+
+Semaphore::~Semaphore() { detach(); }
+
+Semaphore Semaphore::create(xm::Rtpu& self, std::string_view full_name, Kind kind,
+                            std::int32_t initial) {
+    check_args(full_name, kind, initial);
+    xm::ObjectParams op;
+    op.a = static_cast<std::uint32_t>(kind);
+    op.b = static_cast<std::uint64_t>(initial);
+    const xm::ObjectRef ref = self.create_object(full_name, ipc::ObjectType::xmail_sem, op);
+    Semaphore s;
+    try {
+        s.segment_ = ipc::Segment::attach(ref.segment, kSemKind);
+    } catch (const ipc::SegmentError& e) {
+        throw xm::Error("semaphore '" + std::string(full_name) + "': " + e.what());
+    }
+    s.h_ = static_cast<SemHeader*>(s.segment_.base());
+    s.name_ = std::string(full_name);
+    return s;
+}
+
+Semaphore Semaphore::attach(xm::Rtpu& self, std::string_view full_name) {
+    const xm::ObjectRef ref = self.attach_object(full_name, ipc::ObjectType::xmail_sem);
+    Semaphore s;
+    try {
+        s.segment_ = ipc::Segment::attach(ref.segment, kSemKind);
+    } catch (const ipc::SegmentError& e) {
+        throw xm::Error("semaphore '" + std::string(full_name) + "': " + e.what());
+    }
+    s.h_ = static_cast<SemHeader*>(s.segment_.base());
+    s.name_ = std::string(full_name);
+    return s;
+}
+
+Semaphore Semaphore::over(void* memory, Kind kind, std::int32_t initial, std::string_view label) {
+    check_args(label, kind, initial);
+    auto* h = static_cast<SemHeader*>(memory);
+    ipc::init_header(h->segment, kSemKind, sizeof(SemHeader));
+    init_body(h, kind, initial, label);
+    h->segment.state.store(static_cast<std::uint32_t>(ipc::SegmentState::ready),
+                           std::memory_order_release);
+    Semaphore s;
+    s.h_ = h;
+    s.name_ = std::string(label);
+    return s;
+}
+
+Semaphore Semaphore::bind(void* memory) {
+    auto* h = static_cast<SemHeader*>(memory);
+    try {
+        ipc::validate_header("semaphore", h->segment, kSemKind, sizeof(SemHeader));
+    } catch (const ipc::SegmentError& e) {
+        throw xm::Error(e.what());
+    }
+    Semaphore s;
+    s.h_ = h;
+    s.name_ = h->name;
+    return s;
+}
+
+void Semaphore::detach() noexcept {
+    if (segment_.valid()) segment_.detach_destroy_if_last();
+    h_ = nullptr;
+}
+
+void Semaphore::destroy(xm::Rtpu& self) {
+    // Name first: detaching first could free the object as its last user.
+    self.destroy_object(name_);
+    h_ = nullptr;
+    segment_.detach();
+}
+
+Status Semaphore::lock() noexcept {
+    return lock_object(h_->mutex, h_->recoveries, [this] { repair(); });
+}
+
+xm::layout::Waiter* Semaphore::release_unit() noexcept {
+    Waiter* w = waiter_pick(h_->waiters, layout::kMaxWaiters, &h_->reclaimed_waiters);
+    if (w) {
+        waiter_signal(*w);  // the unit goes straight to the waiter: value unchanged
+        return w;
+    }
+    if (h_->kind == static_cast<std::uint32_t>(Kind::counting) || h_->value < 1) ++h_->value;
+    return nullptr;
+}
+
+void Semaphore::repair() noexcept {
+    // A unit granted to a waiter that died before taking it is passed on.
+    for (std::uint32_t i = 0; i < layout::kMaxWaiters; ++i) {
+        Waiter& w = h_->waiters[i];
+        if (w.state == kFree) continue;
+        const std::uint64_t id = static_cast<std::uint64_t>(static_cast<std::uint32_t>(w.pid)) << 32 |
+                                 static_cast<std::uint32_t>(w.tid);
+        if (ipc::owner_alive(id)) {
+            if (w.state == kSignaled) w.word.store(1, std::memory_order_release);
+            continue;
+        }
+        const bool granted = w.state == kSignaled;
+        waiter_free(w);
+        ++h_->reclaimed_waiters;
+        if (granted)
+            if (Waiter* next = release_unit()) waiter_wake(*next);
+    }
+    if (h_->value < 0) h_->value = 0;
+    if (h_->kind == static_cast<std::uint32_t>(Kind::binary) && h_->value > 1) h_->value = 1;
+}
+
+Status Semaphore::p(std::int64_t timeout_ns, std::int32_t priority) noexcept {
+    if (!h_) return Status::bad_argument;
+    const std::int64_t deadline = deadline_for(timeout_ns);
+    Waiter* me = nullptr;
+    for (;;) {
+        if (const Status s = lock(); s != Status::ok) return s;
+        if (me) {
+            const bool granted = me->state == kSignaled;
+            waiter_free(*me);
+            me = nullptr;
+            if (granted) {
+                ipc::unlock(h_->mutex);
+                return Status::ok;
+            }
+        }
+        if (h_->value > 0) {
+            --h_->value;
+            ipc::unlock(h_->mutex);
+            return Status::ok;
+        }
+        Status fail = Status::ok;
+        if (timeout_ns == 0)
+            fail = Status::would_block;
+        else if (deadline >= 0 && ipc::now_ns() >= deadline)
+            fail = Status::timed_out;
+        else if (!(me = waiter_add(h_->waiters, layout::kMaxWaiters, h_->next_ticket, priority)))
+            fail = Status::too_many_waiters;
+        ipc::unlock(h_->mutex);
+        if (fail != Status::ok) return fail;
+        waiter_sleep(*me, deadline);
+    }
+}
+
+Status Semaphore::v() noexcept {
+    if (!h_) return Status::bad_argument;
+    if (const Status s = lock(); s != Status::ok) return s;
+    Waiter* wake = release_unit();
+    ipc::unlock(h_->mutex);
+    if (wake) waiter_wake(*wake);
+    return Status::ok;
+}
+
+std::int32_t Semaphore::value() noexcept {
+    if (!h_ || lock() != Status::ok) return -1;
+    const std::int32_t v = h_->value;
+    ipc::unlock(h_->mutex);
+    return v;
+}
+
+std::uint32_t Semaphore::waiting() noexcept {
+    if (!h_ || lock() != Status::ok) return 0;
+    const std::uint32_t n = waiter_count(h_->waiters, layout::kMaxWaiters);
+    ipc::unlock(h_->mutex);
+    return n;
+}
+
+}  // namespace chimera::sem
+
+namespace chimera::xm::detail {
+ipc::Segment create_sem_segment(const std::string& segment, const std::string& full_name,
+                                const ObjectParams& params) {
+    return sem::create_segment_body(segment, full_name, params);
+}
+}  // namespace chimera::xm::detail

@@ -1,0 +1,48 @@
+// Helpers shared by the xmail tests.
+#pragma once
+
+#include <spawn.h>
+#include <sys/wait.h>
+#include <unistd.h>
+
+#include <string>
+#include <vector>
+
+extern char** environ;
+
+/// A system name unique to this process and test, so parallel runs never meet.
+inline std::string test_sys(const std::string& what) {
+    return "xt" + std::to_string(getpid()) + what;
+}
+
+/// fork + exec of the helper binary with `args`; stdout goes to `out_fd` if >= 0.
+inline pid_t spawn_helper(const std::vector<std::string>& args, int out_fd = -1) {
+    std::vector<std::string> all{XM_HELPER};
+    all.insert(all.end(), args.begin(), args.end());
+    std::vector<char*> argv;
+    for (auto& a : all) argv.push_back(a.data());
+    argv.push_back(nullptr);
+    posix_spawn_file_actions_t fa;
+    posix_spawn_file_actions_init(&fa);
+    if (out_fd >= 0) posix_spawn_file_actions_adddup2(&fa, out_fd, 1);
+    pid_t pid = -1;
+    if (posix_spawn(&pid, XM_HELPER, &fa, nullptr, argv.data(), environ) != 0) pid = -1;
+    posix_spawn_file_actions_destroy(&fa);
+    return pid;
+}
+
+/// Runs the helper to completion and returns (exit status, stdout).
+inline std::pair<int, std::string> run_helper(const std::vector<std::string>& args) {
+    int p[2];
+    if (pipe(p) != 0) return {-1, ""};
+    const pid_t pid = spawn_helper(args, p[1]);
+    close(p[1]);
+    std::string out;
+    char buf[512];
+    ssize_t n;
+    while ((n = read(p[0], buf, sizeof buf)) > 0) out.append(buf, static_cast<std::size_t>(n));
+    close(p[0]);
+    int status = 0;
+    waitpid(pid, &status, 0);
+    return {WIFEXITED(status) ? WEXITSTATUS(status) : 128 + WTERMSIG(status), out};
+}

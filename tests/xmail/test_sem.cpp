@@ -1,0 +1,172 @@
+// Remote semaphores over a plain memory block (§5.4.2): values, timed P,
+// blocking without spinning, waiter priority order, repair after a death.
+#include <gtest/gtest.h>
+#include <sys/mman.h>
+#include <sys/resource.h>
+#include <sys/wait.h>
+#include <unistd.h>
+
+#include <algorithm>
+#include <chrono>
+#include <mutex>
+#include <thread>
+#include <vector>
+
+#include "chimera/ipc/clock.hpp"
+#include "chimera/sem.hpp"
+
+using namespace chimera;
+using sem::Kind;
+using sem::Semaphore;
+using xm::Status;
+
+namespace {
+struct alignas(64) Mem {
+    unsigned char bytes[Semaphore::memory_size()];
+};
+}  // namespace
+
+TEST(Sem, BinaryAndCountingValues) {
+    Mem m;
+    Semaphore b = Semaphore::over(&m, Kind::binary, 1);
+    EXPECT_EQ(b.try_p(), Status::ok);
+    EXPECT_EQ(b.try_p(), Status::would_block);
+    EXPECT_EQ(b.v(), Status::ok);
+    EXPECT_EQ(b.v(), Status::ok);  // binary: stays 1
+    EXPECT_EQ(b.value(), 1);
+    Mem m2;
+    Semaphore c = Semaphore::over(&m2, Kind::counting, 2);
+    EXPECT_EQ(c.try_p(), Status::ok);
+    EXPECT_EQ(c.try_p(), Status::ok);
+    EXPECT_EQ(c.try_p(), Status::would_block);
+    for (int i = 0; i < 3; ++i) c.v();
+    EXPECT_EQ(c.value(), 3);
+    Semaphore again = Semaphore::bind(&m2);
+    EXPECT_EQ(again.value(), 3);
+    EXPECT_EQ(again.kind(), Kind::counting);
+}
+
+TEST(Sem, BadInitialValuesAreRefused) {
+    Mem m;
+    EXPECT_THROW(Semaphore::over(&m, Kind::binary, 2), xm::Error);
+    EXPECT_THROW(Semaphore::over(&m, Kind::counting, -1), xm::Error);
+    EXPECT_THROW(Semaphore::over(&m, static_cast<Kind>(5), 0), xm::Error);
+}
+
+TEST(Sem, TimedPTimesOut) {
+    Mem m;
+    Semaphore s = Semaphore::over(&m, Kind::binary, 0);
+    const auto t0 = ipc::now_ns();
+    EXPECT_EQ(s.p(25'000'000), Status::timed_out);
+    EXPECT_GE(ipc::now_ns() - t0, 25'000'000);
+    EXPECT_EQ(s.waiting(), 0u);
+}
+
+TEST(Sem, BlockedPSleepsAndIsWokenByV) {
+    Mem m;
+    Semaphore s = Semaphore::over(&m, Kind::binary, 0);
+    rusage before{}, after{};
+    std::thread t([&] {
+        getrusage(RUSAGE_THREAD, &before);
+        EXPECT_EQ(s.p(-1), Status::ok);
+        getrusage(RUSAGE_THREAD, &after);
+    });
+    while (s.waiting() == 0) std::this_thread::yield();
+    std::this_thread::sleep_for(std::chrono::milliseconds(200));
+    EXPECT_EQ(s.v(), Status::ok);
+    t.join();
+    // A spinning waiter would have burnt ~200 ms of CPU; a sleeping one almost none.
+    const long cpu_us = (after.ru_utime.tv_sec - before.ru_utime.tv_sec) * 1'000'000 +
+                        (after.ru_utime.tv_usec - before.ru_utime.tv_usec) +
+                        (after.ru_stime.tv_sec - before.ru_stime.tv_sec) * 1'000'000 +
+                        (after.ru_stime.tv_usec - before.ru_stime.tv_usec);
+    EXPECT_LT(cpu_us, 50'000);
+    EXPECT_EQ(s.value(), 0);  // the unit went to the waiter
+}
+
+TEST(Sem, WaitersAreServedHighestPriorityFirst) {
+    Mem m;
+    Semaphore s = Semaphore::over(&m, Kind::counting, 0);
+    std::mutex mu;
+    std::vector<int> order;
+    std::vector<std::thread> ts;
+    for (int prio : {2, 7, 4, 7}) {
+        ts.emplace_back([&, prio] {
+            EXPECT_EQ(s.p(5'000'000'000, prio), Status::ok);
+            std::lock_guard lock(mu);
+            order.push_back(prio);
+        });
+        while (s.waiting() < ts.size()) std::this_thread::yield();
+    }
+    for (int i = 0; i < 4; ++i) {
+        s.v();
+        // Let the woken one record itself before the next V.
+        while (true) {
+            std::lock_guard lock(mu);
+            if (order.size() == static_cast<std::size_t>(i + 1)) break;
+        }
+    }
+    for (auto& t : ts) t.join();
+    EXPECT_EQ(order, (std::vector<int>{7, 7, 4, 2}));
+}
+
+TEST(Sem, GrantToADeadWaiterIsPassedOn) {
+    // Shared memory so a child process can wait on it.
+    void* mem = mmap(nullptr, Semaphore::memory_size(), PROT_READ | PROT_WRITE,
+                     MAP_SHARED | MAP_ANONYMOUS, -1, 0);
+    ASSERT_NE(mem, MAP_FAILED);
+    Semaphore s = Semaphore::over(mem, Kind::binary, 0);
+    const pid_t child = fork();
+    if (child == 0) {
+        Semaphore c = Semaphore::bind(mem);
+        c.p(-1, 10);
+        _exit(0);
+    }
+    while (s.waiting() == 0) std::this_thread::yield();
+    // The child dies while waiting; V must not give the unit to it.
+    kill(child, SIGKILL);
+    waitpid(child, nullptr, 0);
+    EXPECT_EQ(s.v(), Status::ok);
+    EXPECT_EQ(s.try_p(), Status::ok);
+    munmap(mem, Semaphore::memory_size());
+}
+
+TEST(Sem, MutualExclusionAcrossProcesses) {
+    struct Shared {
+        alignas(64) unsigned char sem[Semaphore::memory_size()];
+        long counter;
+        int inside;
+        int violations;
+    };
+    auto* sh = static_cast<Shared*>(mmap(nullptr, sizeof(Shared), PROT_READ | PROT_WRITE,
+                                         MAP_SHARED | MAP_ANONYMOUS, -1, 0));
+    ASSERT_NE(sh, MAP_FAILED);
+    Semaphore::over(sh->sem, Kind::binary, 1);
+    constexpr int kProcs = 3, kIters = 3000;
+    std::vector<pid_t> kids;
+    for (int k = 0; k < kProcs; ++k) {
+        const pid_t pid = fork();
+        if (pid == 0) {
+            Semaphore s = Semaphore::bind(sh->sem);
+            for (int i = 0; i < kIters; ++i) {
+                if (s.p(-1) != Status::ok) _exit(2);
+                if (++sh->inside != 1) ++sh->violations;
+                const long c = sh->counter;
+                if (i % 64 == 0) sched_yield();
+                sh->counter = c + 1;
+                --sh->inside;
+                s.v();
+            }
+            _exit(0);
+        }
+        kids.push_back(pid);
+    }
+    for (pid_t pid : kids) {
+        int st = 0;
+        waitpid(pid, &st, 0);
+        EXPECT_TRUE(WIFEXITED(st) && WEXITSTATUS(st) == 0);
+    }
+    EXPECT_EQ(sh->counter, kProcs * kIters);
+    EXPECT_EQ(sh->violations, 0);
+    munmap(sh, sizeof(Shared));
+}

@@ -1,0 +1,182 @@
+// Helper process for the multi-process xmail tests (started with fork+exec).
+// Usage: xm_helper COMMAND SYS RTPU BID ARGS...   Prints results on stdout.
+#include <unistd.h>
+
+#include <chrono>
+#include <cstdio>
+#include <cstdlib>
+#include <cstring>
+#include <string>
+#include <thread>
+#include <vector>
+
+#include "chimera/msg.hpp"
+#include "chimera/sem.hpp"
+#include "chimera/shm.hpp"
+#include "chimera/xmail.hpp"
+#include "kill_log.hpp"
+
+using namespace chimera;
+using xm::Status;
+
+namespace {
+
+void say(const std::string& s) {
+    std::printf("%s\n", s.c_str());
+    std::fflush(stdout);
+}
+
+std::int64_t ms(const char* s) {
+    const long v = std::atol(s);
+    return v < 0 ? -1 : static_cast<std::int64_t>(v) * 1'000'000;
+}
+
+// Raw express mail: echo every message back to the RTPU named in it
+// ("name|payload"), until "quit".
+int xm_echo(const std::string& sys, const std::string& rtpu, std::uint32_t bid) {
+    xm::Mailbox mb(sys, rtpu, bid);
+    say("ready");
+    std::vector<char> buf(mb.config().bufsize);
+    for (;;) {
+        mb.wait_interrupts(1'000'000'000);
+        xm::ReadInfo info;
+        while (mb.read(buf.data(), buf.size(), &info) == Status::ok) {
+            const std::string m(buf.data(), info.length);
+            if (m == "quit") return 0;
+            const auto bar = m.find('|');
+            if (bar == std::string::npos) continue;
+            auto& back = mb.peer(m.substr(0, bar));
+            mb.write(back, buf.data() + bar + 1, info.length - bar - 1, 1'000'000'000);
+        }
+    }
+}
+
+int kq_send(xm::Rtpu& self, int slot) {
+    shm::Segment log_seg = shm::Segment::attach(self, "host:klog");
+    auto* log = static_cast<kill_test::Log*>(log_seg.data());
+    msg::Queue q = msg::Queue::attach(self, "host:kq");
+    // Resume after the sequence a killed predecessor may have sent.
+    std::uint64_t seq = std::max(log->sent[slot].load(), log->attempt[slot].load() + 1);
+    if (log->sent[slot].load() == 0 && log->attempt[slot].load() == 0) seq = 0;
+    std::uint64_t payload[5];
+    while (!log->stop.load()) {
+        const std::uint64_t id = kill_test::make_id(slot, seq);
+        const std::size_t n = kill_test::payload_words(id);
+        for (std::size_t i = 0; i < n; ++i) payload[i] = kill_test::word(id, i);
+        log->attempt[slot].store(seq);
+        const Status s = q.send(payload, n * 8, 0, static_cast<std::int32_t>(id % 7), 100'000'000);
+        if (s == Status::ok) {
+            log->sent[slot].store(seq + 1);
+            ++seq;
+        } else if (s != Status::timed_out) {
+            say(std::string("send failed: ") + xm::to_string(s));
+            return 3;
+        }
+    }
+    return 0;
+}
+
+int kq_recv(xm::Rtpu& self, int slot) {
+    shm::Segment log_seg = shm::Segment::attach(self, "host:klog");
+    auto* log = static_cast<kill_test::Log*>(log_seg.data());
+    msg::Queue q = msg::Queue::attach(self, "host:kq");
+    std::uint64_t payload[5];
+    while (!log->stop.load()) {
+        const std::uint64_t n = log->count[slot].load();
+        if (n >= kill_test::kCap) break;
+        msg::Info info;
+        const Status s = q.receive(payload, sizeof payload, &info, 100'000'000, slot);
+        if (s == Status::timed_out) continue;
+        if (s != Status::ok) {
+            say(std::string("receive failed: ") + xm::to_string(s));
+            return 3;
+        }
+        const std::uint64_t cand = payload[0];  // word 0 is the id itself
+        bool ok = info.size == kill_test::payload_words(cand) * 8;
+        for (std::size_t i = 0; ok && i < info.size / 8; ++i) ok = payload[i] == kill_test::word(cand, i);
+        if (!ok) log->corrupt.fetch_add(1);
+        log->ids[slot][n] = cand;  // in flight until count moves
+        log->count[slot].store(n + 1);
+    }
+    return 0;
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+    if (argc < 5) {
+        std::fprintf(stderr, "usage: xm_helper COMMAND SYS RTPU BID ARGS...\n");
+        return 2;
+    }
+    const std::string cmd = argv[1], sys = argv[2], rtpu = argv[3];
+    const auto bid = static_cast<std::uint32_t>(std::atoi(argv[4]));
+    try {
+        if (cmd == "xm-echo") return xm_echo(sys, rtpu, bid);
+        xm::Rtpu self(sys, rtpu, bid);
+        if (cmd == "serve") {  // an RTPU whose XM server owns objects: runs until killed
+            say("ready");
+            for (;;) pause();
+        }
+        if (cmd == "shm-rw" && argc >= 8) {  // OBJ EXPECT WRITE
+            shm::Segment s = shm::Segment::attach(self, argv[5]);
+            const std::string seen(static_cast<const char*>(s.data()), std::strlen(argv[6]));
+            std::strcpy(static_cast<char*>(s.data()), argv[7]);
+            say(seen == argv[6] ? "ok " + std::to_string(s.size()) : "saw " + seen);
+            return 0;
+        }
+        if (cmd == "shm-create" && argc >= 7) {  // OBJ SIZE: create on another RTPU
+            shm::Segment s = shm::Segment::create(self, argv[5], std::strtoul(argv[6], nullptr, 10));
+            std::strcpy(static_cast<char*>(s.data()), "made remotely");
+            say("ok");
+            s.detach();
+            return 0;
+        }
+        if (cmd == "sem-p" && argc >= 8) {  // OBJ PRIO TIMEOUT_MS
+            sem::Semaphore s = sem::Semaphore::attach(self, argv[5]);
+            const Status st = s.p(ms(argv[7]), std::atoi(argv[6]));
+            say(st == Status::ok ? std::string("got ") + argv[6] : xm::to_string(st));
+            return 0;
+        }
+        if (cmd == "sem-v" && argc >= 7) {  // OBJ COUNT
+            sem::Semaphore s = sem::Semaphore::attach(self, argv[5]);
+            for (int i = 0; i < std::atoi(argv[6]); ++i) s.v();
+            say("ok");
+            return 0;
+        }
+        if (cmd == "msg-recv" && argc >= 9) {  // OBJ PRIO COUNT TIMEOUT_MS
+            msg::Queue q = msg::Queue::attach(self, argv[5]);
+            std::vector<char> buf(1 << 16);
+            for (int i = 0; i < std::atoi(argv[7]); ++i) {
+                msg::Info info;
+                const Status st = q.receive(buf.data(), buf.size(), &info, ms(argv[8]), std::atoi(argv[6]));
+                if (st != Status::ok) {
+                    say(xm::to_string(st));
+                    return 0;
+                }
+                say(std::to_string(info.priority) + " " + std::to_string(info.type) + " " +
+                    std::string(buf.data(), info.size));
+            }
+            return 0;
+        }
+        if (cmd == "msg-send" && argc >= 8) {  // OBJ PRIO TEXT...
+            msg::Queue q = msg::Queue::attach(self, argv[5]);
+            for (int i = 7; i < argc; ++i) {
+                const Status st = q.send(argv[i], std::strlen(argv[i]), static_cast<std::uint32_t>(i - 7),
+                                         std::atoi(argv[6]) + (i - 7), 1'000'000'000);
+                if (st != Status::ok) {
+                    say(xm::to_string(st));
+                    return 1;
+                }
+            }
+            say("ok");
+            return 0;
+        }
+        if (cmd == "kq-send" && argc >= 6) return kq_send(self, std::atoi(argv[5]));
+        if (cmd == "kq-recv" && argc >= 6) return kq_recv(self, std::atoi(argv[5]));
+        std::fprintf(stderr, "xm_helper: unknown command or arguments: %s\n", cmd.c_str());
+        return 2;
+    } catch (const std::exception& e) {
+        say(std::string("error: ") + e.what());
+        return 1;
+    }
+}
