@@ -57,15 +57,10 @@
 #include <string>
 #include <string_view>
 
-#if __has_include(<chimera/svar.hpp>)
 #include <chimera/svar.hpp>
-#endif
 
 namespace chimera {
 
-namespace svar {
-class LocalTable;
-}
 namespace sbs::detail {
 class TaskCore;
 }
@@ -132,7 +127,6 @@ public:
     /// A typed pointer into the local table for a port name (SVARALIAS applied).
     /// Fails (throws, at init time — never in the cycle) on an unknown name, a
     /// name that is not one of this task's ports, or a wrong type.
-    /// Requires <chimera/svar.hpp>.
     template <typename T, typename Table = svar::LocalTable>
     T* translate(std::string_view port) const {
         Table& table = *static_cast<Table*>(local_table_ptr());

@@ -47,6 +47,7 @@
 #include <stdexcept>
 #include <string>
 #include <string_view>
+#include <utility>
 #include <vector>
 
 namespace chimera::sbs {
@@ -80,6 +81,8 @@ public:
 
 /// One item of sbsReconfig.
 struct ReconfigItem {
+    ReconfigItem() = default;
+    ReconfigItem(TaskId t, Control s, std::string a = {}) : task(t), signal(s), arg(std::move(a)) {}
     TaskId task;
     Control signal = Control::on;
     std::string arg;  ///< passed to the method as task.arg()

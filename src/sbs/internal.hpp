@@ -1,0 +1,181 @@
+// Internal structures of the sbs service: the task runtime (TaskCore) and the
+// subsystem master (SubsystemCore). Not installed.
+#pragma once
+
+#include "chimera/module.hpp"
+#include "chimera/sbs.hpp"
+#include "chimera/svar.hpp"
+
+#include <atomic>
+#include <condition_variable>
+#include <csetjmp>
+#include <cstdint>
+#include <memory>
+#include <mutex>
+#include <pthread.h>
+#include <string>
+#include <vector>
+
+namespace chimera::sbs::detail {
+
+class SubsystemCore;
+
+/// Finds the C-ABI table of MODULE `name` (in the program, then as
+/// <name>.so / lib<name>.so in `dirs`); throws sbs::Error listing what was tried.
+const ChimeraModuleAbi& load_module(const std::string& name, const std::vector<std::string>& dirs);
+
+/// The periodic wait, kept behind this interface so a per-RTPU dispatcher
+/// (src/muf) can take the place of the plain clock.
+class Pacer {
+public:
+    virtual ~Pacer() = default;
+    /// Called when the task turns on: the first release is `first_ns`.
+    virtual void start(std::int64_t first_ns, std::int64_t period_ns) noexcept = 0;
+    virtual void set_period(std::int64_t period_ns) noexcept = 0;
+    /// Blocks until the next release or until `word` no longer holds `seen`
+    /// (a command arrived). Returns true at a release; adds releases that
+    /// passed while the previous cycle still ran to `missed`.
+    virtual bool wait(std::atomic<std::uint32_t>& word, std::uint32_t seen, std::uint64_t& missed) noexcept = 0;
+};
+/// Absolute-time futex wait on CLOCK_MONOTONIC: sleeps until the release,
+/// wakes early for a command. No allocation; one system call per cycle.
+std::unique_ptr<Pacer> make_clock_pacer();
+
+/// Master -> task requests, applied by the task thread between method calls.
+enum class CmdKind : std::uint8_t { none, on, off, kill, clear, reinit, set, get, freq };
+
+struct Object {
+    RmodFile rmod;
+    const ChimeraModuleAbi* abi = nullptr;
+    Module* module = nullptr;
+    std::unique_ptr<Task> view;
+};
+
+/// One task: its thread, its objects (one, or several when combined), its
+/// local table and the state machine of Figure 3.10.
+class TaskCore {
+public:
+    TaskCore(SubsystemCore& sbs, int id, const RtpuSpec& rtpu, std::vector<RmodFile> rmods);
+    ~TaskCore();
+
+    /// Starts the thread and waits for spawn to finish (in-consts, init,
+    /// out-consts). Throws sbs::Error when init failed (the task is then
+    /// NOT-CREATED and its thread gone).
+    void start();
+    /// Sends one request and waits for the task to apply it. Returns "" on
+    /// success or the failure message. The caller validated the state.
+    std::string request(CmdKind kind, std::string arg = {}, std::string key = {}, double hz = 0,
+                        std::string* reply = nullptr);
+    void join() noexcept;
+
+    // --- identity (immutable after construction) ---
+    SubsystemCore& sbs;
+    const int id;
+    const RtpuSpec rtpu;
+    std::string name;  // rmod name, "a+b" for a combined task
+    TaskType type = TaskType::periodic;
+    std::vector<Object> objects;
+    std::vector<std::string> in_consts, out_consts, in_vars, out_vars;  // global names, transferred
+    std::vector<std::string> internal;  // combined: produced and consumed inside the task
+
+    // --- local table and its transfer sets ---
+    std::unique_ptr<svar::LocalTable> local;
+    svar::VarSet set_in_consts, set_out_consts, set_in_vars, set_out_vars, set_on;
+
+    // --- state, read by anyone, written by the task thread ---
+    std::atomic<State> state{State::NOT_CREATED};
+    std::atomic<State> next_state{State::NOT_CREATED};
+    std::atomic<std::int64_t> period_ns{0};
+    std::atomic<int> crit{0};
+    std::atomic<std::uint64_t> cycles{0}, misses{0};
+    std::atomic<std::uint32_t> warnings{0};
+    std::atomic<std::uint32_t> signals_sent{0};
+    std::atomic<std::uint32_t> sigmask{sig::ALL};
+    std::atomic<bool> own_sigmask{false};
+    std::atomic<long> tid{0};
+    std::atomic<std::int64_t> on_since_ns{0};
+    std::atomic<std::int64_t> last_release_ns{0};
+    std::atomic<std::int64_t> max_cycle_ns{0};
+    std::atomic<std::uint32_t> events{0};  // aperiodic: pending wake-ups
+    std::atomic<bool> stopping{false};     // finish/kill in progress for a blocking sync()
+
+    // --- messages: guarded by msg_mu (never held across a method call) ---
+    mutable std::mutex msg_mu;
+    std::string policy;
+    int error_code = 0;
+    std::string error_text;    // error that put the task in ERROR (or last error)
+    std::string error_module;
+    std::string first_warning;
+    // Fixed buffer read by Task::error_message() in the task itself.
+    char last_msg[160] = {};
+    std::atomic<int> last_num{0};
+
+    // --- request mailbox ---
+    std::atomic<std::uint32_t> word{0};  // bumped for every request and event (futex word)
+    std::atomic<bool> cmd_pending{false};  // a request waits (read by the loop without a lock)
+    std::mutex cmd_mu;
+    std::condition_variable cmd_cv;
+    CmdKind cmd = CmdKind::none;
+    std::string cmd_arg, cmd_key, cmd_reply, cmd_result;
+    double cmd_hz = 0;
+    bool cmd_done = false;
+    bool started = false, start_failed = false;
+    std::string start_error;
+
+    // Per-call argument and get() reply, seen by Task::arg()/reply().
+    std::string arg;
+    std::string reply;
+    bool reply_set = false;
+
+    pthread_t thread{};
+    bool joinable = false;
+
+private:
+    static void* thread_main(void* self) noexcept;
+    void run();
+    void sched_setup();
+};
+
+/// The subsystem: the .sbs, the global table, the tasks, the signal queue.
+class SubsystemCore {
+public:
+    explicit SubsystemCore(SbsFile f);
+    ~SubsystemCore();
+
+    SbsFile file;
+    svar::Table table;
+    std::vector<std::string> module_dirs;
+
+    mutable std::mutex tasks_mu;
+    std::vector<std::unique_ptr<TaskCore>> tasks;  // index = TaskId
+    TaskCore* task(TaskId id) const;               // throws Error on a bad id
+
+    // Signals task -> master: a bounded queue (drops the oldest when full).
+    std::atomic<std::uint32_t> wide_mask{sig::ALL};
+    void post_signal(TaskCore& from, int signal) noexcept;
+    std::mutex sig_mu;
+    std::condition_variable sig_cv;
+    static constexpr std::size_t kSignalQueue = 256;
+    struct Pending {
+        int signal;
+        int task;
+    };
+    Pending queue[kSignalQueue];
+    std::size_t q_head = 0, q_size = 0;
+
+    // The illegal-configuration flag bits in the SVAR table (§3.10).
+    static constexpr std::uint32_t kIllegalReconfig = 1u;  // reconfiguration in progress
+    static constexpr std::uint32_t kIllegalError = 2u;     // a task is halted in ERROR
+    static constexpr std::uint32_t kIllegalTask = 4u;      // set by a task
+    std::mutex flag_mu;
+    void set_flag(std::uint32_t bit, bool on) noexcept;
+    void refresh_error_flag() noexcept;
+
+    // Printing of errors and warnings per the RTPU's ERRPRINT.
+    void print(const RtpuSpec& rtpu, bool is_error, const std::string& line) noexcept;
+
+    std::atomic<bool> rt_warned{false};
+    bool finished = false;
+};
+
+}  // namespace chimera::sbs::detail

@@ -1,0 +1,131 @@
+// Module loading by MODULE name (the symbolic translation of §4.5.2, Listing A-2).
+#include "internal.hpp"
+
+#include <cstring>
+#include <dlfcn.h>
+#include <filesystem>
+#include <map>
+#include <mutex>
+
+namespace chimera {
+
+std::string module_symbol(std::string_view name) { return "chimera_module_" + std::string(name); }
+
+std::string_view to_string(State s) noexcept {
+    switch (s) {
+        case State::NOT_CREATED: return "NOT-CREATED";
+        case State::OFF: return "OFF";
+        case State::ON: return "ON";
+        case State::ERROR: return "ERROR";
+    }
+    return "?";
+}
+
+std::string_view to_string(Result r) noexcept {
+    switch (r) {
+        case Result::OK: return "OK";
+        case Result::OFF: return "OFF";
+        case Result::CONTINUE: return "CONTINUE";
+        case Result::ERROR: return "ERROR";
+    }
+    return "?";
+}
+
+namespace sig {
+std::string_view name(int s) noexcept {
+    static constexpr std::string_view fixed[] = {"OFF", "FINISH", "ERROR", "WARNING", "SHUTDOWN", "ILLEGAL", "LEGAL"};
+    static constexpr std::string_view user[] = {"USER7",  "USER8",  "USER9",  "USER10", "USER11", "USER12", "USER13",
+                                                "USER14", "USER15", "USER16", "USER17", "USER18", "USER19", "USER20",
+                                                "USER21", "USER22", "USER23", "USER24", "USER25", "USER26", "USER27",
+                                                "USER28", "USER29", "USER30", "USER31"};
+    if (s >= 0 && s < USER) return fixed[s];
+    if (s >= USER && s < COUNT) return user[s - USER];
+    return "";
+}
+}  // namespace sig
+
+}  // namespace chimera
+
+namespace chimera::sbs::detail {
+
+namespace {
+
+std::mutex g_mu;
+// Loaded modules stay loaded for the life of the process: instances and
+// their vtables live in the shared object.
+std::map<std::string, const ChimeraModuleAbi*> g_loaded;
+
+const ChimeraModuleAbi* check(const void* sym, const std::string& name, const std::string& where) {
+    const auto* abi = static_cast<const ChimeraModuleAbi*>(sym);
+    if (abi->magic != CHIMERA_MODULE_MAGIC)
+        throw Error("module " + name + " in " + where + ": symbol " + module_symbol(name) +
+                    " is not a CHIMERA_MODULE table (bad magic)");
+    if (abi->version != CHIMERA_MODULE_ABI_VERSION)
+        throw Error("module " + name + " in " + where + ": built for module ABI " + std::to_string(abi->version) +
+                    ", this runtime speaks " + std::to_string(CHIMERA_MODULE_ABI_VERSION) + "; rebuild it");
+    if (!abi->name || name != abi->name)
+        throw Error("module " + name + " in " + where + ": the table names module '" +
+                    (abi->name ? abi->name : "") + "'");
+    return abi;
+}
+
+}  // namespace
+
+const ChimeraModuleAbi& load_module(const std::string& name, const std::vector<std::string>& extra_dirs) {
+    std::lock_guard<std::mutex> lock(g_mu);
+    if (auto it = g_loaded.find(name); it != g_loaded.end()) return *it->second;
+    const std::string symbol = module_symbol(name);
+
+    // Linked into the program itself?
+    if (const void* sym = dlsym(RTLD_DEFAULT, symbol.c_str())) {
+        const auto* abi = check(sym, name, "the program");
+        g_loaded[name] = abi;
+        return *abi;
+    }
+
+    std::vector<std::string> dirs;
+    if (const char* env = std::getenv("CHIMERA_MODULE_PATH")) {
+        std::string p = env;
+        std::size_t i = 0;
+        while (i <= p.size()) {
+            const std::size_t j = p.find(':', i);
+            const std::string d = p.substr(i, j == std::string::npos ? std::string::npos : j - i);
+            if (!d.empty()) dirs.push_back(d);
+            if (j == std::string::npos) break;
+            i = j + 1;
+        }
+    }
+    dirs.insert(dirs.end(), extra_dirs.begin(), extra_dirs.end());
+
+    std::string tried;
+    for (const auto& d : dirs) {
+        for (const std::string& file : {name + ".so", "lib" + name + ".so"}) {
+            const std::filesystem::path p = std::filesystem::path(d) / file;
+            std::error_code ec;
+            if (!std::filesystem::exists(p, ec)) {
+                tried += "\n  " + p.string() + " (absent)";
+                continue;
+            }
+            void* h = dlopen(p.c_str(), RTLD_NOW | RTLD_LOCAL);
+            if (!h) {
+                const char* e = dlerror();
+                throw Error("module " + name + ": cannot load " + p.string() + ": " + (e ? e : "dlopen failed"));
+            }
+            const void* sym = dlsym(h, symbol.c_str());
+            if (!sym) {
+                dlclose(h);
+                tried += "\n  " + p.string() + " (no symbol " + symbol + ")";
+                continue;
+            }
+            const auto* abi = check(sym, name, p.string());
+            g_loaded[name] = abi;
+            return *abi;
+        }
+    }
+    throw Error("module " + name + " not found: not linked into the program, and no " + name + ".so or lib" + name +
+                ".so with " + symbol + " on the module path (CHIMERA_MODULE_PATH, add_module_path(), the .rmod's "
+                "folder, the install folder); tried:" +
+                (tried.empty() ? std::string(" nothing (empty path)") : tried));
+}
+
+}  // namespace chimera::sbs::detail

@@ -1,0 +1,580 @@
+// The subsystem master (§4.2–4.5): init, spawn, control, reconfig, status,
+// signals, finish; configuration verification (§3.3.1).
+#include "internal.hpp"
+
+#include "chimera/ipc/clock.hpp"
+#include "chimera/ipc/futex.hpp"
+#include "chimera/ipc/segment.hpp"
+
+#include <algorithm>
+#include <cmath>
+#include <cstdio>
+#include <filesystem>
+#include <map>
+#include <sched.h>
+#include <sstream>
+
+namespace chimera::sbs {
+
+namespace {
+
+bool valid_in(State s, Control c) {
+    switch (c) {
+        case Control::on: return s == State::OFF;
+        case Control::off: return s == State::ON;
+        case Control::kill: return s != State::NOT_CREATED;
+        case Control::clear: return s == State::ERROR;
+    }
+    return false;
+}
+
+std::string why_refused(State s, Control c) {
+    switch (c) {
+        case Control::on:
+            return s == State::ON ? "it is already ON" : s == State::ERROR ? "it is in ERROR (clear it first)" : "it is NOT-CREATED";
+        case Control::off:
+            return s == State::OFF ? "it is already OFF" : s == State::ERROR ? "it is in ERROR (clear or kill it)" : "it is NOT-CREATED";
+        case Control::kill: return "it is NOT-CREATED";
+        case Control::clear:
+            return s == State::NOT_CREATED ? "it is NOT-CREATED" : "it is not in ERROR (state " + std::string(to_string(s)) + ")";
+    }
+    return "";
+}
+
+detail::CmdKind kind_of(Control c) {
+    switch (c) {
+        case Control::on: return detail::CmdKind::on;
+        case Control::off: return detail::CmdKind::off;
+        case Control::kill: return detail::CmdKind::kill;
+        case Control::clear: return detail::CmdKind::clear;
+    }
+    return detail::CmdKind::none;
+}
+
+}  // namespace
+
+std::string_view to_string(Control c) noexcept {
+    switch (c) {
+        case Control::on: return "on";
+        case Control::off: return "off";
+        case Control::kill: return "kill";
+        case Control::clear: return "clear";
+    }
+    return "?";
+}
+
+// ------------------------------------------------------------------ SubsystemCore
+
+namespace detail {
+
+SubsystemCore::SubsystemCore(SbsFile f) : file(std::move(f)) {
+    cpu_set_t allowed;
+    CPU_ZERO(&allowed);
+    if (sched_getaffinity(0, sizeof(allowed), &allowed) == 0) {
+        for (const auto& r : file.rtpus) {
+            if (r.cpu >= CPU_SETSIZE || !CPU_ISSET(r.cpu, &allowed))
+                throw cfg::ParseError(file.path, r.line,
+                                      "RTPU " + r.name + " names CPU " + std::to_string(r.cpu) +
+                                          ", which this process may not use (it has " +
+                                          std::to_string(CPU_COUNT(&allowed)) + " CPUs)");
+        }
+    }
+    const std::string seg = ipc::segment_name(file.subsystem, "svar");
+    if (ipc::Segment::exists(seg))
+        throw Error("subsystem " + file.subsystem + " is already running (segment " + seg +
+                    " exists); finish it first, or remove the stale segment of a crashed run");
+    table = svar::Table::create(seg, file.svarfile);
+}
+
+SubsystemCore::~SubsystemCore() = default;
+
+TaskCore* SubsystemCore::task(TaskId id) const {
+    std::lock_guard<std::mutex> lock(tasks_mu);
+    if (id.value < 0 || static_cast<std::size_t>(id.value) >= tasks.size() || !tasks[id.value])
+        throw Error("subsystem " + file.subsystem + ": no task with id " + std::to_string(id.value));
+    return tasks[id.value].get();
+}
+
+void SubsystemCore::post_signal(TaskCore& from, int signal) noexcept {
+    if (signal < 0 || signal >= sig::COUNT) return;
+    const std::uint32_t bit = sig::bit(signal);
+    from.signals_sent.fetch_or(bit, std::memory_order_relaxed);
+    const std::uint32_t mask = from.own_sigmask.load() ? from.sigmask.load() : wide_mask.load();
+    if (!(mask & bit)) return;  // masked: ignored and discarded (§4.5.3)
+    {
+        std::lock_guard<std::mutex> lock(sig_mu);
+        if (q_size == kSignalQueue) {  // full: the oldest gives way
+            q_head = (q_head + 1) % kSignalQueue;
+            --q_size;
+        }
+        queue[(q_head + q_size) % kSignalQueue] = Pending{signal, from.id};
+        ++q_size;
+    }
+    sig_cv.notify_all();
+}
+
+void SubsystemCore::set_flag(std::uint32_t bit, bool on) noexcept {
+    std::lock_guard<std::mutex> lock(flag_mu);
+    std::uint32_t f = table.illegal_configuration();
+    f = on ? (f | bit) : (f & ~bit);
+    table.set_illegal_configuration(f);
+}
+
+void SubsystemCore::refresh_error_flag() noexcept {
+    bool any = false;
+    {
+        std::lock_guard<std::mutex> lock(tasks_mu);
+        for (const auto& t : tasks)
+            if (t && t->state.load() == State::ERROR) any = true;
+    }
+    set_flag(kIllegalError, any);
+}
+
+void SubsystemCore::print(const RtpuSpec& r, bool is_error, const std::string& line) noexcept {
+    if (r.errprint == ErrPrint::none) return;
+    if (!is_error && r.errprint != ErrPrint::warnings) return;
+    std::fprintf(stderr, "%s\n", line.c_str());
+}
+
+}  // namespace detail
+
+// ------------------------------------------------------------------ Subsystem
+
+Subsystem::Subsystem(std::unique_ptr<detail::SubsystemCore> core) : core_(std::move(core)) {}
+
+std::unique_ptr<Subsystem> Subsystem::init(const std::string& sbs_path) { return init(read_sbs(sbs_path)); }
+
+std::unique_ptr<Subsystem> Subsystem::init(SbsFile file) {
+    return std::make_unique<Subsystem>(std::make_unique<detail::SubsystemCore>(std::move(file)));
+}
+
+Subsystem::~Subsystem() {
+    try {
+        finish();
+    } catch (...) {
+    }
+}
+
+const SbsFile& Subsystem::file() const noexcept { return core_->file; }
+const std::string& Subsystem::name() const noexcept { return core_->file.subsystem; }
+void Subsystem::add_module_path(std::string dir) { core_->module_dirs.push_back(std::move(dir)); }
+
+TaskId Subsystem::spawn(const std::string& rmod_path, std::string_view rtpu) {
+    return spawn_combined({rmod_path}, rtpu);
+}
+
+TaskId Subsystem::spawn_combined(const std::vector<std::string>& rmod_paths, std::string_view rtpu_name) {
+    auto& c = *core_;
+    if (c.finished) throw Error("subsystem " + c.file.subsystem + " is finished");
+    const std::string rname = rtpu_name.empty() ? c.file.master : std::string(rtpu_name);
+    const RtpuSpec* rtpu = c.file.find_rtpu(rname);
+    if (!rtpu) throw Error("spawn: RTPU '" + rname + "' is not in " + c.file.path);
+
+    std::vector<RmodFile> rmods;
+    for (const auto& p : rmod_paths) {
+        std::string path = p;
+        // A bare name is also looked up beside the .sbs file.
+        if (!std::filesystem::exists(path)) {
+            const auto beside = std::filesystem::path(c.file.path).parent_path() / p;
+            if (std::filesystem::exists(beside)) path = beside.string();
+        }
+        try {
+            rmods.push_back(read_rmod(path));
+        } catch (const cfg::ParseError& e) {
+            throw Error(std::string("spawn: ") + e.what());
+        }
+    }
+
+    // §3.5: a task's in-consts must already have been written by the task
+    // producing them, so producers are spawned first.
+    std::vector<std::string> produced_here;
+    for (const auto& f : rmods)
+        for (const auto& v : f.global_out_consts()) produced_here.push_back(v);
+    for (const auto& f : rmods) {
+        for (const auto& v : f.global_in_consts()) {
+            if (std::find(produced_here.begin(), produced_here.end(), v) != produced_here.end()) continue;
+            bool found = false;
+            std::lock_guard<std::mutex> lock(c.tasks_mu);
+            for (const auto& t : c.tasks) {
+                if (!t || t->state.load() == State::NOT_CREATED) continue;
+                if (std::find(t->out_consts.begin(), t->out_consts.end(), v) != t->out_consts.end()) found = true;
+            }
+            if (!found)
+                throw VerifyError("spawn " + f.name + ": in-const " + v + " of module " + f.module +
+                                  " is produced by no task (spawn the task whose OUTCONST is " + v + " first)");
+        }
+    }
+
+    int id;
+    {
+        std::lock_guard<std::mutex> lock(c.tasks_mu);
+        id = static_cast<int>(c.tasks.size());
+    }
+    auto task = std::make_unique<detail::TaskCore>(c, id, *rtpu, std::move(rmods));
+    detail::TaskCore* t = task.get();
+
+    // Out-const values before the new task writes them: a change means the
+    // tasks reading them must re-initialise (§3.5, reinit).
+    std::vector<std::pair<std::size_t, std::vector<std::byte>>> before;
+    for (const auto& v : t->out_consts) {
+        const std::size_t ix = c.table.index_of(v);
+        std::vector<std::byte> buf(c.table.var(ix).bytes());
+        c.table.read(ix, buf.data());
+        before.emplace_back(ix, std::move(buf));
+    }
+    {
+        std::lock_guard<std::mutex> lock(c.tasks_mu);
+        c.tasks.push_back(std::move(task));
+    }
+    t->start();  // throws on init failure; the task stays in the list as NOT-CREATED
+
+    std::vector<std::string> changed;
+    for (auto& [ix, old] : before) {
+        std::vector<std::byte> now(old.size());
+        c.table.read(ix, now.data());
+        if (now != old) changed.emplace_back(c.table.var(ix).name());
+    }
+    if (!changed.empty()) {
+        std::vector<detail::TaskCore*> readers;
+        {
+            std::lock_guard<std::mutex> lock(c.tasks_mu);
+            for (const auto& o : c.tasks) {
+                if (!o || o.get() == t) continue;
+                const State s = o->state.load();
+                if (s != State::OFF && s != State::ON) continue;
+                for (const auto& v : changed)
+                    if (std::find(o->in_consts.begin(), o->in_consts.end(), v) != o->in_consts.end()) {
+                        readers.push_back(o.get());
+                        break;
+                    }
+            }
+        }
+        std::string failures;
+        for (auto* r : readers) {
+            const std::string res = r->request(detail::CmdKind::reinit);
+            if (!res.empty()) failures += (failures.empty() ? "" : "; ") + r->name + ": " + res;
+        }
+        if (!failures.empty())
+            throw Error("spawn " + t->name + ": the task is OFF, but re-initialising the tasks reading its out-consts "
+                        "failed: " + failures);
+    }
+    return TaskId{id};
+}
+
+std::optional<TaskId> Subsystem::find(std::string_view rmod) const {
+    std::lock_guard<std::mutex> lock(core_->tasks_mu);
+    std::optional<TaskId> dead;
+    for (std::size_t i = core_->tasks.size(); i-- > 0;) {
+        const auto& t = core_->tasks[i];
+        if (!t || t->name != rmod) continue;
+        if (t->state.load() != State::NOT_CREATED) return TaskId{static_cast<int>(i)};
+        if (!dead) dead = TaskId{static_cast<int>(i)};
+    }
+    return dead;
+}
+
+namespace {
+
+// §3.3.1: (1) no variable has two producers; (2) every input has a producer.
+void verify_set(const std::vector<detail::TaskCore*>& set) {
+    std::map<std::string, std::string> producer;
+    for (auto* t : set) {
+        for (const auto& v : t->out_vars) {
+            auto [it, fresh] = producer.emplace(v, t->name);
+            if (!fresh)
+                throw VerifyError("illegal configuration: variable " + v + " is produced by both " + it->second +
+                                  " and " + t->name);
+        }
+    }
+    for (auto* t : set) {
+        for (const auto& v : t->in_vars) {
+            if (!producer.count(v))
+                throw VerifyError("illegal configuration: variable " + v + " read by " + t->name +
+                                  " is produced by no module in the configuration");
+        }
+    }
+}
+
+}  // namespace
+
+void Subsystem::verify(std::span<const TaskId> ids) const {
+    std::vector<detail::TaskCore*> set;
+    for (TaskId id : ids) set.push_back(core_->task(id));
+    verify_set(set);
+}
+
+void Subsystem::control(TaskId id, Control signal, std::string_view a) {
+    auto& c = *core_;
+    detail::TaskCore* t = c.task(id);
+    const State s = t->state.load();
+    if (!valid_in(s, signal))
+        throw Refused(std::string(to_string(signal)) + " refused for task " + t->name + ": " + why_refused(s, signal));
+    if (signal == Control::on) {
+        // Turning one task on must not give a variable a second producer.
+        std::lock_guard<std::mutex> lock(c.tasks_mu);
+        for (const auto& o : c.tasks) {
+            if (!o || o.get() == t || o->state.load() != State::ON) continue;
+            for (const auto& v : t->out_vars)
+                if (std::find(o->out_vars.begin(), o->out_vars.end(), v) != o->out_vars.end())
+                    throw VerifyError("on " + t->name + " refused: variable " + v + " is already produced by " +
+                                      o->name + ", which is ON");
+        }
+    }
+    const std::string res = t->request(kind_of(signal), std::string(a));
+    if (signal == Control::kill && t->state.load() == State::NOT_CREATED) t->join();
+    if (res.rfind("refused:", 0) == 0) throw Refused(std::string(to_string(signal)) + " " + t->name + " " + res);
+    if (!res.empty()) throw Error(std::string(to_string(signal)) + " " + t->name + ": " + res);
+}
+
+ReconfigResult Subsystem::reconfig(std::span<const ReconfigItem> items) {
+    auto& c = *core_;
+    ReconfigResult out;
+    // The configuration after the whole list, verified before anything runs.
+    std::map<detail::TaskCore*, State> after;
+    std::vector<detail::TaskCore*> order;
+    {
+        std::lock_guard<std::mutex> lock(c.tasks_mu);
+        for (const auto& t : c.tasks)
+            if (t) {
+                after[t.get()] = t->state.load();
+                order.push_back(t.get());
+            }
+    }
+    for (std::size_t i = 0; i < items.size(); ++i) {
+        detail::TaskCore* t = nullptr;
+        try {
+            t = c.task(items[i].task);
+        } catch (const Error& e) {
+            out.ok = false;
+            out.failed = i;
+            out.message = "item " + std::to_string(i) + ": " + e.what();
+            return out;
+        }
+        State& s = after[t];
+        switch (items[i].signal) {
+            case Control::on: if (s == State::OFF) s = State::ON; break;
+            case Control::off: if (s == State::ON) s = State::OFF; break;
+            case Control::kill: s = State::NOT_CREATED; break;
+            case Control::clear: if (s == State::ERROR) s = State::OFF; break;
+        }
+    }
+    std::vector<detail::TaskCore*> on_set;
+    for (auto* t : order)
+        if (after[t] == State::ON) on_set.push_back(t);
+    try {
+        verify_set(on_set);
+    } catch (const VerifyError& e) {
+        out.ok = false;
+        out.failed = 0;
+        out.message = std::string("verification before any item was sent: ") + e.what();
+        return out;
+    }
+
+    c.set_flag(detail::SubsystemCore::kIllegalReconfig, true);
+    for (std::size_t i = 0; i < items.size(); ++i) {
+        try {
+            control(items[i].task, items[i].signal, items[i].arg);
+            ++out.processed;
+        } catch (const std::exception& e) {
+            out.ok = false;
+            out.failed = i;
+            std::string n;
+            try {
+                n = c.task(items[i].task)->name;
+            } catch (...) {
+            }
+            out.message = "item " + std::to_string(i) + " (" + std::string(to_string(items[i].signal)) + " " + n +
+                          "): " + e.what();
+            break;
+        }
+    }
+    c.set_flag(detail::SubsystemCore::kIllegalReconfig, false);
+    return out;
+}
+
+double Subsystem::freq_get(TaskId id) const {
+    const std::int64_t p = core_->task(id)->period_ns.load();
+    return p > 0 ? 1e9 / static_cast<double>(p) : 0.0;
+}
+
+void Subsystem::freq_set(TaskId id, double hz) {
+    detail::TaskCore* t = core_->task(id);
+    if (!(hz > 0) || !std::isfinite(hz)) throw Error("freq_set " + t->name + ": frequency must be positive");
+    if (t->state.load() == State::NOT_CREATED) throw Refused("freq_set refused for task " + t->name + ": it is NOT-CREATED");
+    const std::string res = t->request(detail::CmdKind::freq, {}, {}, hz);
+    if (!res.empty()) throw Error("freq_set " + t->name + ": " + res);
+}
+
+std::string Subsystem::get(TaskId id, std::string_view key) {
+    detail::TaskCore* t = core_->task(id);
+    if (t->state.load() == State::NOT_CREATED) throw Refused("get refused for task " + t->name + ": it is NOT-CREATED");
+    std::string reply;
+    const std::string res = t->request(detail::CmdKind::get, {}, std::string(key), 0, &reply);
+    if (!res.empty()) throw Error("get " + t->name + ": " + res);
+    return reply;
+}
+
+void Subsystem::set(TaskId id, std::string_view key, std::string_view value) {
+    detail::TaskCore* t = core_->task(id);
+    if (t->state.load() == State::NOT_CREATED) throw Refused("set refused for task " + t->name + ": it is NOT-CREATED");
+    if (key.empty()) throw Error("set " + t->name + ": empty key");
+    const std::string res = t->request(detail::CmdKind::set, std::string(value), std::string(key));
+    if (!res.empty()) throw Error("set " + t->name + ": " + res);
+}
+
+void Subsystem::event(TaskId id) noexcept {
+    detail::TaskCore* t = nullptr;
+    {
+        std::lock_guard<std::mutex> lock(core_->tasks_mu);
+        if (id.value < 0 || static_cast<std::size_t>(id.value) >= core_->tasks.size()) return;
+        t = core_->tasks[id.value].get();
+    }
+    if (!t) return;
+    t->events.fetch_add(1, std::memory_order_acq_rel);
+    t->word.fetch_add(1, std::memory_order_release);
+    ipc::futex_wake_all(t->word);
+}
+
+TaskStatus Subsystem::status(TaskId id) const {
+    detail::TaskCore* t = core_->task(id);
+    TaskStatus s;
+    s.id = id;
+    s.rmod = t->name;
+    for (std::size_t i = 0; i < t->objects.size(); ++i) s.module += (i ? "+" : "") + t->objects[i].rmod.module;
+    s.rtpu = t->rtpu.name;
+    s.cpu = t->rtpu.cpu;
+    s.tid = t->tid.load();
+    s.type = status_letter(t->type);
+    s.crit = t->crit.load();
+    s.state = t->state.load();
+    s.cycles = t->cycles.load();
+    s.misses = t->misses.load();
+    const std::int64_t p = t->period_ns.load();
+    s.ref_freq = p > 0 ? 1e9 / static_cast<double>(p) : 0.0;
+    s.ref_period = static_cast<double>(p) * 1e-9;
+    if (s.state == State::ON && s.cycles > 0) {
+        const double elapsed = static_cast<double>(ipc::now_ns() - t->on_since_ns.load()) * 1e-9;
+        if (elapsed > 0) s.mez_freq = static_cast<double>(s.cycles) / elapsed;
+        if (s.cycles > 1)
+            s.mez_period = static_cast<double>(t->last_release_ns.load() - t->on_since_ns.load()) * 1e-9 /
+                           static_cast<double>(s.cycles - 1);
+    }
+    s.max_cycle_time = static_cast<double>(t->max_cycle_ns.load()) * 1e-9;
+    s.warnings = t->warnings.load();
+    {
+        std::lock_guard<std::mutex> lock(t->msg_mu);
+        s.warning = t->first_warning;
+        t->first_warning.clear();  // shown once (§4.4.1)
+        s.policy = t->policy;
+        if (s.state == State::ERROR) {
+            s.error_code = t->error_code;
+            s.error = t->error_text;
+        }
+    }
+    return s;
+}
+
+std::vector<TaskStatus> Subsystem::status_all() const {
+    std::vector<TaskId> ids;
+    {
+        std::lock_guard<std::mutex> lock(core_->tasks_mu);
+        for (std::size_t i = 0; i < core_->tasks.size(); ++i)
+            if (core_->tasks[i] && core_->tasks[i]->state.load() != State::NOT_CREATED)
+                ids.push_back(TaskId{static_cast<int>(i)});
+    }
+    std::vector<TaskStatus> out;
+    for (TaskId id : ids) out.push_back(status(id));
+    return out;
+}
+
+void Subsystem::set_sigmask(std::uint32_t mask) { core_->wide_mask.store(mask); }
+void Subsystem::set_sigmask(TaskId id, std::uint32_t mask) {
+    detail::TaskCore* t = core_->task(id);
+    t->sigmask.store(mask);
+    t->own_sigmask.store(true);
+}
+void Subsystem::clear_task_sigmask(TaskId id) { core_->task(id)->own_sigmask.store(false); }
+
+std::optional<SignalEvent> Subsystem::sig_wait(std::uint32_t wanted, std::optional<TaskId> from,
+                                               std::chrono::nanoseconds timeout) {
+    auto& c = *core_;
+    const auto deadline = std::chrono::steady_clock::now() + timeout;
+    std::unique_lock<std::mutex> lock(c.sig_mu);
+    for (;;) {
+        while (c.q_size > 0) {
+            const auto p = c.queue[c.q_head];
+            c.q_head = (c.q_head + 1) % detail::SubsystemCore::kSignalQueue;
+            --c.q_size;
+            if (!(sig::bit(p.signal) & wanted)) continue;  // not of interest: discarded
+            if (from && from->value != p.task) continue;
+            SignalEvent ev;
+            ev.signal = p.signal;
+            ev.task = TaskId{p.task};
+            lock.unlock();
+            try {
+                ev.rmod = c.task(ev.task)->name;
+            } catch (...) {
+            }
+            return ev;
+        }
+        if (timeout.count() < 0) {
+            c.sig_cv.wait(lock);
+        } else if (c.sig_cv.wait_until(lock, deadline) == std::cv_status::timeout && c.q_size == 0) {
+            return std::nullopt;
+        }
+    }
+}
+
+void Subsystem::sig_send(TaskId from, int signal) {
+    if (signal < 0 || signal >= sig::COUNT) throw Error("sig_send: signal " + std::to_string(signal) + " is not 0..31");
+    core_->post_signal(*core_->task(from), signal);
+}
+
+bool Subsystem::illegal_configuration() const noexcept { return core_->table.illegal_configuration() != 0; }
+
+void Subsystem::finish() {
+    auto& c = *core_;
+    if (c.finished) return;
+    c.finished = true;
+    std::vector<detail::TaskCore*> live;
+    {
+        std::lock_guard<std::mutex> lock(c.tasks_mu);
+        for (const auto& t : c.tasks)
+            if (t) live.push_back(t.get());
+    }
+    // Off first, everywhere, then kill (two-step termination, §3.5).
+    for (auto* t : live) {
+        t->stopping.store(true);
+        if (t->state.load() == State::ON) {
+            const std::string r = t->request(detail::CmdKind::off);
+            if (!r.empty()) std::fprintf(stderr, "chimera: finish: off %s: %s\n", t->name.c_str(), r.c_str());
+        }
+    }
+    for (auto* t : live) {
+        if (t->state.load() != State::NOT_CREATED) {
+            const std::string r = t->request(detail::CmdKind::kill);
+            if (!r.empty()) std::fprintf(stderr, "chimera: finish: kill %s: %s\n", t->name.c_str(), r.c_str());
+        }
+        t->join();
+    }
+    {
+        std::lock_guard<std::mutex> lock(c.tasks_mu);
+        c.tasks.clear();
+    }
+    c.table.destroy();
+}
+
+std::string format_status(const TaskStatus& s) {
+    char buf[512];
+    std::snprintf(buf, sizeof buf,
+                  "%-12s %-6s %7ld %c %2d %-11s cycle %8llu miss %5llu refF %8.2f mezF %8.2f maxC %.6f warn %u  [%s]",
+                  s.rmod.c_str(), s.rtpu.c_str(), s.tid, s.type, s.crit, std::string(to_string(s.state)).c_str(),
+                  static_cast<unsigned long long>(s.cycles), static_cast<unsigned long long>(s.misses), s.ref_freq,
+                  s.mez_freq, s.max_cycle_time, s.warnings, s.policy.c_str());
+    std::string out = buf;
+    if (!s.warning.empty()) out += "\nWARNING> " + s.warning;
+    if (s.state == State::ERROR) out += "\nERROR> " + s.error;
+    return out;
+}
+
+}  // namespace chimera::sbs

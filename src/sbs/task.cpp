@@ -1,0 +1,809 @@
+// The task runtime: one pthread per task running the state machine of
+// Figure 3.10 with the SVAR transfers around each method (§3.5, §3.6).
+#include "internal.hpp"
+
+#include "chimera/ipc/clock.hpp"
+#include "chimera/ipc/futex.hpp"
+
+#include <algorithm>
+#include <cerrno>
+#include <cmath>
+#include <cstdio>
+#include <cstring>
+#include <filesystem>
+#include <sched.h>
+#include <set>
+#include <sys/syscall.h>
+#include <unistd.h>
+
+namespace chimera::sbs::detail {
+
+namespace {
+
+// What a method call came to, after error routing (§3.6).
+enum class Outcome : std::uint8_t {
+    ok,          // returned OK (or an error was handled with CONTINUE)
+    off,         // returned OFF (on: stay OFF; cycle: goal reached, turn off)
+    error_off,   // error(), and error() said OFF
+    error_halt,  // error() said ERROR, or an error where error() is not called
+};
+
+enum class Phase : std::uint8_t { init, reinit, on, cycle, off, kill, sync, clear, set, get };
+
+const char* phase_name(Phase p) noexcept {
+    switch (p) {
+        case Phase::init: return "init";
+        case Phase::reinit: return "reinit";
+        case Phase::on: return "on";
+        case Phase::cycle: return "cycle";
+        case Phase::off: return "off";
+        case Phase::kill: return "kill";
+        case Phase::sync: return "sync";
+        case Phase::clear: return "clear";
+        case Phase::set: return "set";
+        case Phase::get: return "get";
+    }
+    return "?";
+}
+
+// Errors in these methods go to the module's error() (§3.6); elsewhere they
+// fail the request (init: kill and NOT-CREATED; clear: stay in ERROR).
+bool routes_to_error(Phase p) noexcept {
+    return p == Phase::on || p == Phase::cycle || p == Phase::off || p == Phase::sync || p == Phase::reinit;
+}
+
+class ClockPacer final : public Pacer {
+public:
+    void start(std::int64_t first_ns, std::int64_t period_ns) noexcept override {
+        next_ = first_ns;
+        period_ = period_ns;
+    }
+    void set_period(std::int64_t period_ns) noexcept override { period_ = period_ns; }
+    bool wait(std::atomic<std::uint32_t>& word, std::uint32_t seen, std::uint64_t& missed) noexcept override {
+        for (;;) {
+            const std::int64_t now = ipc::now_ns();
+            if (now >= next_) break;
+            if (word.load(std::memory_order_acquire) != seen) return false;
+            ipc::futex_wait_until(word, seen, next_);
+            if (word.load(std::memory_order_acquire) != seen) return false;
+        }
+        const std::int64_t now = ipc::now_ns();
+        const std::int64_t release = next_;
+        next_ += period_;
+        if (now >= next_ && period_ > 0) {
+            // Releases that fell while the previous cycle still ran: skipped, counted.
+            const std::int64_t late = (now - next_) / period_ + 1;
+            missed += static_cast<std::uint64_t>(late);
+            next_ += late * period_;
+        }
+        (void)release;
+        return true;
+    }
+
+private:
+    std::int64_t next_ = 0;
+    std::int64_t period_ = 0;
+};
+
+std::string join_names(const std::vector<std::string>& v, const char* sep) {
+    std::string s;
+    for (std::size_t i = 0; i < v.size(); ++i) {
+        if (i) s += sep;
+        s += v[i];
+    }
+    return s;
+}
+
+void add_unique(std::vector<std::string>& v, const std::string& s) {
+    if (std::find(v.begin(), v.end(), s) == v.end()) v.push_back(s);
+}
+
+// Criticality from frequency, scaled logarithmically between the RTPU's
+// MINFREQ and MAXFREQ onto 1..62 (0 and 63 reserved, §4.5.1).
+int crit_for(const RtpuSpec& r, TaskType type, double freq) {
+    if (type == TaskType::background || freq <= 0) return 1;
+    if (freq <= r.minfreq) return 1;
+    if (freq > r.maxfreq) return 62;
+    const double x = (std::log(freq) - std::log(r.minfreq)) / (std::log(r.maxfreq) - std::log(r.minfreq));
+    return std::clamp(1 + static_cast<int>(std::lround(x * 61.0)), 1, 62);
+}
+
+}  // namespace
+
+std::unique_ptr<Pacer> make_clock_pacer() { return std::make_unique<ClockPacer>(); }
+
+// ------------------------------------------------------------------ TaskCore
+
+TaskCore::TaskCore(SubsystemCore& s, int task_id, const RtpuSpec& r, std::vector<RmodFile> rmods)
+    : sbs(s), id(task_id), rtpu(r) {
+    if (rmods.empty()) throw Error("spawn: no .rmod given");
+    std::vector<std::string> names;
+    for (const auto& f : rmods) names.push_back(f.name);
+    name = join_names(names, "+");
+    type = rmods.front().type;
+    const double freq = rmods.front().freq;
+    for (const auto& f : rmods) {
+        if (f.type != type || std::fabs(f.freq - freq) > 1e-9 * std::max(1.0, freq))
+            throw Error("combined task " + name + ": " + f.name + " has TASKTYPE " + std::string(to_string(f.type)) +
+                        " at " + std::to_string(f.freq) + " Hz, " + rmods.front().name + " has " +
+                        std::string(to_string(type)) + " at " + std::to_string(freq) +
+                        " Hz; combined objects must run at one rate (§3.8.1)");
+    }
+    period_ns.store(freq > 0 ? static_cast<std::int64_t>(std::llround(1e9 / freq)) : 0);
+    crit.store(crit_for(rtpu, type, freq));
+
+    // Every port must be a variable of the global table.
+    for (const auto& f : rmods) {
+        const std::pair<const char*, const std::vector<std::string>*> lists[] = {
+            {"INCONST", &f.in_consts}, {"OUTCONST", &f.out_consts}, {"INVAR", &f.in_vars}, {"OUTVAR", &f.out_vars}};
+        for (auto [kw, list] : lists) {
+            for (const auto& port : *list) {
+                const std::string g = f.global_name(port);
+                if (!sbs.table.find(g))
+                    throw Error(f.path + ": " + kw + " " + port + (g != port ? " (SVARALIAS " + g + ")" : "") +
+                                " is not a variable of the state variable table " + sbs.file.svarfile);
+            }
+        }
+    }
+
+    // Combined objects: a variable produced by one and read by another stays
+    // in the shared local table (§3.8.1).
+    std::vector<std::string> all_in_vars, all_out_vars;
+    for (const auto& f : rmods) {
+        for (const auto& v : f.global_out_vars()) {
+            if (std::find(all_out_vars.begin(), all_out_vars.end(), v) != all_out_vars.end())
+                throw Error("combined task " + name + ": variable " + v + " is produced by two of its objects");
+            all_out_vars.push_back(v);
+        }
+        for (const auto& v : f.global_in_vars()) add_unique(all_in_vars, v);
+        for (const auto& v : f.global_in_consts()) add_unique(in_consts, v);
+        for (const auto& v : f.global_out_consts()) add_unique(out_consts, v);
+    }
+    if (rmods.size() > 1) {
+        for (const auto& v : all_out_vars)
+            if (std::find(all_in_vars.begin(), all_in_vars.end(), v) != all_in_vars.end()) internal.push_back(v);
+    }
+    auto is_internal = [&](const std::string& v) {
+        return std::find(internal.begin(), internal.end(), v) != internal.end();
+    };
+    for (const auto& v : all_in_vars)
+        if (!is_internal(v)) in_vars.push_back(v);
+    for (const auto& v : all_out_vars)
+        if (!is_internal(v)) out_vars.push_back(v);
+
+    std::vector<std::string> all;
+    for (const auto* l : {&in_consts, &out_consts, &in_vars, &out_vars, &internal})
+        for (const auto& v : *l) add_unique(all, v);
+    try {
+        local = std::make_unique<svar::LocalTable>(sbs.table, all);
+        set_in_consts = local->make_set(in_consts);
+        set_out_consts = local->make_set(out_consts);
+        set_in_vars = local->make_set(in_vars);
+        set_out_vars = local->make_set(out_vars);
+        std::vector<std::string> on_names = in_vars;
+        for (const auto& v : out_vars) add_unique(on_names, v);
+        set_on = local->make_set(on_names);
+    } catch (const svar::Error& e) {
+        throw Error("task " + name + ": " + e.what());
+    }
+
+    // Load the modules and create one instance per object.
+    std::vector<std::string> dirs = sbs.module_dirs;
+    objects.reserve(rmods.size());
+    try {
+        for (auto& f : rmods) {
+            std::vector<std::string> d = dirs;
+            const std::string folder = std::filesystem::path(f.path).parent_path().string();
+            d.push_back(folder.empty() ? std::string(".") : folder);
+#ifdef CHIMERA_MODULE_DIR
+            d.push_back(CHIMERA_MODULE_DIR);
+#endif
+            const ChimeraModuleAbi& abi = load_module(f.module, d);
+            Object o;
+            o.abi = &abi;
+            o.rmod = std::move(f);
+            o.module = abi.create();
+            if (!o.module) throw Error("module " + o.rmod.module + ": create() returned no object");
+            objects.push_back(std::move(o));
+            objects.back().view = std::make_unique<Task>(this, objects.size() - 1);
+        }
+    } catch (...) {
+        for (auto& o : objects) o.abi->destroy(o.module);
+        objects.clear();
+        throw;
+    }
+}
+
+TaskCore::~TaskCore() {
+    join();
+    for (auto& o : objects)
+        if (o.module) o.abi->destroy(o.module);
+}
+
+void TaskCore::join() noexcept {
+    if (joinable) {
+        pthread_join(thread, nullptr);
+        joinable = false;
+    }
+}
+
+void* TaskCore::thread_main(void* self) noexcept {
+    static_cast<TaskCore*>(self)->run();
+    return nullptr;
+}
+
+void TaskCore::start() {
+    pthread_attr_t attr;
+    pthread_attr_init(&attr);
+    pthread_attr_setstacksize(&attr, 1u << 20);
+    const int rc = pthread_create(&thread, &attr, &TaskCore::thread_main, this);
+    pthread_attr_destroy(&attr);
+    if (rc != 0) throw Error("spawn " + name + ": pthread_create failed: " + std::strerror(rc));
+    joinable = true;
+    std::unique_lock<std::mutex> lock(cmd_mu);
+    cmd_cv.wait(lock, [&] { return started; });
+    if (start_failed) {
+        lock.unlock();
+        join();
+        throw Error("spawn " + name + ": " + start_error);
+    }
+}
+
+std::string TaskCore::request(CmdKind kind, std::string a, std::string key, double hz, std::string* out) {
+    std::unique_lock<std::mutex> lock(cmd_mu);
+    cmd = kind;
+    cmd_arg = std::move(a);
+    cmd_key = std::move(key);
+    cmd_hz = hz;
+    cmd_done = false;
+    cmd_result.clear();
+    cmd_reply.clear();
+    cmd_pending.store(true, std::memory_order_release);
+    lock.unlock();
+    word.fetch_add(1, std::memory_order_release);
+    ipc::futex_wake_all(word);
+    lock.lock();
+    cmd_cv.wait(lock, [&] { return cmd_done; });
+    if (out) *out = cmd_reply;
+    return cmd_result;
+}
+
+void TaskCore::sched_setup() {
+    std::string pol;
+    cpu_set_t set;
+    CPU_ZERO(&set);
+    CPU_SET(rtpu.cpu, &set);
+    const int prc = pthread_setaffinity_np(pthread_self(), sizeof(set), &set);
+    if (rtpu.backend == Backend::other) {
+        pol = "SCHED_OTHER";
+    } else {
+        sched_param sp{};
+        sp.sched_priority = 10 + crit.load();
+        const int rc = pthread_setschedparam(pthread_self(), SCHED_FIFO, &sp);
+        if (rc == 0) {
+            pol = "SCHED_FIFO " + std::to_string(sp.sched_priority);
+            if (rtpu.backend == Backend::deadline) pol += " (deadline backend: FIFO until muf assigns reservations)";
+        } else {
+            pol = "SCHED_OTHER (best effort: " + std::string(std::strerror(rc)) + ")";
+            if (!sbs.rt_warned.exchange(true))
+                std::fprintf(stderr,
+                             "chimera: no real-time privilege (SCHED_FIFO refused: %s); tasks run best-effort "
+                             "under SCHED_OTHER\n",
+                             std::strerror(rc));
+        }
+    }
+    if (prc != 0) pol += ", not pinned (CPU " + std::to_string(rtpu.cpu) + ": " + std::strerror(prc) + ")";
+    else pol += ", CPU " + std::to_string(rtpu.cpu);
+    std::lock_guard<std::mutex> lock(msg_mu);
+    policy = pol;
+}
+
+// The thread: spawn, then the state machine until kill.
+void TaskCore::run() {
+    tid.store(static_cast<long>(::syscall(SYS_gettid)));
+    {
+        std::string tn = name.substr(0, 15);
+        pthread_setname_np(pthread_self(), tn.c_str());
+    }
+    sched_setup();
+    std::unique_ptr<Pacer> pacer = make_clock_pacer();
+
+    // ---- error routing: the task's own handler at the bottom of its chain ----
+    Phase phase = Phase::init;
+    std::size_t current = 0;
+    std::optional<Outcome> decided;
+    std::string err_owned_module, err_owned_message;
+    int err_code = 0;
+
+    auto record = [&](const err::Error& e) {
+        err_code = e.code;
+        err_owned_module = std::string(e.module);
+        err_owned_message = std::string(e.message);
+        std::lock_guard<std::mutex> lock(msg_mu);
+        const std::size_t n = std::min(e.message.size(), sizeof(last_msg) - 1);
+        std::memcpy(last_msg, e.message.data(), n);
+        last_msg[n] = '\0';
+        last_num.store(e.code);
+        error_code = e.code;
+        error_module = err_owned_module;
+        error_text = err_owned_message;
+    };
+    // error() of the current object; its answer mapped to an outcome.
+    auto route = [&](const err::Error& e) -> Outcome {
+        record(e);
+        sbs.print(rtpu, true,
+                  "ERROR> " + objects[current].rmod.name + ": " + std::string(e.message) + " (code " +
+                      std::to_string(e.code) + ", in " + phase_name(phase) + ")");
+        if (!routes_to_error(phase)) return Outcome::error_halt;
+        Object& o = objects[current];
+        Result r = Result::ERROR;
+        try {
+            r = o.module->error(*o.view, e);
+        } catch (...) {
+            r = Result::ERROR;
+        }
+        switch (r) {
+            case Result::OK:
+            case Result::CONTINUE: return Outcome::ok;
+            case Result::OFF: return Outcome::error_off;
+            case Result::ERROR: return Outcome::error_halt;
+        }
+        return Outcome::error_halt;
+    };
+    err::HandlerScope task_handler([&](const err::Error& e) -> err::Outcome {
+        Outcome o = route(e);
+        if (o == Outcome::ok) return err::Outcome::resume();  // CONTINUE: after the errInvoke
+        decided = o;
+        return err::Outcome::abort();
+    });
+
+    // Calls one method of object `i` and turns every kind of failure into an outcome.
+    auto call = [&](Phase p, std::size_t i, auto&& fn) -> Outcome {
+        phase = p;
+        current = i;
+        decided.reset();
+        Result r;
+        try {
+            r = fn(*objects[i].module, *objects[i].view);
+        } catch (const err::Aborted& a) {
+            if (decided) return *decided;
+            return route(a.error());  // a user handler aborted: still the module's error()
+        } catch (const std::exception& ex) {
+            return route(err::Error{err::code::exception, objects[i].rmod.module,
+                                    std::string("exception: ") + ex.what(), nullptr, 0});
+        } catch (...) {
+            return route(err::Error{err::code::exception, objects[i].rmod.module, "unknown exception", nullptr, 0});
+        }
+        switch (r) {
+            case Result::OK:
+            case Result::CONTINUE: return Outcome::ok;
+            case Result::OFF: return Outcome::off;
+            case Result::ERROR: {
+                const std::string msg = std::string(phase_name(p)) + "() returned ERROR";
+                return route(err::Error{err::code::method_failed, objects[i].rmod.module, msg, nullptr, 0});
+            }
+        }
+        return Outcome::error_halt;
+    };
+    // Runs a method over every object in order; stops at the first non-ok.
+    auto call_all = [&](Phase p, auto&& fn) -> Outcome {
+        for (std::size_t i = 0; i < objects.size(); ++i) {
+            Outcome o = call(p, i, fn);
+            if (o != Outcome::ok) return o;
+        }
+        return Outcome::ok;
+    };
+    auto transfer = [&](svar::Status st, const char* what) -> Outcome {
+        if (svar::transferred(st)) return Outcome::ok;
+        current = 0;
+        return route(err::Error{err::code::timeout, "svar",
+                                std::string("state variable transfer of ") + what + " failed: " + svar::to_string(st),
+                                nullptr, 0});
+    };
+    auto last_error = [&]() { return err::Error{err_code, err_owned_module, err_owned_message, nullptr, 0}; };
+
+    auto enter_error = [&]() {
+        state.store(State::ERROR);
+        next_state.store(State::ERROR);
+        sbs.refresh_error_flag();
+        sbs.post_signal(*this, sig::ERROR);
+    };
+
+    // ---- spawn: in-consts, init, out-consts (Figure 3.10) ----
+    next_state.store(State::OFF);
+    Outcome o = transfer(local->copy_from_global(set_in_consts), "in-consts");
+    if (o == Outcome::ok) o = call_all(Phase::init, [](Module& m, Task& t) { return m.init(t); });
+    if (o == Outcome::ok) o = transfer(local->copy_to_global(set_out_consts), "out-consts");
+    else if (o == Outcome::off) o = route(err::Error{err::code::method_failed, objects[current].rmod.module,
+                                                      "init() returned OFF", nullptr, 0});
+    if (o != Outcome::ok) {
+        // No recovery for init (§4.5.2): kill frees what init allocated; NOT-CREATED.
+        const std::string why = err_owned_message;
+        for (std::size_t i = 0; i < objects.size(); ++i) call(Phase::kill, i, [](Module& m, Task& t) { return m.kill(t); });
+        state.store(State::NOT_CREATED);
+        std::lock_guard<std::mutex> lock(cmd_mu);
+        start_failed = true;
+        start_error = "init failed: " + why + "; kill() called, the task is NOT-CREATED";
+        started = true;
+        cmd_cv.notify_all();
+        return;
+    }
+    state.store(State::OFF);
+    {
+        std::lock_guard<std::mutex> lock(cmd_mu);
+        started = true;
+        cmd_cv.notify_all();
+    }
+
+    // ---- the state machine ----
+    auto do_off_method = [&]() -> Outcome {  // off, out-vars
+        next_state.store(State::OFF);
+        Outcome r = call_all(Phase::off, [](Module& m, Task& t) { return m.off(t); });
+        if (r == Outcome::ok || r == Outcome::off) r = transfer(local->copy_to_global(set_out_vars), "out-vars");
+        return r;
+    };
+    auto apply_error_outcome = [&](Outcome r) {
+        if (r == Outcome::error_off) {
+            state.store(State::OFF);
+            next_state.store(State::OFF);
+        } else if (r == Outcome::error_halt) {
+            enter_error();
+        }
+    };
+    auto run_cycle = [&]() {
+        const std::int64_t t0 = ipc::now_ns();
+        last_release_ns.store(t0, std::memory_order_relaxed);
+        Outcome r = transfer(local->copy_from_global(set_in_vars), "in-vars");
+        if (r == Outcome::ok) r = call_all(Phase::cycle, [](Module& m, Task& t) { return m.cycle(t); });
+        if (r == Outcome::ok || r == Outcome::off) {
+            const Outcome w = transfer(local->copy_to_global(set_out_vars), "out-vars");
+            cycles.fetch_add(1, std::memory_order_relaxed);
+            if (w != Outcome::ok) r = w;
+        }
+        const std::int64_t dt = ipc::now_ns() - t0;
+        if (dt > max_cycle_ns.load(std::memory_order_relaxed)) max_cycle_ns.store(dt, std::memory_order_relaxed);
+        if (r == Outcome::off) {
+            // Goal reached: the task turns itself off and tells the master.
+            const Outcome f = do_off_method();
+            if (f == Outcome::ok || f == Outcome::off) {
+                state.store(State::OFF);
+                sbs.post_signal(*this, sig::OFF);
+            } else {
+                apply_error_outcome(f);
+            }
+        } else {
+            apply_error_outcome(r);
+        }
+    };
+
+    bool alive = true;
+    std::uint64_t missed = 0;
+    while (alive) {
+        const std::uint32_t seen = word.load(std::memory_order_acquire);
+        if (cmd_pending.load(std::memory_order_acquire)) {
+            std::unique_lock<std::mutex> lock(cmd_mu);
+            const CmdKind k = cmd;
+            arg = cmd_arg;
+            const std::string key = cmd_key;
+            const double hz = cmd_hz;
+            lock.unlock();
+            std::string result, rep;
+            const State s = state.load();
+            auto refuse = [&](const char* what) {
+                result = "refused: " + std::string(what) + " is not valid in state " + std::string(to_string(s));
+            };
+            switch (k) {
+                case CmdKind::on: {
+                    if (s != State::OFF) {
+                        refuse("on");
+                        break;
+                    }
+                    next_state.store(State::ON);
+                    Outcome r = transfer(local->copy_from_global(set_on), "in-vars and out-vars");
+                    if (r == Outcome::ok) r = call_all(Phase::on, [](Module& m, Task& t) { return m.on(t); });
+                    if (r == Outcome::ok) r = transfer(local->copy_to_global(set_out_vars), "out-vars");
+                    if (r == Outcome::ok) {
+                        cycles.store(0);
+                        misses.store(0);
+                        warnings.store(0);
+                        max_cycle_ns.store(0);
+                        missed = 0;
+                        const std::int64_t now = ipc::now_ns();
+                        on_since_ns.store(now);
+                        pacer->start(now, period_ns.load());
+                        state.store(State::ON);
+                    } else if (r == Outcome::off) {
+                        next_state.store(State::OFF);
+                        result = "on() returned OFF: the task stays OFF";
+                    } else {
+                        apply_error_outcome(r);
+                        result = "error in on(): " + err_owned_message + (r == Outcome::error_halt
+                                                                              ? "; the task is in ERROR"
+                                                                              : "; error() returned OFF");
+                    }
+                    break;
+                }
+                case CmdKind::off: {
+                    if (s != State::ON) {
+                        refuse("off");
+                        break;
+                    }
+                    Outcome r = do_off_method();
+                    if (r == Outcome::ok || r == Outcome::off) {
+                        state.store(State::OFF);
+                    } else {
+                        apply_error_outcome(r);
+                        result = "error in off(): " + err_owned_message;
+                    }
+                    break;
+                }
+                case CmdKind::kill: {
+                    if (s == State::NOT_CREATED) {
+                        refuse("kill");
+                        break;
+                    }
+                    if (s == State::ON) {
+                        const Outcome r = do_off_method();
+                        if (r != Outcome::ok && r != Outcome::off) result = "error in off(): " + err_owned_message + "; ";
+                        state.store(State::OFF);  // kill runs from OFF (Figure 3.10)
+                    }
+                    next_state.store(State::NOT_CREATED);
+                    bool failed = false;
+                    for (std::size_t i = 0; i < objects.size(); ++i) {
+                        if (call(Phase::kill, i, [](Module& m, Task& t) { return m.kill(t); }) != Outcome::ok)
+                            failed = true;
+                    }
+                    if (failed) result += "error in kill(): " + err_owned_message;
+                    state.store(State::NOT_CREATED);
+                    sbs.refresh_error_flag();
+                    alive = false;
+                    break;
+                }
+                case CmdKind::clear: {
+                    if (s != State::ERROR) {
+                        refuse("clear");
+                        break;
+                    }
+                    next_state.store(State::OFF);
+                    const err::Error e = last_error();
+                    bool still = false;
+                    for (std::size_t i = 0; i < objects.size() && !still; ++i) {
+                        phase = Phase::clear;
+                        current = i;
+                        Result r = Result::ERROR;
+                        try {
+                            r = objects[i].module->clear(*objects[i].view, e);
+                        } catch (...) {
+                            r = Result::ERROR;
+                        }
+                        if (r != Result::OFF) still = true;
+                    }
+                    if (still) {
+                        next_state.store(State::ERROR);
+                        result = "clear() returned ERROR: the task stays in ERROR";
+                    } else {
+                        state.store(State::OFF);
+                        std::lock_guard<std::mutex> ml(msg_mu);
+                        error_text.clear();
+                        error_module.clear();
+                        error_code = 0;
+                    }
+                    sbs.refresh_error_flag();
+                    break;
+                }
+                case CmdKind::reinit: {
+                    if (s == State::NOT_CREATED || s == State::ERROR) {
+                        refuse("reinit");
+                        break;
+                    }
+                    next_state.store(s);
+                    Outcome r = transfer(local->copy_from_global(set_in_consts), "in-consts");
+                    if (r == Outcome::ok) r = call_all(Phase::reinit, [](Module& m, Task& t) { return m.reinit(t); });
+                    if (r != Outcome::ok && r != Outcome::off) {
+                        apply_error_outcome(r);
+                        result = "error in reinit(): " + err_owned_message;
+                    }
+                    break;
+                }
+                case CmdKind::set: {
+                    bool any = false;
+                    for (auto& ob : objects)
+                        if (ob.rmod.local.has(key)) any = true;
+                    std::vector<std::string> values;
+                    {
+                        std::string v = arg;
+                        std::size_t i = 0;
+                        while (i < v.size()) {
+                            while (i < v.size() && (v[i] == ' ' || v[i] == '\t')) ++i;
+                            std::size_t j = i;
+                            while (j < v.size() && v[j] != ' ' && v[j] != '\t') ++j;
+                            if (j > i) values.push_back(v.substr(i, j - i));
+                            i = j;
+                        }
+                    }
+                    arg = key + " " + arg;
+                    for (std::size_t i = 0; i < objects.size(); ++i) {
+                        if (any && !objects[i].rmod.local.has(key)) continue;
+                        objects[i].rmod.local.set(key, values);
+                        if (call(Phase::set, i, [](Module& m, Task& t) { return m.set(t); }) != Outcome::ok) {
+                            result = "set " + key + ": " + err_owned_message;
+                            break;
+                        }
+                        if (!any) break;
+                    }
+                    break;
+                }
+                case CmdKind::get: {
+                    arg = key;
+                    reply_set = false;
+                    reply.clear();
+                    bool known = false;
+                    for (std::size_t i = 0; i < objects.size(); ++i) {
+                        if (auto t = objects[i].rmod.local.text(key); t && !reply_set) {
+                            reply = *t;
+                            known = true;
+                        }
+                        if (call(Phase::get, i, [](Module& m, Task& t) { return m.get(t); }) != Outcome::ok) {
+                            result = "get " + key + ": " + err_owned_message;
+                            break;
+                        }
+                        if (reply_set) known = true;
+                    }
+                    if (result.empty() && !known) result = "task " + name + " has no LOCAL key " + key;
+                    rep = reply;
+                    break;
+                }
+                case CmdKind::freq: {
+                    const std::int64_t p = static_cast<std::int64_t>(std::llround(1e9 / hz));
+                    period_ns.store(p);
+                    pacer->set_period(p);
+                    for (auto& ob : objects) {
+                        ob.rmod.freq = hz;
+                        ob.rmod.period = 1.0 / hz;
+                    }
+                    crit.store(crit_for(rtpu, type, hz));
+                    if (rtpu.backend != Backend::other) {
+                        sched_param sp{};
+                        int pol = 0;
+                        pthread_getschedparam(pthread_self(), &pol, &sp);
+                        if (pol == SCHED_FIFO) {
+                            sp.sched_priority = 10 + crit.load();
+                            pthread_setschedparam(pthread_self(), SCHED_FIFO, &sp);
+                            std::lock_guard<std::mutex> ml(msg_mu);
+                            policy = "SCHED_FIFO " + std::to_string(sp.sched_priority) + ", CPU " +
+                                     std::to_string(rtpu.cpu);
+                        }
+                    }
+                    break;
+                }
+                case CmdKind::none: break;
+            }
+            arg.clear();
+            lock.lock();
+            cmd_result = std::move(result);
+            cmd_reply = std::move(rep);
+            cmd = CmdKind::none;
+            cmd_done = true;
+            cmd_pending.store(false, std::memory_order_release);
+            cmd_cv.notify_all();
+            continue;
+        }
+
+        if (state.load(std::memory_order_relaxed) != State::ON) {
+            ipc::futex_wait(word, seen);
+            continue;
+        }
+        switch (type) {
+            case TaskType::periodic: {
+                if (!pacer->wait(word, seen, missed)) continue;  // a request came in
+                misses.store(missed, std::memory_order_relaxed);
+                run_cycle();
+                break;
+            }
+            case TaskType::synchronous: {
+                // sync() blocks until the external event; the cycle follows at once.
+                Outcome r = call_all(Phase::sync, [](Module& m, Task& t) { return m.sync(t); });
+                if (r == Outcome::ok) {
+                    run_cycle();
+                } else if (r == Outcome::off) {
+                    continue;  // sync gave up waiting (e.g. a request is pending)
+                } else {
+                    apply_error_outcome(r);
+                }
+                break;
+            }
+            case TaskType::sporadic:
+            case TaskType::deferrable:
+            case TaskType::background: {
+                std::uint32_t ev = events.load(std::memory_order_acquire);
+                if (ev == 0) {
+                    ipc::futex_wait(word, seen);
+                    continue;
+                }
+                events.fetch_sub(1, std::memory_order_acq_rel);
+                run_cycle();
+                break;
+            }
+        }
+    }
+}
+
+}  // namespace chimera::sbs::detail
+
+// ------------------------------------------------------------------ Task view
+
+namespace chimera {
+
+using sbs::detail::TaskCore;
+
+std::string_view Task::rmod() const noexcept { return core_->objects[object_].rmod.name; }
+std::string_view Task::module() const noexcept { return core_->objects[object_].rmod.module; }
+std::string_view Task::rtpu() const noexcept { return core_->rtpu.name; }
+TaskType Task::type() const noexcept { return core_->type; }
+const LocalConfig& Task::local() const noexcept { return core_->objects[object_].rmod.local; }
+const RmodFile& Task::rmod_file() const noexcept { return core_->objects[object_].rmod; }
+State Task::state() const noexcept { return core_->state.load(std::memory_order_relaxed); }
+State Task::next_state() const noexcept { return core_->next_state.load(std::memory_order_relaxed); }
+int Task::crit() const noexcept { return core_->crit.load(std::memory_order_relaxed); }
+std::uint64_t Task::cycle_count() const noexcept { return core_->cycles.load(std::memory_order_relaxed); }
+std::uint32_t Task::warnings() const noexcept { return core_->warnings.load(std::memory_order_relaxed); }
+double Task::freq() const noexcept {
+    const std::int64_t p = core_->period_ns.load(std::memory_order_relaxed);
+    return p > 0 ? 1e9 / static_cast<double>(p) : 0.0;
+}
+double Task::period() const noexcept {
+    return static_cast<double>(core_->period_ns.load(std::memory_order_relaxed)) * 1e-9;
+}
+int Task::error_number() const noexcept { return core_->last_num.load(std::memory_order_relaxed); }
+std::string_view Task::error_message() const noexcept { return core_->last_msg; }
+std::string Task::global_name(std::string_view port) const { return core_->objects[object_].rmod.global_name(port); }
+void* Task::local_table_ptr() const noexcept { return core_->local.get(); }
+std::uint32_t Task::signals() const noexcept { return core_->signals_sent.load(std::memory_order_relaxed); }
+std::uint32_t Task::sigmask() const noexcept {
+    return core_->own_sigmask.load() ? core_->sigmask.load() : core_->sbs.wide_mask.load();
+}
+void Task::send_signal(int signal) noexcept { core_->sbs.post_signal(*core_, signal); }
+std::string_view Task::arg() const noexcept { return core_->arg; }
+void Task::reply(std::string text) {
+    core_->reply = std::move(text);
+    core_->reply_set = true;
+}
+bool Task::illegal_configuration() const noexcept { return core_->sbs.table.illegal_configuration() != 0; }
+void Task::set_illegal_configuration(bool illegal) noexcept {
+    core_->sbs.set_flag(sbs::detail::SubsystemCore::kIllegalTask, illegal);
+    send_signal(illegal ? sig::ILLEGAL : sig::LEGAL);
+}
+bool Task::command_pending() const noexcept {
+    return core_->cmd_pending.load(std::memory_order_acquire) || core_->stopping.load(std::memory_order_relaxed);
+}
+void Task::error(int code, std::string_view message, const char* file, int line) const {
+    err::invoke(code, module(), message, file, line);
+}
+void Task::warning(std::string_view message) noexcept {
+    TaskCore& c = *core_;
+    c.warnings.fetch_add(1, std::memory_order_relaxed);
+    {
+        std::unique_lock<std::mutex> lock(c.msg_mu, std::try_to_lock);
+        if (lock.owns_lock()) {
+            const std::size_t n = std::min(message.size(), sizeof(c.last_msg) - 1);
+            std::memcpy(c.last_msg, message.data(), n);
+            c.last_msg[n] = '\0';
+            c.last_num.store(-1);
+            if (c.first_warning.empty()) {
+                try {
+                    c.first_warning.assign(message);
+                } catch (...) {
+                }
+            }
+        }
+    }
+    if (c.rtpu.errprint == ErrPrint::warnings) {
+        try {
+            c.sbs.print(c.rtpu, false, "WARNING> " + std::string(rmod()) + ": " + std::string(message));
+        } catch (...) {
+        }
+    }
+    send_signal(sig::WARNING);
+}
+
+}  // namespace chimera

@@ -1,0 +1,132 @@
+// A test module that records what it saw: every method call, the state, and
+// the values of its ports in the local table at that moment. Its behaviour is
+// chosen by LOCAL keys (read at every call, so sbsSet can change them):
+//   INIT/ON/CYCLE/OFFM/KILL/SYNC  OK | ERROR | THROW | INVOKE | OFF   (what the method does)
+//   ERROR_RET / CLEAR_RET         OK | OFF | CONTINUE | ERROR          (error()/clear() answer)
+//   COUT_VALUE v                  written to the out-const by init
+//   OUT_ON v / OUT_OFF v          written to the out-var by on / off
+//   ADD v                         cycle writes OUT = IN + ADD (default 1)
+//   OFF_AFTER n                   cycle returns OFF at its n-th cycle
+//   SIGNAL n                      cycle sends SBS signal n
+//   SYNC_MS n                     sync() sleeps n ms (synchronous tasks)
+// Records go to chimera_test_record(), defined by the test program.
+#include <chimera/module.hpp>
+#include <chimera/svar.hpp>
+
+#include <chrono>
+#include <cstdio>
+#include <stdexcept>
+#include <string>
+#include <thread>
+
+extern "C" void chimera_test_record(const char* line);
+
+namespace {
+
+using chimera::Result;
+using chimera::Task;
+
+class Probe : public chimera::Module {
+public:
+    Result init(Task& t) override {
+        const auto& f = t.rmod_file();
+        if (!f.in_vars.empty()) in_ = t.translate<double>(f.in_vars[0]);
+        if (!f.out_vars.empty()) out_ = t.translate<double>(f.out_vars[0]);
+        if (!f.in_consts.empty()) cin_ = t.translate<double>(f.in_consts[0]);
+        if (!f.out_consts.empty()) cout_ = t.translate<double>(f.out_consts[0]);
+        if (cout_) *cout_ = t.local().number("COUT_VALUE", 0.0);
+        record(t, "init");
+        return act(t, "INIT");
+    }
+    Result reinit(Task& t) override {
+        record(t, "reinit");
+        return Result::OK;
+    }
+    Result on(Task& t) override {
+        record(t, "on");
+        if (out_ && t.local().has("OUT_ON")) *out_ = t.local().number("OUT_ON", 0.0);
+        return act(t, "ON");
+    }
+    Result cycle(Task& t) override {
+        ++n_;
+        record(t, "cycle");
+        if (out_ && in_) *out_ = *in_ + t.local().number("ADD", 1.0);
+        else if (out_) *out_ = static_cast<double>(n_);
+        if (t.local().has("SIGNAL")) t.send_signal(static_cast<int>(t.local().number("SIGNAL", 0)));
+        const double off_after = t.local().number("OFF_AFTER", 0.0);
+        if (off_after > 0 && static_cast<double>(n_) >= off_after) return Result::OFF;
+        return act(t, "CYCLE");
+    }
+    Result off(Task& t) override {
+        record(t, "off");
+        if (out_ && t.local().has("OUT_OFF")) *out_ = t.local().number("OUT_OFF", 0.0);
+        return act(t, "OFFM");
+    }
+    Result kill(Task& t) override {
+        record(t, "kill");
+        return act(t, "KILL");
+    }
+    Result error(Task& t, const chimera::err::Error& e) override {
+        std::string line = std::string(t.rmod()) + " error code=" + std::to_string(e.code) + " msg=" +
+                           std::string(e.message);
+        chimera_test_record(line.c_str());
+        return result_of(t.local().text("ERROR_RET").value_or("ERROR"));
+    }
+    Result clear(Task& t, const chimera::err::Error& e) override {
+        std::string line = std::string(t.rmod()) + " clear code=" + std::to_string(e.code) + " msg=" +
+                           std::string(e.message);
+        chimera_test_record(line.c_str());
+        return result_of(t.local().text("CLEAR_RET").value_or("OFF"));
+    }
+    Result set(Task& t) override {
+        std::string line = std::string(t.rmod()) + " set " + std::string(t.arg());
+        chimera_test_record(line.c_str());
+        return Result::OK;
+    }
+    Result get(Task& t) override {
+        if (t.arg() == "CYCLES") t.reply(std::to_string(n_));
+        return Result::OK;
+    }
+    Result sync(Task& t) override {
+        std::this_thread::sleep_for(std::chrono::milliseconds(static_cast<int>(t.local().number("SYNC_MS", 5))));
+        return act(t, "SYNC");
+    }
+
+private:
+    static Result result_of(const std::string& s) {
+        if (s == "OK") return Result::OK;
+        if (s == "OFF") return Result::OFF;
+        if (s == "CONTINUE") return Result::CONTINUE;
+        return Result::ERROR;
+    }
+    Result act(Task& t, const char* key) {
+        const std::string what = t.local().text(key).value_or("OK");
+        if (what == "THROW") throw std::runtime_error(std::string(key) + " threw");
+        if (what == "INVOKE") {
+            t.error(chimera::err::code::user + 1, std::string(key) + " invoked an error");
+            std::string line = std::string(t.rmod()) + " after-invoke";
+            chimera_test_record(line.c_str());
+            return Result::OK;
+        }
+        return result_of(what);
+    }
+    void record(Task& t, const char* method) {
+        char buf[256];
+        std::snprintf(buf, sizeof buf, "%.*s %s state=%.*s next=%.*s IN=%g OUT=%g CIN=%g COUT=%g ILL=%d",
+                      static_cast<int>(t.rmod().size()), t.rmod().data(), method,
+                      static_cast<int>(to_string(t.state()).size()), to_string(t.state()).data(),
+                      static_cast<int>(to_string(t.next_state()).size()), to_string(t.next_state()).data(),
+                      in_ ? *in_ : -1.0, out_ ? *out_ : -1.0, cin_ ? *cin_ : -1.0, cout_ ? *cout_ : -1.0, t.illegal_configuration() ? 1 : 0);
+        chimera_test_record(buf);
+    }
+
+    double* in_ = nullptr;
+    double* out_ = nullptr;
+    double* cin_ = nullptr;
+    double* cout_ = nullptr;
+    long n_ = 0;
+};
+
+}  // namespace
+
+CHIMERA_MODULE(probe, Probe)
