@@ -1,0 +1,309 @@
+// The SPP executive (chimexec, §7.4.2) and the per-task SPP object (§7.4.1).
+#include "chimera/spp.hpp"
+
+#include <pthread.h>
+#include <sched.h>
+
+#include <cerrno>
+#include <cstdio>
+#include <cstring>
+
+namespace chimera::spp {
+
+// One task's command buffer: a single-producer (the task) single-consumer
+// (the executive) ring, allocated at init so issuing a command never allocates.
+struct Processor::Slot {
+    explicit Slot(int i, int capacity) : index(i), ring(static_cast<std::size_t>(capacity)) {}
+    const int index;
+    std::vector<Command> ring;
+    std::atomic<std::uint64_t> head{0};   // next to run (executive)
+    std::atomic<std::uint64_t> tail{0};   // next free (task)
+    std::atomic<std::uint64_t> woken{0};  // seq of the last WAKEUP run
+    std::atomic<int> priority{0};
+    std::atomic<bool> active{false};
+    // Under lock_mutex_:
+    bool in_use = false;
+    bool waiting = false;        // for the lock
+    std::uint64_t ticket = 0;    // order of lock requests (ties in priority)
+
+    bool empty() const noexcept {
+        return head.load(std::memory_order_relaxed) == tail.load(std::memory_order_acquire);
+    }
+};
+
+std::size_t Memory::size_of(Handle h) const noexcept {
+    if (h.kind != Handle::Kind::variable || h.index >= proc_->variables_.size()) return 0;
+    return proc_->variables_[h.index].bytes;
+}
+
+std::byte* Memory::address(Handle h) const noexcept {
+    if (h.kind != Handle::Kind::variable || h.index >= proc_->variables_.size()) return nullptr;
+    return proc_->memory_.get() + proc_->offsets_[h.index];
+}
+
+Processor::Processor(const Config& config, const Library& library)
+    : config_(config), routines_(library.routines()), variables_(library.variables()) {
+    if (config.driver != "thread")
+        throw Error("SPP " + config.name + ": unknown driver " + config.driver);
+    std::size_t at = 0;
+    for (const auto& v : variables_) {
+        at = (at + v.align - 1) & ~(v.align - 1);
+        offsets_.push_back(at);
+        at += v.bytes;
+        if (at > config.memsize)
+            throw Error("SPP " + config.name + " (" + config.file + ":" + std::to_string(config.line) +
+                        "): library variable " + v.name + " does not fit in MEMSIZE " +
+                        std::to_string(config.memsize));
+    }
+    // Aligned for any routine's data; zeroed like freshly initialised SPP memory.
+    memory_.reset(new (std::align_val_t{64}) std::byte[config.memsize]());
+    for (int i = 0; i < config.tasks; ++i) slots_.push_back(std::make_unique<Slot>(i, config.queue));
+    view_.proc_ = this;
+}
+
+std::unique_ptr<Processor> Processor::init(const Config& config, const Library& library) {
+    std::unique_ptr<Processor> p(new Processor(config, library));
+    p->thread_ = std::thread([q = p.get()] { q->run(); });
+    return p;
+}
+
+Processor::~Processor() {
+    stop_.store(true);
+    kick();
+    if (thread_.joinable()) thread_.join();
+}
+
+Handle Processor::lookup(std::string_view name) const noexcept {
+    for (std::size_t i = 0; i < routines_.size(); ++i)
+        if (routines_[i].name == name) return {Handle::Kind::routine, static_cast<std::uint32_t>(i)};
+    for (std::size_t i = 0; i < variables_.size(); ++i)
+        if (variables_[i].name == name) return {Handle::Kind::variable, static_cast<std::uint32_t>(i)};
+    return {};
+}
+
+void Processor::kick() noexcept {
+    work_.fetch_add(1, std::memory_order_release);
+    work_.notify_one();
+}
+
+// The next task to serve. While a task holds the lock only its commands run;
+// otherwise the highest-priority task with a pending command, ties going to
+// the command issued first.
+Processor::Slot* Processor::pick() noexcept {
+    const int owner = owner_.load(std::memory_order_acquire);
+    if (owner >= 0) {
+        Slot* s = slots_[static_cast<std::size_t>(owner)].get();
+        return s->empty() ? nullptr : s;
+    }
+    Slot* best = nullptr;
+    int best_prio = 0;
+    std::uint64_t best_seq = 0;
+    for (auto& sp : slots_) {
+        Slot* s = sp.get();
+        if (!s->active.load(std::memory_order_acquire) || s->empty()) continue;
+        const std::uint64_t h = s->head.load(std::memory_order_relaxed);
+        const std::uint64_t seq = s->ring[h % s->ring.size()].seq;
+        const int prio = s->priority.load(std::memory_order_relaxed);
+        if (!best || prio > best_prio || (prio == best_prio && seq < best_seq)) {
+            best = s;
+            best_prio = prio;
+            best_seq = seq;
+        }
+    }
+    return best;
+}
+
+void Processor::run() noexcept {
+    if (config_.cpu >= 0) {
+        cpu_set_t set;
+        CPU_ZERO(&set);
+        CPU_SET(static_cast<unsigned>(config_.cpu), &set);
+        if (pthread_setaffinity_np(pthread_self(), sizeof set, &set) != 0)
+            std::fprintf(stderr, "spp %s: cannot pin the executive to CPU %d; it runs unpinned\n",
+                         config_.name.c_str(), config_.cpu);
+    }
+    if (config_.priority > 0) {
+        sched_param sp{};
+        sp.sched_priority = config_.priority;
+        const int rc = pthread_setschedparam(pthread_self(), SCHED_FIFO, &sp);
+        if (rc == 0) realtime_.store(true);
+        else
+            std::fprintf(stderr,
+                         "spp %s: no real-time privilege (%s); the executive runs SCHED_OTHER\n",
+                         config_.name.c_str(), std::strerror(rc));
+    }
+    for (;;) {
+        const std::uint32_t seen = work_.load(std::memory_order_acquire);
+        Slot* s = pick();
+        if (!s) {
+            if (stop_.load()) return;
+            work_.wait(seen, std::memory_order_acquire);
+            continue;
+        }
+        const std::uint64_t h = s->head.load(std::memory_order_relaxed);
+        const Command c = s->ring[h % s->ring.size()];
+        execute(*s, c);
+        s->head.store(h + 1, std::memory_order_release);
+        executed_.fetch_add(1, std::memory_order_relaxed);
+    }
+}
+
+void Processor::execute(Slot& slot, const Command& c) noexcept {
+    switch (c.type) {
+    case CommandType::CALL:
+        try {
+            routines_[c.target.index].fn(view_, c.args);
+        } catch (...) {
+            // A routine has no caller to throw to (the call is asynchronous):
+            // counted, and the executive goes on with the next command.
+            faults_.fetch_add(1, std::memory_order_relaxed);
+        }
+        break;
+    case CommandType::XFER_IN:
+        std::memcpy(memory_.get() + offsets_[c.target.index] + c.offset, c.user, c.bytes);
+        break;
+    case CommandType::XFER_OUT:
+        std::memcpy(c.user, memory_.get() + offsets_[c.target.index] + c.offset, c.bytes);
+        break;
+    case CommandType::WAKEUP:
+        slot.woken.store(c.seq, std::memory_order_release);
+        slot.woken.notify_all();
+        break;
+    case CommandType::RELEASE: {
+        std::lock_guard<std::mutex> lk(lock_mutex_);
+        if (owner_.load() == slot.index) {
+            owner_.store(-1, std::memory_order_release);
+            grant_next_locked();
+        }
+        break;
+    }
+    }
+}
+
+// Hands the free lock to the highest-priority waiting task (earliest request
+// on ties). Called with lock_mutex_ held.
+void Processor::grant_next_locked() {
+    Slot* best = nullptr;
+    for (auto& sp : slots_) {
+        Slot* s = sp.get();
+        if (!s->in_use || !s->waiting) continue;
+        if (!best || s->priority.load() > best->priority.load() ||
+            (s->priority.load() == best->priority.load() && s->ticket < best->ticket))
+            best = s;
+    }
+    if (!best) return;
+    best->waiting = false;
+    owner_.store(best->index, std::memory_order_release);
+    lock_cv_.notify_all();
+    kick();
+}
+
+// --- the task's SPP object ----------------------------------------------------------
+
+std::unique_ptr<Spp> Spp::init(Processor& p, int priority) {
+    std::lock_guard<std::mutex> lk(p.lock_mutex_);
+    for (auto& sp : p.slots_) {
+        Processor::Slot& s = *sp;
+        if (s.in_use) continue;
+        s.in_use = true;
+        s.waiting = false;
+        s.priority.store(priority);
+        const std::uint64_t h = s.head.load();
+        s.tail.store(h);
+        s.active.store(true, std::memory_order_release);
+        return std::unique_ptr<Spp>(new Spp(p, s.index));
+    }
+    throw Error("SPP " + p.config_.name + ": all " + std::to_string(p.config_.tasks) +
+                " task slots are in use (TASKS)");
+}
+
+Spp::~Spp() { finish(); }
+
+int Spp::priority() const noexcept { return proc_->slots_[static_cast<std::size_t>(slot_)]->priority.load(); }
+
+Handle Spp::translate(std::string_view name) const {
+    const Handle h = proc_->lookup(name);
+    if (!h) throw Error("SPP " + proc_->config_.name + ": no routine or variable named " + std::string(name));
+    return h;
+}
+
+int Spp::push(Processor::Command c) noexcept {
+    if (finished_) return -EPIPE;
+    Processor::Slot& s = *proc_->slots_[static_cast<std::size_t>(slot_)];
+    const std::uint64_t t = s.tail.load(std::memory_order_relaxed);
+    if (t - s.head.load(std::memory_order_acquire) >= s.ring.size()) return -ENOSPC;
+    c.seq = proc_->next_seq_.fetch_add(1, std::memory_order_relaxed);
+    s.ring[t % s.ring.size()] = c;
+    s.tail.store(t + 1, std::memory_order_release);
+    proc_->kick();
+    return 0;
+}
+
+int Spp::call(Handle routine, const Args& args) noexcept {
+    if (routine.kind != Handle::Kind::routine || routine.index >= proc_->routines_.size() || !args.valid())
+        return -EINVAL;
+    return push({CommandType::CALL, routine, 0, args, nullptr, 0, 0});
+}
+
+int Spp::write(Handle v, const void* src, std::size_t bytes, std::size_t offset) noexcept {
+    if (v.kind != Handle::Kind::variable || v.index >= proc_->variables_.size() ||
+        offset > proc_->variables_[v.index].bytes || bytes > proc_->variables_[v.index].bytes - offset)
+        return -EINVAL;
+    return push({CommandType::XFER_IN, v, 0, {}, const_cast<void*>(src), bytes, offset});
+}
+
+int Spp::read(Handle v, void* dst, std::size_t bytes, std::size_t offset) noexcept {
+    if (v.kind != Handle::Kind::variable || v.index >= proc_->variables_.size() ||
+        offset > proc_->variables_[v.index].bytes || bytes > proc_->variables_[v.index].bytes - offset)
+        return -EINVAL;
+    return push({CommandType::XFER_OUT, v, 0, {}, dst, bytes, offset});
+}
+
+int Spp::wait() noexcept {
+    if (finished_) return -EPIPE;
+    Processor::Slot& s = *proc_->slots_[static_cast<std::size_t>(slot_)];
+    // The WAKEUP goes in even when the buffer is full: this call blocks anyway.
+    const std::uint64_t t = s.tail.load(std::memory_order_relaxed);
+    while (t - s.head.load(std::memory_order_acquire) >= s.ring.size()) std::this_thread::yield();
+    const std::uint64_t seq = proc_->next_seq_.fetch_add(1, std::memory_order_relaxed);
+    s.ring[t % s.ring.size()] = {CommandType::WAKEUP, {}, seq, {}, nullptr, 0, 0};
+    s.tail.store(t + 1, std::memory_order_release);
+    proc_->kick();
+    for (std::uint64_t w = s.woken.load(std::memory_order_acquire); w < seq;
+         w = s.woken.load(std::memory_order_acquire))
+        s.woken.wait(w, std::memory_order_acquire);
+    return 0;
+}
+
+void Spp::lock() {
+    if (locked_ || finished_) return;
+    Processor::Slot& s = *proc_->slots_[static_cast<std::size_t>(slot_)];
+    std::unique_lock<std::mutex> lk(proc_->lock_mutex_);
+    s.waiting = true;
+    s.ticket = ++proc_->lock_ticket_;
+    if (proc_->owner_.load() < 0) proc_->grant_next_locked();
+    proc_->lock_cv_.wait(lk, [&] { return proc_->owner_.load() == slot_; });
+    locked_ = true;
+}
+
+int Spp::release() noexcept {
+    if (!locked_) return -EINVAL;
+    const int rc = push({CommandType::RELEASE, {}, 0, {}, nullptr, 0, 0});
+    if (rc == 0) locked_ = false;
+    return rc;
+}
+
+void Spp::finish() noexcept {
+    if (finished_) return;
+    if (locked_) {
+        while (release() == -ENOSPC) wait();
+    }
+    wait();
+    finished_ = true;
+    Processor::Slot& s = *proc_->slots_[static_cast<std::size_t>(slot_)];
+    std::lock_guard<std::mutex> lk(proc_->lock_mutex_);
+    s.active.store(false, std::memory_order_release);
+    s.in_use = false;
+}
+
+}  // namespace chimera::spp
