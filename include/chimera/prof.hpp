@@ -24,6 +24,7 @@
 // reset_rtpu() bump it; a task notices at its next cycle boundary and zeroes
 // its counters there (the reset is honoured by the writer, so it is lock-free
 // for the task). Until then readers already show the task as reset (zeros).
+// Warnings (count and first message) are reset by status resets only.
 // The first cycle completed after a reset is counted in `cycle` but its CPU
 // time is dropped from totC/minC/maxC/avgC, exactly as §6.7 does. A task
 // turned on calls TaskProfiler::start(), which restarts profiling on its RTPU
@@ -145,7 +146,9 @@ struct alignas(64) RtpuBlock {
     std::atomic<std::int64_t> start_ns;     ///< CLOCK_MONOTONIC at the reset (Q_start)
     std::atomic<std::int64_t> tick_ns;      ///< the RTPU's accounting tick
     std::atomic<std::uint32_t> accounting;  ///< Accounting, applied from the next reset
-    std::uint32_t reserved0;
+    /// Bumped by status resets only (reset_all/reset_rtpu), not by a task
+    /// starting: warnings are "since the last status command" (§4.4.1).
+    std::atomic<std::uint32_t> status_epoch;
     std::uint8_t reserved[32];
 };
 static_assert(sizeof(RtpuBlock) == 64);
@@ -178,7 +181,7 @@ struct InfoData {
     std::atomic<std::uint32_t> state;         ///< TaskState
     std::atomic<std::int32_t> crit;
     std::atomic<std::uint64_t> ref_freq_bits; ///< refF (double) as bits
-    std::atomic<std::uint32_t> warn_epoch;    ///< RTPU epoch the warning count belongs to
+    std::atomic<std::uint32_t> warn_epoch;    ///< RTPU status_epoch the warning count belongs to
     std::atomic<std::uint32_t> warnings;
     std::atomic<std::uint32_t> has_error;
     std::atomic<std::int32_t> depth;          ///< writer-private nesting count (signal handlers)
@@ -308,6 +311,7 @@ struct RawSlot {
 /// One RTPU's profiling epoch as read consistently.
 struct RtpuEpoch {
     std::uint32_t epoch = 0;
+    std::uint32_t status_epoch = 0;
     std::int64_t start_ns = 0;
     std::int64_t tick_ns = 1;
     Accounting accounting = Accounting::nanoseconds;
@@ -490,8 +494,9 @@ public:
     TaskProfiler& operator=(const TaskProfiler&) = delete;
     ~TaskProfiler();
 
-    /// The task is turned on: restarts profiling on its RTPU (§6.7). Set-up
-    /// path (takes the header lock briefly).
+    /// The task is turned on: restarts profiling on its RTPU (§6.7); the
+    /// other tasks' warnings stay (they are reset by status commands only).
+    /// Set-up path (takes the header lock briefly).
     void start();
 
     /// Start of a cycle (or event): right after the wake-up.

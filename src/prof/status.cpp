@@ -51,6 +51,7 @@ RtpuEpoch read_rtpu(const StatusHeader* h, int rtpu) noexcept {
     const RtpuBlock* b = rtpu_block(h, rtpu);
     detail::read_consistent(b->seq, [&]() noexcept {
         e.epoch = b->epoch.load(std::memory_order_relaxed);
+        e.status_epoch = b->status_epoch.load(std::memory_order_relaxed);
         e.start_ns = b->start_ns.load(std::memory_order_relaxed);
         e.tick_ns = b->tick_ns.load(std::memory_order_relaxed);
         e.accounting = static_cast<Accounting>(b->accounting.load(std::memory_order_relaxed));
@@ -86,6 +87,8 @@ void bump_epoch(StatusHeader* h, int rtpu, const Accounting* accounting,
                                         std::memory_order_relaxed);
     if (tick_ns) b->tick_ns.store(*tick_ns, std::memory_order_relaxed);
     b->epoch.store(b->epoch.load(std::memory_order_relaxed) + 1, std::memory_order_relaxed);
+    b->status_epoch.store(b->status_epoch.load(std::memory_order_relaxed) + 1,
+                          std::memory_order_relaxed);
     b->start_ns.store(ipc::now_ns(), std::memory_order_relaxed);
     detail::write_end(b->seq);
 }
@@ -259,7 +262,7 @@ TaskStatus derive(const RawSlot& raw, const RtpuEpoch& rtpu, std::int64_t now_ns
     t.cpu_clock = raw.cpu_clock;
     t.consistent = raw.consistent;
     t.error = raw.has_error ? raw.error : std::string();
-    if (raw.warn_epoch == rtpu.epoch) {
+    if (raw.warn_epoch == rtpu.status_epoch) {
         t.warn = raw.warnings;
         t.warning = raw.warning;
     }
@@ -372,7 +375,7 @@ void TaskSlot::set_policy(std::string_view policy) noexcept {
 
 void TaskSlot::warning(std::string_view message) noexcept {
     const std::uint32_t epoch =
-        rtpu_block(header_, slot_->rtpu)->epoch.load(std::memory_order_acquire);
+        rtpu_block(header_, slot_->rtpu)->status_epoch.load(std::memory_order_acquire);
     InfoData& in = slot_->info;
     info_begin();
     if (in.warn_epoch.load(std::memory_order_relaxed) != epoch) {
@@ -468,6 +471,7 @@ StatusSegment StatusSegment::create(std::string_view subsystem, std::uint32_t ma
     for (std::uint32_t r = 0; r < rtpus; ++r) {
         RtpuBlock* b = rtpu_block(h, static_cast<int>(r));
         b->epoch.store(1, std::memory_order_relaxed);
+        b->status_epoch.store(1, std::memory_order_relaxed);
         b->start_ns.store(now, std::memory_order_relaxed);
         b->tick_ns.store(options.accounting == Accounting::half_tick ? options.tick_ns : 1,
                          std::memory_order_relaxed);
@@ -506,7 +510,7 @@ TaskSlot StatusSegment::claim(const TaskIdentity& id) {
         copy_string(s->outputs, kVarListMax, id.outputs);
 
         const std::uint32_t epoch =
-            rtpu_block(h, id.rtpu)->epoch.load(std::memory_order_relaxed);
+            rtpu_block(h, id.rtpu)->status_epoch.load(std::memory_order_relaxed);
         InfoData& in = s->info;
         detail::write_begin(in.seq);
         in.depth.store(0, std::memory_order_relaxed);

@@ -97,7 +97,7 @@ TEST(Derive, NanosecondModeExact) {
     // 400 Hz task, profiled for exactly 1 s: 400 cycles, the first dropped.
     RawSlot r = raw_with(400, 0, 399 * 500'000ull, 400'000, 700'000);
     r.ref_f = 400;
-    RtpuEpoch e{7, 1'000'000'000, 1, Accounting::nanoseconds};
+    RtpuEpoch e{7, 1, 1'000'000'000, 1, Accounting::nanoseconds};
     const TaskStatus t = derive(r, e, 2'000'000'000);
     EXPECT_FALSE(t.reset_pending);
     EXPECT_EQ(t.cycle, 400u);
@@ -123,7 +123,7 @@ TEST(Derive, HalfTickModeReproducesThesisQuantisation) {
     r.unit_num = 1'000'000;
     r.unit_den = 2;
     r.ref_f = 400;
-    RtpuEpoch e{7, 0, 1'000'000, Accounting::half_tick};
+    RtpuEpoch e{7, 1, 0, 1'000'000, Accounting::half_tick};
     const TaskStatus t = derive(r, e, 1'000'400'000);  // 1000.4 ticks elapsed: Q_total = 1000
     EXPECT_DOUBLE_EQ(t.tick, 0.001);
     EXPECT_DOUBLE_EQ(t.ptime, 1.0);
@@ -149,7 +149,7 @@ TEST(Derive, HalfTickModeReproducesThesisQuantisation) {
 TEST(Derive, MissesLowerTheMeasuredFrequencyButNotThePeriod) {
     RawSlot r = raw_with(90, 10, 0, UINT64_MAX, 0);
     r.ref_f = 100;
-    RtpuEpoch e{7, 0, 1, Accounting::nanoseconds};
+    RtpuEpoch e{7, 1, 0, 1, Accounting::nanoseconds};
     const TaskStatus t = derive(r, e, 1'000'000'000);
     EXPECT_DOUBLE_EQ(t.mez_f, 90.0);
     EXPECT_DOUBLE_EQ(t.mez_t, 0.01);  // ptime / (n_c + n_m)
@@ -161,7 +161,7 @@ TEST(Derive, PendingResetShowsZeroCountersAndNoWarning) {
     r.warn_epoch = 7;
     r.warnings = 2;
     r.warning = "w";
-    RtpuEpoch e{8, 0, 1, Accounting::nanoseconds};
+    RtpuEpoch e{8, 8, 0, 1, Accounting::nanoseconds};
     const TaskStatus t = derive(r, e, 1'000);
     EXPECT_TRUE(t.reset_pending);
     EXPECT_EQ(t.cycle, 0u);
@@ -173,7 +173,7 @@ TEST(Derive, PendingResetShowsZeroCountersAndNoWarning) {
 
 TEST(Derive, AperiodicUtilisationUsesTheMeasuredMeanPeriod) {
     RawSlot r = raw_with(11, 0, 10 * 1'000'000ull, 1'000'000, 1'000'000);  // 1 ms each
-    RtpuEpoch e{7, 0, 1, Accounting::nanoseconds};
+    RtpuEpoch e{7, 1, 0, 1, Accounting::nanoseconds};
     const TaskStatus t = derive(r, e, 110'000'000);  // 11 events in 110 ms
     EXPECT_DOUBLE_EQ(t.ref_f, 0.0);
     EXPECT_NEAR(t.avg_u, 10.0, 1e-9);
@@ -356,11 +356,17 @@ TEST(Profiler, ResetHonouredAtTheNextCycleAndFirstCycleDropped) {
     EXPECT_EQ(s[0].accounted, 1u);
     EXPECT_LT(s[0].max_c, 0.002);
 
-    // A task turned on restarts profiling on its RTPU (§6.7).
+    // A task turned on restarts profiling on its RTPU (§6.7), but warnings
+    // are "since the last status command" and stay.
+    slot.warning("kept");
     const auto before = seg.snapshot()[0];
     p.start();
-    EXPECT_TRUE(seg.snapshot()[0].reset_pending);
-    EXPECT_LE(seg.snapshot()[0].ptime, before.ptime);
+    const auto after = seg.snapshot()[0];
+    EXPECT_TRUE(after.reset_pending);
+    EXPECT_EQ(after.cycle, 0u);
+    EXPECT_LE(after.ptime, before.ptime);
+    EXPECT_EQ(after.warn, 1u);
+    EXPECT_EQ(after.warning, "kept");
 }
 
 TEST(Profiler, HalfTickAccountingQuantisesEachCycle) {
