@@ -36,7 +36,7 @@ if mkdir $g && mkdir $g/bank0 $g/bank1; then
 else
     setup_fail "gpio-sim configfs"
 fi
-export CHIMERA_VCAN=vcan0 CHIMERA_VCAN1=vcan1 CHIMERA_RTGUEST=1
+export CHIMERA_VCAN=vcan0 CHIMERA_VCAN1=vcan1 CHIMERA_RTGUEST=1 GTEST_COLOR=no
 
 n=0
 for t in /tests/*; do

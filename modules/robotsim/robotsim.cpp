@@ -1,0 +1,175 @@
+// robotsim — simulated manipulator as a robot-interface SAI module (thesis §7.3,
+// "transparent simulation"): it integrates the arm's rigid-body dynamics at its
+// own rate and publishes measured joint positions and velocities, and the NDOF
+// and DH out-consts other modules configure themselves from (§3.5).
+//
+// Ports (internal names; SVARALIAS may rename them):
+//   OUTCONST NDOF (int), DH (double[16*(NDOF+1)], layout in robotics/model.hpp)
+//   INVAR    torque mode:   T_REF            joint torques (N m)
+//            position mode: Q_REF            reference joint positions (rad)
+//                           [Q^_REF]         reference joint velocities (rad/s), optional
+//                           [T_GRAV]         gravity feed-forward (N m), optional; without
+//                                            it the simulated servo uses its own model
+//   OUTVAR   Q_MEZ, [Q^_MEZ]  measured joint positions (rad) and velocities (rad/s)
+// LOCAL: see README.md.
+#include <chimera/module.hpp>
+
+#include <memory>
+#include <optional>
+
+#include "robotics/dynamics.hpp"
+#include "robotics/pid.hpp"
+#include "robotics/ports.hpp"
+
+namespace rb = chimera::robotics;
+
+namespace {
+
+class RobotSim : public chimera::Module {
+public:
+    chimera::Result init(chimera::Task& t) override {
+        const std::string robot = rb::local_word(t, "ROBOT", "puma560");
+        if (robot == "puma560") {
+            model_ = rb::puma560();
+        } else if (robot == "planar2") {
+            model_ = rb::planar2();
+        } else if (robot == "urdf") {
+            const auto* e = t.local().find("ROBOT");
+            if (e->values.size() != 4) {
+                rb::module_error(t, "line " + std::to_string(e->line) +
+                                        ": ROBOT urdf takes FILE ROOT-LINK TIP-LINK");
+            }
+            try {
+                model_ = rb::RobotModel::from_urdf(e->values[1], e->values[2], e->values[3]);
+            } catch (const std::exception& ex) {
+                rb::module_error(t, ex.what());
+            }
+        } else {
+            rb::module_error(t, "LOCAL ROBOT '" + robot + "': expected puma560, planar2 or urdf");
+        }
+        n_ = model_.ndof();
+        const std::string mode = rb::local_word(t, "MODE", "torque");
+        if (mode != "torque" && mode != "position") {
+            rb::module_error(t, "LOCAL MODE '" + mode + "': expected torque or position");
+        }
+        position_mode_ = mode == "position";
+
+        // Out-consts: written here, copied to the global table after init.
+        if (rb::listed(t.rmod_file().out_consts, "NDOF")) {
+            *t.translate<std::int32_t>("NDOF") = static_cast<std::int32_t>(n_);
+        }
+        if (rb::listed(t.rmod_file().out_consts, "DH")) {
+            if (!model_.has_dh()) {
+                rb::module_error(t, "robot " + model_.name() +
+                                        " has no DH parameters; remove DH from OUTCONST");
+            }
+            model_.pack_dh(std::span<double>(rb::vec_port(t, "DH", rb::dh_size(n_)), rb::dh_size(n_)));
+        }
+
+        if (position_mode_) {
+            q_ref_ = rb::vec_port(t, "Q_REF", n_);
+            if (rb::has_in_var(t, "Q^_REF")) qd_ref_ = rb::vec_port(t, "Q^_REF", n_);
+            if (rb::has_in_var(t, "T_GRAV")) t_grav_ = rb::vec_port(t, "T_GRAV", n_);
+        } else {
+            t_ref_ = rb::vec_port(t, "T_REF", n_);
+        }
+        q_mez_ = rb::vec_port(t, "Q_MEZ", n_);
+        if (rb::has_out_var(t, "Q^_MEZ")) qd_mez_ = rb::vec_port(t, "Q^_MEZ", n_);
+
+        substeps_ = static_cast<int>(rb::local_number(t, "SUBSTEPS", 10));
+        if (substeps_ < 1 || substeps_ > 1000) rb::module_error(t, "LOCAL SUBSTEPS must be 1..1000");
+        tlimit_ = rb::local_vector(t, "TLIMIT", n_, 1e9);
+        // Servo of the simulated position-mode controller, and the local-stability
+        // loop (§3.10) of both modes: PD on the held position plus gravity.
+        rb::PidGains g{rb::local_vector(t, "SERVO_KP", n_, 400.0), rb::local_vector(t, "SERVO_KI", n_, 0.0),
+                       rb::local_vector(t, "SERVO_KD", n_, 40.0), Eigen::VectorXd::Constant(n_, 1.0), tlimit_};
+        servo_.emplace(n_, g);
+        hold_servo_.emplace(n_, g);
+        hold_on_illegal_ = rb::local_word(t, "STABILITY", "hold") == "hold";
+
+        sim_ = std::make_unique<rb::ArmSimulator>(model_);
+        dyn_ = std::make_unique<rb::Dynamics>(model_);
+        const Eigen::VectorXd q0 = rb::local_vector(t, "Q0", n_, 0.0);
+        sim_->reset(q0, Eigen::VectorXd::Zero(n_));
+        tau_.setZero(n_);
+        grav_.setZero(n_);
+        zero_.setZero(n_);
+        hold_.setZero(n_);
+        return chimera::Result::OK;
+    }
+
+    chimera::Result on(chimera::Task&) override {
+        publish();  // the out-vars read on `on` are replaced by the arm's real state
+        servo_->reset();
+        holding_ = false;
+        return chimera::Result::OK;
+    }
+
+    chimera::Result cycle(chimera::Task& t) override {
+        const auto n = static_cast<Eigen::Index>(n_);
+        const Eigen::VectorXd& q = sim_->q();
+        const Eigen::VectorXd& qd = sim_->qd();
+        if (hold_on_illegal_ && t.illegal_configuration()) {
+            // Locally stable execution: ignore the inputs, hold where we are.
+            if (!holding_) {
+                hold_ = q;
+                hold_servo_->reset();
+                holding_ = true;
+            }
+            dyn_->gravity(q, grav_);
+            hold_servo_->update(hold_, zero_, q, qd, grav_, t.period(), tau_);
+        } else {
+            holding_ = false;
+            if (position_mode_) {
+                const Eigen::Map<const Eigen::VectorXd> qr(q_ref_, n);
+                if (t_grav_) {
+                    grav_ = Eigen::Map<const Eigen::VectorXd>(t_grav_, n);
+                } else {
+                    dyn_->gravity(q, grav_);
+                }
+                if (qd_ref_) {
+                    servo_->update(qr, Eigen::Map<const Eigen::VectorXd>(qd_ref_, n), q, qd, grav_,
+                                   t.period(), tau_);
+                } else {
+                    servo_->update(qr, zero_, q, qd, grav_, t.period(), tau_);
+                }
+            } else {
+                tau_ = Eigen::Map<const Eigen::VectorXd>(t_ref_, n).cwiseMax(-tlimit_).cwiseMin(tlimit_);
+            }
+        }
+        if (!sim_->step(tau_, t.period(), substeps_)) {
+            t.error(1, "simulation diverged (non-finite state): torques too large for the step size");
+            return chimera::Result::ERROR;
+        }
+        publish();
+        return chimera::Result::OK;
+    }
+
+private:
+    void publish() noexcept {
+        const auto n = static_cast<Eigen::Index>(n_);
+        Eigen::Map<Eigen::VectorXd>(q_mez_, n) = sim_->q();
+        if (qd_mez_) Eigen::Map<Eigen::VectorXd>(qd_mez_, n) = sim_->qd();
+    }
+
+    rb::RobotModel model_;
+    std::size_t n_ = 0;
+    bool position_mode_ = false;
+    bool hold_on_illegal_ = true;
+    bool holding_ = false;
+    int substeps_ = 10;
+    double* q_ref_ = nullptr;
+    double* qd_ref_ = nullptr;
+    double* t_grav_ = nullptr;
+    double* t_ref_ = nullptr;
+    double* q_mez_ = nullptr;
+    double* qd_mez_ = nullptr;
+    std::unique_ptr<rb::ArmSimulator> sim_;
+    std::unique_ptr<rb::Dynamics> dyn_;
+    std::optional<rb::Pid> servo_, hold_servo_;
+    Eigen::VectorXd tau_, grav_, zero_, hold_, tlimit_;
+};
+
+}  // namespace
+
+CHIMERA_MODULE(robotsim, RobotSim)
