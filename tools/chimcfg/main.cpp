@@ -1,0 +1,173 @@
+// chimcfg — checks Chimera configuration files and shows .svar tables.
+//
+//   chimcfg check FILE...   one summary line per good file (exit 0), or the
+//                           FILE:LINE: errors of the bad ones (exit 1)
+//   chimcfg dump FILE.svar  each variable: name, type, nelem, units, init,
+//                           min, max, description
+//
+// The kind of file is taken from its extension: .svar (§5.5.2), .rmod (§3.8),
+// .sbs (§4.5.1).
+#include <CLI/CLI.hpp>
+
+#include <charconv>
+#include <cstdio>
+#include <filesystem>
+#include <iostream>
+#include <string>
+#include <vector>
+
+#include "chimera/cfg.hpp"
+#include "chimera/sbs_files.hpp"
+#include "chimera/svar.hpp"
+
+namespace {
+
+using chimera::svar::TableSpec;
+using chimera::svar::Type;
+using chimera::svar::VarSpec;
+
+std::string extension(const std::string& path) {
+    return std::filesystem::path(path).extension().string();
+}
+
+std::string plural(std::size_t n, const char* word) {
+    return std::to_string(n) + " " + word + (n == 1 ? "" : "s");
+}
+
+std::size_t data_bytes(const TableSpec& spec) {
+    std::size_t total = 0;
+    for (const VarSpec& v : spec.vars) total += v.bytes();
+    return total;
+}
+
+std::string summary_svar(const std::string& path) {
+    const TableSpec spec = chimera::svar::parse_svar_file(path);
+    return path + ": ok, svar, " + plural(spec.vars.size(), "variable") + ", " +
+           std::to_string(data_bytes(spec)) + " bytes of data";
+}
+
+std::string list_summary(const char* what, const std::vector<std::string>& names) {
+    std::string s = std::string(what) + " ";
+    if (names.empty()) return s + "none";
+    for (std::size_t i = 0; i < names.size(); ++i) s += (i ? "," : "") + names[i];
+    return s;
+}
+
+std::string summary_rmod(const std::string& path) {
+    const chimera::RmodFile r = chimera::read_rmod(path);
+    std::string s = path + ": ok, rmod " + r.name + ", module " + r.module + ", " +
+                    std::string(chimera::to_string(r.type));
+    if (r.freq > 0) {
+        char buf[64];
+        std::snprintf(buf, sizeof buf, " at %g Hz", r.freq);
+        s += buf;
+    }
+    s += "; " + list_summary("in-consts", r.global_in_consts()) + "; " +
+         list_summary("out-consts", r.global_out_consts()) + "; " +
+         list_summary("in-vars", r.global_in_vars()) + "; " +
+         list_summary("out-vars", r.global_out_vars());
+    return s;
+}
+
+std::string summary_sbs(const std::string& path) {
+    const chimera::SbsFile f = chimera::read_sbs(path);
+    // The table it names must be a good .svar too.
+    const TableSpec spec = chimera::svar::parse_svar_file(f.svarfile);
+    return path + ": ok, subsystem " + f.subsystem + ", " + plural(f.rtpus.size(), "RTPU") +
+           ", master " + f.master + ", svar " + f.svarfile + " (" +
+           plural(spec.vars.size(), "variable") + ")";
+}
+
+int check(const std::vector<std::string>& files) {
+    int bad = 0;
+    for (const std::string& path : files) {
+        try {
+            const std::string ext = extension(path);
+            std::string line;
+            if (ext == ".svar")
+                line = summary_svar(path);
+            else if (ext == ".rmod")
+                line = summary_rmod(path);
+            else if (ext == ".sbs")
+                line = summary_sbs(path);
+            else
+                throw std::runtime_error(path + ": unknown kind of file '" + ext +
+                                         "' (expected .svar, .rmod or .sbs)");
+            std::cout << line << '\n';
+        } catch (const std::exception& e) {
+            std::cout.flush();
+            std::cerr << e.what() << '\n';
+            ++bad;
+        }
+    }
+    return bad == 0 ? 0 : 1;
+}
+
+std::string number(double x, Type t) {
+    char buf[64];
+    if (t == Type::float_ || t == Type::double_) {
+        const auto r = std::to_chars(buf, buf + sizeof buf, x);
+        return std::string(buf, r.ptr);
+    }
+    std::snprintf(buf, sizeof buf, "%lld", static_cast<long long>(x));
+    return buf;
+}
+
+std::string values(const std::vector<double>& v, Type t) {
+    std::string s;
+    for (std::size_t i = 0; i < v.size(); ++i) s += (i ? " " : "") + number(v[i], t);
+    return s;
+}
+
+int dump(const std::string& path) {
+    if (extension(path) != ".svar") {
+        std::cerr << path << ": dump reads .svar files\n";
+        return 1;
+    }
+    TableSpec spec;
+    try {
+        spec = chimera::svar::parse_svar_file(path);
+    } catch (const std::exception& e) {
+        std::cerr << e.what() << '\n';
+        return 1;
+    }
+    std::cout << path << ": " << plural(spec.vars.size(), "variable") << ", "
+              << data_bytes(spec) << " bytes of data\n";
+    for (std::size_t i = 0; i < spec.vars.size(); ++i) {
+        const VarSpec& v = spec.vars[i];
+        std::cout << '\n'
+                  << "[" << i << "] " << v.name << "  "
+                  << chimera::svar::type_spelling(v.type, v.elem_size) << "  nelem " << v.nelem
+                  << "  units " << (v.units.empty() ? "-" : v.units) << '\n';
+        if (!v.desc.empty()) std::cout << "    desc  " << v.desc << '\n';
+        if (v.type == Type::struct_) {
+            std::cout << "    init  (struct: zero, set by the application)\n";
+        } else {
+            std::cout << "    init  " << values(v.init, v.type)
+                      << (v.has_init ? "" : "  (no INIT: zeros)") << '\n';
+            if (v.has_range) {
+                std::cout << "    min   " << values(v.min, v.type) << '\n';
+                std::cout << "    max   " << values(v.max, v.type) << '\n';
+            } else {
+                std::cout << "    min   -\n    max   -\n";
+            }
+        }
+    }
+    return 0;
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+    CLI::App app{"chimcfg: check Chimera configuration files (.svar, .rmod, .sbs)"};
+    app.require_subcommand(1);
+    std::vector<std::string> files;
+    auto* c = app.add_subcommand("check", "validate files; one summary line each, or FILE:LINE: errors");
+    c->add_option("files", files, "files to check (.svar, .rmod, .sbs)")->required();
+    std::string svar;
+    auto* d = app.add_subcommand("dump", "print each variable of a .svar file");
+    d->add_option("file", svar, "the .svar file")->required();
+    CLI11_PARSE(app, argc, argv);
+    if (c->parsed()) return check(files);
+    return dump(svar);
+}
