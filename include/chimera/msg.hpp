@@ -26,7 +26,9 @@
 // receive (READING) is rolled back into the queue; an interrupted send
 // (WRITING) is rolled back (its blocks freed); the lists are then rebuilt in
 // policy order from each message's sequence number and priority. Waiters that
-// died are dropped and a message handed to one goes back into the queue.
+// died are dropped and a message handed to one goes back into the queue; a
+// live waiter keeps a handed message only if the hand-off was complete (slot
+// signalled and header HANDED), otherwise the message is queued again.
 #pragma once
 
 #include <cstddef>

@@ -483,6 +483,11 @@ void Queue::repair() noexcept {
             }
         }
     }
+    // A waiting (not yet signalled) slot holds no message: a sender that died
+    // halfway through a hand-off may have named its header in the slot before
+    // signalling it. The header then goes back into the queue below.
+    for (Waiter& w : q->recv_waiters)
+        if (w.state != kSignaled) w.handed = 0;
     // Header states: roll interrupted operations back.
     for (std::uint32_t i = 0; i < n; ++i) {
         MsgHead* h = head_at(q, head_off(q, i));
@@ -501,6 +506,11 @@ void Queue::repair() noexcept {
             default: h->state = layout::kHeadFree; break;
         }
     }
+    // And a signalled slot holds only a header that is HANDED (the sender's
+    // stores need not have reached memory in program order before it died).
+    for (Waiter& w : q->recv_waiters)
+        if (w.handed != 0 && (w.handed > n || head_at(q, head_off(q, w.handed - 1))->state != layout::kHeadHanded))
+            w.handed = 0;
     // Blocks: owned exactly by the chains of live messages.
     for (std::uint32_t j = 0; j < n; ++j) block_at(q, block_off(q, j))->owner = 0;
     for (std::uint32_t i = 0; i < n; ++i) {
@@ -639,6 +649,14 @@ std::string Queue::check() {
         }
     }
     if (handed != q->nhanded) fail("nhanded mismatch");
+    // The other direction: a slot names only a HANDED header, and only once signalled.
+    for (std::uint32_t k = 0; k < layout::kMaxWaiters; ++k) {
+        const Waiter& w = q->recv_waiters[k];
+        if (w.handed == 0) continue;
+        if (w.state != kSignaled) fail("receive waiter " + std::to_string(k) + " holds a message unsignalled");
+        if (w.handed > n || head_at(q, head_off(q, w.handed - 1))->state != layout::kHeadHanded)
+            fail("receive waiter " + std::to_string(k) + " holds a header that is not HANDED");
+    }
     count = 0;
     for (std::uint32_t off = q->blkfree; off != 0 && count <= n; off = block_at(q, off)->link, ++count) {
         if (!block_valid(q, off)) { fail("blkfree: bad offset"); break; }

@@ -15,6 +15,7 @@
 #include <vector>
 
 #include "chimera/ipc/clock.hpp"
+#include "chimera/ipc/lock.hpp"
 #include "chimera/msg.hpp"
 
 using namespace chimera;
@@ -229,6 +230,27 @@ TEST(Msg, WaitingReceiversAreServedHighestPriorityFirst) {
     EXPECT_EQ(q.check(), "");
 }
 
+// Senders blocked on a full queue get the room in message-priority order
+// (FIFO among equals), whatever order they arrived in.
+TEST(Msg, BlockedSendersAreServedHighestMessagePriorityFirst) {
+    Mem m(params(1, 16, Policy::fifo));
+    Queue q = Queue::over(m.data(), m.size(), params(1, 16, Policy::fifo));
+    ASSERT_EQ(send_str(q, "first"), Status::ok);  // the queue is full
+    std::vector<std::thread> threads;
+    std::vector<Status> results(4);
+    const std::vector<std::pair<int, std::string>> senders{{1, "p1"}, {5, "p5a"}, {3, "p3"}, {5, "p5b"}};
+    for (std::size_t i = 0; i < senders.size(); ++i) {
+        threads.emplace_back([&, i] { results[i] = send_str(q, senders[i].second, senders[i].first, 5'000'000'000); });
+        while (q.stats().send_waiters < threads.size()) std::this_thread::yield();
+    }
+    std::vector<std::string> got;
+    for (int i = 0; i < 5; ++i) got.push_back(recv_str(q, 5'000'000'000));
+    for (auto& t : threads) t.join();
+    for (Status st : results) EXPECT_EQ(st, Status::ok);
+    EXPECT_EQ(got, (std::vector<std::string>{"first", "p5a", "p5b", "p3", "p1"}));
+    EXPECT_EQ(q.check(), "");
+}
+
 // Random operations against a reference model: exact contents and order.
 TEST(Msg, RandomOperationsMatchAReferenceModel) {
     for (Policy pol : {Policy::fifo, Policy::lifo, Policy::hpf}) {
@@ -345,6 +367,49 @@ TEST(Msg, RepairKeepsACommittedSendHalfInserted) {
     send_str(q, "x");
     h->nmsgs = 5;
     EXPECT_NE(q.check(), "");
+}
+
+// A sender died in the middle of handing a message to a waiting receiver:
+// it had named the header in the receiver's slot but not yet signalled it.
+// The message must go back into the queue and the slot must not keep it, or
+// the receiver, once woken, would take a header that is also queued.
+TEST(Msg, RepairUndoesAHalfDoneHandOff) {
+    const auto p = params(4, 8, Policy::fifo);
+    Mem m(p);
+    Queue q = Queue::over(m.data(), m.size(), p);
+    ASSERT_EQ(send_str(q, "m"), Status::ok);
+    auto* h = q.header();
+    const std::uint32_t off = h->headused;
+    auto* head = reinterpret_cast<msg::layout::MsgHead*>(reinterpret_cast<std::byte*>(h) + off);
+    h->headused = head->link;
+    h->tailused = 0;
+    h->nmsgs--;
+    head->state = msg::layout::kHeadHanded;
+    // The receiver waiting in slot 0 is this (live) thread.
+    xm::layout::Waiter& w = h->recv_waiters[0];
+    const std::uint64_t me = ipc::self_owner_id();
+    w.pid = ipc::owner_pid(me);
+    w.tid = ipc::owner_tid(me);
+    w.state = 1;  // waiting
+    w.handed = (off - h->off_heads) / sizeof(msg::layout::MsgHead) + 1;
+    h->mutex.owner.store(dead_owner());
+    EXPECT_EQ(q.check(), "");
+    EXPECT_EQ(q.stats().recoveries, 1u);
+    EXPECT_EQ(w.handed, 0u);
+    EXPECT_EQ(q.stats().messages, 1u);
+    EXPECT_EQ(q.stats().handed, 0u);
+    w.state = 0;  // the receiver would free its slot on waking
+    EXPECT_EQ(recv_str(q), "m");
+    Status st;
+    recv_str(q, 0, &st);
+    EXPECT_EQ(st, Status::would_block);
+    // check() names a slot that holds a header not handed to it.
+    send_str(q, "n");
+    w.state = 2;
+    w.handed = (h->headused - h->off_heads) / sizeof(msg::layout::MsgHead) + 1;
+    EXPECT_NE(q.check().find("not HANDED"), std::string::npos);
+    w.state = 0;
+    w.handed = 0;
 }
 
 TEST(Msg, BadParametersAndMemoryAreRefused) {

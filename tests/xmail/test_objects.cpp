@@ -113,6 +113,46 @@ TEST(NameServer, ClearErrorsForBadNamesTypesAndRtpus) {
     EXPECT_TRUE(contains(error_of([&] { sem::Semaphore::attach(host, "host:s"); }), "no such object"));
 }
 
+// A segment written by a build with another layout is refused by name, for
+// every kind of named object and for a peer's mailbox, before anything in it
+// is used.
+TEST(NameServer, LayoutVersionMismatchNamesTheObject) {
+    const std::string sys = test_sys("ver");
+    xm::Rtpu host(sys, "host", 0);
+    xm::Rtpu other(sys, "other", 1);
+    xm::Mailbox fresh(sys, "fresh", 2);  // has not attached to host's mailbox yet
+    auto s = sem::Semaphore::create(host, "host:s", sem::Kind::counting, 0);
+    auto q = msg::Queue::create(host, "host:q", msg::Params{});
+    auto m = shm::Segment::create(host, "host:m", 64);
+    struct Case {
+        std::string object, segment;
+        ipc::ObjectType type;
+        std::uint32_t version;
+        std::function<void()> attach;
+        std::string named;
+    };
+    const std::vector<Case> cases{
+        {"host:s", host.attach_object("host:s", ipc::ObjectType::xmail_sem).segment, ipc::ObjectType::xmail_sem,
+         sem::layout::kSemVersion, [&] { sem::Semaphore::attach(other, "host:s"); }, "semaphore 'host:s'"},
+        {"host:q", host.attach_object("host:q", ipc::ObjectType::xmail_msg).segment, ipc::ObjectType::xmail_msg,
+         msg::layout::kQueueVersion, [&] { msg::Queue::attach(other, "host:q"); }, "message queue 'host:q'"},
+        {"host:m", host.attach_object("host:m", ipc::ObjectType::xmail_shm).segment, ipc::ObjectType::xmail_shm,
+         shm::layout::kShmVersion, [&] { shm::Segment::attach(other, "host:m"); }, "shared segment 'host:m'"},
+        {"host", xm::Mailbox::segment_name(sys, "host"), ipc::ObjectType::xmail_mailbox,
+         xm::layout::kMailboxVersion, [&] { fresh.peer("host"); }, "RTPU 'host'"},
+    };
+    for (const Case& c : cases) {
+        ipc::Segment raw = ipc::Segment::attach(c.segment, {c.type, c.version});
+        raw.header().layout_version = c.version + 1;
+        const std::string e = error_of(c.attach);
+        EXPECT_TRUE(contains(e, c.named)) << c.object << ": " << e;
+        EXPECT_TRUE(contains(e, "layout version " + std::to_string(c.version + 1))) << c.object << ": " << e;
+        raw.header().layout_version = c.version;  // and with the right one it works again
+        EXPECT_EQ(error_of(c.attach), "<no error>") << c.object;
+        raw.detach();
+    }
+}
+
 TEST(Shm, CreateAttachAcrossProcessesAndLastUserFrees) {
     const std::string sys = test_sys("shm");
     xm::Rtpu host(sys, "host", 0);

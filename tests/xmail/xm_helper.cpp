@@ -55,15 +55,14 @@ int kq_send(xm::Rtpu& self, int slot) {
     shm::Segment log_seg = shm::Segment::attach(self, "host:klog");
     auto* log = static_cast<kill_test::Log*>(log_seg.data());
     msg::Queue q = msg::Queue::attach(self, "host:kq");
-    // Resume after the sequence a killed predecessor may have sent.
-    std::uint64_t seq = std::max(log->sent[slot].load(), log->attempt[slot].load() + 1);
-    if (log->sent[slot].load() == 0 && log->attempt[slot].load() == 0) seq = 0;
-    std::uint64_t payload[5];
+    std::uint64_t seq = kill_test::resume_sequence(*log, slot);
+    std::uint64_t payload[kill_test::kMaxWords];
     while (!log->stop.load()) {
         const std::uint64_t id = kill_test::make_id(slot, seq);
         const std::size_t n = kill_test::payload_words(id);
         for (std::size_t i = 0; i < n; ++i) payload[i] = kill_test::word(id, i);
         log->attempt[slot].store(seq);
+        log->started[slot].store(1);  // only now does attempt name a sequence that may be sent
         const Status s = q.send(payload, n * 8, 0, static_cast<std::int32_t>(id % 7), 100'000'000);
         if (s == Status::ok) {
             log->sent[slot].store(seq + 1);
@@ -80,23 +79,31 @@ int kq_recv(xm::Rtpu& self, int slot) {
     shm::Segment log_seg = shm::Segment::attach(self, "host:klog");
     auto* log = static_cast<kill_test::Log*>(log_seg.data());
     msg::Queue q = msg::Queue::attach(self, "host:kq");
-    std::uint64_t payload[5];
+    // The queue copies straight into the shared landing buffer, so the id is
+    // visible to the checker from before the receive commits until it is logged.
+    std::uint64_t* landing = log->landing[slot];
     while (!log->stop.load()) {
         const std::uint64_t n = log->count[slot].load();
-        if (n >= kill_test::kCap) break;
+        if (n >= kill_test::kCap) {
+            // Log full: stop taking messages but stay alive until told to
+            // stop, as the checker expects of every worker it did not kill.
+            std::this_thread::sleep_for(std::chrono::milliseconds(1));
+            continue;
+        }
+        landing[0] = 0;
         msg::Info info;
-        const Status s = q.receive(payload, sizeof payload, &info, 100'000'000, slot);
+        const Status s = q.receive(landing, sizeof log->landing[slot], &info, 100'000'000, slot);
         if (s == Status::timed_out) continue;
         if (s != Status::ok) {
             say(std::string("receive failed: ") + xm::to_string(s));
             return 3;
         }
-        const std::uint64_t cand = payload[0];  // word 0 is the id itself
+        const std::uint64_t cand = landing[0];  // word 0 is the id itself
         bool ok = info.size == kill_test::payload_words(cand) * 8;
-        for (std::size_t i = 0; ok && i < info.size / 8; ++i) ok = payload[i] == kill_test::word(cand, i);
+        for (std::size_t i = 0; ok && i < info.size / 8; ++i) ok = landing[i] == kill_test::word(cand, i);
         if (!ok) log->corrupt.fetch_add(1);
-        log->ids[slot][n] = cand;  // in flight until count moves
-        log->count[slot].store(n + 1);
+        log->ids[slot][n] = cand;
+        log->count[slot].store(n + 1);  // the receipt is committed
     }
     return 0;
 }
