@@ -1,0 +1,170 @@
+// The per-RTPU dispatcher of the fifo backend (and of the non-critical tasks of
+// the deadline backend): it owns the release timeline, computes every ready
+// task's urgency (Figure 6.2) at each release, completion seen, criticality or
+// deadline change, and gives the task threads SCHED_FIFO priorities in urgency
+// order, changing only those that move (thesis §6.2.3, ARCHITECTURE §5).
+//
+// It runs pinned to the RTPU's CPU at options.fifo_high, above every task of
+// the band, so while it re-ranks no task of its CPU runs: the priorities change
+// as one step. It sleeps on a futex with an absolute CLOCK_MONOTONIC timeout
+// (FUTEX_WAIT_BITSET: the same hrtimer as clock_nanosleep(TIMER_ABSTIME)), so
+// that a criticality change from a failure handler can wake it at once.
+#include <algorithm>
+
+#include "chimera/ipc/futex.hpp"
+#include "rt_internal.hpp"
+
+namespace chimera::muf {
+namespace detail {
+
+void rank_priorities(std::span<RankEntry> entries, int low, int high) noexcept {
+    // Insertion sort: at most kMaxTasks entries, no allocation, stable.
+    const auto before = [](const RankEntry& a, const RankEntry& b) {
+        if (a.urgency != b.urgency) return a.urgency > b.urgency;
+        if (a.since_ns != b.since_ns) return a.since_ns < b.since_ns;  // first come, first served
+        return a.handle < b.handle;
+    };
+    for (std::size_t i = 1; i < entries.size(); ++i) {
+        const RankEntry x = entries[i];
+        std::size_t j = i;
+        for (; j > 0 && before(x, entries[j - 1]); --j) entries[j] = entries[j - 1];
+        entries[j] = x;
+    }
+    // Keep the largest set of current priorities that can stay: kept tasks i < j
+    // need cur_i - cur_j >= j - i (room for the tasks ranked between them), and
+    // room above and below in the band. With key = cur + rank that is a longest
+    // non-increasing run of keys within [low + n - 1, high - 1]: O(n^2), n <= 64.
+    const int n = static_cast<int>(entries.size());
+    std::array<int, kMaxTasks> run{}, prev{};
+    int best = -1;
+    for (int i = 0; i < n; ++i) {
+        const int cur = entries[static_cast<std::size_t>(i)].current_prio;
+        const int key = cur + i;
+        run[static_cast<std::size_t>(i)] = 0;
+        prev[static_cast<std::size_t>(i)] = -1;
+        if (cur <= 0 || key < low + n - 1 || key > high - 1) continue;
+        run[static_cast<std::size_t>(i)] = 1;
+        for (int j = 0; j < i; ++j) {
+            const auto uj = static_cast<std::size_t>(j);
+            if (run[uj] > 0 && entries[uj].current_prio + j >= key &&
+                run[uj] + 1 >= run[static_cast<std::size_t>(i)]) {
+                run[static_cast<std::size_t>(i)] = run[uj] + 1;
+                prev[static_cast<std::size_t>(i)] = j;
+            }
+        }
+        if (best < 0 || run[static_cast<std::size_t>(i)] >= run[static_cast<std::size_t>(best)]) best = i;
+    }
+    std::array<bool, kMaxTasks> kept{};
+    for (int i = best; i >= 0; i = prev[static_cast<std::size_t>(i)]) kept[static_cast<std::size_t>(i)] = true;
+    // Ties go to the later task, which keeps the kept priorities spread over
+    // the band. The others take the next priorities down from the one above.
+    int above = high;
+    for (int k = 0; k < n; ++k) {
+        RankEntry& e = entries[static_cast<std::size_t>(k)];
+        e.new_prio = kept[static_cast<std::size_t>(k)] ? e.current_prio : above - 1;
+        above = e.new_prio;
+    }
+}
+
+}  // namespace detail
+
+using detail::Pacing;
+using detail::Phase;
+using detail::SlotState;
+using detail::TaskSlot;
+
+void RtpuScheduler::Impl::notify() noexcept {
+    event_word.fetch_add(1, std::memory_order_acq_rel);
+    ipc::futex_wake(event_word, 1);
+}
+
+void RtpuScheduler::Impl::dispatcher_main() noexcept {
+    for (;;) {
+        const std::uint32_t seen = event_word.load(std::memory_order_acquire);
+        if (stopping.load(std::memory_order_acquire)) return;
+        const std::int64_t next = dispatch_once(clock_ns());
+        if (next == infinity)
+            ipc::futex_wait(event_word, seen);
+        else
+            ipc::futex_wait_until(event_word, seen, next);
+    }
+}
+
+std::int64_t RtpuScheduler::Impl::dispatch_once(std::int64_t now) noexcept {
+    std::array<int, detail::kMaxTasks> released;
+    std::size_t n_released = 0;
+    std::int64_t next = infinity;
+    const int count = std::min(slot_count_seen.load(std::memory_order_acquire), detail::kMaxTasks);
+    for (int h = 0; h < count; ++h) {
+        TaskSlot& s = slots[static_cast<std::size_t>(h)];
+        if (s.state.load(std::memory_order_acquire) != SlotState::attached) continue;
+        if (s.pacing.load(std::memory_order_relaxed) != Pacing::dispatched) continue;
+        if (s.self_timed.load(std::memory_order_relaxed)) continue;  // paces itself: ranked only
+        std::int64_t release = s.next_release_ns.load(std::memory_order_relaxed);
+        const std::int64_t period = s.period_ns.load(std::memory_order_relaxed);
+        if (release <= now && period > 0) {
+            Phase phase = s.phase.load(std::memory_order_acquire);
+            // Of the releases due, the latest starts the job; earlier ones are missed.
+            const std::int64_t late = (now - release) / period;
+            if (late > 0) s.missed.fetch_add(static_cast<std::uint64_t>(late), std::memory_order_relaxed);
+            release += late * period;
+            if (phase == Phase::waiting) {
+                s.job_release_ns.store(release, std::memory_order_relaxed);
+                s.job_deadline_ns.store(release + s.rel_deadline_ns.load(std::memory_order_relaxed),
+                                        std::memory_order_relaxed);
+                if (s.phase.compare_exchange_strong(phase, Phase::job, std::memory_order_acq_rel))
+                    released[n_released++] = h;
+            } else if (phase == Phase::job) {
+                s.missed.fetch_add(1, std::memory_order_relaxed);  // the cycle still runs
+            }
+            release += period;
+            s.next_release_ns.store(release, std::memory_order_relaxed);
+        }
+        if (period > 0) next = std::min(next, release);
+    }
+    rank_and_apply(now);
+    for (std::size_t i = 0; i < n_released; ++i) {
+        TaskSlot& s = slots[static_cast<std::size_t>(released[i])];
+        s.release_word.fetch_add(1, std::memory_order_acq_rel);
+        ipc::futex_wake(s.release_word, 1);
+    }
+    return next;
+}
+
+void RtpuScheduler::Impl::rank_and_apply(std::int64_t now) noexcept {
+    std::array<detail::RankEntry, detail::kMaxTasks> entries;
+    std::size_t n = 0;
+    const bool dynamic = uses_deadline.load(std::memory_order_relaxed);
+    const int count = std::min(slot_count_seen.load(std::memory_order_acquire), detail::kMaxTasks);
+    for (int h = 0; h < count; ++h) {
+        TaskSlot& s = slots[static_cast<std::size_t>(h)];
+        if (s.state.load(std::memory_order_acquire) != SlotState::attached) continue;
+        if (s.pacing.load(std::memory_order_relaxed) != Pacing::dispatched) continue;
+        // Only tasks with a pending job compete; a waiting task keeps its
+        // priority (it is blocked) until its release ranks it again.
+        if (s.phase.load(std::memory_order_acquire) != Phase::job) continue;
+        const std::int64_t deadline = s.job_deadline_ns.load(std::memory_order_acquire);
+        std::optional<std::int64_t> ticks;
+        if (dynamic && deadline != infinity) ticks = (deadline - now) / options.tick_ns;
+        detail::RankEntry& e = entries[n++];
+        e.urgency = urgency(options.encoding, s.crit.load(std::memory_order_acquire), ticks,
+                            s.uprio.load(std::memory_order_relaxed));
+        e.since_ns = s.job_release_ns.load(std::memory_order_relaxed);
+        e.handle = h;
+        e.current_prio = s.fifo_prio.load(std::memory_order_relaxed);
+        e.new_prio = e.current_prio;
+    }
+    detail::rank_priorities(std::span(entries.data(), n), options.fifo_low, options.fifo_high);
+    for (std::size_t i = 0; i < n; ++i) {
+        const detail::RankEntry& e = entries[i];
+        if (e.new_prio == e.current_prio) continue;
+        TaskSlot& s = slots[static_cast<std::size_t>(e.handle)];
+        if (detail::set_fifo(s.tid.load(std::memory_order_relaxed), e.new_prio) == 0) {
+            s.fifo_prio.store(e.new_prio, std::memory_order_relaxed);
+            priority_changes.fetch_add(1, std::memory_order_relaxed);
+        }
+    }
+    reschedules.fetch_add(1, std::memory_order_relaxed);
+}
+
+}  // namespace chimera::muf

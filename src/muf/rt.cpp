@@ -1,0 +1,533 @@
+// RtpuScheduler: the set-up calls (tasks, periods, attach/detach with the
+// backend's policy) and the task thread's real-time path (wait_release,
+// cycle_complete). See chimera/muf/rt.hpp; the dispatcher is dispatcher.cpp,
+// timing failures failure.cpp, scheduling classes policy.cpp.
+#include <linux/futex.h>
+#include <sys/syscall.h>
+#include <sys/sysinfo.h>
+#include <unistd.h>
+
+#include <cerrno>
+#include <cctype>
+#include <cstdio>
+#include <cstring>
+#include <future>
+
+#include "chimera/ipc/futex.hpp"
+#include "rt_internal.hpp"
+
+namespace chimera::muf {
+
+using detail::Pacing;
+using detail::Phase;
+using detail::SlotState;
+using detail::TaskSlot;
+
+namespace {
+
+std::atomic<bool> g_warned_no_privilege{false};
+
+void warn_no_privilege(const RtpuOptions& o, int err) {
+    if (o.quiet || g_warned_no_privilege.exchange(true)) return;
+    std::fprintf(stderr,
+                 "chimera: rtpu '%s': no real-time privilege (SCHED_FIFO refused: %s); tasks run "
+                 "best effort under SCHED_OTHER, timing failures are still detected\n",
+                 o.name.c_str(), std::strerror(err));
+}
+
+std::string ms(std::int64_t ns) {
+    char buf[32];
+    std::snprintf(buf, sizeof buf, "%.3f ms", static_cast<double>(ns) / 1e6);
+    return buf;
+}
+
+// Waits until `release_word` moves from `rw`, `word` from `seen` (when given),
+// or the absolute CLOCK_MONOTONIC `until` (infinity: no limit). One system call.
+void wait_words(std::atomic<std::uint32_t>& release_word, std::uint32_t rw,
+                const std::atomic<std::uint32_t>* word, std::uint32_t seen,
+                std::int64_t until) noexcept {
+    if (!word) {
+        if (until == infinity) ipc::futex_wait(release_word, rw);
+        else ipc::futex_wait_until(release_word, rw, until);
+        return;
+    }
+    // Shared (not private) futexes, so the runtime's futex_wake on its command
+    // word in shared memory reaches us.
+    futex_waitv waiters[2]{};
+    waiters[0].val = rw;
+    waiters[0].uaddr = reinterpret_cast<std::uintptr_t>(&release_word);
+    waiters[0].flags = FUTEX_32;
+    waiters[1].val = seen;
+    waiters[1].uaddr = reinterpret_cast<std::uintptr_t>(word);
+    waiters[1].flags = FUTEX_32;
+    timespec ts{};
+    if (until != infinity) {
+        ts.tv_sec = static_cast<time_t>(until / 1'000'000'000);
+        ts.tv_nsec = static_cast<long>(until % 1'000'000'000);
+    }
+    const long rc = syscall(SYS_futex_waitv, waiters, 2u, 0u, until == infinity ? nullptr : &ts,
+                            CLOCK_MONOTONIC);
+    if (rc < 0 && errno == ENOSYS) {
+        // Kernels before 5.16: watch the command word by polling every millisecond.
+        const std::int64_t poll = clock_ns() + 1'000'000;
+        ipc::futex_wait_until(release_word, rw, until < poll ? until : poll);
+    }
+}
+
+}  // namespace
+
+// ------------------------------------------------------------------ names
+
+std::string_view to_string(Backend backend) noexcept {
+    switch (backend) {
+        case Backend::fifo: return "fifo";
+        case Backend::deadline: return "deadline";
+        case Backend::other: return "other";
+    }
+    return "?";
+}
+
+std::optional<Backend> parse_backend(std::string_view text) noexcept {
+    auto eq = [&](std::string_view a, std::string_view b) {
+        if (a.size() != b.size()) return false;
+        for (std::size_t i = 0; i < a.size(); ++i)
+            if (std::tolower(static_cast<unsigned char>(a[i])) != b[i]) return false;
+        return true;
+    };
+    if (eq(text, "fifo")) return Backend::fifo;
+    if (eq(text, "deadline")) return Backend::deadline;
+    if (eq(text, "other")) return Backend::other;
+    return std::nullopt;
+}
+
+// ------------------------------------------------------------------ Impl
+
+RtpuScheduler::Impl::Impl(RtpuOptions o) : options(std::move(o)) {
+    const std::string who = "rtpu '" + options.name + "': ";
+    if (options.cpu < 0 || options.cpu >= get_nprocs())
+        throw SchedError(who + "CPU " + std::to_string(options.cpu) + " does not exist (" +
+                         std::to_string(get_nprocs()) + " online)");
+    if (options.fifo_low < 1 || options.fifo_high > 99 || options.fifo_low >= options.fifo_high)
+        throw SchedError(who + "SCHED_FIFO band [" + std::to_string(options.fifo_low) + ", " +
+                         std::to_string(options.fifo_high) + "] must satisfy 1 <= low < high <= 99");
+    if (options.tick_ns <= 0) throw SchedError(who + "tick_ns must be positive");
+    const auto& e = options.encoding;
+    if (e.crit_bits == 0 || e.user_bits == 0 || e.dyn_bits == 0 ||
+        e.crit_bits + e.dyn_bits + e.user_bits > 64 || e.dyn_bits > 62)
+        throw SchedError(who + "urgency encoding must have 1..64 bits in all (c, d, u > 0, d <= 62)");
+    detail::install_failure_signals();
+    if (options.backend == Backend::other) return;
+
+    std::promise<int> started;
+    auto result = started.get_future();
+    dispatcher = std::thread([this, &started] {
+        dispatcher_tid.store(static_cast<int>(syscall(SYS_gettid)));
+        pthread_setname_np(pthread_self(), "muf-dispatch");
+        const int pin = detail::pin_to_cpu(options.cpu);
+        const int rc = detail::set_fifo(0, options.fifo_high);
+        started.set_value(rc != 0 ? rc : pin);
+        if (rc != 0) return;
+        dispatcher_main();
+    });
+    const int rc = result.get();
+    if (rc == EPERM) {
+        privileged = false;
+        dispatcher.join();
+        warn_no_privilege(options, rc);
+        return;
+    }
+    if (rc != 0) {
+        stopping = true;
+        notify();
+        dispatcher.join();
+        throw SchedError(who + "cannot start the dispatcher on CPU " + std::to_string(options.cpu) +
+                         ": " + std::strerror(rc));
+    }
+    dispatcher_running = true;
+}
+
+RtpuScheduler::Impl::~Impl() {
+    stopping.store(true, std::memory_order_release);
+    if (dispatcher.joinable()) {
+        notify();
+        dispatcher.join();
+    }
+}
+
+TaskSlot* RtpuScheduler::Impl::slot(TaskHandle h) noexcept {
+    if (h < 0 || h >= slot_count_seen.load(std::memory_order_acquire)) return nullptr;
+    return &slots[static_cast<std::size_t>(h)];
+}
+
+const TaskSlot* RtpuScheduler::Impl::slot(TaskHandle h) const noexcept {
+    if (h < 0 || h >= slot_count_seen.load(std::memory_order_acquire)) return nullptr;
+    return &slots[static_cast<std::size_t>(h)];
+}
+
+TaskSlot& RtpuScheduler::Impl::checked_slot(TaskHandle h, const char* what) {
+    TaskSlot* s = slot(h);
+    const SlotState st = s ? s->state.load() : SlotState::free;
+    if (!s || st == SlotState::free || st == SlotState::removed)
+        throw SchedError("rtpu '" + options.name + "': " + what + ": no task with handle " +
+                         std::to_string(h));
+    return *s;
+}
+
+void RtpuScheduler::Impl::reassign() {
+    std::vector<TaskSpec> specs;
+    std::vector<int> handles;
+    const int count = slot_count_seen.load();
+    for (int h = 0; h < count; ++h) {
+        const TaskSlot& s = slots[static_cast<std::size_t>(h)];
+        const SlotState st = s.state.load();
+        if (st != SlotState::added && st != SlotState::attached) continue;
+        TaskSpec t;
+        t.name = s.params.name;
+        t.period = static_cast<double>(s.params.period_ns);
+        t.wcet = static_cast<double>(s.params.wcet_ns);
+        t.deadline = static_cast<double>(s.params.deadline_ns);
+        t.effective = static_cast<double>(s.params.effective_ns);
+        t.crit = s.params.crit;
+        t.uprio = s.params.uprio;
+        specs.push_back(std::move(t));
+        handles.push_back(h);
+    }
+    Assignment a = assign(specs, options.policy);
+    for (std::size_t i = 0; i < handles.size(); ++i) {
+        TaskSlot& s = slots[static_cast<std::size_t>(handles[i])];
+        const int old_base = s.base_crit.exchange(a.crit[i]);
+        // A criticality the task set itself (a handler, set_criticality) stays.
+        int cur = old_base;
+        s.crit.compare_exchange_strong(cur, a.crit[i]);
+        s.uprio.store(a.uprio[i]);
+    }
+    uses_deadline.store(a.uses_deadline);
+    current_assignment = std::move(a);
+    assignment_handles = std::move(handles);
+}
+
+// ------------------------------------------------------------------ RtpuScheduler
+
+RtpuScheduler::RtpuScheduler(RtpuOptions options) : impl_(std::make_unique<Impl>(std::move(options))) {}
+RtpuScheduler::~RtpuScheduler() = default;
+
+const RtpuOptions& RtpuScheduler::options() const noexcept { return impl_->options; }
+bool RtpuScheduler::privileged() const noexcept { return impl_->privileged; }
+
+TaskHandle RtpuScheduler::add_task(const RtTaskParams& p) {
+    Impl& m = *impl_;
+    const std::string who = "rtpu '" + m.options.name + "', task '" + p.name + "': ";
+    if (p.period_ns <= 0) throw SchedError(who + "PERIOD must be positive");
+    if (p.wcet_ns < 0 || p.effective_ns < 0 || p.minexec_ns < 0 || p.deadline_ns < 0)
+        throw SchedError(who + "times must not be negative");
+    if (p.deadline_ns > p.period_ns)
+        throw SchedError(who + "DEADLINE " + ms(p.deadline_ns) + " beyond the period " +
+                         ms(p.period_ns) + " (jobs would overlap)");
+    if (p.effective_ns > 0 && p.wcet_ns > 0 && p.effective_ns > p.wcet_ns)
+        throw SchedError(who + "effective time E " + ms(p.effective_ns) + " exceeds WCET " +
+                         ms(p.wcet_ns));
+    const std::int64_t deadline = p.deadline_ns > 0 ? p.deadline_ns : p.period_ns;
+    if (p.minexec_ns > deadline)
+        throw SchedError(who + "MINEXEC " + ms(p.minexec_ns) + " exceeds the deadline " + ms(deadline));
+    std::lock_guard<std::mutex> lock(m.mutex);
+    int live = 0;
+    for (int h = 0; h < m.slot_count_seen.load(); ++h) {
+        const SlotState st = m.slots[static_cast<std::size_t>(h)].state.load();
+        if (st == SlotState::added || st == SlotState::attached) ++live;
+    }
+    const int band = m.options.fifo_high - m.options.fifo_low;
+    if (live >= detail::kMaxTasks || (m.options.backend != Backend::other && live >= band))
+        throw SchedError(who + "too many tasks on this RTPU (" + std::to_string(live) +
+                         "; at most " + std::to_string(std::min(band, detail::kMaxTasks)) +
+                         ", one SCHED_FIFO priority each in [" + std::to_string(m.options.fifo_low) +
+                         ", " + std::to_string(m.options.fifo_high) + "))");
+    // A removed slot whose thread has left is reused; else a fresh one.
+    int h = -1;
+    for (int i = 0; i < m.slot_count_seen.load() && h < 0; ++i) {
+        const TaskSlot& s = m.slots[static_cast<std::size_t>(i)];
+        if (s.state.load() == SlotState::removed && s.tid.load() == 0) h = i;
+    }
+    if (h < 0) {
+        if (m.slot_count_seen.load() >= detail::kMaxTasks)
+            throw SchedError(who + "no free task slot (" + std::to_string(detail::kMaxTasks) + ")");
+        h = m.slot_count_seen.load();
+    }
+    TaskSlot& s = m.slots[static_cast<std::size_t>(h)];
+    s.params = p;
+    if (s.params.name.empty()) s.params.name = "task" + std::to_string(h);
+    s.policy_text.clear();
+    s.period_ns = p.period_ns;
+    s.rel_deadline_ns = deadline;
+    s.phase = Phase::waiting;
+    s.self_timed = false;
+    s.job_deadline_ns = infinity;
+    s.crit = 0;
+    s.base_crit = 0;
+    s.fifo_prio = 0;
+    s.deadline_reserved = false;
+    for (auto* c : {&s.cycles, &s.missed, &s.deadline_failures, &s.maxexec_failures,
+                    &s.minexec_failures, &s.aborted})
+        c->store(0);
+    s.state.store(SlotState::added, std::memory_order_release);
+    if (h == m.slot_count_seen.load()) m.slot_count_seen.store(h + 1, std::memory_order_release);
+    m.reassign();
+    m.notify();
+    return h;
+}
+
+void RtpuScheduler::remove_task(TaskHandle h) {
+    Impl& m = *impl_;
+    std::lock_guard<std::mutex> lock(m.mutex);
+    TaskSlot& s = m.checked_slot(h, "remove_task");
+    s.state.store(SlotState::removed, std::memory_order_release);
+    s.phase.store(Phase::detached, std::memory_order_release);
+    s.release_word.fetch_add(1, std::memory_order_acq_rel);
+    ipc::futex_wake_all(s.release_word);
+    m.reassign();
+    m.notify();
+}
+
+void RtpuScheduler::set_period(TaskHandle h, std::int64_t period_ns) {
+    Impl& m = *impl_;
+    std::lock_guard<std::mutex> lock(m.mutex);
+    TaskSlot& s = m.checked_slot(h, "set_period");
+    if (period_ns <= 0)
+        throw SchedError("rtpu '" + m.options.name + "', task '" + s.params.name +
+                         "': set_period: the period must be positive");
+    const std::int64_t budget = s.params.effective_ns > 0 ? s.params.effective_ns : s.params.wcet_ns;
+    if (s.deadline_reserved.load()) {
+        const int rc = detail::set_deadline_policy(s.tid.load(), std::max<std::int64_t>(budget, 1024),
+                                                   period_ns, period_ns);
+        if (rc != 0)
+            throw SchedError("rtpu '" + m.options.name + "', task '" + s.params.name +
+                             "': SCHED_DEADLINE refused the period " + ms(period_ns) + ": " +
+                             std::strerror(rc));
+    }
+    s.params.period_ns = period_ns;
+    s.params.deadline_ns = 0;
+    s.rel_deadline_ns.store(period_ns);
+    s.period_ns.store(period_ns, std::memory_order_release);
+    m.reassign();
+    m.notify();
+}
+
+void RtpuScheduler::attach_current_thread(TaskHandle h) {
+    Impl& m = *impl_;
+    std::unique_lock<std::mutex> lock(m.mutex);
+    TaskSlot& s = m.checked_slot(h, "attach_current_thread");
+    const std::string who = "rtpu '" + m.options.name + "', task '" + s.params.name + "': ";
+    if (s.state.load() == SlotState::attached)
+        throw SchedError(who + "a thread is attached already");
+    const pid_t tid = static_cast<pid_t>(syscall(SYS_gettid));
+    std::size_t index = 0;
+    bool critical = false;
+    for (; index < m.assignment_handles.size(); ++index)
+        if (m.assignment_handles[index] == h) {
+            critical = m.current_assignment.critical.member[index];
+            break;
+        }
+
+    std::string note;
+    Pacing pacing = Pacing::self_paced;
+    bool reserved = false;
+    const std::int64_t budget = s.params.effective_ns > 0 ? s.params.effective_ns : s.params.wcet_ns;
+    if (m.options.backend == Backend::deadline && critical && m.privileged && budget > 0) {
+        // The kernel refuses SCHED_DEADLINE to a thread pinned inside a larger
+        // root domain: critical tasks of this backend float.
+        detail::unpin();
+        const std::int64_t runtime = std::max<std::int64_t>(budget, 1024);
+        const int rc = detail::set_deadline_policy(0, runtime, s.rel_deadline_ns.load(),
+                                                   s.period_ns.load());
+        if (rc == 0) {
+            reserved = true;
+        } else if (rc == EBUSY) {
+            detail::pin_to_cpu(m.options.cpu);
+            char buf[256];
+            std::snprintf(buf, sizeof buf,
+                          "SCHED_DEADLINE admission refused (runtime %s, period %s): the critical "
+                          "set's utilisation is %.3f on this RTPU, and the kernel admits at most "
+                          "%.2f per CPU over the root domain (%d CPUs), shared with every "
+                          "SCHED_DEADLINE task on the machine",
+                          ms(runtime).c_str(), ms(s.period_ns.load()).c_str(),
+                          m.current_assignment.critical.utilisation,
+                          detail::deadline_bandwidth_per_cpu(), get_nprocs());
+            throw SchedError(who + buf);
+        } else if (rc == EINVAL) {
+            detail::pin_to_cpu(m.options.cpu);
+            throw SchedError(who + "SCHED_DEADLINE refused the parameters (runtime " + ms(runtime) +
+                             ", deadline " + ms(s.rel_deadline_ns.load()) + ", period " +
+                             ms(s.period_ns.load()) + "): " + std::strerror(rc));
+        } else {
+            note = std::string(" (SCHED_DEADLINE refused: ") + std::strerror(rc) + "; on SCHED_FIFO)";
+        }
+    }
+    if (!reserved) {
+        const int pin = detail::pin_to_cpu(m.options.cpu);
+        if (pin != 0) note += std::string(" (not pinned: ") + std::strerror(pin) + ")";
+        if (m.options.backend != Backend::other && m.privileged && m.dispatcher_running) {
+            const int rc = detail::set_fifo(0, m.options.fifo_low);
+            if (rc == 0) {
+                pacing = Pacing::dispatched;
+                s.fifo_prio.store(m.options.fifo_low);
+            } else {
+                warn_no_privilege(m.options, rc);
+                note += std::string(" (SCHED_FIFO refused: ") + std::strerror(rc) + ")";
+            }
+        } else if (!m.privileged) {
+            note += " (no privilege)";
+        }
+    }
+    try {
+        detail::create_timers(s, !reserved);
+    } catch (...) {
+        if (reserved || pacing == Pacing::dispatched) detail::set_other(0);
+        throw;
+    }
+    detail::bind_thread(&m, &s, h);
+    s.deadline_reserved.store(reserved);
+    s.pacing.store(pacing);
+    s.policy_text = note;
+    s.tid.store(tid);
+    s.phase.store(Phase::waiting);
+    s.self_timed.store(false);
+    s.release_word.fetch_add(1);
+    s.control_seen = s.release_word.load();
+    const std::int64_t first =
+        s.params.first_release_ns > 0 ? s.params.first_release_ns : clock_ns() + s.period_ns.load();
+    s.next_release_ns.store(first);
+    s.state.store(SlotState::attached, std::memory_order_release);
+    m.notify();
+}
+
+void RtpuScheduler::detach_current_thread(TaskHandle h) noexcept {
+    Impl& m = *impl_;
+    std::lock_guard<std::mutex> lock(m.mutex);
+    TaskSlot* s = m.slot(h);
+    if (!s || s->tid.load() != static_cast<int>(syscall(SYS_gettid))) return;
+    if (s->state.load() == SlotState::attached) s->state.store(SlotState::added);
+    detail::delete_timers(*s);
+    detail::bind_thread(nullptr, nullptr, -1);
+    detail::set_other(0);
+    s->fifo_prio.store(0);
+    s->deadline_reserved.store(false);
+    s->tid.store(0);
+    m.notify();
+}
+
+// ------------------------------------------------------------------ real-time path
+
+Wake RtpuScheduler::wait_release(TaskHandle h, const std::atomic<std::uint32_t>* word,
+                                                std::uint32_t seen) noexcept {
+    TaskSlot* sp = impl_->slot(h);
+    if (!sp) return Wake::detached;
+    TaskSlot& s = *sp;
+    for (;;) {
+        const std::uint32_t rw = s.release_word.load(std::memory_order_acquire);
+        const Phase phase = s.phase.load(std::memory_order_acquire);
+        if (phase == Phase::detached || s.state.load(std::memory_order_acquire) != SlotState::attached)
+            return Wake::detached;
+        if (s.pacing.load(std::memory_order_relaxed) == Pacing::dispatched) {
+            if (phase == Phase::job) break;  // released (perhaps while we were away)
+            if (word && word->load(std::memory_order_acquire) != seen) return Wake::command;
+            wait_words(s.release_word, rw, word, seen, infinity);
+            continue;
+        }
+        // Self-paced: the thread keeps its own timeline.
+        const std::int64_t now = clock_ns();
+        std::int64_t release = s.next_release_ns.load(std::memory_order_relaxed);
+        if (now >= release) {
+            const std::int64_t period = s.period_ns.load(std::memory_order_acquire);
+            const std::int64_t late = (now - release) / period;
+            if (late > 0) s.missed.fetch_add(static_cast<std::uint64_t>(late), std::memory_order_relaxed);
+            release += late * period;
+            s.job_release_ns.store(release, std::memory_order_relaxed);
+            s.job_deadline_ns.store(release + s.rel_deadline_ns.load(std::memory_order_relaxed),
+                                    std::memory_order_relaxed);
+            s.next_release_ns.store(release + period, std::memory_order_relaxed);
+            s.phase.store(Phase::job, std::memory_order_release);
+            break;
+        }
+        if (word && word->load(std::memory_order_acquire) != seen) return Wake::command;
+        wait_words(s.release_word, rw, word, seen, release);
+    }
+
+    // A release: the handler asked to skip it, or MINEXEC cannot be met.
+    if (detail::take_skip_next()) {
+        s.missed.fetch_add(1, std::memory_order_relaxed);
+        s.phase.store(Phase::waiting, std::memory_order_release);
+        return Wake::skipped;
+    }
+    const std::int64_t deadline = s.job_deadline_ns.load(std::memory_order_acquire);
+    const std::int64_t minexec = s.params.minexec_ns;
+    if (minexec > 0 && deadline - clock_ns() < minexec) {
+        s.missed.fetch_add(1, std::memory_order_relaxed);
+        s.phase.store(Phase::waiting, std::memory_order_release);
+        detail::raise_failure_here(Failure::minexec);
+        return Wake::skipped;
+    }
+    const std::int64_t budget = !s.params.maxexec_check ? infinity
+                                : s.params.effective_ns > 0 ? s.params.effective_ns
+                                                            : s.params.wcet_ns;
+    detail::arm_timers(s, deadline, budget);
+    return Wake::release;
+}
+
+void RtpuScheduler::cycle_complete(TaskHandle h) noexcept {
+    TaskSlot* sp = impl_->slot(h);
+    if (!sp) return;
+    TaskSlot& s = *sp;
+    detail::clear_abort();
+    // The job ends before the timer is disarmed: a signal in between is stale.
+    Phase job = Phase::job;
+    s.phase.compare_exchange_strong(job, Phase::waiting, std::memory_order_acq_rel);
+    detail::disarm_deadline(s);
+    if (detail::take_cycle_aborted())
+        s.missed.fetch_add(1, std::memory_order_relaxed);
+    else
+        s.cycles.fetch_add(1, std::memory_order_relaxed);
+}
+
+sigjmp_buf* RtpuScheduler::cycle_mark(TaskHandle h) noexcept {
+    TaskSlot* s = impl_->slot(h);
+    return s ? &s->mark : nullptr;
+}
+
+void RtpuScheduler::arm_abort(TaskHandle) noexcept { detail::set_abort_armed(); }
+
+// ------------------------------------------------------------------ status
+
+std::string RtpuScheduler::policy_of(TaskHandle h) const {
+    const Impl& m = *impl_;
+    std::lock_guard<std::mutex> lock(m.mutex);
+    const TaskSlot* s = m.slot(h);
+    if (!s) return "no such task";
+    const int tid = s->tid.load();
+    if (tid == 0) return "not attached";
+    return detail::describe_policy(tid) + s->policy_text;
+}
+
+RtTaskStatus RtpuScheduler::status(TaskHandle h) const noexcept {
+    RtTaskStatus st;
+    const TaskSlot* s = impl_->slot(h);
+    if (!s) return st;
+    st.cycles = s->cycles.load(std::memory_order_relaxed);
+    st.missed = s->missed.load(std::memory_order_relaxed);
+    st.deadline_failures = s->deadline_failures.load(std::memory_order_relaxed);
+    st.maxexec_failures = s->maxexec_failures.load(std::memory_order_relaxed);
+    st.minexec_failures = s->minexec_failures.load(std::memory_order_relaxed);
+    st.aborted = s->aborted.load(std::memory_order_relaxed);
+    st.crit = s->crit.load(std::memory_order_relaxed);
+    st.priority = s->deadline_reserved.load() ? 0 : s->fifo_prio.load(std::memory_order_relaxed);
+    st.tid = s->tid.load(std::memory_order_relaxed);
+    return st;
+}
+
+Assignment RtpuScheduler::assignment() const {
+    std::lock_guard<std::mutex> lock(impl_->mutex);
+    return impl_->current_assignment;
+}
+
+std::uint64_t RtpuScheduler::reschedules() const noexcept { return impl_->reschedules.load(); }
+std::uint64_t RtpuScheduler::priority_changes() const noexcept { return impl_->priority_changes.load(); }
+
+}  // namespace chimera::muf

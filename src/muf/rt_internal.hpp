@@ -1,0 +1,187 @@
+// Internal structures of the muf Linux backends (not installed): the per-task
+// slot shared by the task thread, the dispatcher and the set-up calls; the
+// per-thread failure state; the policy helpers. See chimera/muf/rt.hpp.
+#pragma once
+
+#include <sys/types.h>
+#include <time.h>
+
+#include <array>
+#include <atomic>
+#include <csetjmp>
+#include <cstdint>
+#include <mutex>
+#include <span>
+#include <string>
+#include <thread>
+#include <vector>
+
+#include "chimera/muf/rt.hpp"
+
+namespace chimera::muf::detail {
+
+/// Tasks per RTPU: the user-priority field has 6 bits (§6.2.3: c, u >= log2 n).
+inline constexpr int kMaxTasks = 64;
+
+/// Where a task is in its period. Written with release/acquire ordering.
+enum class Phase : std::uint32_t {
+    waiting,   ///< no job pending: the next release starts one
+    job,       ///< released, cycle not complete (the deadline is pending)
+    detached,  ///< removed: wait_release returns Wake::detached
+};
+
+/// Lifetime of a slot.
+enum class SlotState : std::uint32_t { free, added, attached, removed };
+
+/// How the task thread waits for its releases.
+enum class Pacing : std::uint32_t {
+    dispatched,  ///< the dispatcher releases it (fifo backend; non-critical on deadline)
+    self_paced,  ///< it sleeps to its own release (other backend, SCHED_DEADLINE, no privilege)
+};
+
+struct TaskSlot {
+    // --- set-up data, written under Impl::mutex while the slot is not attached ---
+    RtTaskParams params;
+    std::string policy_text;
+
+    // --- shared state ---
+    std::atomic<SlotState> state{SlotState::free};
+    std::atomic<Pacing> pacing{Pacing::dispatched};
+    std::atomic<Phase> phase{Phase::waiting};
+    std::atomic<std::uint32_t> release_word{0};   ///< futex: bumped at each release and at removal
+    std::atomic<std::int64_t> period_ns{0};
+    std::atomic<std::int64_t> rel_deadline_ns{0};
+    std::atomic<std::int64_t> next_release_ns{0};  ///< the dispatcher's (or self-paced task's) timeline
+    std::atomic<std::int64_t> job_release_ns{0};
+    std::atomic<std::int64_t> job_deadline_ns{infinity};  ///< absolute; infinity: none
+    std::atomic<bool> self_timed{false};  ///< uses pause()/set_deadline(): not released by the dispatcher
+    std::atomic<int> crit{0};             ///< current criticality
+    std::atomic<int> base_crit{0};        ///< from the assignment
+    std::atomic<int> uprio{0};
+    std::atomic<int> tid{0};
+    std::atomic<int> fifo_prio{0};        ///< SCHED_FIFO priority set by the dispatcher (0: none)
+    std::atomic<bool> deadline_reserved{false};  ///< SCHED_DEADLINE reservation
+
+    // --- counters (RtTaskStatus) ---
+    std::atomic<std::uint64_t> cycles{0}, missed{0}, deadline_failures{0}, maxexec_failures{0},
+        minexec_failures{0}, aborted{0};
+
+    // --- the task thread's own (read elsewhere only for status) ---
+    sigjmp_buf mark;
+    timer_t deadline_timer{};
+    timer_t maxexec_timer{};
+    bool timers_created = false;
+    bool maxexec_timer_created = false;
+    std::uint32_t control_seen = 0;  ///< self-paced: release_word value last seen
+};
+
+/// One entry of the urgency ranking (the ready tasks of an RTPU).
+struct RankEntry {
+    std::uint64_t urgency = 0;
+    std::int64_t since_ns = 0;  ///< job release: first come, first served among equals
+    int handle = 0;
+    int current_prio = 0;       ///< 0: none yet
+    int new_prio = 0;
+};
+
+/// Gives the entries SCHED_FIFO priorities in [low, high) in urgency order
+/// (highest urgency highest priority, ties first come first served), keeping a
+/// task's current priority wherever the order allows so that only the tasks
+/// that move are changed. Sorts `entries` by rank. No allocation.
+void rank_priorities(std::span<RankEntry> entries, int low, int high) noexcept;
+
+class Dispatcher;
+
+}  // namespace chimera::muf::detail
+
+namespace chimera::muf {
+
+struct RtpuScheduler::Impl {
+    explicit Impl(RtpuOptions o);
+    ~Impl();
+
+    RtpuOptions options;
+    bool privileged = true;
+    bool dispatcher_running = false;
+    std::string dispatcher_policy;
+
+    mutable std::mutex mutex;  // set-up calls (never taken by the dispatcher or the task loop)
+    std::array<detail::TaskSlot, detail::kMaxTasks> slots;
+    std::atomic<int> slot_count_seen{0};  // slots ever used (handles are below it)
+    Assignment current_assignment;
+    std::vector<int> assignment_handles;   // the handle of each task of current_assignment
+    std::atomic<bool> uses_deadline{true};  // false for RM: no dynamic priority
+
+    // Dispatcher wake-up word: bumped on criticality, deadline and set changes.
+    std::atomic<std::uint32_t> event_word{0};
+    std::atomic<bool> stopping{false};
+    std::atomic<std::uint64_t> reschedules{0};
+    std::atomic<std::uint64_t> priority_changes{0};
+    std::atomic<int> dispatcher_tid{0};
+    std::thread dispatcher;
+
+    detail::TaskSlot* slot(TaskHandle h) noexcept;
+    const detail::TaskSlot* slot(TaskHandle h) const noexcept;
+    detail::TaskSlot& checked_slot(TaskHandle h, const char* what);  // throws SchedError
+    /// Recomputes the MUF assignment of the tasks added; under `mutex`.
+    void reassign();
+    /// Wakes the dispatcher (async-signal-safe).
+    void notify() noexcept;
+    void dispatcher_main() noexcept;
+    /// One pass: releases due tasks, ranks, applies; returns the next release time.
+    std::int64_t dispatch_once(std::int64_t now) noexcept;
+    void rank_and_apply(std::int64_t now) noexcept;
+};
+
+}  // namespace chimera::muf
+
+namespace chimera::muf::detail {
+
+// --- policy.cpp: pinning and scheduling classes --------------------------------
+
+/// Pins the calling thread to `cpu`; 0 or the errno.
+int pin_to_cpu(int cpu) noexcept;
+/// Lets the calling thread run on every CPU of the process (SCHED_DEADLINE needs
+/// the whole root domain); 0 or the errno.
+int unpin() noexcept;
+/// SCHED_FIFO at `prio` for thread `tid` (0: the caller); 0 or the errno.
+int set_fifo(pid_t tid, int prio) noexcept;
+/// SCHED_OTHER for thread `tid` (0: the caller); 0 or the errno.
+int set_other(pid_t tid) noexcept;
+/// SCHED_DEADLINE with SCHED_FLAG_DL_OVERRUN (SIGXCPU on overrun); 0 or the errno.
+int set_deadline_policy(pid_t tid, std::int64_t runtime_ns, std::int64_t deadline_ns,
+                        std::int64_t period_ns) noexcept;
+/// Text of what the thread really runs under, from the kernel.
+std::string describe_policy(pid_t tid);
+/// The kernel's SCHED_DEADLINE bandwidth limit per CPU (sched_rt_runtime/period), or 0.95.
+double deadline_bandwidth_per_cpu() noexcept;
+
+// --- failure.cpp: per-thread failure state and signals --------------------------
+
+/// Installs the process-wide handlers of the timer signal and SIGXCPU (once).
+void install_failure_signals();
+/// The real-time signal the timers send.
+int timer_signal() noexcept;
+/// Binds the calling thread to a task (nullptr unbinds); touches the
+/// thread-local state so it is allocated before any signal can arrive.
+void bind_thread(RtpuScheduler::Impl* impl, TaskSlot* slot, TaskHandle h) noexcept;
+/// Creates the DEADLINE timer (CLOCK_MONOTONIC) and, when `cpu_timer`, the
+/// MAXEXEC timer (the thread's CPU clock), both signalling this thread. Throws SchedError.
+void create_timers(TaskSlot& s, bool cpu_timer);
+void delete_timers(TaskSlot& s) noexcept;
+/// At a release: arms DEADLINE at `deadline_abs` and MAXEXEC with `budget` (<= 0 or
+/// infinity: not armed). Async-signal-safe.
+void arm_timers(TaskSlot& s, std::int64_t deadline_abs, std::int64_t budget_ns) noexcept;
+void disarm_deadline(TaskSlot& s) noexcept;
+/// Raises a failure in the calling thread outside a signal handler (MINEXEC at a
+/// release); returns the handler's action. Counts it.
+FailureAction raise_failure_here(Failure kind) noexcept;
+/// Takes (and clears) the "skip the next cycle" request of the calling thread.
+bool take_skip_next() noexcept;
+/// Called by cycle_complete: a late abort turns into resume.
+void clear_abort() noexcept;
+void set_abort_armed() noexcept;
+/// True (once) when the cycle that just ended was aborted by a handler.
+bool take_cycle_aborted() noexcept;
+
+}  // namespace chimera::muf::detail

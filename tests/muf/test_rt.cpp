@@ -1,0 +1,769 @@
+// The Linux backends of the MUF scheduler and timing failures (thesis §6.2.3,
+// §6.3; ARCHITECTURE §5, §6) on the real kernel: failures in the failing
+// thread, aborts that leave no lock held, handlers held off in critical
+// sections, an overload where only the non-critical task misses, the
+// dispatcher's priority order against the analysis, SCHED_DEADLINE admission.
+// Times are generous (tens of milliseconds) and only events are counted: the
+// machine is shared and noisy.
+#include <gtest/gtest.h>
+
+#include <pwd.h>
+#include <sched.h>
+#include <sys/resource.h>
+#include <sys/syscall.h>
+#include <sys/sysinfo.h>
+#include <sys/wait.h>
+#include <unistd.h>
+
+#include <algorithm>
+#include <atomic>
+#include <chrono>
+#include <functional>
+#include <string>
+#include <thread>
+#include <vector>
+
+#include "chimera/ipc/lock.hpp"
+#include "chimera/muf.hpp"
+#include "rt_internal.hpp"
+
+using namespace chimera::muf;
+using namespace std::chrono_literals;
+
+namespace {
+
+constexpr std::int64_t ms = 1'000'000;
+
+int gettid_now() { return static_cast<int>(syscall(SYS_gettid)); }
+
+std::int64_t thread_cpu_ns() {
+    timespec ts;
+    clock_gettime(CLOCK_THREAD_CPUTIME_ID, &ts);
+    return static_cast<std::int64_t>(ts.tv_sec) * 1'000'000'000 + ts.tv_nsec;
+}
+
+// Busy for `ns` of this thread's CPU time (robust to preemption).
+void burn_cpu(std::int64_t ns) {
+    const std::int64_t end = thread_cpu_ns() + ns;
+    while (thread_cpu_ns() < end) {
+    }
+}
+
+// Busy for `ns` of wall-clock time.
+void burn_wall(std::int64_t ns) {
+    const std::int64_t end = clock_ns() + ns;
+    while (clock_ns() < end) {
+    }
+}
+
+int rt_cpu() { return get_nprocs() - 1; }
+
+// What a failure handler saw; the handler is a plain function, as in the thesis.
+struct Probe {
+    std::atomic<int> count[4]{};
+    std::atomic<int> task_tid{0};
+    std::atomic<int> wrong_thread{0};
+    std::atomic<int> crit_in_handler{-1};
+    std::atomic<int> lock_held_in_handler{0};
+    chimera::ipc::LockWord* lock = nullptr;
+    FailureAction action = FailureAction::resume;
+    Failure act_on = Failure::deadline;
+    int set_crit_to = 0;  // 0: leave the criticality alone
+};
+
+FailureAction probe_handler(Failure kind, void* user) {
+    auto* p = static_cast<Probe*>(user);
+    p->count[static_cast<int>(kind)].fetch_add(1);
+    if (gettid_now() != p->task_tid.load()) p->wrong_thread.fetch_add(1);
+    p->crit_in_handler.store(criticality());
+    if (p->lock && p->lock->owner.load() != 0) p->lock_held_in_handler.fetch_add(1);
+    if (p->set_crit_to > 0) set_criticality(p->set_crit_to);
+    return kind == p->act_on ? p->action : FailureAction::resume;
+}
+
+// A task thread running the loop of rt.hpp's header comment.
+class Runner {
+public:
+    Runner(RtpuScheduler& sch, const RtTaskParams& params, std::function<void()> cycle,
+           Probe* probe = nullptr, int handler_crit = 0)
+        : sch_(sch), cycle_(std::move(cycle)), probe_(probe), handler_crit_(handler_crit) {
+        h_ = sch_.add_task(params);
+    }
+    ~Runner() { stop(); }
+
+    // Starts the thread; false (with error()) when attach was refused.
+    bool start() {
+        thread_ = std::thread([this] { run(); });
+        while (state_.load() == 0) std::this_thread::sleep_for(1ms);
+        if (state_.load() < 0) {
+            thread_.join();
+            return false;
+        }
+        return true;
+    }
+    void stop() {
+        if (!thread_.joinable()) return;
+        sch_.remove_task(h_);
+        thread_.join();
+    }
+    TaskHandle handle() const { return h_; }
+    int tid() const { return tid_.load(); }
+    const std::string& error() const { return error_; }
+    int skipped() const { return skipped_.load(); }
+    int started_cycles() const { return started_.load(); }
+
+private:
+    void run() {
+        try {
+            sch_.attach_current_thread(h_);
+        } catch (const SchedError& e) {
+            error_ = e.what();
+            state_.store(-1);
+            return;
+        }
+        tid_.store(gettid_now());
+        if (probe_) {
+            probe_->task_tid.store(gettid_now());
+            set_dfhandler(probe_handler, handler_crit_, probe_);
+        }
+        state_.store(1);
+        for (;;) {
+            const Wake w = sch_.wait_release(h_);
+            if (w == Wake::detached) break;
+            if (w != Wake::release) {
+                skipped_.fetch_add(1);
+                continue;
+            }
+            if (sigsetjmp(*sch_.cycle_mark(h_), 1) == 0) {
+                sch_.arm_abort(h_);
+                started_.fetch_add(1);
+                cycle_();
+            }
+            sch_.cycle_complete(h_);
+        }
+        sch_.detach_current_thread(h_);
+    }
+
+    RtpuScheduler& sch_;
+    std::function<void()> cycle_;
+    Probe* probe_;
+    int handler_crit_;
+    TaskHandle h_ = -1;
+    std::thread thread_;
+    std::atomic<int> state_{0};
+    std::atomic<int> tid_{0};
+    std::atomic<int> skipped_{0};
+    std::atomic<int> started_{0};
+    std::string error_;
+};
+
+RtpuOptions options(Backend backend, Policy policy = Policy::muf) {
+    RtpuOptions o;
+    o.name = "test";
+    o.cpu = rt_cpu();
+    o.backend = backend;
+    o.policy = policy;
+    o.quiet = true;
+    return o;
+}
+
+RtTaskParams task(const char* name, std::int64_t period, std::int64_t wcet, std::int64_t deadline = 0) {
+    RtTaskParams p;
+    p.name = name;
+    p.period_ns = period;
+    p.wcet_ns = wcet;
+    p.deadline_ns = deadline;
+    return p;
+}
+
+// Waits until `pred` holds, at most `limit`.
+bool eventually(const std::function<bool()>& pred, std::chrono::milliseconds limit = 3000ms) {
+    const auto end = std::chrono::steady_clock::now() + limit;
+    while (std::chrono::steady_clock::now() < end) {
+        if (pred()) return true;
+        std::this_thread::sleep_for(2ms);
+    }
+    return pred();
+}
+
+int fifo_priority_of(int tid) {
+    sched_param sp{};
+    if (sched_getparam(tid, &sp) != 0) return -1;
+    return sched_getscheduler(tid) == SCHED_FIFO ? sp.sched_priority : 0;
+}
+
+}  // namespace
+
+// ------------------------------------------------------------------ pure parts
+
+TEST(MufRank, GivesStrictlyDecreasingPrioritiesInUrgencyOrder) {
+    detail::RankEntry e[3];
+    e[0] = {.urgency = 5, .since_ns = 0, .handle = 0, .current_prio = 0, .new_prio = 0};
+    e[1] = {.urgency = 9, .since_ns = 0, .handle = 1, .current_prio = 0, .new_prio = 0};
+    e[2] = {.urgency = 7, .since_ns = 0, .handle = 2, .current_prio = 0, .new_prio = 0};
+    detail::rank_priorities(e, 10, 80);
+    EXPECT_EQ(e[0].handle, 1);
+    EXPECT_EQ(e[0].new_prio, 79);
+    EXPECT_EQ(e[1].handle, 2);
+    EXPECT_EQ(e[1].new_prio, 78);
+    EXPECT_EQ(e[2].handle, 0);
+    EXPECT_EQ(e[2].new_prio, 77);
+}
+
+TEST(MufRank, ChangesOnlyTheTasksThatMove) {
+    // A at 79 and C at 77 are in order; B, released between them, takes 78.
+    detail::RankEntry e[3];
+    e[0] = {.urgency = 9, .since_ns = 0, .handle = 0, .current_prio = 79, .new_prio = 0};
+    e[1] = {.urgency = 3, .since_ns = 0, .handle = 2, .current_prio = 77, .new_prio = 0};
+    e[2] = {.urgency = 6, .since_ns = 0, .handle = 1, .current_prio = 12, .new_prio = 0};
+    detail::rank_priorities(e, 10, 80);
+    EXPECT_EQ(e[0].new_prio, 79);
+    EXPECT_EQ(e[1].handle, 1);
+    EXPECT_EQ(e[1].new_prio, 78);
+    EXPECT_EQ(e[2].new_prio, 77);
+    // Already in order: nothing moves, even with gaps.
+    detail::RankEntry f[2];
+    f[0] = {.urgency = 9, .since_ns = 0, .handle = 0, .current_prio = 40, .new_prio = 0};
+    f[1] = {.urgency = 3, .since_ns = 0, .handle = 1, .current_prio = 20, .new_prio = 0};
+    detail::rank_priorities(f, 10, 80);
+    EXPECT_EQ(f[0].new_prio, 40);
+    EXPECT_EQ(f[1].new_prio, 20);
+}
+
+TEST(MufRank, EqualUrgencyIsFirstComeFirstServedAndTheBandIsKept) {
+    detail::RankEntry e[3];
+    e[0] = {.urgency = 4, .since_ns = 300, .handle = 0, .current_prio = 11, .new_prio = 0};
+    e[1] = {.urgency = 4, .since_ns = 100, .handle = 1, .current_prio = 10, .new_prio = 0};
+    e[2] = {.urgency = 4, .since_ns = 200, .handle = 2, .current_prio = 10, .new_prio = 0};
+    detail::rank_priorities(e, 10, 13);
+    EXPECT_EQ(e[0].handle, 1);
+    EXPECT_EQ(e[1].handle, 2);
+    EXPECT_EQ(e[2].handle, 0);
+    // Three tasks in the band [10, 13): exactly 12, 11, 10.
+    EXPECT_EQ(e[0].new_prio, 12);
+    EXPECT_EQ(e[1].new_prio, 11);
+    EXPECT_EQ(e[2].new_prio, 10);
+}
+
+TEST(MufRt, BackendNamesAndBadParameters) {
+    EXPECT_EQ(parse_backend("FIFO"), Backend::fifo);
+    EXPECT_EQ(parse_backend("deadline"), Backend::deadline);
+    EXPECT_EQ(parse_backend("other"), Backend::other);
+    EXPECT_FALSE(parse_backend("rr"));
+    EXPECT_EQ(to_string(Failure::maxexec), "MAXEXEC");
+
+    RtpuOptions bad = options(Backend::other);
+    bad.fifo_low = 50;
+    bad.fifo_high = 40;
+    EXPECT_THROW(RtpuScheduler{bad}, SchedError);
+    bad = options(Backend::other);
+    bad.cpu = 4096;
+    try {
+        RtpuScheduler s(bad);
+        FAIL() << "CPU 4096 accepted";
+    } catch (const SchedError& e) {
+        EXPECT_NE(std::string(e.what()).find("CPU 4096"), std::string::npos) << e.what();
+    }
+
+    RtpuScheduler sch(options(Backend::other));
+    try {
+        sch.add_task(task("late", 10 * ms, 1 * ms, 20 * ms));
+        FAIL() << "deadline beyond period accepted";
+    } catch (const SchedError& e) {
+        EXPECT_NE(std::string(e.what()).find("task 'late'"), std::string::npos) << e.what();
+    }
+    RtTaskParams p = task("min", 10 * ms, 1 * ms);
+    p.minexec_ns = 11 * ms;
+    EXPECT_THROW(sch.add_task(p), SchedError);
+    EXPECT_THROW(sch.add_task(task("zero", 0, 1)), SchedError);
+    EXPECT_THROW(sch.remove_task(7), SchedError);
+}
+
+// ------------------------------------------------------------------ failures
+
+class MufFailures : public ::testing::TestWithParam<Backend> {};
+
+TEST_P(MufFailures, DeadlineRunsTheHandlerInTheTaskThread) {
+    RtpuScheduler sch(options(GetParam()));
+    Probe probe;
+    // 30 ms of wall time against a 10 ms deadline in a 50 ms period.
+    RtTaskParams p = task("late", 50 * ms, 40 * ms, 10 * ms);
+    p.maxexec_check = false;
+    Runner r(sch, p, [] { std::this_thread::sleep_for(30ms); }, &probe);
+    ASSERT_TRUE(r.start()) << r.error();
+    ASSERT_TRUE(eventually([&] { return probe.count[1].load() >= 3; }));
+    r.stop();
+    const RtTaskStatus st = sch.status(r.handle());
+    EXPECT_EQ(probe.wrong_thread.load(), 0);
+    EXPECT_EQ(probe.count[2].load(), 0);
+    EXPECT_EQ(st.deadline_failures, static_cast<std::uint64_t>(probe.count[1].load()));
+    // Every job but the one cut short by stop() completed; none was aborted.
+    EXPECT_GE(st.cycles, 2u);
+    EXPECT_EQ(st.aborted, 0u);
+}
+
+TEST_P(MufFailures, MaxexecRunsTheHandlerInTheTaskThread) {
+    RtpuScheduler sch(options(GetParam()));
+    Probe probe;
+    // 12 ms of CPU time against a 4 ms budget in a 50 ms period (CPU-time
+    // timers fire at the kernel's tick: up to 4 ms late at HZ=250).
+    Runner r(sch, task("greedy", 50 * ms, 4 * ms), [] { burn_cpu(12 * ms); }, &probe);
+    ASSERT_TRUE(r.start()) << r.error();
+    ASSERT_TRUE(eventually([&] { return probe.count[2].load() >= 3; }));
+    r.stop();
+    EXPECT_EQ(probe.wrong_thread.load(), 0);
+    EXPECT_EQ(sch.status(r.handle()).maxexec_failures, static_cast<std::uint64_t>(probe.count[2].load()));
+    // One budget per cycle: never more failures than cycles started.
+    EXPECT_LE(probe.count[2].load(), r.started_cycles());
+}
+
+TEST_P(MufFailures, MinexecSkipsTheCycleAndRunsTheHandler) {
+    RtpuScheduler sch(options(GetParam()));
+    Probe probe;
+    // MINEXEC = the whole deadline: less is always left once the task wakes.
+    RtTaskParams p = task("never", 20 * ms, 1 * ms);
+    p.minexec_ns = 20 * ms;
+    Runner r(sch, p, [] {}, &probe);
+    ASSERT_TRUE(r.start()) << r.error();
+    ASSERT_TRUE(eventually([&] { return probe.count[3].load() >= 3; }));
+    r.stop();
+    const RtTaskStatus st = sch.status(r.handle());
+    EXPECT_EQ(probe.wrong_thread.load(), 0);
+    EXPECT_EQ(r.started_cycles(), 0);
+    EXPECT_EQ(st.cycles, 0u);
+    EXPECT_EQ(st.minexec_failures, static_cast<std::uint64_t>(probe.count[3].load()));
+    EXPECT_GE(st.missed, st.minexec_failures);
+    EXPECT_GE(r.skipped(), probe.count[3].load());
+}
+
+TEST_P(MufFailures, AbortInsideACriticalSectionWaitsForLeaveAndFreesTheLock) {
+    RtpuScheduler sch(options(GetParam()));
+    Probe probe;
+    chimera::ipc::LockWord table_lock;
+    probe.lock = &table_lock;
+    probe.action = FailureAction::abort_cycle;
+    probe.act_on = Failure::deadline;
+    std::atomic<int> sections_done{0}, after_leave{0}, locked_ok{0};
+    RtTaskParams p = task("aborted", 60 * ms, 50 * ms, 10 * ms);
+    p.maxexec_check = false;
+    // The deadline passes while the table lock is held: the handler waits for
+    // leave_critical, then aborts; the code after leave never runs.
+    Runner r(
+        sch, p,
+        [&] {
+            enter_critical();
+            if (chimera::ipc::holds(chimera::ipc::lock(table_lock))) locked_ok.fetch_add(1);
+            burn_wall(20 * ms);
+            chimera::ipc::unlock(table_lock);
+            sections_done.fetch_add(1);
+            leave_critical();
+            after_leave.fetch_add(1);
+        },
+        &probe);
+    ASSERT_TRUE(r.start()) << r.error();
+    ASSERT_TRUE(eventually([&] { return sch.status(r.handle()).aborted >= 3; }));
+    r.stop();
+    const RtTaskStatus st = sch.status(r.handle());
+    EXPECT_EQ(probe.wrong_thread.load(), 0);
+    EXPECT_EQ(probe.lock_held_in_handler.load(), 0);   // held off until the section ended
+    EXPECT_EQ(table_lock.owner.load(), 0u);             // no lock left held
+    EXPECT_EQ(locked_ok.load(), sections_done.load());
+    EXPECT_GE(st.aborted, 3u);
+    // A cycle that got past leave_critical completed; the others were aborted
+    // there, and the next cycles ran after each abort.
+    EXPECT_EQ(static_cast<std::uint64_t>(after_leave.load()), st.cycles);
+    EXPECT_EQ(st.cycles + st.aborted, static_cast<std::uint64_t>(r.started_cycles()));
+    EXPECT_GE(st.missed, st.aborted);
+    // Under SCHED_FIFO the task wakes before its deadline, so every cycle
+    // reaches the section with the deadline still ahead; best effort may not.
+    if (GetParam() == Backend::fifo) {
+        EXPECT_EQ(st.cycles, 0u);
+    }
+}
+
+TEST_P(MufFailures, AbortOutsideASectionJumpsToTheMark) {
+    RtpuScheduler sch(options(GetParam()));
+    Probe probe;
+    probe.action = FailureAction::abort_cycle;
+    probe.act_on = Failure::maxexec;
+    std::atomic<int> finished{0};
+    Runner r(sch, task("runaway", 40 * ms, 3 * ms),
+             [&] {
+                 burn_cpu(15 * ms);
+                 finished.fetch_add(1);
+             },
+             &probe);
+    ASSERT_TRUE(r.start()) << r.error();
+    ASSERT_TRUE(eventually([&] { return sch.status(r.handle()).aborted >= 3; }));
+    r.stop();
+    const RtTaskStatus st = sch.status(r.handle());
+    EXPECT_EQ(probe.wrong_thread.load(), 0);
+    EXPECT_EQ(st.aborted, st.maxexec_failures);
+    EXPECT_EQ(static_cast<std::uint64_t>(finished.load()) + st.aborted,
+              static_cast<std::uint64_t>(r.started_cycles()));
+    // The kernel checks CPU-time timers at its tick, on the thread then
+    // running: a SCHED_FIFO task that burns 12 ms past its budget is caught
+    // every time; under SCHED_OTHER on a loaded machine it may not be current
+    // at a tick before the cycle ends.
+    if (GetParam() == Backend::fifo) {
+        EXPECT_EQ(finished.load(), 0);
+    }
+}
+
+TEST_P(MufFailures, SkipNextSkipsOneRelease) {
+    RtpuScheduler sch(options(GetParam()));
+    Probe probe;
+    probe.action = FailureAction::skip_next;
+    probe.act_on = Failure::deadline;
+    RtTaskParams p = task("skipper", 30 * ms, 20 * ms, 5 * ms);
+    p.maxexec_check = false;
+    Runner r(sch, p, [] { std::this_thread::sleep_for(10ms); }, &probe);
+    ASSERT_TRUE(r.start()) << r.error();
+    ASSERT_TRUE(eventually([&] { return probe.count[1].load() >= 4; }));
+    r.stop();
+    // Every cycle misses its deadline and asks to skip the next release, so
+    // cycles and skipped releases alternate.
+    EXPECT_GE(r.skipped(), probe.count[1].load() - 1);
+    EXPECT_LE(r.skipped(), probe.count[1].load());
+}
+
+TEST_P(MufFailures, HandlerRunsAtItsCriticalityAndMaySetANewOne) {
+    RtpuScheduler sch(options(GetParam()));
+    Probe restore, keep;
+    RtTaskParams p = task("soft", 40 * ms, 2 * ms);
+    p.crit = 5;
+    Runner a(sch, p, [] { burn_cpu(12 * ms); }, &restore, /*handler_crit=*/6);
+    ASSERT_TRUE(a.start()) << a.error();
+    ASSERT_TRUE(eventually([&] { return restore.count[2].load() >= 2; }));
+    EXPECT_EQ(restore.crit_in_handler.load(), 6);  // the handler priority
+    EXPECT_EQ(sch.status(a.handle()).crit, 5);     // restored afterwards
+    a.stop();
+
+    // Listing 2: MAXEXEC lowers the task to 3, and it stays there.
+    keep.set_crit_to = 3;
+    p.name = "lowered";
+    Runner b(sch, p, [] { burn_cpu(12 * ms); }, &keep, /*handler_crit=*/5);
+    ASSERT_TRUE(b.start()) << b.error();
+    ASSERT_TRUE(eventually([&] { return keep.count[2].load() >= 1; }));
+    EXPECT_EQ(sch.status(b.handle()).crit, 3);
+    b.stop();
+}
+
+INSTANTIATE_TEST_SUITE_P(Backends, MufFailures, ::testing::Values(Backend::fifo, Backend::other),
+                         [](const auto& info) { return std::string(to_string(info.param)); });
+
+// ------------------------------------------------------------------ thesis task API
+
+namespace {
+
+struct SoftTask {
+    std::atomic<int> deadline{0}, maxexec{0};
+    std::int64_t next = 0;
+    std::int64_t period = 0;
+    std::int64_t effective = 0;
+};
+
+FailureAction soft_handler(Failure kind, void* user) {
+    auto* t = static_cast<SoftTask*>(user);
+    switch (kind) {
+        case Failure::deadline:  // missed: back to 5, continue with the next cycle's time
+            t->deadline.fetch_add(1);
+            set_criticality(5);
+            t->next += t->period;
+            set_deadline(t->next, 0, t->effective, t->period);
+            break;
+        case Failure::maxexec:  // E used up: lower to 3 and go on in left-over time
+            t->maxexec.fetch_add(1);
+            set_criticality(3);
+            break;
+        case Failure::minexec: break;
+    }
+    return FailureAction::resume;
+}
+
+}  // namespace
+
+TEST(MufTaskApi, SoftRealTimeTaskOfListing2) {
+    RtpuScheduler sch(options(Backend::fifo));
+    RtTaskParams p = task("soft", 40 * ms, 30 * ms);
+    p.effective_ns = 5 * ms;
+    const TaskHandle h = sch.add_task(p);
+    SoftTask soft;
+    soft.period = 40 * ms;
+    soft.effective = 5 * ms;
+    std::atomic<int> crit_after_maxexec{-1};
+    std::atomic<std::int64_t> measured{0};
+    std::thread th([&] {
+        sch.attach_current_thread(h);
+        set_dfhandler(soft_handler, 5, &soft);
+        soft.next = clock_ns();
+        for (int i = 0; i < 4; ++i) {
+            soft.next += soft.period;
+            set_criticality(5);
+            pause(soft.next, 0, soft.effective, soft.period);
+            const std::int64_t start = execstart();
+            // More than E by three ticks: the kernel checks CPU-time timers at
+            // its tick (4 ms at HZ=250), so MAXEXEC comes up to a tick late.
+            burn_cpu(17 * ms);
+            measured.store(execend() - start);
+            crit_after_maxexec.store(criticality());
+        }
+        sch.detach_current_thread(h);
+    });
+    th.join();
+    EXPECT_EQ(soft.maxexec.load(), 4);
+    EXPECT_EQ(crit_after_maxexec.load(), 3);
+    EXPECT_GE(measured.load(), 17 * ms);  // execend - execstart is the CPU time used
+    EXPECT_EQ(sch.status(h).maxexec_failures, 4u);
+}
+
+TEST(MufTaskApi, ExecleftCountsDownAndSetDeadlineRaisesMinexec) {
+    RtpuScheduler sch(options(Backend::other));
+    const TaskHandle h = sch.add_task(task("api", 100 * ms, 50 * ms));
+    std::atomic<std::int64_t> left_before{0}, left_after{0};
+    std::atomic<int> minexec{0};
+    std::thread th([&] {
+        sch.attach_current_thread(h);
+        set_dfhandler(
+            [](Failure kind, void* u) {
+                if (kind == Failure::minexec) static_cast<std::atomic<int>*>(u)->fetch_add(1);
+                return FailureAction::resume;
+            },
+            0, &minexec);
+        set_deadline(clock_ns(), 0, 40 * ms, 100 * ms);
+        left_before.store(execleft());
+        burn_cpu(10 * ms);
+        left_after.store(execleft());
+        // 5 ms of minimum work before a deadline 1 ms away: MINEXEC at once.
+        set_deadline(clock_ns(), 5 * ms, 40 * ms, 1 * ms);
+        sch.detach_current_thread(h);
+    });
+    th.join();
+    EXPECT_GT(left_before.load(), 35 * ms);
+    EXPECT_LE(left_before.load(), 40 * ms);
+    EXPECT_LE(left_after.load(), 30 * ms);
+    EXPECT_EQ(minexec.load(), 1);
+    EXPECT_EQ(sch.status(h).minexec_failures, 1u);
+}
+
+// ------------------------------------------------------------------ fifo backend
+
+TEST(MufFifo, OverloadOnlyTheNonCriticalTaskMisses) {
+    RtpuScheduler sch(options(Backend::fifo));
+    if (!sch.privileged()) GTEST_SKIP() << "SCHED_FIFO refused on this machine: no overload test";
+    // U = 0.35 + 0.35 + 0.40 = 1.10 of demand; the analysis reserves 0.8 for
+    // the first two (the critical set) and leaves "c" out of it.
+    auto make = [](const char* name, std::int64_t period, std::int64_t wcet) {
+        RtTaskParams p = task(name, period, wcet);
+        p.maxexec_check = false;
+        return p;
+    };
+    const std::int64_t start = clock_ns() + 20 * ms;
+    RtTaskParams pa = make("a", 20 * ms, 8 * ms), pb = make("b", 30 * ms, 12 * ms),
+                 pc = make("c", 40 * ms, 16 * ms);
+    pa.first_release_ns = pb.first_release_ns = pc.first_release_ns = start;
+    Runner a(sch, pa, [] { burn_cpu(7 * ms); });
+    Runner b(sch, pb, [] { burn_cpu(21 * ms / 2); });
+    Runner c(sch, pc, [] { burn_cpu(16 * ms); });
+    const Assignment as = sch.assignment();
+    ASSERT_EQ(as.crit, (std::vector<int>{crit::critical, crit::critical, crit::non_critical}));
+    ASSERT_TRUE(a.start() && b.start() && c.start());
+    // Under a second of overload: the kernel's fair server lends the starved
+    // SCHED_OTHER tasks time after about 0.95 s, which is not MUF's doing.
+    std::this_thread::sleep_until(std::chrono::steady_clock::now() + 620ms);
+    const RtTaskStatus sa = sch.status(a.handle()), sb = sch.status(b.handle()),
+                       sc = sch.status(c.handle());
+    a.stop();
+    b.stop();
+    c.stop();
+    EXPECT_GE(sa.cycles, 25u);
+    EXPECT_GE(sb.cycles, 16u);
+    EXPECT_EQ(sa.missed, 0u);
+    EXPECT_EQ(sb.missed, 0u);
+    EXPECT_EQ(sa.deadline_failures, 0u);
+    EXPECT_EQ(sb.deadline_failures, 0u);
+    EXPECT_GT(sc.missed + sc.deadline_failures, 0u);
+    EXPECT_GT(sch.reschedules(), 0u);
+}
+
+TEST(MufFifo, DispatcherPrioritiesFollowTheUrgencyOrder) {
+    for (Policy policy : {Policy::muf, Policy::rm, Policy::edf}) {
+        SCOPED_TRACE(std::string(to_string(policy)));
+        RtpuOptions o = options(Backend::fifo, policy);
+        RtpuScheduler sch(o);
+        if (!sch.privileged()) GTEST_SKIP() << "SCHED_FIFO refused on this machine";
+        // Released together; each cycle blocks on a gate, so every job stays
+        // pending and all compete at once. Periods, deadlines, explicit
+        // criticality and user priority are chosen so RM, EDF and MUF differ.
+        struct Spec {
+            const char* name;
+            std::int64_t period, deadline;
+            std::optional<int> crit, uprio;
+        };
+        const Spec specs[] = {
+            {"p10d9", 100 * ms, 90 * ms, std::nullopt, 1},
+            {"p20d3", 200 * ms, 30 * ms, std::nullopt, 2},
+            {"p30d6", 300 * ms, 60 * ms, 3, 3},
+            {"p40d6", 400 * ms, 60 * ms, std::nullopt, 4},
+            {"p50d6", 500 * ms, 60 * ms, std::nullopt, 5},
+        };
+        std::atomic<bool> gate{false};
+        std::atomic<int> inside{0};
+        const std::int64_t start = clock_ns() + 30 * ms;
+        std::vector<std::unique_ptr<Runner>> runners;
+        for (const Spec& s : specs) {
+            RtTaskParams p = task(s.name, s.period, 1 * ms, s.deadline);
+            p.crit = s.crit;
+            p.uprio = s.uprio;
+            p.first_release_ns = start;
+            p.maxexec_check = false;
+            runners.push_back(std::make_unique<Runner>(sch, p, [&] {
+                inside.fetch_add(1);
+                while (!gate.load()) std::this_thread::sleep_for(1ms);
+            }));
+        }
+        for (auto& r : runners) ASSERT_TRUE(r->start()) << r->error();
+        ASSERT_TRUE(eventually([&] { return inside.load() == 5; }));
+        // Expected order: the urgency of Figure 6.2 from the analysis.
+        const Assignment as = sch.assignment();
+        std::vector<std::pair<std::uint64_t, std::size_t>> order;
+        for (std::size_t i = 0; i < runners.size(); ++i) {
+            const std::optional<std::int64_t> ticks =
+                as.uses_deadline ? std::optional<std::int64_t>(specs[i].deadline / o.tick_ns)
+                                 : std::nullopt;
+            order.emplace_back(urgency(o.encoding, as.crit[i], ticks, as.uprio[i]), i);
+        }
+        std::sort(order.begin(), order.end(), std::greater<>());
+        std::vector<int> prios;
+        for (const auto& [u, i] : order) {
+            prios.push_back(fifo_priority_of(runners[i]->tid()));
+            EXPECT_EQ(sch.status(runners[i]->handle()).priority, prios.back());
+        }
+        for (std::size_t k = 0; k < prios.size(); ++k) {
+            EXPECT_GE(prios[k], o.fifo_low);
+            EXPECT_LT(prios[k], o.fifo_high);
+            if (k > 0) {
+                EXPECT_LT(prios[k], prios[k - 1]) << "rank " << k;
+            }
+        }
+        EXPECT_NE(sch.policy_of(runners[0]->handle()).find("SCHED_FIFO"), std::string::npos);
+        EXPECT_NE(sch.policy_of(runners[0]->handle()).find("CPU " + std::to_string(o.cpu)),
+                  std::string::npos);
+        gate.store(true);
+        for (auto& r : runners) r->stop();
+    }
+}
+
+TEST(MufFifo, SetPeriodTakesEffectAtTheNextRelease) {
+    RtpuScheduler sch(options(Backend::fifo));
+    std::atomic<int> cycles{0};
+    Runner r(sch, task("rate", 40 * ms, 1 * ms), [&] { cycles.fetch_add(1); });
+    ASSERT_TRUE(r.start()) << r.error();
+    auto releases = [&] {
+        const RtTaskStatus st = sch.status(r.handle());
+        return static_cast<std::int64_t>(st.cycles + st.missed);
+    };
+    std::this_thread::sleep_for(50ms);
+    std::int64_t before = releases();
+    std::this_thread::sleep_for(400ms);
+    const std::int64_t slow = releases() - before;  // about 10
+    sch.set_period(r.handle(), 10 * ms);
+    std::this_thread::sleep_for(60ms);
+    before = releases();
+    std::this_thread::sleep_for(400ms);
+    const std::int64_t fast = releases() - before;  // about 40
+    r.stop();
+    // Releases follow the absolute timeline, so the counts are exact to the
+    // window's edges; a wide margin keeps a noisy machine out of it.
+    EXPECT_GE(slow, 8);
+    EXPECT_LE(slow, 12);
+    EXPECT_GE(fast, 34);
+    EXPECT_LE(fast, 42);
+}
+
+// ------------------------------------------------------------------ deadline backend
+
+TEST(MufDeadline, AdmitsAFeasibleCriticalSetAndSignalsOverrunAsMaxexec) {
+    RtpuScheduler sch(options(Backend::deadline));
+    Probe probe;
+    Runner crit_task(sch, task("reserved", 50 * ms, 5 * ms), [] { burn_cpu(15 * ms); }, &probe);
+    // 0.95 on top of 0.1: outside the critical set, so on SCHED_FIFO.
+    Runner other(sch, task("light", 100 * ms, 95 * ms), [] { burn_cpu(ms / 2); });
+    if (!crit_task.start()) {
+        if (crit_task.error().find("refused") != std::string::npos &&
+            crit_task.error().find("admission") == std::string::npos)
+            GTEST_SKIP() << crit_task.error();
+        FAIL() << crit_task.error();
+    }
+    const std::string policy = sch.policy_of(crit_task.handle());
+    if (policy.find("SCHED_DEADLINE refused") != std::string::npos)
+        GTEST_SKIP() << "SCHED_DEADLINE refused on this machine: " << policy;
+    ASSERT_TRUE(other.start()) << other.error();
+    EXPECT_NE(policy.find("SCHED_DEADLINE 5000000/50000000"), std::string::npos) << policy;
+    ASSERT_TRUE(eventually([&] { return probe.count[2].load() >= 2; }));
+    EXPECT_EQ(probe.wrong_thread.load(), 0);
+    EXPECT_EQ(sch.status(crit_task.handle()).priority, 0);
+    EXPECT_NE(sch.policy_of(other.handle()).find("SCHED_FIFO"), std::string::npos)
+        << sch.policy_of(other.handle());
+    EXPECT_GE(sch.status(other.handle()).cycles, 1u);
+    crit_task.stop();
+    other.stop();
+}
+
+TEST(MufDeadline, RefusesAnInfeasibleSetNamingItsUtilisation) {
+    // Each RTPU's critical set fits its CPU (0.97), but the kernel admits
+    // 0.95 per CPU over the whole root domain: the last one is refused.
+    const int cpus = get_nprocs();
+    std::vector<std::unique_ptr<RtpuScheduler>> rtpus;
+    std::vector<std::unique_ptr<Runner>> runners;
+    std::string refusal;
+    for (int c = 0; c < cpus + 1 && refusal.empty(); ++c) {
+        RtpuOptions o = options(Backend::deadline);
+        o.cpu = c % cpus;
+        o.name = "rtpu" + std::to_string(c);
+        rtpus.push_back(std::make_unique<RtpuScheduler>(o));
+        runners.push_back(std::make_unique<Runner>(*rtpus.back(), task("heavy", 100 * ms, 97 * ms),
+                                                   [] { std::this_thread::sleep_for(1ms); }));
+        if (!runners.back()->start()) refusal = runners.back()->error();
+        else if (rtpus.back()->policy_of(runners.back()->handle()).find("SCHED_DEADLINE refused") !=
+                 std::string::npos)
+            GTEST_SKIP() << "SCHED_DEADLINE refused on this machine";
+    }
+    ASSERT_FALSE(refusal.empty()) << "the kernel admitted " << cpus + 1 << " reservations of 0.97";
+    EXPECT_NE(refusal.find("admission refused"), std::string::npos) << refusal;
+    EXPECT_NE(refusal.find("utilisation is 0.970"), std::string::npos) << refusal;
+    EXPECT_NE(refusal.find("task 'heavy'"), std::string::npos) << refusal;
+    for (auto& r : runners) r->stop();
+}
+
+// ------------------------------------------------------------------ no privilege
+
+TEST(MufFifo, WithoutPrivilegeWarnsRunsBestEffortAndStillDetectsFailures) {
+    // A child process that gave up root (and any real-time allowance).
+    const pid_t child = fork();
+    ASSERT_GE(child, 0);
+    if (child == 0) {
+        rlimit none{0, 0};
+        setrlimit(RLIMIT_RTPRIO, &none);
+        if (getuid() == 0 && setresuid(65534, 65534, 65534) != 0) _exit(10);
+        RtpuScheduler sch(options(Backend::fifo));
+        if (sch.privileged()) _exit(11);
+        Probe probe;
+        RtTaskParams p = task("plain", 20 * ms, 10 * ms, 5 * ms);
+        p.maxexec_check = false;
+        Runner r(sch, p, [] { std::this_thread::sleep_for(8ms); }, &probe);
+        if (!r.start()) _exit(12);
+        if (!eventually([&] { return probe.count[1].load() >= 2; })) _exit(13);
+        const std::string pol = sch.policy_of(r.handle());
+        if (pol.find("SCHED_OTHER") == std::string::npos || pol.find("no privilege") == std::string::npos)
+            _exit(14);
+        if (probe.wrong_thread.load() != 0) _exit(15);
+        r.stop();
+        _exit(0);
+    }
+    int status = 0;
+    ASSERT_EQ(waitpid(child, &status, 0), child);
+    ASSERT_TRUE(WIFEXITED(status));
+    EXPECT_EQ(WEXITSTATUS(status), 0)
+        << "10 setresuid, 11 still privileged, 12 attach, 13 no DEADLINE, 14 policy text, 15 thread";
+}
