@@ -12,14 +12,15 @@ KDL::Vector kdl_gravity(const RobotModel& m) {
 }  // namespace
 
 Dynamics::Dynamics(const RobotModel& model)
-    : n_(model.chain().getNrOfJoints()),
-      rne_(model.chain(), kdl_gravity(model)),
-      dyn_(model.chain(), kdl_gravity(model)),
+    : chain_(model.chain()),
+      n_(chain_.getNrOfJoints()),
+      rne_(chain_, kdl_gravity(model)),
+      dyn_(chain_, kdl_gravity(model)),
       q_(static_cast<unsigned>(n_)),
       qd_(static_cast<unsigned>(n_)),
       qdd_(static_cast<unsigned>(n_)),
       tau_(static_cast<unsigned>(n_)),
-      fext_(model.chain().getNrOfSegments(), KDL::Wrench::Zero()),
+      fext_(chain_.getNrOfSegments(), KDL::Wrench::Zero()),
       m_(static_cast<unsigned>(n_)) {
     rotor_.assign(n_, 0.0);
     damping_.assign(n_, 0.0);

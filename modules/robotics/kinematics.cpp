@@ -26,9 +26,10 @@ Vector6d pose_error(const KDL::Frame& from, const KDL::Frame& to) noexcept {
 }
 
 Kinematics::Kinematics(const RobotModel& model)
-    : n_(model.chain().getNrOfJoints()),
-      fk_(model.chain()),
-      jac_(model.chain()),
+    : chain_(model.chain()),
+      n_(chain_.getNrOfJoints()),
+      fk_(chain_),
+      jac_(chain_),
       q_(static_cast<unsigned>(n_)),
       j_(static_cast<unsigned>(n_)) {}
 

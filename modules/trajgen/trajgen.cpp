@@ -11,8 +11,9 @@
 //           [START current|first]  on `on`, start from the current value of Z
 //                            (read on `on`, §3.5) or jump to the first POINT
 //                            (default current)
-//           POINT seconds v1 .. vn   via points, in order (one per line; at
-//                            least one); `seconds` is the time to reach it from
+//           POINT1 seconds v1 .. vn   via points POINT1, POINT2, ... (numbered,
+//                            because LOCAL keys are unique; at least POINT1, no
+//                            gaps); `seconds` is the time to reach it from
 //                            the previous one (for the first: from the start;
 //                            when cyclic, the return from the last POINT to the
 //                            first takes the first POINT's time too)
@@ -48,7 +49,12 @@ public:
         std::vector<Eigen::VectorXd> points{Eigen::VectorXd::Zero(static_cast<Eigen::Index>(n_))};
         std::vector<double> durations;
         for (const auto& e : t.local().entries()) {
-            if (e.key != "POINT") continue;
+            if (e.key.rfind("POINT", 0) != 0) continue;
+            if (e.key != "POINT" + std::to_string(durations.size() + 1)) {
+                rb::module_error(t, "line " + std::to_string(e.line) + ": LOCAL " + e.key +
+                                        " out of order: expected POINT" + std::to_string(durations.size() + 1) +
+                                        " (via points are POINT1, POINT2, ... in order)");
+            }
             if (e.values.size() != n_ + 1) {
                 rb::module_error(t, "line " + std::to_string(e.line) + ": POINT takes a duration and " +
                                         std::to_string(n_) + " values, found " +
@@ -64,7 +70,7 @@ public:
             points.push_back(p);
             durations.push_back(dur);
         }
-        if (durations.empty()) rb::module_error(t, "LOCAL needs at least one POINT line");
+        if (durations.empty()) rb::module_error(t, "LOCAL needs at least one via point (POINT1)");
         first_ = points[1];
         if (cyclic_) {
             // Cyclic: the start is only the approach; the cycle runs over the POINTs.

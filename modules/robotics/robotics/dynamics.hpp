@@ -39,6 +39,10 @@ public:
     bool mass(const Eigen::Ref<const Eigen::VectorXd>& q, Eigen::Ref<Eigen::MatrixXd> m) noexcept;
 
 private:
+    // KDL's solvers keep a reference to the chain they were built on, so the
+    // chain lives here, before them: a Dynamics built from a temporary model
+    // (a module's init reading the DH in-const) stays valid.
+    KDL::Chain chain_;
     std::size_t n_;
     std::vector<double> rotor_, damping_;
     KDL::ChainIdSolver_RNE rne_;

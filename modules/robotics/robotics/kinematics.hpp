@@ -48,6 +48,9 @@ public:
     bool jacobian(const Eigen::Ref<const Eigen::VectorXd>& q, Eigen::Ref<Matrix6Xd> j) noexcept;
 
 private:
+    // KDL's solvers keep a reference to the chain: it lives here, before them
+    // (see Dynamics).
+    KDL::Chain chain_;
     std::size_t n_;
     KDL::ChainFkSolverPos_recursive fk_;
     KDL::ChainJntToJacSolver jac_;
