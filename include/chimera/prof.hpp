@@ -404,8 +404,12 @@ class StatusSegment {
 public:
     StatusSegment() = default;
     StatusSegment(StatusSegment&&) noexcept = default;
-    StatusSegment& operator=(StatusSegment&&) noexcept = default;
+    /// Closes the segment held before (as the destructor does), then moves.
+    StatusSegment& operator=(StatusSegment&& other) noexcept;
     ~StatusSegment();
+    /// The destructor's work, early: the creator removes the segment (readers
+    /// keep their mapping and see it destroyed); another user detaches.
+    void close() noexcept;
 
     /// Creates `/chimera.<subsystem>.status` with room for `max_tasks` tasks.
     static StatusSegment create(std::string_view subsystem, std::uint32_t max_tasks,

@@ -36,6 +36,7 @@
 #pragma once
 
 #include <chimera/module.hpp>
+#include <chimera/prof.hpp>
 #include <chimera/sbs_files.hpp>
 
 #include <chrono>
@@ -120,11 +121,17 @@ struct TaskStatus {
     int error_code = 0;
     std::string error;          ///< message of the error that put the task in ERROR
     std::string policy;         ///< scheduling the thread really got, e.g. "SCHED_FIFO 42"
+    /// The profile the task publishes in the status segment (§4.4.1, §6.7):
+    /// ptime, totC, minC/maxC/avgC, minU/maxU/avgU, mezT, the CPU-time source...
+    /// Its counters run "since the last reset" of the task's RTPU.
+    prof::TaskStatus profile;
 };
 
 /// "rmod rtpu tid S crit state cycle miss refF mezF ..." in one line, plus
 /// WARNING> / ERROR> lines as §4.4.1 prints them.
 std::string format_status(const TaskStatus& s);
+/// The column header matching format_status().
+std::string format_status_header();
 
 /// A signal received by sig_wait().
 struct SignalEvent {
@@ -230,6 +237,7 @@ public:
     explicit Subsystem(std::unique_ptr<detail::SubsystemCore> core);
 
 private:
+    TaskStatus status_without_profile(TaskId task) const;
     std::unique_ptr<detail::SubsystemCore> core_;
 };
 

@@ -405,7 +405,17 @@ void TaskSlot::clear_error() noexcept {
 
 // ------------------------------------------------------------ StatusSegment
 
-StatusSegment::~StatusSegment() {
+StatusSegment::~StatusSegment() { close(); }
+
+StatusSegment& StatusSegment::operator=(StatusSegment&& other) noexcept {
+    if (this != &other) {
+        close();
+        segment_ = std::move(other.segment_);
+    }
+    return *this;
+}
+
+void StatusSegment::close() noexcept {
     if (!segment_.valid()) return;
     if (segment_.creator()) {
         // The subsystem is going away: readers keep their mapping but see it

@@ -3,6 +3,7 @@
 #pragma once
 
 #include "chimera/module.hpp"
+#include "chimera/prof.hpp"
 #include "chimera/sbs.hpp"
 #include "chimera/svar.hpp"
 
@@ -83,6 +84,7 @@ public:
     svar::VarSet set_in_consts, set_out_consts, set_in_vars, set_out_vars, set_on;
 
     // --- state, read by anyone, written by the task thread ---
+    // Changed only through set_state(), which mirrors it into the status slot.
     std::atomic<State> state{State::NOT_CREATED};
     std::atomic<State> next_state{State::NOT_CREATED};
     std::atomic<std::int64_t> period_ns{0};
@@ -130,6 +132,12 @@ public:
     pthread_t thread{};
     bool joinable = false;
 
+    // --- profiling and the published status (§4.4.1, §6.7) ---
+    prof::TaskSlot slot;                  // claimed by the master at spawn, released after the thread ends
+    prof::TaskProfiler* profiler = nullptr;  // lives on the task thread's stack while it runs
+
+    void set_state(State s) noexcept;
+
 private:
     static void* thread_main(void* self) noexcept;
     void run();
@@ -144,6 +152,9 @@ public:
 
     SbsFile file;
     svar::Table table;
+    static constexpr std::uint32_t kMaxTasks = 128;  // status slots; a spawn past them is refused
+    prof::StatusSegment status;  // /chimera.<subsystem>.status, read by chimtop and the sbs tool
+    int rtpu_index(const RtpuSpec& rtpu) const noexcept;
     std::vector<std::string> module_dirs;
 
     mutable std::mutex tasks_mu;

@@ -84,6 +84,20 @@ SubsystemCore::SubsystemCore(SbsFile f) : file(std::move(f)) {
         throw Error("subsystem " + file.subsystem + " is already running (segment " + seg +
                     " exists); finish it first, or remove the stale segment of a crashed run");
     table = svar::Table::create(seg, file.svarfile);
+    prof::StatusOptions so;
+    so.rtpus = static_cast<std::uint32_t>(std::max<std::size_t>(1, file.rtpus.size()));
+    try {
+        status = prof::StatusSegment::create(file.subsystem, kMaxTasks, so);
+    } catch (...) {
+        table.destroy();  // nothing half-built is left behind
+        throw;
+    }
+}
+
+int SubsystemCore::rtpu_index(const RtpuSpec& rtpu) const noexcept {
+    for (std::size_t i = 0; i < file.rtpus.size(); ++i)
+        if (file.rtpus[i].name == rtpu.name) return static_cast<int>(i);
+    return 0;
 }
 
 SubsystemCore::~SubsystemCore() = default;
@@ -435,7 +449,25 @@ void Subsystem::event(TaskId id) noexcept {
     ipc::futex_wake_all(t->word);
 }
 
+namespace {
+void fill_profile(TaskStatus& s, const detail::TaskCore& t, const std::vector<prof::TaskStatus>& snapshot) {
+    if (!t.slot.valid()) return;
+    for (const auto& p : snapshot) {
+        if (p.slot == t.slot.index()) {
+            s.profile = p;
+            return;
+        }
+    }
+}
+}  // namespace
+
 TaskStatus Subsystem::status(TaskId id) const {
+    TaskStatus s = status_without_profile(id);
+    fill_profile(s, *core_->task(id), core_->status.snapshot());
+    return s;
+}
+
+TaskStatus Subsystem::status_without_profile(TaskId id) const {
     detail::TaskCore* t = core_->task(id);
     TaskStatus s;
     s.id = id;
@@ -482,8 +514,12 @@ std::vector<TaskStatus> Subsystem::status_all() const {
             if (core_->tasks[i] && core_->tasks[i]->state.load() != State::NOT_CREATED)
                 ids.push_back(TaskId{static_cast<int>(i)});
     }
+    const std::vector<prof::TaskStatus> snapshot = core_->status.snapshot();
     std::vector<TaskStatus> out;
-    for (TaskId id : ids) out.push_back(status(id));
+    for (TaskId id : ids) {
+        out.push_back(status_without_profile(id));
+        fill_profile(out.back(), *core_->task(id), snapshot);
+    }
     return out;
 }
 
@@ -561,16 +597,27 @@ void Subsystem::finish() {
         std::lock_guard<std::mutex> lock(c.tasks_mu);
         c.tasks.clear();
     }
+    c.status.close();  // removed with the subsystem: a restart can create it again
     c.table.destroy();
 }
 
+std::string format_status_header() {
+    char buf[256];
+    std::snprintf(buf, sizeof buf, "%-12s %-6s %7s %s %4s %-11s %9s %6s %8s %8s %9s %9s %9s %6s %4s  %s", "rmod",
+                  "rtpu", "tid", "S", "crit", "state", "cycle", "miss", "refF", "mezF", "minC", "avgC", "maxC",
+                  "avgU%", "warn", "policy");
+    return buf;
+}
+
 std::string format_status(const TaskStatus& s) {
+    // §4.4.1's columns; CPU times from the profile, in microseconds.
+    const prof::TaskStatus& p = s.profile;
     char buf[512];
     std::snprintf(buf, sizeof buf,
-                  "%-12s %-6s %7ld %c %2d %-11s cycle %8llu miss %5llu refF %8.2f mezF %8.2f maxC %.6f warn %u  [%s]",
+                  "%-12s %-6s %7ld %c %4d %-11s %9llu %6llu %8.2f %8.2f %8.1fu %8.1fu %8.1fu %6.2f %4u  %s",
                   s.rmod.c_str(), s.rtpu.c_str(), s.tid, s.type, s.crit, std::string(to_string(s.state)).c_str(),
                   static_cast<unsigned long long>(s.cycles), static_cast<unsigned long long>(s.misses), s.ref_freq,
-                  s.mez_freq, s.max_cycle_time, s.warnings, s.policy.c_str());
+                  s.mez_freq, p.min_c * 1e6, p.avg_c * 1e6, p.max_c * 1e6, p.avg_u, s.warnings, s.policy.c_str());
     std::string out = buf;
     if (!s.warning.empty()) out += "\nWARNING> " + s.warning;
     if (s.state == State::ERROR) out += "\nERROR> " + s.error;

@@ -4,6 +4,7 @@
 
 #include "chimera/ipc/clock.hpp"
 #include "chimera/ipc/futex.hpp"
+#include "chimera/trace.hpp"
 
 #include <algorithm>
 #include <cerrno>
@@ -12,6 +13,7 @@
 #include <cstring>
 #include <filesystem>
 #include <sched.h>
+#include <optional>
 #include <set>
 #include <sys/syscall.h>
 #include <unistd.h>
@@ -225,6 +227,13 @@ void TaskCore::join() noexcept {
         pthread_join(thread, nullptr);
         joinable = false;
     }
+    if (slot.valid() && state.load() == State::NOT_CREATED) {
+        try {
+            sbs.status.release(slot);  // the task is gone: chimtop stops showing it
+        } catch (const std::exception& e) {
+            std::fprintf(stderr, "chimera: task %s: releasing its status slot: %s\n", name.c_str(), e.what());
+        }
+    }
 }
 
 void* TaskCore::thread_main(void* self) noexcept {
@@ -232,7 +241,41 @@ void* TaskCore::thread_main(void* self) noexcept {
     return nullptr;
 }
 
+namespace {
+prof::TaskState prof_state(State s) noexcept {
+    switch (s) {
+        case State::NOT_CREATED: return prof::TaskState::not_created;
+        case State::OFF: return prof::TaskState::off;
+        case State::ON: return prof::TaskState::on;
+        case State::ERROR: return prof::TaskState::error;
+    }
+    return prof::TaskState::not_created;
+}
+}  // namespace
+
+void TaskCore::set_state(State s) noexcept {
+    const State from = state.exchange(s);
+    if (from != s) CHIMERA_TRACE_STATE_TRANSITION(name.c_str(), static_cast<int>(prof_state(from)),
+                                                  static_cast<int>(prof_state(s)));
+    if (slot.valid()) slot.set_state(prof_state(s));
+}
+
 void TaskCore::start() {
+    if (sbs.status.valid() && !slot.valid()) {
+        prof::TaskIdentity who;
+        who.rmod = name;
+        who.rtpu = sbs.rtpu_index(rtpu);
+        who.cpu = rtpu.cpu;
+        who.type = static_cast<prof::TaskType>(status_letter(type));
+        const std::int64_t p = period_ns.load();
+        who.ref_freq = p > 0 ? 1e9 / static_cast<double>(p) : 0.0;
+        who.crit = crit.load();
+        const std::string inputs = join_names(in_vars, ","), outputs = join_names(out_vars, ",");
+        who.inputs = inputs;
+        who.outputs = outputs;
+        slot = sbs.status.claim(who);  // throws StatusError when the segment is full: spawn fails cleanly
+        slot.set_state(prof::TaskState::spawning);
+    }
     pthread_attr_t attr;
     pthread_attr_init(&attr);
     pthread_attr_setstacksize(&attr, 1u << 20);
@@ -307,6 +350,32 @@ void TaskCore::run() {
     }
     sched_setup();
     std::unique_ptr<Pacer> pacer = make_clock_pacer();
+
+    // The profiler opens the thread's own CPU-time counter, so it is made here.
+    std::optional<prof::TaskProfiler> task_profiler;
+    if (slot.valid()) {
+        try {
+            task_profiler.emplace(slot);
+            profiler = &*task_profiler;
+        } catch (const std::exception& e) {
+            std::fprintf(stderr, "chimera: task %s runs unprofiled: %s\n", name.c_str(), e.what());
+        }
+        slot.set_tid(static_cast<int>(tid.load()));
+        std::lock_guard<std::mutex> lock(msg_mu);
+        slot.set_policy(policy);
+    }
+    // Sizes for the svar_copy tracepoint, known once.
+    auto bytes_of = [&](const std::vector<std::string>& names) {
+        std::uint64_t n = 0;
+        for (const auto& v : names) n += sbs.table.var(sbs.table.index_of(v)).bytes();
+        return n;
+    };
+    [[maybe_unused]] const auto in_var_bytes = static_cast<unsigned>(bytes_of(in_vars));
+    [[maybe_unused]] const auto out_var_bytes = static_cast<unsigned>(bytes_of(out_vars));
+    struct ProfilerDetach {
+        prof::TaskProfiler*& p;
+        ~ProfilerDetach() { p = nullptr; }
+    } profiler_detach{profiler};
 
     // ---- error routing: the task's own handler at the bottom of its chain ----
     Phase phase = Phase::init;
@@ -403,7 +472,8 @@ void TaskCore::run() {
     auto last_error = [&]() { return err::Error{err_code, err_owned_module, err_owned_message, nullptr, 0}; };
 
     auto enter_error = [&]() {
-        state.store(State::ERROR);
+        if (slot.valid()) slot.error(err_owned_message);
+        set_state(State::ERROR);
         next_state.store(State::ERROR);
         sbs.refresh_error_flag();
         sbs.post_signal(*this, sig::ERROR);
@@ -420,7 +490,7 @@ void TaskCore::run() {
         // No recovery for init (§4.5.2): kill frees what init allocated; NOT-CREATED.
         const std::string why = err_owned_message;
         for (std::size_t i = 0; i < objects.size(); ++i) call(Phase::kill, i, [](Module& m, Task& t) { return m.kill(t); });
-        state.store(State::NOT_CREATED);
+        set_state(State::NOT_CREATED);
         std::lock_guard<std::mutex> lock(cmd_mu);
         start_failed = true;
         start_error = "init failed: " + why + "; kill() called, the task is NOT-CREATED";
@@ -428,7 +498,7 @@ void TaskCore::run() {
         cmd_cv.notify_all();
         return;
     }
-    state.store(State::OFF);
+    set_state(State::OFF);
     {
         std::lock_guard<std::mutex> lock(cmd_mu);
         started = true;
@@ -444,29 +514,33 @@ void TaskCore::run() {
     };
     auto apply_error_outcome = [&](Outcome r) {
         if (r == Outcome::error_off) {
-            state.store(State::OFF);
+            set_state(State::OFF);
             next_state.store(State::OFF);
         } else if (r == Outcome::error_halt) {
             enter_error();
         }
     };
     auto run_cycle = [&]() {
+        if (profiler) profiler->cycle_begin();
         const std::int64_t t0 = ipc::now_ns();
         last_release_ns.store(t0, std::memory_order_relaxed);
         Outcome r = transfer(local->copy_from_global(set_in_vars), "in-vars");
+        CHIMERA_TRACE_SVAR_COPY(name.c_str(), 0, static_cast<std::uint32_t>(set_in_vars.size()), in_var_bytes);
         if (r == Outcome::ok) r = call_all(Phase::cycle, [](Module& m, Task& t) { return m.cycle(t); });
         if (r == Outcome::ok || r == Outcome::off) {
             const Outcome w = transfer(local->copy_to_global(set_out_vars), "out-vars");
+            CHIMERA_TRACE_SVAR_COPY(name.c_str(), 1, static_cast<std::uint32_t>(set_out_vars.size()), out_var_bytes);
             cycles.fetch_add(1, std::memory_order_relaxed);
             if (w != Outcome::ok) r = w;
         }
         const std::int64_t dt = ipc::now_ns() - t0;
         if (dt > max_cycle_ns.load(std::memory_order_relaxed)) max_cycle_ns.store(dt, std::memory_order_relaxed);
+        if (profiler) profiler->cycle_end();
         if (r == Outcome::off) {
             // Goal reached: the task turns itself off and tells the master.
             const Outcome f = do_off_method();
             if (f == Outcome::ok || f == Outcome::off) {
-                state.store(State::OFF);
+                set_state(State::OFF);
                 sbs.post_signal(*this, sig::OFF);
             } else {
                 apply_error_outcome(f);
@@ -511,7 +585,8 @@ void TaskCore::run() {
                         const std::int64_t now = ipc::now_ns();
                         on_since_ns.store(now);
                         pacer->start(now, period_ns.load());
-                        state.store(State::ON);
+                        if (profiler) profiler->start();  // profiling restarts on the RTPU (§6.7)
+                        set_state(State::ON);
                     } else if (r == Outcome::off) {
                         next_state.store(State::OFF);
                         result = "on() returned OFF: the task stays OFF";
@@ -530,7 +605,7 @@ void TaskCore::run() {
                     }
                     Outcome r = do_off_method();
                     if (r == Outcome::ok || r == Outcome::off) {
-                        state.store(State::OFF);
+                        set_state(State::OFF);
                     } else {
                         apply_error_outcome(r);
                         result = "error in off(): " + err_owned_message;
@@ -545,7 +620,7 @@ void TaskCore::run() {
                     if (s == State::ON) {
                         const Outcome r = do_off_method();
                         if (r != Outcome::ok && r != Outcome::off) result = "error in off(): " + err_owned_message + "; ";
-                        state.store(State::OFF);  // kill runs from OFF (Figure 3.10)
+                        set_state(State::OFF);  // kill runs from OFF (Figure 3.10)
                     }
                     next_state.store(State::NOT_CREATED);
                     bool failed = false;
@@ -554,7 +629,7 @@ void TaskCore::run() {
                             failed = true;
                     }
                     if (failed) result += "error in kill(): " + err_owned_message;
-                    state.store(State::NOT_CREATED);
+                    set_state(State::NOT_CREATED);
                     sbs.refresh_error_flag();
                     alive = false;
                     break;
@@ -582,7 +657,8 @@ void TaskCore::run() {
                         next_state.store(State::ERROR);
                         result = "clear() returned ERROR: the task stays in ERROR";
                     } else {
-                        state.store(State::OFF);
+                        set_state(State::OFF);
+                        if (slot.valid()) slot.clear_error();
                         std::lock_guard<std::mutex> ml(msg_mu);
                         error_text.clear();
                         error_module.clear();
@@ -662,6 +738,10 @@ void TaskCore::run() {
                         ob.rmod.period = 1.0 / hz;
                     }
                     crit.store(crit_for(rtpu, type, hz));
+                    if (slot.valid()) {
+                        slot.set_ref_freq(hz);
+                        slot.set_crit(crit.load());
+                    }
                     if (rtpu.backend != Backend::other) {
                         sched_param sp{};
                         int pol = 0;
@@ -672,6 +752,7 @@ void TaskCore::run() {
                             std::lock_guard<std::mutex> ml(msg_mu);
                             policy = "SCHED_FIFO " + std::to_string(sp.sched_priority) + ", CPU " +
                                      std::to_string(rtpu.cpu);
+                            if (slot.valid()) slot.set_policy(policy);
                         }
                     }
                     break;
@@ -696,7 +777,10 @@ void TaskCore::run() {
         switch (type) {
             case TaskType::periodic: {
                 if (!pacer->wait(word, seen, missed)) continue;  // a request came in
-                misses.store(missed, std::memory_order_relaxed);
+                if (const std::uint64_t before = misses.load(std::memory_order_relaxed); missed != before) {
+                    if (profiler) profiler->missed(static_cast<std::uint32_t>(missed - before));
+                    misses.store(missed, std::memory_order_relaxed);
+                }
                 run_cycle();
                 break;
             }
@@ -782,6 +866,7 @@ void Task::error(int code, std::string_view message, const char* file, int line)
 void Task::warning(std::string_view message) noexcept {
     TaskCore& c = *core_;
     c.warnings.fetch_add(1, std::memory_order_relaxed);
+    if (c.slot.valid()) c.slot.warning(message);
     {
         std::unique_lock<std::mutex> lock(c.msg_mu, std::try_to_lock);
         if (lock.owns_lock()) {

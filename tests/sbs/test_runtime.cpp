@@ -3,6 +3,7 @@
 // exactly as a user's module is. The probe records every method call with the
 // state and the local values of its ports at that moment.
 #include "chimera/ipc/segment.hpp"
+#include "chimera/prof.hpp"
 #include "chimera/sbs.hpp"
 #include "chimera/svar.hpp"
 
@@ -561,6 +562,38 @@ TEST_F(Sbs, PeriodicStatusShowsTheRunningTask) {
     EXPECT_TRUE(has(chimera::sbs::format_status(st), "p "));
 }
 
+TEST_F(Sbs, TasksPublishTheirProfileInTheStatusSegment) {
+    auto& s = init("");
+    auto t = s.spawn(rmod("busy", "", "periodic", "BUSY_US 2000\n"));
+    // Another process would attach by the subsystem's name, as chimtop does.
+    auto reader = chimera::prof::StatusReader::attach(name_);
+    auto rows = reader.snapshot();
+    ASSERT_EQ(rows.size(), 1u);
+    EXPECT_EQ(rows[0].rmod, "busy");
+    EXPECT_EQ(rows[0].state, chimera::prof::TaskState::off);
+    EXPECT_DOUBLE_EQ(rows[0].ref_f, 100.0);
+    s.control(t, Control::on);
+    ASSERT_TRUE(eventually([&] { return s.status(t).profile.cycle >= 6; }));
+    rows = reader.snapshot();
+    ASSERT_EQ(rows.size(), 1u);
+    EXPECT_EQ(rows[0].state, chimera::prof::TaskState::on);
+    EXPECT_GT(rows[0].tid, 0);
+    EXPECT_FALSE(rows[0].policy.empty());
+    EXPECT_NE(rows[0].cpu_clock, chimera::prof::CpuClock::none);
+    // The first cycle after the reset is dropped (§6.7); each other one burnt
+    // at least 2 ms of the thread's CPU time, and CPU time, not wall time, is
+    // charged, so a cycle never shows more than its burn plus small overhead.
+    EXPECT_EQ(rows[0].accounted + 1, rows[0].cycle);
+    EXPECT_GE(rows[0].min_c, 0.002);
+    EXPECT_LE(rows[0].min_c, rows[0].avg_c);
+    EXPECT_LE(rows[0].avg_c, rows[0].max_c);
+    EXPECT_LT(rows[0].max_c, 0.004);
+    // The master's status carries the same profile.
+    EXPECT_GE(s.status(t).profile.min_c, 0.002);
+    s.control(t, Control::kill);
+    EXPECT_TRUE(reader.snapshot().empty());  // a killed task leaves the table
+}
+
 // ------------------------------------------------------------------ set-up errors, finish
 
 TEST_F(Sbs, SetUpErrorsNameTheFileAndTheObject) {
@@ -593,6 +626,7 @@ TEST_F(Sbs, FinishStopsEveryTaskAndRemovesTheSegment) {
     EXPECT_EQ(ma.back(), "kill");
     EXPECT_EQ(methods("b"), (std::vector<std::string>{"init", "kill"}));
     EXPECT_FALSE(chimera::ipc::Segment::exists(chimera::ipc::segment_name(name_, "svar")));
+    EXPECT_FALSE(chimera::ipc::Segment::exists(chimera::ipc::segment_name(name_, "status")));
     EXPECT_TRUE(has(what_of([&] { s.spawn(rmod("c", "")); }), "is finished"));
 }
 

@@ -9,6 +9,7 @@
 //   OFF_AFTER n                   cycle returns OFF at its n-th cycle
 //   SIGNAL n                      cycle sends SBS signal n
 //   SYNC_MS n                     sync() sleeps n ms (synchronous tasks)
+//   BUSY_US n                     cycle() burns n us of the thread's own CPU time
 // Records go to chimera_test_record(), defined by the test program.
 #include <chimera/module.hpp>
 #include <chimera/svar.hpp>
@@ -18,6 +19,7 @@
 #include <stdexcept>
 #include <string>
 #include <thread>
+#include <time.h>
 
 extern "C" void chimera_test_record(const char* line);
 
@@ -25,6 +27,16 @@ namespace {
 
 using chimera::Result;
 using chimera::Task;
+
+// Spins until the calling thread has used `ns` of CPU time (not wall time),
+// so the profiled CPU time of a cycle has a known lower bound.
+void burn_cpu_ns(double ns) {
+    timespec a{}, b{};
+    clock_gettime(CLOCK_THREAD_CPUTIME_ID, &a);
+    do {
+        clock_gettime(CLOCK_THREAD_CPUTIME_ID, &b);
+    } while (static_cast<double>(b.tv_sec - a.tv_sec) * 1e9 + static_cast<double>(b.tv_nsec - a.tv_nsec) < ns);
+}
 
 class Probe : public chimera::Module {
 public:
@@ -53,6 +65,7 @@ public:
         if (out_ && in_) *out_ = *in_ + t.local().number("ADD", 1.0);
         else if (out_) *out_ = static_cast<double>(n_);
         if (t.local().has("SIGNAL")) t.send_signal(static_cast<int>(t.local().number("SIGNAL", 0)));
+        if (const double busy_us = t.local().number("BUSY_US", 0.0); busy_us > 0) burn_cpu_ns(busy_us * 1e3);
         const double off_after = t.local().number("OFF_AFTER", 0.0);
         if (off_after > 0 && static_cast<double>(n_) >= off_after) return Result::OFF;
         return act(t, "CYCLE");
