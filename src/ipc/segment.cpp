@@ -2,6 +2,7 @@
 #include "chimera/ipc/segment.hpp"
 
 #include <fcntl.h>
+#include <signal.h>
 #include <sys/mman.h>
 #include <sys/stat.h>
 #include <unistd.h>
@@ -300,6 +301,24 @@ bool Segment::exists(const std::string& name) noexcept {
     if (fd < 0) return false;
     close(fd);
     return true;
+}
+
+bool Segment::is_stale(const std::string& name) noexcept {
+    const int fd = shm_open(name.c_str(), O_RDONLY, 0);
+    if (fd < 0) return false;
+    struct stat st {};
+    bool stale = true;  // too small or unreadable to be anybody's segment
+    if (fstat(fd, &st) == 0 && static_cast<std::size_t>(st.st_size) >= sizeof(SegmentHeader)) {
+        void* p = mmap(nullptr, sizeof(SegmentHeader), PROT_READ, MAP_SHARED, fd, 0);
+        if (p != MAP_FAILED) {
+            const auto* h = static_cast<const SegmentHeader*>(p);
+            const int pid = h->magic == kSegmentMagic ? h->creator_pid : 0;
+            stale = !(pid > 0 && (kill(pid, 0) == 0 || errno == EPERM));
+            munmap(p, sizeof(SegmentHeader));
+        }
+    }
+    close(fd);
+    return stale;
 }
 
 }  // namespace chimera::ipc

@@ -80,9 +80,15 @@ SubsystemCore::SubsystemCore(SbsFile f) : file(std::move(f)) {
         }
     }
     const std::string seg = ipc::segment_name(file.subsystem, "svar");
-    if (ipc::Segment::exists(seg))
-        throw Error("subsystem " + file.subsystem + " is already running (segment " + seg +
-                    " exists); finish it first, or remove the stale segment of a crashed run");
+    if (ipc::Segment::exists(seg)) {
+        if (!ipc::Segment::is_stale(seg))
+            throw Error("subsystem " + file.subsystem + " is already running (segment " + seg +
+                        " exists and its creator process is alive); finish it first");
+        // A crashed run left it: its creator is gone, so nobody can be using it as master.
+        std::fprintf(stderr, "chimera: subsystem %s: replacing segment %s left by a process that died\n",
+                     file.subsystem.c_str(), seg.c_str());
+        ipc::Segment::unlink(seg);
+    }
     table = svar::Table::create(seg, file.svarfile);
     prof::StatusOptions so;
     so.rtpus = static_cast<std::uint32_t>(std::max<std::size_t>(1, file.rtpus.size()));

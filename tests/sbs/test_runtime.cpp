@@ -17,6 +17,7 @@
 #include <mutex>
 #include <string>
 #include <thread>
+#include <sys/wait.h>
 #include <unistd.h>
 #include <vector>
 
@@ -633,6 +634,24 @@ TEST_F(Sbs, FinishStopsEveryTaskAndRemovesTheSegment) {
 TEST_F(Sbs, ASecondSubsystemOfTheSameNameIsRefused) {
     init();
     EXPECT_TRUE(has(what_of([&] { Subsystem::init((dir_ / "t.sbs").string()); }), "is already running"));
+}
+
+TEST_F(Sbs, SegmentsOfACrashedRunAreReplaced) {
+    write("t.sbs", "SUBSYSTEM " + name_ + "\nSVARFILE t.svar\nRTPU cpu0\nERRPRINT none\nEOF\n");
+    const pid_t child = fork();
+    ASSERT_GE(child, 0);
+    if (child == 0) {
+        auto crashed = Subsystem::init((dir_ / "t.sbs").string());
+        crashed.release();  // no finish: the process dies with its segments published
+        _exit(0);
+    }
+    int st = 0;
+    ASSERT_EQ(waitpid(child, &st, 0), child);
+    ASSERT_TRUE(WIFEXITED(st) && WEXITSTATUS(st) == 0);
+    ASSERT_TRUE(chimera::ipc::Segment::exists(chimera::ipc::segment_name(name_, "svar")));
+    auto again = Subsystem::init((dir_ / "t.sbs").string());  // the creator is gone: replaced
+    EXPECT_EQ(again->name(), name_);
+    again->finish();
 }
 
 }  // namespace

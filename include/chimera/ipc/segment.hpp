@@ -165,6 +165,9 @@ public:
     static bool unlink(const std::string& name) noexcept;
     /// True when a segment of this name exists.
     static bool exists(const std::string& name) noexcept;
+    /// True when a segment of this name exists but its creator process is
+    /// gone (or its header is unreadable): left behind by a crash.
+    static bool is_stale(const std::string& name) noexcept;
 
     bool valid() const noexcept { return base_ != nullptr; }
     const std::string& name() const noexcept { return name_; }
