@@ -274,8 +274,9 @@ private:
     friend class VarInfo;
     explicit Table(ipc::Segment seg, const TableOptions& options) noexcept;
     void bind() noexcept;
-    Status acquire() noexcept;
-    Status release(Status acquired) noexcept;
+    // Defined inline in the library's internal layout header: the cycle path.
+    inline Status acquire() noexcept;
+    inline Status release(Status acquired) noexcept;
     void save_undo(const std::uint32_t* indices, std::size_t count) noexcept;
     void clear_undo() noexcept;
     void roll_back() noexcept;
@@ -388,6 +389,7 @@ private:
         std::uint32_t global_index;
         std::uint32_t bytes;
         std::uint64_t local_offset;
+        std::uint64_t global_offset;  // from the table's data area
     };
     void build(const std::vector<const std::vector<std::string>*>& lists,
                const std::vector<const char*>& list_names);
@@ -399,6 +401,9 @@ private:
     Table* global_;
     std::unique_ptr<std::byte[], void (*)(std::byte*)> buffer_;
     std::vector<LocalVar> vars_;              // sorted by local_offset
+    // local_offset / detail::kVarAlign → vars_ index, -1 where no variable
+    // starts: read(ptr)/write(ptr) find their variable with one look-up.
+    std::vector<std::int32_t> var_at_slot_;
     std::vector<std::int32_t> by_global_;     // global index → vars_ index, -1 if absent
     VarSet in_consts_, out_consts_, in_vars_, out_vars_, on_set_;
 };

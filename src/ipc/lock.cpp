@@ -18,12 +18,15 @@
 #endif
 
 namespace chimera::ipc {
+
+namespace detail {
+[[gnu::tls_model("initial-exec")]] constinit thread_local std::uint64_t t_self_owner_id = 0;
+}  // namespace detail
+
 namespace {
 
-thread_local std::uint64_t t_self = 0;
-
 // The child of fork() inherits the parent's thread-local cache: clear it.
-void clear_self_in_child() noexcept { t_self = 0; }
+void clear_self_in_child() noexcept { detail::t_self_owner_id = 0; }
 const bool g_atfork_registered = [] {
     pthread_atfork(nullptr, nullptr, &clear_self_in_child);
     return true;
@@ -75,15 +78,12 @@ void set_lock_event_handler(LockEventHandler handler, void* context) noexcept {
     g_handler.store(handler, std::memory_order_release);
 }
 
-std::uint64_t self_owner_id() noexcept {
-    std::uint64_t id = t_self;
-    if (id == 0) [[unlikely]] {
-        (void)g_atfork_registered;
-        const auto pid = static_cast<std::uint32_t>(getpid());
-        const auto tid = static_cast<std::uint32_t>(gettid());
-        id = (static_cast<std::uint64_t>(pid) << 32) | tid;
-        t_self = id;
-    }
+std::uint64_t detail::self_owner_id_slow() noexcept {
+    (void)g_atfork_registered;
+    const auto pid = static_cast<std::uint32_t>(getpid());
+    const auto tid = static_cast<std::uint32_t>(gettid());
+    const std::uint64_t id = (static_cast<std::uint64_t>(pid) << 32) | tid;
+    t_self_owner_id = id;
     return id;
 }
 

@@ -10,14 +10,19 @@
 //
 // Every reference is an offset from the segment's start. Sizes are checked
 // below so that a change of layout must bump kLayoutVersion.
+//
+// Also here: the table lock's cycle path (Table::acquire/release), inline in
+// every file of the service that transfers data.
 #pragma once
 
 #include <atomic>
 #include <cstddef>
 #include <cstdint>
+#include <cstring>
 
 #include "chimera/ipc/lock.hpp"
 #include "chimera/ipc/segment.hpp"
+#include "chimera/svar.hpp"
 
 namespace chimera::svar::detail {
 
@@ -73,3 +78,60 @@ struct Descriptor {
 static_assert(sizeof(Descriptor) == 96);
 
 }  // namespace chimera::svar::detail
+
+namespace chimera::svar {
+
+namespace detail {
+
+// Copies one variable. Small ones (float[6], double[6]: the usual joint
+// vectors) are moved with two to four unaligned 8- or 16-byte loads and stores
+// inline: a call to memcpy, its size dispatch included, costs as much as the
+// copy itself, and a multi-variable transfer makes one per variable.
+[[gnu::always_inline]] inline void copy_var(std::byte* dst, const std::byte* src,
+                                            std::size_t n) noexcept {
+    if (n >= 16 && n <= 64) {
+        std::byte a[16], b[16], c[16], d[16];
+        std::memcpy(a, src, 16);
+        std::memcpy(b, src + n - 16, 16);
+        if (n > 32) {
+            std::memcpy(c, src + 16, 16);
+            std::memcpy(d, src + n - 32, 16);
+            std::memcpy(dst + 16, c, 16);
+            std::memcpy(dst + n - 32, d, 16);
+        }
+        std::memcpy(dst, a, 16);
+        std::memcpy(dst + n - 16, b, 16);
+    } else if (n >= 8 && n < 16) {
+        std::byte a[8], b[8];
+        std::memcpy(a, src, 8);
+        std::memcpy(b, src + n - 8, 8);
+        std::memcpy(dst, a, 8);
+        std::memcpy(dst + n - 8, b, 8);
+    } else {
+        std::memcpy(dst, src, n);
+    }
+}
+
+}  // namespace detail
+
+// The table lock on the cycle path: one CAS to take it, a store to give it back.
+inline Status Table::acquire() noexcept {
+    switch (ipc::lock(hdr_->lock, lock_options_)) {
+        case ipc::LockStatus::acquired: return Status::ok;
+        case ipc::LockStatus::recovered:
+            roll_back();
+            return Status::recovered;
+        case ipc::LockStatus::forced: return Status::forced;
+        case ipc::LockStatus::already_held: return Status::reentered;
+        case ipc::LockStatus::busy:
+        case ipc::LockStatus::timed_out: break;
+    }
+    return Status::timed_out;
+}
+
+inline Status Table::release(Status acquired) noexcept {
+    if (!ipc::unlock(hdr_->lock)) return Status::lock_lost;
+    return acquired;
+}
+
+}  // namespace chimera::svar

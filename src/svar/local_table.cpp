@@ -64,11 +64,15 @@ void LocalTable::build(const std::vector<const std::vector<std::string>*>& lists
             const VarInfo info = global_->var(*ix);
             by_global_[*ix] = static_cast<std::int32_t>(vars_.size());
             vars_.push_back(LocalVar{static_cast<std::uint32_t>(*ix),
-                                     static_cast<std::uint32_t>(info.bytes()), offset});
+                                     static_cast<std::uint32_t>(info.bytes()), offset,
+                                     global_->desc_[*ix].data_offset});
             offset = ipc::align_up(offset + info.bytes(), detail::kVarAlign);
         }
     }
     buffer_.reset(alloc_buffer(offset));
+    var_at_slot_.assign(offset / detail::kVarAlign + 1, -1);
+    for (std::size_t i = 0; i < vars_.size(); ++i)
+        var_at_slot_[vars_[i].local_offset / detail::kVarAlign] = static_cast<std::int32_t>(i);
     // Start from the table's current values, so a translated pointer never
     // shows garbage even before the first copy.
     const Status s = global_->acquire();
@@ -92,9 +96,8 @@ VarSet LocalTable::set_of(const std::vector<std::string>& names, const char* lis
         if (std::find(set.indices_.begin(), set.indices_.end(), *ix) != set.indices_.end())
             continue;  // listed twice: copy once
         const LocalVar& v = vars_[static_cast<std::size_t>(local)];
-        set.entries_.push_back(VarSet::Entry{v.global_index, v.bytes,
-                                             global_->desc_[v.global_index].data_offset,
-                                             v.local_offset});
+        set.entries_.push_back(
+            VarSet::Entry{v.global_index, v.bytes, v.global_offset, v.local_offset});
         set.indices_.push_back(v.global_index);
     }
     return set;
@@ -150,15 +153,18 @@ void* LocalTable::translate_any(std::string_view name) {
     return buffer_.get() + vars_[static_cast<std::size_t>(by_global_[*ix])].local_offset;
 }
 
-const LocalTable::LocalVar* LocalTable::local_at(const void* p) const noexcept {
-    const auto* b = static_cast<const std::byte*>(p);
-    if (b < buffer_.get()) return nullptr;
-    const auto off = static_cast<std::uint64_t>(b - buffer_.get());
-    // vars_ is in increasing local_offset order.
-    auto it = std::lower_bound(vars_.begin(), vars_.end(), off,
-                               [](const LocalVar& v, std::uint64_t o) { return v.local_offset < o; });
-    if (it == vars_.end() || it->local_offset != off) return nullptr;
-    return &*it;
+// Inlined into read/write: with the lock they are the whole cycle path.
+[[gnu::always_inline]] inline const LocalTable::LocalVar* LocalTable::local_at(
+    const void* p) const noexcept {
+    // Compared as integers: a pointer outside the buffer is not an error here.
+    const auto addr = reinterpret_cast<std::uintptr_t>(p);
+    const auto base = reinterpret_cast<std::uintptr_t>(buffer_.get());
+    const std::uintptr_t off = addr - base;  // wraps to a huge value below the buffer
+    if (off % detail::kVarAlign != 0) return nullptr;
+    const std::uintptr_t slot = off / detail::kVarAlign;
+    if (addr < base || slot >= var_at_slot_.size()) return nullptr;
+    const std::int32_t i = var_at_slot_[slot];
+    return i < 0 ? nullptr : &vars_[static_cast<std::size_t>(i)];
 }
 
 std::optional<std::size_t> LocalTable::index_of(const void* local) const noexcept {
@@ -166,17 +172,17 @@ std::optional<std::size_t> LocalTable::index_of(const void* local) const noexcep
     return std::nullopt;
 }
 
-Status LocalTable::single(const LocalVar* v, bool to_global) noexcept {
+[[gnu::always_inline]] inline Status LocalTable::single(const LocalVar* v, bool to_global) noexcept {
     Table& g = *global_;
-    const std::uint64_t goff = g.desc_[v->global_index].data_offset;
+    const std::uint64_t goff = v->global_offset;
     const Status s = g.acquire();
     if (!transferred(s)) return s;
     if (to_global) {
         g.save_undo(&v->global_index, 1);
-        std::memcpy(g.data_ + goff, buffer_.get() + v->local_offset, v->bytes);
+        detail::copy_var(g.data_ + goff, buffer_.get() + v->local_offset, v->bytes);
         g.clear_undo();
     } else {
-        std::memcpy(buffer_.get() + v->local_offset, g.data_ + goff, v->bytes);
+        detail::copy_var(buffer_.get() + v->local_offset, g.data_ + goff, v->bytes);
     }
     return g.release(s);
 }
@@ -209,7 +215,7 @@ Status LocalTable::copy_from_global(const VarSet& set) noexcept {
     std::byte* local = buffer_.get();
     const std::byte* data = g.data_;
     for (const VarSet::Entry& e : set.entries_)
-        std::memcpy(local + e.local_offset, data + e.global_offset, e.bytes);
+        detail::copy_var(local + e.local_offset, data + e.global_offset, e.bytes);
     return g.release(s);
 }
 
@@ -222,7 +228,7 @@ Status LocalTable::copy_to_global(const VarSet& set) noexcept {
     const std::byte* local = buffer_.get();
     std::byte* data = g.data_;
     for (const VarSet::Entry& e : set.entries_)
-        std::memcpy(data + e.global_offset, local + e.local_offset, e.bytes);
+        detail::copy_var(data + e.global_offset, local + e.local_offset, e.bytes);
     g.clear_undo();
     return g.release(s);
 }

@@ -305,31 +305,12 @@ TableStats Table::stats() const noexcept {
 
 // --- the cycle path ------------------------------------------------------------
 
-Status Table::acquire() noexcept {
-    switch (ipc::lock(hdr_->lock, lock_options_)) {
-        case ipc::LockStatus::acquired: return Status::ok;
-        case ipc::LockStatus::recovered:
-            roll_back();
-            return Status::recovered;
-        case ipc::LockStatus::forced: return Status::forced;
-        case ipc::LockStatus::already_held: return Status::reentered;
-        case ipc::LockStatus::busy:
-        case ipc::LockStatus::timed_out: break;
-    }
-    return Status::timed_out;
-}
-
-Status Table::release(Status acquired) noexcept {
-    if (!ipc::unlock(hdr_->lock)) return Status::lock_lost;
-    return acquired;
-}
-
 void Table::save_undo(const std::uint32_t* indices, std::size_t count) noexcept {
     std::byte* undo = seg_.at_bytes(hdr_->undo_offset);
     auto* list = seg_.at_bytes<std::uint32_t>(hdr_->undo_index_offset);
     for (std::size_t i = 0; i < count; ++i) {
         const Descriptor& d = desc_[indices[i]];
-        std::memcpy(undo + d.data_offset, data_ + d.data_offset, d.bytes);
+        detail::copy_var(undo + d.data_offset, data_ + d.data_offset, d.bytes);
         list[i] = indices[i];
     }
     hdr_->undo_count = static_cast<std::uint32_t>(count);

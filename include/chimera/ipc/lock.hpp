@@ -1,8 +1,8 @@
 // chimera/ipc/lock.hpp — the table lock (the thesis's xmLock, §5.3, §6.6).
 //
 // A spin-lock in shared memory whose word holds the owner, (pid << 32 | tid),
-// 0 when free. Acquiring it uncontended is one compare-and-swap: no system
-// call, no allocation (the caller's pid/tid are cached per thread). Under
+// 0 when free. Acquiring it uncontended is one compare-and-swap, releasing it
+// one store: no system call, no allocation (the caller's pid/tid are cached per thread). Under
 // contention the caller spins a bounded number of times with the CPU's polling
 // pause, then polls with short sleeps until its timeout.
 //
@@ -85,9 +85,22 @@ using LockEventHandler = void (*)(const LockEvent& event, void* context) noexcep
 /// removes it). The handler runs in the thread that saw the event.
 void set_lock_event_handler(LockEventHandler handler, void* context = nullptr) noexcept;
 
+namespace detail {
+/// This thread's owner word once known, else 0. Initial-exec TLS: reading it is
+/// one load relative to the thread pointer, also from inside the shared library
+/// (the general-dynamic model would call __tls_get_addr on every lock).
+[[gnu::tls_model("initial-exec")]] extern constinit thread_local std::uint64_t t_self_owner_id;
+/// Computes the owner word (getpid, gettid) and caches it.
+std::uint64_t self_owner_id_slow() noexcept;
+}  // namespace detail
+
 /// This thread's owner word (pid << 32 | tid), cached per thread and reset in a
-/// child after fork().
-std::uint64_t self_owner_id() noexcept;
+/// child after fork(). No system call once cached.
+inline std::uint64_t self_owner_id() noexcept {
+    const std::uint64_t id = detail::t_self_owner_id;
+    if (id != 0) [[likely]] return id;
+    return detail::self_owner_id_slow();
+}
 constexpr std::int32_t owner_pid(std::uint64_t word) noexcept {
     return static_cast<std::int32_t>(word >> 32);
 }
@@ -123,10 +136,18 @@ inline LockStatus lock(LockWord& lock, const LockOptions& options = {}) noexcept
 
 /// Releases the lock: true; false (and nothing changed) when the caller does
 /// not hold it, e.g. because a waiter reset it after a timeout.
+///
+/// A check and a plain release store, not a compare-and-swap: a locked
+/// instruction here would double the cost of an uncontended transfer. Only a
+/// holder can be displaced while it runs, and only by the opt-in blind reset
+/// (reset_on_timeout, after the full timeout): if that reset lands between the
+/// check and the store, the store frees the new holder's lock, and that holder
+/// learns it when its own unlock() returns false. The reset is reported as
+/// forced in any case, and forced already means "data may be torn".
 inline bool unlock(LockWord& lock) noexcept {
-    std::uint64_t expected = self_owner_id();
-    return lock.owner.compare_exchange_strong(expected, 0, std::memory_order_release,
-                                              std::memory_order_relaxed);
+    if (lock.owner.load(std::memory_order_relaxed) != self_owner_id()) return false;
+    lock.owner.store(0, std::memory_order_release);
+    return true;
 }
 
 /// Takes the lock over from a holder known to be dead (CAS from its word);
