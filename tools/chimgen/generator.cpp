@@ -4,8 +4,10 @@
 
 #include <algorithm>
 #include <cctype>
+#include <cmath>
 #include <cstdlib>
 #include <cstdio>
+#include <cstring>
 #include <set>
 #include <sstream>
 
@@ -24,10 +26,13 @@ bool is_identifier(std::string_view s) {
 std::string format_number(double v) {
     char buf[64];
     std::snprintf(buf, sizeof buf, "%.17g", v);
-    // Shortest text that reads back to the same double.
+    // Shortest text that reads back to the same double; no exponent for the
+    // magnitudes people write plainly (FREQ 100, not FREQ 1e+02).
+    const bool plain = std::fabs(v) >= 1e-4 && std::fabs(v) < 1e15;
     for (int prec = 1; prec <= 17; ++prec) {
         char shorter[64];
         std::snprintf(shorter, sizeof shorter, "%.*g", prec, v);
+        if (plain && std::strchr(shorter, 'e') != nullptr) continue;
         if (std::strtod(shorter, nullptr) == v) return shorter;
     }
     return buf;

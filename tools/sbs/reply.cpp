@@ -14,6 +14,7 @@ nlohmann::json to_json(const Reply& reply, const nlohmann::json& id) {
     } else {
         j["error"] = reply.error;
         if (!reply.text.empty()) j["text"] = reply.text;
+        if (!reply.data.is_null()) j["data"] = reply.data;  // e.g. what a reconfig applied
     }
     return j;
 }

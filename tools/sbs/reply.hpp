@@ -36,7 +36,7 @@ struct Reply {
 };
 
 /// The reply as one JSON object: {"ok":true,"cmd":...,"rmod":...,"text":...,"data":...}
-/// or {"ok":false,"cmd":...,"error":...}; `id` is echoed when the request carried one.
+/// or {"ok":false,"cmd":...,"error":...[,"data":...]}; `id` is echoed when the request carried one.
 nlohmann::json to_json(const Reply& reply, const nlohmann::json& id = nullptr);
 
 /// to_json() serialised on one line (no newline); never throws on odd bytes

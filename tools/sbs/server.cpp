@@ -194,6 +194,11 @@ void NetworkServer::start() {
         set_cloexec_nonblock(tcp_fd_);
     }
     stopping_ = false;
+    if (options_.serve) {
+        std::lock_guard lock(mutex_);
+        offered_ = true;
+        persistent_ = true;
+    }
     thread_ = std::thread([this] { run(); });
 }
 
@@ -267,20 +272,28 @@ void NetworkServer::end_session(SessionEnd why) {
     changed_.notify_all();
 }
 
-NetworkServer::SessionEnd NetworkServer::hand_over(const std::atomic<bool>* interrupt) {
-    return wait_session(interrupt, false);
+NetworkServer::SessionEnd NetworkServer::hand_over(const std::atomic<bool>* interrupt,
+                                                   const std::function<void()>& offered) {
+    return wait_session(interrupt, false, offered);
 }
 
 NetworkServer::SessionEnd NetworkServer::serve_forever(const std::atomic<bool>* interrupt) {
-    return wait_session(interrupt, true);
+    return wait_session(interrupt, true, {});
 }
 
-NetworkServer::SessionEnd NetworkServer::wait_session(const std::atomic<bool>* interrupt,
-                                                      bool forever) {
+NetworkServer::SessionEnd NetworkServer::wait_session(const std::atomic<bool>* interrupt, bool forever,
+                                                      const std::function<void()>& offered) {
     std::unique_lock lock(mutex_);
-    const std::uint64_t start = sessions_ended_;
+    // With options_.serve the network had control since start(): sessions
+    // that ended before this call count (a peer may already have sent finish).
+    const std::uint64_t start = options_.serve && forever ? 0 : sessions_ended_;
     offered_ = true;
     persistent_ = forever;
+    if (offered) {
+        lock.unlock();
+        offered();
+        lock.lock();
+    }
     for (;;) {
         if (stopping_) {
             offered_ = false;
@@ -396,6 +409,14 @@ void NetworkServer::run() {
             continue;
         }
         if (rc <= 0) continue;
+        // The controlling peer first: a peer that closed and at once
+        // reconnects must find its old session over, not be refused by it.
+        if (peer_ && fds[n - 1].fd == peer_->fd && fds[n - 1].revents != 0) {
+            if (!handle_input(*peer_)) {
+                ::close(peer_->fd);
+                peer_.reset();
+            }
+        }
         for (nfds_t i = 1; i < n; ++i) {
             if (fds[i].revents == 0) continue;
             if (fds[i].fd == unix_fd_ || fds[i].fd == tcp_fd_) {
@@ -409,11 +430,6 @@ void NetworkServer::run() {
                                                               options_.subsystem));
                         ::close(fd);
                     }
-                }
-            } else if (peer_ && fds[i].fd == peer_->fd) {
-                if (!handle_input(*peer_)) {
-                    ::close(peer_->fd);
-                    peer_.reset();
                 }
             }
         }

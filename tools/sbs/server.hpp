@@ -42,6 +42,8 @@ struct ServerOptions {
     std::string token;              ///< required first line `token T` when non-empty;
                                     ///< mandatory for a non-loopback TCP address
     std::size_t max_request = 4096; ///< longest accepted request line, in bytes
+    bool serve = false;             ///< the network has control from start(): no peer is
+                                    ///< refused before serve_forever() is called
 };
 
 /// The default Unix socket of a subsystem: $XDG_RUNTIME_DIR/chimera/<name>.sock,
@@ -81,7 +83,9 @@ public:
 
     /// Gives control to the network until one session ends, or until
     /// `*interrupt` becomes true while waiting (the operator pressed Ctrl-C).
-    SessionEnd hand_over(const std::atomic<bool>* interrupt);
+    /// `offered` (if given) runs once the network may take control, e.g. to
+    /// tell the operator so without racing a quick peer.
+    SessionEnd hand_over(const std::atomic<bool>* interrupt, const std::function<void()>& offered = {});
     /// Gives control to the network for good; returns when a peer asks for
     /// finish, when `*interrupt` becomes true, or when the server stops.
     SessionEnd serve_forever(const std::atomic<bool>* interrupt);
@@ -98,7 +102,7 @@ private:
     bool send_line(int fd, const std::string& line);
     void end_session(SessionEnd why);
     void wake();
-    SessionEnd wait_session(const std::atomic<bool>* interrupt, bool forever);
+    SessionEnd wait_session(const std::atomic<bool>* interrupt, bool forever, const std::function<void()>& offered);
 
     ServerOptions options_;
     Executor executor_;

@@ -1,0 +1,311 @@
+// The `sbs` program driven one-shot with -c (thesis §4.4.1): every command's
+// happy path and its errors, the default RMOD, --json replies, exit status.
+#include "sbs_harness.hpp"
+
+#include <gtest/gtest.h>
+
+#include <filesystem>
+
+using sbs_test::json_lines;
+using sbs_test::Outcome;
+using sbs_test::Workspace;
+
+namespace {
+
+// Runs a script that must succeed, and returns its JSON replies.
+std::vector<nlohmann::json> ok_json(const Workspace& ws, const std::string& script) {
+    const Outcome r = ws.sbs_run({"-c", script, "--json"});
+    EXPECT_EQ(r.status, 0) << r.out << r.err;
+    auto replies = json_lines(r.out);
+    for (const auto& j : replies) EXPECT_TRUE(j.value("ok", false)) << j.dump();
+    return replies;
+}
+
+// Runs a script whose LAST command must fail; returns that reply's error.
+std::string failing(const Workspace& ws, const std::string& script) {
+    const Outcome r = ws.sbs_run({"-c", script, "--json"});
+    EXPECT_EQ(r.status, 1) << r.out << r.err;
+    const auto replies = json_lines(r.out);
+    if (replies.empty()) {
+        ADD_FAILURE() << "no reply: " << r.err;
+        return {};
+    }
+    EXPECT_FALSE(replies.back().value("ok", true)) << replies.back().dump();
+    for (std::size_t i = 0; i + 1 < replies.size(); ++i) EXPECT_TRUE(replies[i].value("ok", false)) << replies[i].dump();
+    return replies.back().value("error", "");
+}
+
+const nlohmann::json* task(const nlohmann::json& status_reply, const std::string& rmod) {
+    for (const auto& t : status_reply["data"]["tasks"])
+        if (t["rmod"] == rmod) return &t;
+    return nullptr;
+}
+
+}  // namespace
+
+TEST(SbsCli, SpawnOnStatusDisplayWithJson) {
+    Workspace ws;
+    const auto r = ok_json(ws, "spawn ramp; on; spawn follow; on follow; sleep 0.3; status; display ramp; display follow Y");
+    ASSERT_EQ(r.size(), 8u);
+    EXPECT_EQ(r[0]["cmd"], "spawn");
+    EXPECT_EQ(r[0]["data"]["state"], "OFF");
+    EXPECT_EQ(r[0]["data"]["module"], "ramp");
+    EXPECT_EQ(r[0]["rmod"], "ramp");
+    // `on` with no RMOD goes to the default one: the last addressed.
+    EXPECT_EQ(r[1]["data"]["rmod"], "ramp");
+    EXPECT_EQ(r[1]["data"]["state"], "ON");
+    EXPECT_EQ(r[3]["rmod"], "follow");
+
+    const auto& status = r[5];
+    EXPECT_EQ(status["data"]["subsystem"], ws.subsystem());
+    ASSERT_EQ(status["data"]["tasks"].size(), 2u);
+    const auto* ramp = task(status, "ramp");
+    ASSERT_NE(ramp, nullptr);
+    EXPECT_EQ((*ramp)["state"], "ON");
+    EXPECT_EQ((*ramp)["S"], "P");
+    EXPECT_EQ((*ramp)["rtpu"], "cpu0");
+    EXPECT_DOUBLE_EQ((*ramp)["refF"].get<double>(), 200.0);
+    EXPECT_DOUBLE_EQ((*ramp)["refT"].get<double>(), 0.005);
+    EXPECT_GT((*ramp)["cycle"].get<std::uint64_t>(), 5u);
+    EXPECT_GT((*ramp)["tid"].get<long>(), 0);
+    // The text form has the header of the chosen fields and one line per task.
+    const std::string text = status["text"];
+    EXPECT_NE(text.find("rmod"), std::string::npos);
+    EXPECT_NE(text.find("refF"), std::string::npos);
+
+    // display: the SVARs a task reads and writes, with units; values move.
+    const auto& d = r[6]["data"]["vars"];
+    ASSERT_EQ(d.size(), 1u);
+    EXPECT_EQ(d[0]["name"], "X");
+    EXPECT_EQ(d[0]["dir"], "out");
+    EXPECT_EQ(d[0]["units"], "m");
+    EXPECT_GT(d[0]["values"][0].get<double>(), 5.0);
+    const auto& f = r[7]["data"]["vars"];
+    ASSERT_EQ(f.size(), 1u);  // the pattern keeps Y only (not the in-var X)
+    EXPECT_EQ(f[0]["name"], "Y");
+    EXPECT_EQ(f[0]["units"], "m/s");
+    EXPECT_NE(r[7]["text"].get<std::string>().find("m/s"), std::string::npos);
+}
+
+TEST(SbsCli, FollowerComputesFromTheRamp) {
+    Workspace ws;
+    const auto r = ok_json(ws, "spawn ramp; spawn follow; reconfig on ramp, on follow; sleep 0.3; "
+                               "reconfig off ramp, off follow; display all X Y");
+    const auto& vars = r.back()["data"]["vars"];
+    ASSERT_EQ(vars.size(), 2u);
+    const double x = vars[0]["values"][0], y = vars[1]["values"][0];
+    EXPECT_GT(x, 5.0);
+    // follow ran after ramp's last cycle with GAIN 2: Y is twice some X it read.
+    EXPECT_GT(y, 0.0);
+    EXPECT_LE(y, 2 * x);
+    EXPECT_EQ(static_cast<long>(y) % 2, 0);
+}
+
+TEST(SbsCli, DisplayWholeTableAndArrays) {
+    Workspace ws;
+    const auto r = ok_json(ws, "display; display all LIM*");
+    EXPECT_EQ(r[0]["data"]["vars"].size(), 3u);  // no task yet: the whole table
+    const auto& lim = r[1]["data"]["vars"][0];
+    EXPECT_EQ(lim["type"], "float");
+    EXPECT_EQ(lim["nelem"], 3);
+    EXPECT_EQ(lim["values"], nlohmann::json::parse("[0.5,1.5,2.5]"));
+    EXPECT_EQ(lim["units"], "rad");
+}
+
+TEST(SbsCli, TextOutputAndExitStatus) {
+    Workspace ws;
+    const Outcome ok = ws.sbs_run({"-c", "spawn ramp; on; status"});
+    EXPECT_EQ(ok.status, 0) << ok.err;
+    EXPECT_NE(ok.out.find("spawned ramp (module ramp) on RTPU cpu0"), std::string::npos) << ok.out;
+    EXPECT_NE(ok.out.find("ramp: ON"), std::string::npos);
+    EXPECT_NE(ok.out.find("subsystem " + ws.subsystem() + ": 1 task"), std::string::npos);
+
+    // The first failure stops the script, names the problem on stderr, exits 1.
+    const Outcome bad = ws.sbs_run({"-c", "spawn ramp; bogus; on ramp"});
+    EXPECT_EQ(bad.status, 1);
+    EXPECT_NE(bad.err.find("error: unknown command 'bogus'"), std::string::npos) << bad.err;
+    EXPECT_EQ(bad.out.find("ramp: ON"), std::string::npos) << "ran past the failure: " << bad.out;
+}
+
+TEST(SbsCli, StatusSetPicksFields) {
+    Workspace ws;
+    const auto r = ok_json(ws, "spawn ramp; status set rmod,state cycle; status; status set; status set default; status set all");
+    EXPECT_EQ(r[1]["data"]["fields"], nlohmann::json::parse(R"(["rmod","state","cycle"])"));
+    const std::string text = r[2]["text"];
+    EXPECT_NE(text.find("rmod         state          cycle"), std::string::npos) << text;
+    EXPECT_EQ(text.find("refF"), std::string::npos) << text;
+    EXPECT_EQ(r[3]["data"]["fields"], r[1]["data"]["fields"]);  // `status set` alone shows them
+    EXPECT_EQ(r[4]["data"]["fields"][0], "rmod");
+    EXPECT_GT(r[4]["data"]["fields"].size(), 5u);
+    EXPECT_EQ(r[5]["data"]["fields"], r[5]["data"]["available"]);
+    EXPECT_NE(failing(ws, "status set rmod bogus").find("unknown field 'bogus'"), std::string::npos);
+}
+
+TEST(SbsCli, SetAndGetLocalParameters) {
+    Workspace ws;
+    const auto r = ok_json(ws, "spawn ramp; set; set STEP 5; set ramp STEP; spawn follow; set ramp; set GAIN 3; "
+                               "set follow GAIN");
+    EXPECT_EQ(r[1]["data"]["local"]["STEP"], "1");
+    EXPECT_EQ(r[2]["data"]["value"], "5");
+    EXPECT_EQ(r[3]["data"]["value"], "5");
+    EXPECT_EQ(r[5]["data"]["local"]["STEP"], "5");  // the view follows a set
+    EXPECT_EQ(r[5]["rmod"], "ramp");                 // and makes ramp the default again
+    EXPECT_EQ(r[6]["data"]["rmod"], "ramp");         // so GAIN went to ramp
+    EXPECT_EQ(r[7]["data"]["value"], "2");           // follow still has its own
+
+    // The new STEP drives the ramp.
+    const auto m = ok_json(ws, "spawn ramp; set STEP 1000; on; sleep 0.2; off; display");
+    EXPECT_GE(m.back()["data"]["vars"][0]["values"][0].get<double>(), 1000.0);
+    EXPECT_EQ(static_cast<long>(m.back()["data"]["vars"][0]["values"][0].get<double>()) % 1000, 0);
+
+    EXPECT_NE(failing(ws, "set STEP 2").find("no default RMOD"), std::string::npos);
+}
+
+TEST(SbsCli, ControlSignalsAndTheirRefusals) {
+    Workspace ws;
+    EXPECT_NE(failing(ws, "on").find("no default RMOD"), std::string::npos);
+    EXPECT_NE(failing(ws, "spawn ramp; on nosuch").find("no task nosuch"), std::string::npos);
+    EXPECT_NE(failing(ws, "spawn ramp; on nosuch").find("tasks: ramp"), std::string::npos);
+    EXPECT_NE(failing(ws, "spawn ramp; on; on").find("already ON"), std::string::npos);
+    EXPECT_NE(failing(ws, "spawn ramp; off").find("already OFF"), std::string::npos);
+    EXPECT_NE(failing(ws, "spawn ramp; clear").find("not in ERROR"), std::string::npos);
+    EXPECT_NE(failing(ws, "spawn ramp; kill; kill").find("NOT-CREATED"), std::string::npos);
+    EXPECT_NE(failing(ws, "spawn ramp; on ramp extra").find("usage: on [RMOD]"), std::string::npos);
+    // Two producers of X may not be ON together (§3.3.1).
+    const std::string two = failing(ws, "spawn ramp; spawn ramp2; on ramp; on ramp2");
+    EXPECT_NE(two.find("X"), std::string::npos) << two;
+    EXPECT_NE(two.find("ramp"), std::string::npos) << two;
+
+    // kill from ON: off first, then gone from status; respawn works.
+    const auto r = ok_json(ws, "spawn ramp; on; kill; status; spawn ramp; status");
+    EXPECT_EQ(r[2]["data"]["state"], "NOT-CREATED");
+    EXPECT_EQ(r[3]["data"]["tasks"].size(), 0u);
+    EXPECT_EQ(r[5]["data"]["tasks"].size(), 1u);
+    EXPECT_EQ(r[5]["data"]["tasks"][0]["state"], "OFF");
+}
+
+TEST(SbsCli, ErrorStateAndClear) {
+    Workspace ws;
+    const auto r = ok_json(ws, "spawn ramp; on; set FAIL 1; sleep 0.2; status ramp; set FAIL 0; clear; status; on; "
+                               "sleep 0.1; status");
+    const auto& err = r[4]["data"]["tasks"][0];
+    EXPECT_EQ(err["state"], "ERROR");
+    EXPECT_NE(err["error"].get<std::string>().find("FAIL is set"), std::string::npos) << err.dump();
+    EXPECT_NE(r[4]["text"].get<std::string>().find("ERROR> ramp: "), std::string::npos) << r[4]["text"];
+    EXPECT_EQ(r[6]["data"]["state"], "OFF");
+    EXPECT_EQ(r[7]["data"]["tasks"][0]["state"], "OFF");
+    EXPECT_EQ(r[7]["text"].get<std::string>().find("ERROR>"), std::string::npos);
+    EXPECT_EQ(r[10]["data"]["tasks"][0]["state"], "ON");
+}
+
+TEST(SbsCli, WarningShownOnce) {
+    Workspace ws;
+    const Outcome r = ws.sbs_run({"-c", "spawn ramp; set WARN careful; on; status; status"});
+    EXPECT_EQ(r.status, 0) << r.err;
+    const auto first = r.out.find("WARNING> ramp: careful");
+    ASSERT_NE(first, std::string::npos) << r.out;
+    EXPECT_EQ(r.out.find("WARNING>", first + 1), std::string::npos) << r.out;
+}
+
+TEST(SbsCli, SpawnErrors) {
+    Workspace ws;
+    EXPECT_NE(failing(ws, "spawn").find("usage: spawn RMOD [RTPU]"), std::string::npos);
+    EXPECT_NE(failing(ws, "spawn nosuch").find("no file nosuch[.rmod]"), std::string::npos);
+    EXPECT_NE(failing(ws, "spawn ramp cpu9").find("no RTPU cpu9"), std::string::npos);
+    EXPECT_NE(failing(ws, "spawn ramp; spawn ramp").find("already exists"), std::string::npos);
+    const std::string ghost = failing(ws, "spawn ghost");
+    EXPECT_NE(ghost.find("ghost"), std::string::npos) << ghost;
+    // init fails: the task is not created and the error says why.
+    const std::string path = ws.write("broken.rmod", "MODULE ramp\nDESC fails\nOUTVAR X\nTASKTYPE periodic\nFREQ 10\n"
+                                                     "LOCAL\nINITFAIL 1\nEOF\n");
+    const std::string init = failing(ws, "spawn " + path);
+    EXPECT_NE(init.find("INITFAIL is set"), std::string::npos) << init;
+    // A bad .rmod names file and line.
+    const std::string bad = ws.write("bad.rmod", "MODULE ramp\nDESC x\nTASKTYPE sometimes\nEOF\n");
+    const std::string parse = failing(ws, "spawn " + bad);
+    EXPECT_NE(parse.find("bad.rmod:3"), std::string::npos) << parse;
+}
+
+TEST(SbsCli, Reconfig) {
+    Workspace ws;
+    const auto r = ok_json(ws, "spawn ramp; spawn follow; reconfig on ramp , on follow; status");
+    EXPECT_EQ(r[2]["data"]["applied"], nlohmann::json::parse(R"(["on ramp","on follow"])"));
+    for (const auto& t : r[3]["data"]["tasks"]) EXPECT_EQ(t["state"], "ON");
+    EXPECT_EQ(r[2]["rmod"], "follow");
+
+    // Stops at the first failure, says which, and what was applied.
+    const Outcome stop = ws.sbs_run({"-c", "spawn ramp; spawn follow; reconfig on ramp, clear follow, on follow; status",
+                                 "--json"});
+    EXPECT_EQ(stop.status, 1);
+    const auto s = json_lines(stop.out);
+    ASSERT_EQ(s.size(), 3u);
+    const std::string e = s[2]["error"];
+    EXPECT_NE(e.find("item 1 (clear follow)"), std::string::npos) << e;
+    EXPECT_NE(e.find("1 of 3 items applied"), std::string::npos) << e;
+    EXPECT_EQ(s[2]["data"]["applied"], nlohmann::json::parse(R"(["on ramp"])"));
+
+    // Verified before anything is sent.
+    const std::string v = failing(ws, "spawn ramp; spawn ramp2; reconfig on ramp, on ramp2");
+    EXPECT_NE(v.find("verification"), std::string::npos) << v;
+    EXPECT_NE(failing(ws, "spawn ramp; reconfig on").find("is not SIG RMOD"), std::string::npos);
+    EXPECT_NE(failing(ws, "spawn ramp; reconfig jump ramp").find("is not SIG RMOD"), std::string::npos);
+    EXPECT_NE(failing(ws, "reconfig on nobody").find("no task nobody"), std::string::npos);
+    EXPECT_NE(failing(ws, "reconfig").find("usage: reconfig"), std::string::npos);
+}
+
+TEST(SbsCli, ModuleListsAndShows) {
+    Workspace ws;
+    const auto r = ok_json(ws, "module; module follow; module ramp2");
+    bool have_ramp_so = false;
+    for (const auto& m : r[0]["data"]["modules"]) have_ramp_so |= m["name"] == "ramp";
+    EXPECT_TRUE(have_ramp_so) << r[0].dump();
+    bool have_follow = false;
+    for (const auto& m : r[0]["data"]["rmods"]) have_follow |= m["name"] == "follow" && m["module"] == "ramp";
+    EXPECT_TRUE(have_follow);
+    const auto& follow = r[1]["data"]["rmods"][0];
+    EXPECT_EQ(follow["module"], "ramp");
+    EXPECT_EQ(follow["ports"]["in-var"][0]["svar"], "X");
+    EXPECT_EQ(follow["ports"]["out-var"][0]["units"], "m/s");
+    EXPECT_EQ(follow["local"]["GAIN"], "2");
+    EXPECT_DOUBLE_EQ(follow["freq"].get<double>(), 100.0);
+    const std::string text = r[1]["text"];
+    EXPECT_NE(text.find("GAIN"), std::string::npos);
+    EXPECT_NE(failing(ws, "module nothing").find("no module or .rmod named nothing"), std::string::npos);
+}
+
+TEST(SbsCli, FreqHelpSyntaxAndQuit) {
+    Workspace ws;
+    const auto r = ok_json(ws, "spawn ramp; freq; freq 50; freq ramp; help; help status");
+    EXPECT_DOUBLE_EQ(r[1]["data"]["freq"].get<double>(), 200.0);
+    EXPECT_DOUBLE_EQ(r[3]["data"]["freq"].get<double>(), 50.0);
+    EXPECT_NE(r[4]["text"].get<std::string>().find("reconfig SIG RMOD"), std::string::npos);
+    EXPECT_NE(r[5]["text"].get<std::string>().find("mezT"), std::string::npos);
+    EXPECT_NE(failing(ws, "spawn ramp; freq -3").find("not a frequency"), std::string::npos);
+    EXPECT_NE(failing(ws, "help nothing").find("unknown command 'nothing'"), std::string::npos);
+    EXPECT_NE(failing(ws, "display 'unterminated").find("unterminated"), std::string::npos);
+    EXPECT_NE(failing(ws, "display all NOPE*").find("no variable matches NOPE*"), std::string::npos);
+    EXPECT_NE(failing(ws, "sleep forever").find("usage: sleep"), std::string::npos);
+
+    // quit ends the script early and finishes the subsystem: nothing stays in /dev/shm.
+    const Outcome q = ws.sbs_run({"-c", "spawn ramp; on; quit; status"});
+    EXPECT_EQ(q.status, 0);
+    EXPECT_EQ(q.out.find("subsystem "), std::string::npos) << q.out;
+    EXPECT_FALSE(std::filesystem::exists("/dev/shm/chimera." + ws.subsystem() + ".svar"));
+}
+
+TEST(SbsCli, BadSbsFileNamesFileAndLine) {
+    Workspace ws;
+    const std::string bad = ws.write("bad.sbs", "SUBSYSTEM x\nSVARFILE nothere.svar\nRTPU\nEOF\n");
+    const Outcome r = sbs_test::run(sbs_test::env("SBS_EXE"), {bad, "-c", "status"});
+    EXPECT_EQ(r.status, 1);
+    EXPECT_NE(r.err.find("bad.sbs:"), std::string::npos) << r.err;
+}
+
+TEST(SbsCli, ScriptFromStdin) {
+    Workspace ws;
+    const Outcome r = ws.sbs_run({}, "spawn ramp\non\nbogus\nstatus\n");
+    EXPECT_EQ(r.status, 1);  // a failed command makes the exit status non-zero
+    EXPECT_NE(r.out.find("ramp: ON"), std::string::npos) << r.out;
+    EXPECT_NE(r.out.find("error: unknown command 'bogus'"), std::string::npos) << r.out;
+    EXPECT_NE(r.out.find("1 task"), std::string::npos) << "the prompt survives errors: " << r.out;
+}

@@ -1,0 +1,308 @@
+// A real `sbs` master with its network interface (§4.4.2), talked to by a
+// client: the commands over the socket, malformed and oversized requests,
+// a peer that disconnects mid-command, exclusive control, TCP with a token,
+// passing control from the prompt and back, attaching from a second `sbs`.
+#include "client.hpp"
+#include "sbs_harness.hpp"
+
+#include <gtest/gtest.h>
+
+#include <fcntl.h>
+#include <pty.h>
+#include <signal.h>
+#include <sys/socket.h>
+#include <sys/stat.h>
+#include <unistd.h>
+
+#include <filesystem>
+#include <thread>
+
+using chimera::cli::ClientError;
+using chimera::cli::NetworkClient;
+using sbs_test::Workspace;
+
+namespace {
+
+/// `sbs ... args` in the background, its stderr kept for the messages.
+class Master {
+public:
+    Master(const Workspace& ws, const std::vector<std::string>& args) {
+        auto a = ws.sbs_args(args);
+        a.insert(a.begin(), sbs_test::env("SBS_EXE"));
+        int err[2];
+        EXPECT_EQ(::pipe2(err, O_CLOEXEC), 0);
+        pid_ = ::fork();
+        if (pid_ == 0) {
+            ::dup2(err[1], 2);
+            const int null = ::open("/dev/null", O_RDWR);
+            ::dup2(null, 0);
+            ::dup2(null, 1);
+            std::vector<char*> v;
+            for (const auto& s : a) v.push_back(const_cast<char*>(s.c_str()));
+            v.push_back(nullptr);
+            ::execv(v[0], v.data());
+            ::_exit(127);
+        }
+        ::close(err[1]);
+        err_ = err[0];
+    }
+    ~Master() {
+        if (pid_ > 0 && !done_) {
+            ::kill(pid_, SIGKILL);
+            sbs_test::wait_child(pid_, 5000);
+        }
+        ::close(err_);
+    }
+    /// Waits for `pattern` on the master's stderr.
+    bool stderr_has(const std::string& pattern, int timeout_ms = 10000) {
+        return sbs_test::read_until(err_, err_text_, pattern, timeout_ms);
+    }
+    const std::string& err_text() const { return err_text_; }
+    int wait(int timeout_ms = 20000) {
+        done_ = true;
+        return sbs_test::wait_child(pid_, timeout_ms);
+    }
+    pid_t pid() const { return pid_; }
+
+private:
+    pid_t pid_ = -1;
+    int err_ = -1;
+    bool done_ = false;
+    std::string err_text_;
+};
+
+NetworkClient connect(const Workspace& ws) {
+    EXPECT_TRUE(sbs_test::wait_for_file(ws.socket_path())) << ws.socket_path();
+    return NetworkClient::connect_unix(ws.socket_path());
+}
+
+}  // namespace
+
+TEST(SbsNetwork, CommandsOverTheUnixSocket) {
+    Workspace ws;
+    Master m(ws, {"--serve", "-c", "spawn ramp"});
+    auto c = connect(ws);
+    ASSERT_TRUE(c.hello().value("ok", false)) << c.hello().dump();
+    EXPECT_EQ(c.hello()["subsystem"], ws.subsystem());
+    EXPECT_EQ(c.hello()["protocol"], 1);
+
+    // Owner-only socket in an owner-only folder.
+    struct stat st {};
+    ASSERT_EQ(::stat(ws.socket_path().c_str(), &st), 0);
+    EXPECT_EQ(st.st_mode & 0777, 0600u);
+
+    auto on = c.request("on ramp", 10000);
+    EXPECT_TRUE(on["ok"].get<bool>()) << on.dump();
+    EXPECT_EQ(on["rmod"], "ramp");
+    EXPECT_EQ(on["data"]["state"], "ON");
+    std::this_thread::sleep_for(std::chrono::milliseconds(200));
+    auto status = c.request(R"({"cmd": "status", "id": 7})", 10000);
+    EXPECT_EQ(status["id"], 7);
+    ASSERT_EQ(status["data"]["tasks"].size(), 1u);
+    EXPECT_EQ(status["data"]["tasks"][0]["state"], "ON");
+    EXPECT_GT(status["data"]["tasks"][0]["cycle"].get<std::uint64_t>(), 3u);
+    auto display = c.request("display", 10000);
+    EXPECT_EQ(display["data"]["vars"][0]["name"], "X");
+
+    // Errors are replies; the session goes on.
+    auto unknown = c.request("bogus", 10000);
+    EXPECT_FALSE(unknown["ok"].get<bool>());
+    EXPECT_NE(unknown["error"].get<std::string>().find("unknown command 'bogus'"), std::string::npos);
+    auto refused = c.request("on ramp", 10000);
+    EXPECT_NE(refused["error"].get<std::string>().find("already ON"), std::string::npos);
+    auto malformed = c.request("{\"cmd\": ", 10000);
+    EXPECT_EQ(malformed["error"], "malformed JSON request");
+    auto no_cmd = c.request(R"({"id": 3})", 10000);
+    EXPECT_EQ(no_cmd["id"], 3);
+    EXPECT_FALSE(no_cmd["ok"].get<bool>());
+    auto two = c.request("status; status", 10000);
+    EXPECT_NE(two["error"].get<std::string>().find("one command per request line"), std::string::npos);
+    auto quote = c.request("display 'open", 10000);
+    EXPECT_NE(quote["error"].get<std::string>().find("unterminated"), std::string::npos);
+    auto control = c.request(std::string("status\x01"), 10000);
+    EXPECT_NE(control["error"].get<std::string>().find("control characters"), std::string::npos);
+    auto big = c.request(std::string(c.hello()["max_request"].get<std::size_t>() + 10, 'x'), 10000);
+    EXPECT_NE(big["error"].get<std::string>().find("request longer than"), std::string::npos);
+    auto net = c.request("network", 10000);
+    EXPECT_NE(net["error"].get<std::string>().find("already has control"), std::string::npos);
+    auto after = c.request("status ramp", 10000);
+    EXPECT_TRUE(after["ok"].get<bool>()) << after.dump();
+
+    // A second peer is refused while this one has control.
+    auto other = NetworkClient::connect_unix(ws.socket_path());
+    EXPECT_FALSE(other.hello().value("ok", true));
+    EXPECT_NE(other.hello()["error"].get<std::string>().find("another network peer"), std::string::npos);
+
+    // finish: the master turns everything off, removes socket and segments, exits 0.
+    auto fin = c.request("finish", 10000);
+    EXPECT_TRUE(fin["ok"].get<bool>());
+    EXPECT_EQ(m.wait(), 0) << m.err_text();
+    EXPECT_FALSE(std::filesystem::exists(ws.socket_path()));
+    EXPECT_FALSE(std::filesystem::exists("/dev/shm/chimera." + ws.subsystem() + ".svar"));
+}
+
+TEST(SbsNetwork, PeerThatDisconnectsMidCommand) {
+    Workspace ws;
+    Master m(ws, {"--serve", "-c", "spawn ramp; on ramp"});
+    {
+        // Half a request, then gone.
+        auto c = connect(ws);
+        c.send_raw("stat");
+    }
+    {
+        // A whole command whose reply nobody reads: the peer leaves while it runs.
+        auto c = connect(ws);
+        ASSERT_TRUE(c.hello().value("ok", false)) << c.hello().dump();
+        c.send_raw("sleep 0.3\n");
+        std::this_thread::sleep_for(std::chrono::milliseconds(50));
+    }
+    {
+        // Quit hands control back; the next peer gets it.
+        auto c = connect(ws);
+        ASSERT_TRUE(c.hello().value("ok", false)) << c.hello().dump();
+        EXPECT_TRUE(c.request("quit", 10000)["ok"].get<bool>());
+    }
+    // The master is unharmed and the task kept running throughout.
+    auto c = connect(ws);
+    ASSERT_TRUE(c.hello().value("ok", false)) << c.hello().dump();
+    auto s = c.request("status ramp", 10000);
+    EXPECT_EQ(s["data"]["tasks"][0]["state"], "ON") << s.dump();
+    auto d = c.request("display ramp", 10000);
+    EXPECT_GT(d["data"]["vars"][0]["values"][0].get<double>(), 10.0);
+    c.request("finish", 10000);
+    EXPECT_EQ(m.wait(), 0) << m.err_text();
+}
+
+TEST(SbsNetwork, TcpNeedsTheToken) {
+    Workspace ws;
+    Master m(ws, {"--serve", "--tcp", "127.0.0.1:0", "--token", "s3cret"});
+    ASSERT_TRUE(m.stderr_has("TCP 127.0.0.1:")) << m.err_text();
+    ASSERT_TRUE(m.stderr_has("\n")) << m.err_text();
+    EXPECT_EQ(m.err_text().find("unix socket"), std::string::npos) << "TCP only when asked: " << m.err_text();
+    const auto at = m.err_text().find("TCP 127.0.0.1:");
+    const int port = std::stoi(m.err_text().substr(at + 14));
+    ASSERT_GT(port, 0);
+    {
+        auto c = NetworkClient::connect_tcp("127.0.0.1", static_cast<std::uint16_t>(port));
+        EXPECT_EQ(c.hello()["auth"], "token");
+        auto r = c.request("status", 10000);
+        EXPECT_NE(r["error"].get<std::string>().find("authenticate first"), std::string::npos);
+        EXPECT_THROW(c.request("status", 2000), ClientError);  // closed after one try
+    }
+    {
+        auto c = NetworkClient::connect_tcp("127.0.0.1", static_cast<std::uint16_t>(port));
+        EXPECT_EQ(c.request("token wrong", 10000)["error"], "wrong token");
+    }
+    auto c = NetworkClient::connect_tcp("127.0.0.1", static_cast<std::uint16_t>(port));
+    EXPECT_TRUE(c.request("token s3cret", 10000)["ok"].get<bool>());
+    EXPECT_TRUE(c.request("spawn ramp", 10000)["ok"].get<bool>());
+    c.request("finish", 10000);
+    EXPECT_EQ(m.wait(), 0) << m.err_text();
+}
+
+TEST(SbsNetwork, ListenOptionsAreChecked) {
+    Workspace ws;
+    auto r = ws.sbs_run({"--serve", "--tcp", "0.0.0.0:0"});
+    EXPECT_EQ(r.status, 1);
+    EXPECT_NE(r.err.find("needs a token"), std::string::npos) << r.err;
+    r = ws.sbs_run({"--serve", "--tcp", "127.0.0.1:http"});
+    EXPECT_EQ(r.status, 1);
+    EXPECT_NE(r.err.find("not a port number"), std::string::npos) << r.err;
+    r = ws.sbs_run({"--token", "x", "-c", "status"});
+    EXPECT_EQ(r.status, 2);
+    EXPECT_FALSE(std::filesystem::exists("/dev/shm/chimera." + ws.subsystem() + ".svar"));
+}
+
+TEST(SbsNetwork, AttachToARunningMaster) {
+    Workspace ws;
+    Master m(ws, {"--serve", "-c", "spawn ramp; on"});
+    ASSERT_TRUE(sbs_test::wait_for_file(ws.socket_path()));
+    // A second `sbs` on the same .sbs finds the master and becomes its peer.
+    const auto r = ws.sbs_run({"-c", "status; display ramp", "--json"});
+    EXPECT_EQ(r.status, 0) << r.err;
+    const auto replies = sbs_test::json_lines(r.out);
+    ASSERT_EQ(replies.size(), 2u) << r.out;
+    EXPECT_EQ(replies[0]["data"]["tasks"][0]["rmod"], "ramp");
+    EXPECT_EQ(replies[1]["data"]["vars"][0]["units"], "m");
+    const auto bad = ws.sbs_run({"-c", "on"});
+    EXPECT_EQ(bad.status, 1);
+    EXPECT_NE(bad.err.find("already ON"), std::string::npos) << bad.err;
+    // Control came back each time: a third one gets in and finishes it.
+    const auto fin = ws.sbs_run({"-c", "finish"});
+    EXPECT_EQ(fin.status, 0) << fin.err;
+    EXPECT_EQ(m.wait(), 0) << m.err_text();
+}
+
+TEST(SbsNetwork, PromptPassesControlAndGetsItBack) {
+    Workspace ws;
+    auto a = ws.sbs_args({"--listen"});
+    a.insert(a.begin(), sbs_test::env("SBS_EXE"));
+    int fd = -1;
+    const pid_t pid = ::forkpty(&fd, nullptr, nullptr, nullptr);
+    if (pid == 0) {
+        std::vector<char*> v;
+        for (const auto& s : a) v.push_back(const_cast<char*>(s.c_str()));
+        v.push_back(nullptr);
+        ::execv(v[0], v.data());
+        ::_exit(127);
+    }
+    std::string out;
+    const std::string prompt = "SBS " + ws.subsystem() + "<";
+    ASSERT_TRUE(sbs_test::read_until(fd, out, prompt + "> ")) << out;
+    // The command line has control: a peer is told so.
+    {
+        auto c = NetworkClient::connect_unix(ws.socket_path());
+        EXPECT_FALSE(c.hello().value("ok", true));
+        EXPECT_NE(c.hello()["error"].get<std::string>().find("command line"), std::string::npos);
+    }
+    auto type = [&](const std::string& s) { sbs_test::type_at_prompt(fd, s); };
+    type("network\r");
+    out.clear();
+    ASSERT_TRUE(sbs_test::read_until(fd, out, "control passed to the network")) << out;
+    {
+        auto c = NetworkClient::connect_unix(ws.socket_path());
+        ASSERT_TRUE(c.hello().value("ok", false)) << c.hello().dump();
+        EXPECT_TRUE(c.request("spawn ramp", 10000)["ok"].get<bool>());
+        // Connection lost without quit.
+    }
+    out.clear();
+    ASSERT_TRUE(sbs_test::read_until(fd, out, "network connection lost: control is back")) << out;
+    // The prompt has the RMOD the peer addressed last.
+    ASSERT_TRUE(sbs_test::read_until(fd, out, prompt + "ramp> ")) << out;
+    type("network\r");
+    out.clear();
+    ASSERT_TRUE(sbs_test::read_until(fd, out, "control passed to the network")) << out;
+    {
+        auto c = NetworkClient::connect_unix(ws.socket_path());
+        ASSERT_TRUE(c.hello().value("ok", false));
+        EXPECT_TRUE(c.request("on", 10000)["ok"].get<bool>());
+        EXPECT_TRUE(c.request("quit", 10000)["ok"].get<bool>());
+    }
+    out.clear();
+    ASSERT_TRUE(sbs_test::read_until(fd, out, "network peer quit: control is back")) << out;
+    // Ctrl-C takes control back from a connected peer.
+    type("network\r");
+    out.clear();
+    ASSERT_TRUE(sbs_test::read_until(fd, out, "control passed to the network")) << out;
+    auto c = NetworkClient::connect_unix(ws.socket_path());
+    ASSERT_TRUE(c.hello().value("ok", false));
+    // Ctrl-C while the network has control (no prompt: the terminal is cooked).
+    [[maybe_unused]] const auto n = ::write(fd, "\x03", 1);
+    out.clear();
+    ASSERT_TRUE(sbs_test::read_until(fd, out, "control taken back from the network")) << out;
+    const auto line = c.read_line(5000);
+    ASSERT_TRUE(line.has_value());
+    EXPECT_NE(line->find("control taken back"), std::string::npos) << *line;
+    ASSERT_TRUE(sbs_test::read_until(fd, out, prompt + "ramp> ")) << out;
+    type("status\r");
+    out.clear();
+    ASSERT_TRUE(sbs_test::read_until(fd, out, "1 task")) << out;
+    ASSERT_TRUE(sbs_test::read_until(fd, out, prompt + "ramp> ")) << out;
+    EXPECT_NE(out.find(" ON "), std::string::npos) << out;
+    type("quit\r");
+    std::string rest;
+    sbs_test::read_until(fd, rest, "\x01never\x01", 500);
+    EXPECT_EQ(sbs_test::wait_child(pid, 15000), 0);
+    ::close(fd);
+    EXPECT_FALSE(std::filesystem::exists(ws.socket_path()));
+}

@@ -1,0 +1,934 @@
+#include "commands.hpp"
+
+#include "command_line.hpp"
+
+#include <chimera/ipc/segment.hpp>
+
+#include <algorithm>
+#include <chrono>
+#include <cmath>
+#include <cstdio>
+#include <cstdlib>
+#include <cstring>
+#include <filesystem>
+#include <set>
+#include <stdexcept>
+#include <thread>
+
+namespace chimera::cli {
+
+namespace fs = std::filesystem;
+
+namespace {
+
+/// A command's own failure: becomes an error reply with this one line.
+class CommandError : public std::runtime_error {
+public:
+    using std::runtime_error::runtime_error;
+};
+
+std::string fmt(const char* f, double v) {
+    char buf[64];
+    std::snprintf(buf, sizeof buf, f, v);
+    return buf;
+}
+
+std::string join(const std::vector<std::string>& v, std::string_view sep = " ") {
+    std::string out;
+    for (const auto& s : v) {
+        if (!out.empty()) out += sep;
+        out += s;
+    }
+    return out;
+}
+
+std::string pad(const std::string& s, std::size_t width, bool right = false) {
+    if (s.size() >= width) return s;
+    const std::string fill(width - s.size(), ' ');
+    return right ? fill + s : s + fill;
+}
+
+bool is_signal_word(std::string_view w) { return w == "on" || w == "off" || w == "kill" || w == "clear"; }
+
+sbs::Control signal_of(std::string_view w) {
+    if (w == "on") return sbs::Control::on;
+    if (w == "off") return sbs::Control::off;
+    if (w == "kill") return sbs::Control::kill;
+    return sbs::Control::clear;
+}
+
+// ----------------------------------------------------------------- status
+
+struct Field {
+    const char* name;
+    std::size_t width;
+    bool numeric;
+};
+
+const std::vector<Field>& fields() {
+    // §4.4.1 in its order, then what the Linux port adds.
+    static const std::vector<Field> f = {
+        {"rmod", 12, false}, {"rtpu", 6, false},  {"tid", 7, true},    {"S", 1, false},
+        {"crit", 4, true},   {"state", 11, false}, {"cycle", 8, true},  {"miss", 6, true},
+        {"refF", 9, true},   {"refT", 9, true},   {"mezF", 9, true},   {"mezT", 9, true},
+        {"ptime", 8, true},  {"totC", 9, true},   {"tick", 7, true},   {"minU", 6, true},
+        {"maxU", 6, true},   {"avgU", 6, true},   {"minC", 9, true},   {"maxC", 9, true},
+        {"avgC", 9, true},   {"warn", 4, true},   {"policy", 24, false}, {"cpu", 3, true},
+        {"module", 10, false},
+    };
+    return f;
+}
+
+const Field* find_field(std::string_view name) {
+    for (const auto& f : fields())
+        if (name == f.name) return &f;
+    return nullptr;
+}
+
+const std::vector<std::string> kDefaultFields = {"rmod", "rtpu", "tid",  "S",    "crit", "state", "cycle",
+                                                 "miss", "refF", "mezF", "mezT", "maxC", "warn"};
+
+/// The task's profile from the status segment (§6.7), when the runtime has
+/// published one for it.
+const prof::TaskStatus* profile_of(const sbs::TaskStatus& t) { return t.profile.rmod.empty() ? nullptr : &t.profile; }
+
+// Counters run "since the last status command" (§4.4.1) when the profile is
+// there; otherwise they are the master's own, since the task was turned on.
+nlohmann::json field_value(const sbs::TaskStatus& t, std::string_view f) {
+    const auto* p = profile_of(t);
+    if (f == "rmod") return t.rmod;
+    if (f == "rtpu") return t.rtpu;
+    if (f == "tid") return t.tid;
+    if (f == "S") return std::string(1, t.type);
+    if (f == "crit") return t.crit;
+    if (f == "state") return std::string(to_string(t.state));
+    if (f == "cycle") return p ? p->cycle : t.cycles;
+    if (f == "miss") return p ? p->miss : t.misses;
+    if (f == "refF") return t.ref_freq;
+    if (f == "refT") return t.ref_period;
+    if (f == "mezF") return p ? p->mez_f : t.mez_freq;
+    if (f == "mezT") return p ? p->mez_t : t.mez_period;
+    if (f == "maxC") return p ? p->max_c : t.max_cycle_time;
+    if (f == "warn") return p ? p->warn : t.warnings;
+    if (f == "policy") return t.policy;
+    if (f == "cpu") return t.cpu;
+    if (f == "module") return t.module;
+    if (!p) return nullptr;  // the rest exists only in the profile
+    if (f == "ptime") return p->ptime;
+    if (f == "totC") return p->tot_c;
+    if (f == "tick") return p->tick;
+    if (f == "minU") return p->min_u;
+    if (f == "maxU") return p->max_u;
+    if (f == "avgU") return p->avg_u;
+    if (f == "minC") return p->min_c;
+    if (f == "avgC") return p->avg_c;
+    return nullptr;
+}
+
+std::string field_text(const sbs::TaskStatus& r, std::string_view f) {
+    const auto v = field_value(r, f);
+    if (v.is_null()) return "-";
+    if (v.is_string()) return v.get<std::string>().empty() ? "-" : v.get<std::string>();
+    if (v.is_number_float()) {
+        const double d = v.get<double>();
+        if (f == "refF" || f == "mezF") return fmt("%.2f", d);
+        if (f == "ptime") return fmt("%.3f", d);
+        if (f == "tick") return fmt("%.0e", d);
+        if (f == "minU" || f == "maxU" || f == "avgU") return fmt("%.2f", d);
+        return fmt("%.6f", d);
+    }
+    return v.dump();
+}
+
+// ----------------------------------------------------------------- svar values
+
+std::vector<double> numbers_of(const svar::VarInfo& v, const std::vector<unsigned char>& buf) {
+    std::vector<double> out;
+    for (std::size_t k = 0; k < v.nelem(); ++k) {
+        const unsigned char* p = buf.data() + k * v.elem_size();
+        switch (v.type()) {
+            case svar::Type::byte_: out.push_back(*p); break;
+            case svar::Type::char_: out.push_back(static_cast<signed char>(*p)); break;
+            case svar::Type::word: { std::uint16_t x; std::memcpy(&x, p, 2); out.push_back(x); break; }
+            case svar::Type::short_: { std::int16_t x; std::memcpy(&x, p, 2); out.push_back(x); break; }
+            case svar::Type::unsigned_: { std::uint32_t x; std::memcpy(&x, p, 4); out.push_back(x); break; }
+            case svar::Type::int_: { std::int32_t x; std::memcpy(&x, p, 4); out.push_back(x); break; }
+            case svar::Type::float_: { float x; std::memcpy(&x, p, 4); out.push_back(x); break; }
+            case svar::Type::double_: { double x; std::memcpy(&x, p, 8); out.push_back(x); break; }
+            case svar::Type::struct_: return {};
+        }
+    }
+    return out;
+}
+
+std::string type_text(const svar::VarInfo& v) {
+    std::string t = svar::type_spelling(v.type(), v.elem_size());
+    if (v.nelem() > 1) t += "[" + std::to_string(v.nelem()) + "]";
+    return t;
+}
+
+/// Every module (.so) and .rmod file in `dirs`: name -> path, first found wins.
+void scan_dirs(const std::vector<std::string>& dirs, std::map<std::string, std::string>& modules,
+               std::map<std::string, std::string>& rmods) {
+    for (const auto& d : dirs) {
+        std::error_code ec;
+        for (fs::directory_iterator it(d, ec), end; !ec && it != end; it.increment(ec)) {
+            const fs::path p = it->path();
+            std::string stem = p.stem().string();
+            if (p.extension() == ".so") {
+                if (stem.rfind("lib", 0) == 0 && stem.size() > 3) stem.erase(0, 3);
+                modules.emplace(stem, p.string());
+            } else if (p.extension() == ".rmod") {
+                rmods.emplace(stem, p.string());
+            }
+        }
+    }
+}
+
+}  // namespace
+
+const std::vector<CommandInfo>& command_table() {
+    static const std::vector<CommandInfo> table = {
+        {"clear", "clear [RMOD]", "send the clear-error signal to a task in ERROR"},
+        {"display", "display [RMOD|all] [VAR...]", "show SVAR values (what the task reads and writes; VAR may use * ?)"},
+        {"finish", "finish", "turn every task off, kill them and end the subsystem"},
+        {"freq", "freq [RMOD] [HZ]", "show or change the frequency of a task"},
+        {"help", "help [COMMAND]", "list the commands, or explain one"},
+        {"kill", "kill [RMOD]", "destroy a task (off first if it is ON)"},
+        {"module", "module [NAME]", "list the modules and .rmod files on the module path, or show one's ports and LOCAL keys"},
+        {"network", "network", "pass control to a network peer until it quits or is lost"},
+        {"off", "off [RMOD]", "send the off signal"},
+        {"on", "on [RMOD]", "send the on signal"},
+        {"quit", "quit", "leave this interface (at the prompt: finish the subsystem and exit)"},
+        {"reconfig", "reconfig SIG RMOD [, SIG RMOD ...]", "apply an ordered list of signals (on off kill clear); stops at the first failure"},
+        {"set", "set [RMOD] [KEY [VALUE...]]", "show the LOCAL configuration of a task, one key, or change a key"},
+        {"sleep", "sleep SECONDS", "pause (lets the tasks run between the commands of a script; at most 60 s)"},
+        {"spawn", "spawn RMOD [RTPU]", "create a task from RMOD.rmod on an RTPU (default: the MASTER RTPU)"},
+        {"status", "status [RMOD|all] | status set [FIELD...|default|all]", "show the status of the tasks; `status set` picks the fields"},
+    };
+    return table;
+}
+
+const std::vector<std::string>& status_field_names() {
+    static const std::vector<std::string> names = [] {
+        std::vector<std::string> n;
+        for (const auto& f : fields()) n.emplace_back(f.name);
+        return n;
+    }();
+    return names;
+}
+
+Interpreter::Interpreter(sbs::Subsystem& subsystem, std::vector<std::string> module_dirs)
+    : sbs_(subsystem), extra_dirs_(std::move(module_dirs)), fields_(kDefaultFields) {}
+
+std::string Interpreter::prompt() const { return "SBS " + sbs_.name() + "<" + default_rmod_ + "> "; }
+
+std::vector<std::string> Interpreter::module_path() const {
+    std::vector<std::string> dirs;
+    if (const char* env = std::getenv("CHIMERA_MODULE_PATH")) {
+        std::string s = env;
+        std::size_t pos = 0;
+        while (pos <= s.size()) {
+            auto end = s.find(':', pos);
+            if (end == std::string::npos) end = s.size();
+            if (end > pos) dirs.push_back(s.substr(pos, end - pos));
+            pos = end + 1;
+        }
+    }
+    dirs.insert(dirs.end(), extra_dirs_.begin(), extra_dirs_.end());
+    const auto sbs_dir = fs::path(sbs_.file().path).parent_path();
+    dirs.push_back(sbs_dir.empty() ? std::string(".") : sbs_dir.string());
+#ifdef CHIMERA_MODULE_DIR
+    dirs.emplace_back(CHIMERA_MODULE_DIR);
+#endif
+    return dirs;
+}
+
+Reply Interpreter::execute(std::string_view command) {
+    std::lock_guard lock(mutex_);
+    Words words;
+    try {
+        words = split_words(command);
+    } catch (const SyntaxError& e) {
+        return Reply::failure("", e.what());
+    }
+    if (words.empty()) {
+        Reply r;
+        r.rmod = default_rmod_;
+        return r;
+    }
+    Reply r;
+    try {
+        r = run(words);
+    } catch (const std::exception& e) {
+        r = Reply::failure(words[0], e.what());
+    }
+    r.command = words[0];
+    r.rmod = default_rmod_;
+    // Padded columns leave blanks at line ends: drop them.
+    std::string trimmed;
+    std::size_t pos = 0;
+    while (pos <= r.text.size()) {
+        auto end = r.text.find('\n', pos);
+        if (end == std::string::npos) end = r.text.size();
+        std::string line = r.text.substr(pos, end - pos);
+        while (!line.empty() && line.back() == ' ') line.pop_back();
+        trimmed += line;
+        if (end < r.text.size()) trimmed += '\n';
+        pos = end + 1;
+    }
+    r.text = std::move(trimmed);
+    return r;
+}
+
+Reply Interpreter::run(const Words& w) {
+    const std::string& c = w[0];
+    if (c == "spawn") return cmd_spawn(w);
+    if (c == "on") return cmd_control(w, sbs::Control::on);
+    if (c == "off") return cmd_control(w, sbs::Control::off);
+    if (c == "kill") return cmd_control(w, sbs::Control::kill);
+    if (c == "clear") return cmd_control(w, sbs::Control::clear);
+    if (c == "set") return cmd_set(w);
+    if (c == "status") return cmd_status(w);
+    if (c == "display") return cmd_display(w);
+    if (c == "module") return cmd_module(w);
+    if (c == "reconfig") return cmd_reconfig(w);
+    if (c == "freq") return cmd_freq(w);
+    if (c == "help") return cmd_help(w);
+    Reply r;
+    if (c == "sleep") {
+        double seconds = -1;
+        if (w.size() == 2) {
+            char* end = nullptr;
+            seconds = std::strtod(w[1].c_str(), &end);
+            if (end == w[1].c_str() || *end != '\0') seconds = -1;
+        }
+        if (!(seconds >= 0 && seconds <= 60)) throw CommandError("usage: sleep SECONDS (0 to 60)");
+        std::this_thread::sleep_for(std::chrono::duration<double>(seconds));
+        return r;
+    }
+    if (c == "quit" || c == "finish" || c == "network") {
+        if (w.size() > 1) throw CommandError(c + " takes no argument");
+        r.action = c == "quit" ? Action::quit : c == "finish" ? Action::finish : Action::network;
+        r.text = c == "network" ? "passing control to the network" : c == "quit" ? "" : "finishing subsystem " + sbs_.name();
+        return r;
+    }
+    throw CommandError("unknown command '" + c + "' (type help for the list)");
+}
+
+// ----------------------------------------------------------------- tasks
+
+// Live tasks are tracked here rather than asked with status(): status()
+// consumes the first warning, which only a status command may show (§4.4.1).
+bool Interpreter::is_task(std::string_view name) const { return rmods_.count(std::string(name)) != 0; }
+
+std::vector<std::string> Interpreter::live_rmods() const {
+    std::vector<std::string> out;
+    for (const auto& [name, file] : rmods_) out.push_back(name);
+    return out;
+}
+
+namespace {
+
+// A state report that also shows a warning status() has just consumed, so it
+// is displayed once rather than lost.
+std::string state_line(const sbs::TaskStatus& s) {
+    std::string line = s.rmod + ": " + std::string(to_string(s.state));
+    if (!s.warning.empty()) line += "\nWARNING> " + s.rmod + ": " + s.warning;
+    if (s.state == State::ERROR) line += "\nERROR> " + s.rmod + ": " + s.error;
+    return line;
+}
+
+}  // namespace
+
+sbs::TaskId Interpreter::task_of(const std::string& rmod) {
+    const std::string name = rmod.empty() ? default_rmod_ : rmod;
+    if (name.empty()) throw CommandError("no default RMOD yet: name the task");
+    const auto id = sbs_.find(name);
+    if (!id) {
+        const auto live = live_rmods();
+        throw CommandError("no task " + name + " in subsystem " + sbs_.name() +
+                           (live.empty() ? " (no task spawned)" : " (tasks: " + join(live) + ")"));
+    }
+    default_rmod_ = name;
+    return *id;
+}
+
+std::optional<std::string> Interpreter::find_rmod_file(const std::string& name) const {
+    std::vector<std::string> names = {name};
+    if (fs::path(name).extension() != ".rmod") names.push_back(name + ".rmod");
+    for (const auto& n : names) {
+        std::error_code ec;
+        if (fs::is_regular_file(n, ec)) return n;
+    }
+    if (name.find('/') != std::string::npos) return std::nullopt;
+    for (const auto& d : module_path()) {
+        for (const auto& n : names) {
+            std::error_code ec;
+            const fs::path p = fs::path(d) / n;
+            if (fs::is_regular_file(p, ec)) return p.string();
+        }
+    }
+    return std::nullopt;
+}
+
+Reply Interpreter::cmd_spawn(const Words& w) {
+    if (w.size() < 2 || w.size() > 3) throw CommandError("usage: spawn RMOD [RTPU]");
+    const auto path = find_rmod_file(w[1]);
+    if (!path)
+        throw CommandError("spawn: no file " + w[1] + (fs::path(w[1]).extension() == ".rmod" ? "" : "[.rmod]") +
+                           " here or on the module path (" + join(module_path(), ":") + ")");
+    const std::string rtpu = w.size() == 3 ? w[2] : std::string();
+    if (!rtpu.empty() && !sbs_.file().find_rtpu(rtpu)) {
+        std::vector<std::string> names;
+        for (const auto& r : sbs_.file().rtpus) names.push_back(r.name);
+        throw CommandError("spawn: no RTPU " + rtpu + " in " + sbs_.file().path + " (RTPUs: " + join(names) + ")");
+    }
+    RmodFile file = read_rmod(*path);
+    const std::string name = file.name;
+    if (is_task(name)) throw CommandError("spawn: task " + name + " already exists (kill it first)");
+    const sbs::TaskId id = sbs_.spawn(*path, rtpu);
+    rmods_[name] = std::move(file);
+    default_rmod_ = name;
+    const auto s = sbs_.status(id);
+    Reply r;
+    r.text = "spawned " + name + " (module " + s.module + ") on RTPU " + s.rtpu + "\n" + state_line(s);
+    r.data = {{"rmod", name}, {"file", *path}, {"module", s.module}, {"rtpu", s.rtpu},
+              {"state", std::string(to_string(s.state))}};
+    return r;
+}
+
+Reply Interpreter::cmd_control(const Words& w, sbs::Control signal) {
+    if (w.size() > 2) throw CommandError("usage: " + w[0] + " [RMOD]");
+    const sbs::TaskId id = task_of(w.size() == 2 ? w[1] : std::string());
+    try {
+        sbs_.control(id, signal);
+    } catch (const sbs::Error&) {
+        if (sbs_.status(id).state == State::NOT_CREATED) rmods_.erase(default_rmod_);
+        throw;
+    }
+    const auto s = sbs_.status(id);
+    if (s.state == State::NOT_CREATED) rmods_.erase(default_rmod_);
+    Reply r;
+    r.text = state_line(s);
+    r.data = {{"rmod", default_rmod_}, {"state", std::string(to_string(s.state))}};
+    return r;
+}
+
+std::vector<std::string> Interpreter::local_keys(const std::string& rmod) const {
+    std::vector<std::string> keys;
+    if (auto it = rmods_.find(rmod); it != rmods_.end())
+        for (const auto& e : it->second.local.entries()) keys.push_back(e.key);
+    return keys;
+}
+
+Reply Interpreter::cmd_set(const Words& w) {
+    // set [RMOD] [KEY [VALUE...]]: a first word naming a task is the RMOD.
+    std::size_t k = 1;
+    std::string rmod;
+    if (w.size() > 1 && is_task(w[1])) {
+        rmod = w[1];
+        k = 2;
+    }
+    const sbs::TaskId id = task_of(rmod);
+    Reply r;
+    if (k == w.size()) {
+        // View: every LOCAL key with its current value (through get()).
+        nlohmann::json local = nlohmann::json::object();
+        std::string text = default_rmod_ + " LOCAL:";
+        const auto keys = local_keys(default_rmod_);
+        if (keys.empty()) text += " (none)";
+        for (const auto& key : keys) {
+            const std::string v = sbs_.get(id, key);
+            text += "\n  " + pad(key, 12) + " " + v;
+            local[key] = v;
+        }
+        r.text = text;
+        r.data = {{"rmod", default_rmod_}, {"local", local}};
+        return r;
+    }
+    const std::string& key = w[k];
+    if (k + 1 == w.size()) {
+        const std::string v = sbs_.get(id, key);
+        r.text = default_rmod_ + " " + key + " = " + v;
+        r.data = {{"rmod", default_rmod_}, {"key", key}, {"value", v}};
+        return r;
+    }
+    std::vector<std::string> values(w.begin() + static_cast<std::ptrdiff_t>(k) + 1, w.end());
+    const std::string value = join(values);
+    sbs_.set(id, key, value);
+    if (auto it = rmods_.find(default_rmod_); it != rmods_.end()) it->second.local.set(key, values);
+    const std::string now = sbs_.get(id, key);
+    r.text = default_rmod_ + " " + key + " = " + now;
+    r.data = {{"rmod", default_rmod_}, {"key", key}, {"value", now}};
+    return r;
+}
+
+Reply Interpreter::cmd_status(const Words& w) {
+    Reply r;
+    if (w.size() >= 2 && w[1] == "set") {
+        if (w.size() > 2) {
+            std::vector<std::string> chosen;
+            if (w.size() == 3 && w[2] == "default") {
+                chosen = kDefaultFields;
+            } else if (w.size() == 3 && w[2] == "all") {
+                chosen = status_field_names();
+            } else {
+                for (std::size_t i = 2; i < w.size(); ++i) {
+                    // "rmod,cycle" and "rmod cycle" both work.
+                    std::size_t pos = 0;
+                    while (pos <= w[i].size()) {
+                        auto end = w[i].find(',', pos);
+                        if (end == std::string::npos) end = w[i].size();
+                        const std::string f = w[i].substr(pos, end - pos);
+                        if (!f.empty()) {
+                            if (!find_field(f))
+                                throw CommandError("status set: unknown field '" + f +
+                                                   "' (fields: " + join(status_field_names()) + ")");
+                            if (std::find(chosen.begin(), chosen.end(), f) == chosen.end()) chosen.push_back(f);
+                        }
+                        pos = end + 1;
+                    }
+                }
+            }
+            if (chosen.empty()) throw CommandError("status set: no field chosen");
+            fields_ = std::move(chosen);
+        }
+        r.text = "status fields: " + join(fields_) + "\navailable: " + join(status_field_names());
+        r.data = {{"fields", fields_}, {"available", status_field_names()}};
+        return r;
+    }
+    if (w.size() > 2) throw CommandError("usage: status [RMOD|all] | status set [FIELD...]");
+    std::vector<sbs::TaskStatus> tasks;
+    if (w.size() == 2 && w[1] != "all") {
+        tasks.push_back(sbs_.status(task_of(w[1])));
+    } else {
+        tasks = sbs_.status_all();
+    }
+    // "Since the last status command" (§4.4.1): profiling restarts now.
+    if (!prof_) prof_ = prof::StatusReader::try_attach(sbs_.name());
+    if (prof_) prof_->reset_all();
+    const auto& rows = tasks;
+    std::string text = "subsystem " + sbs_.name() + ": " + std::to_string(rows.size()) +
+                       (rows.size() == 1 ? " task" : " tasks");
+    std::string header;
+    for (const auto& f : fields_) {
+        const Field* fd = find_field(f);
+        header += (header.empty() ? "" : " ") + pad(f, fd->width, fd->numeric);
+    }
+    text += "\n" + header;
+    nlohmann::json jtasks = nlohmann::json::array();
+    for (const auto& row : rows) {
+        std::string line;
+        for (const auto& f : fields_) {
+            const Field* fd = find_field(f);
+            line += (line.empty() ? "" : " ") + pad(field_text(row, f), fd->width, fd->numeric);
+        }
+        text += "\n" + line;
+        // WARNING> once, ERROR> as long as the task is in ERROR; not subject to `status set`.
+        if (!row.warning.empty()) text += "\nWARNING> " + row.rmod + ": " + row.warning;
+        if (row.state == State::ERROR)
+            text += "\nERROR> " + row.rmod + ": " + (row.error.empty() ? "(no message)" : row.error);
+        nlohmann::json j = nlohmann::json::object();
+        for (const auto& f : status_field_names()) j[f] = field_value(row, f);
+        j["warning"] = row.warning;
+        j["error"] = row.error;
+        if (const auto* p = profile_of(row)) j["clock"] = prof::to_string(p->cpu_clock);
+        jtasks.push_back(std::move(j));
+    }
+    r.text = text;
+    r.data = {{"subsystem", sbs_.name()}, {"fields", fields_}, {"tasks", jtasks}};
+    return r;
+}
+
+void Interpreter::detach() {
+    std::lock_guard lock(mutex_);
+    table_.reset();
+    prof_.reset();
+}
+
+svar::Table* Interpreter::table() {
+    if (!table_) {
+        svar::TableOptions opt;
+        opt.attach.prefault = false;
+        table_ = svar::Table::attach(ipc::segment_name(sbs_.name(), "svar"), opt);
+    }
+    return &*table_;
+}
+
+Reply Interpreter::cmd_display(const Words& w) {
+    svar::Table& t = *table();
+    struct Item {
+        std::string dir;
+        std::string name;
+    };
+    std::vector<Item> items;
+    std::size_t k = 1;
+    std::string who;
+    const bool whole = w.size() > 1 && w[1] == "all";
+    if (whole) {
+        k = 2;
+    } else if (w.size() > 1 && is_task(w[1])) {
+        who = w[1];
+        k = 2;
+    } else if (w.size() == 1 && !default_rmod_.empty() && is_task(default_rmod_)) {
+        who = default_rmod_;
+    }
+    if (!who.empty()) {
+        task_of(who);
+        const auto it = rmods_.find(who);
+        if (it == rmods_.end()) throw CommandError("display: no .rmod recorded for task " + who);
+        const RmodFile& f = it->second;
+        for (const auto& v : f.global_in_consts()) items.push_back({"in-const", v});
+        for (const auto& v : f.global_out_consts()) items.push_back({"out-const", v});
+        for (const auto& v : f.global_in_vars()) items.push_back({"in", v});
+        for (const auto& v : f.global_out_vars()) items.push_back({"out", v});
+    } else {
+        for (std::size_t i = 0; i < t.size(); ++i) items.push_back({"", std::string(t.var(i).name())});
+    }
+    const std::vector<std::string> patterns(w.begin() + static_cast<std::ptrdiff_t>(k), w.end());
+    if (!patterns.empty()) {
+        std::vector<Item> kept;
+        for (const auto& p : patterns) {
+            bool any = false;
+            for (const auto& it : items) {
+                if (!glob_match(p, it.name)) continue;
+                any = true;
+                const bool dup = std::any_of(kept.begin(), kept.end(),
+                                             [&](const Item& x) { return x.name == it.name && x.dir == it.dir; });
+                if (!dup) kept.push_back(it);
+            }
+            if (!any)
+                throw CommandError("display: no variable matches " + p +
+                                   (who.empty() ? " in table " + t.name() : " among the ports of " + who));
+        }
+        items = std::move(kept);
+    }
+
+    Reply r;
+    std::string text = who.empty() ? "SVAR table " + t.name() : who + ":";
+    nlohmann::json vars = nlohmann::json::array();
+    for (const auto& it : items) {
+        const auto ix = t.find(it.name);
+        if (!ix) throw CommandError("display: variable " + it.name + " is not in table " + t.name());
+        const auto info = t.var(*ix);
+        std::vector<unsigned char> buf(info.bytes());
+        const auto st = t.read(*ix, buf.data());
+        if (!svar::transferred(st))
+            throw CommandError("display: reading " + it.name + ": " + svar::to_string(st));
+        nlohmann::json jv = {{"name", it.name}, {"type", svar::type_name(info.type())}, {"nelem", info.nelem()},
+                             {"units", std::string(info.units())}, {"desc", std::string(info.desc())}};
+        if (!it.dir.empty()) jv["dir"] = it.dir;
+        std::string values;
+        if (info.type() == svar::Type::struct_) {
+            values = "(" + std::to_string(info.bytes()) + " bytes)";
+            jv["values"] = nullptr;
+        } else {
+            const auto nums = numbers_of(info, buf);
+            for (double x : nums) values += (values.empty() ? "" : " ") + fmt("%.6g", x);
+            jv["values"] = nums;
+        }
+        text += "\n  " + (it.dir.empty() ? std::string() : pad(it.dir, 10)) + pad(it.name, 16) + " " +
+                pad(type_text(info), 12) + " " + values + (info.units().empty() ? "" : "  " + std::string(info.units()));
+        vars.push_back(std::move(jv));
+    }
+    if (items.empty()) text += "\n  (no variables)";
+    r.text = text;
+    r.data = {{"rmod", who}, {"vars", vars}};
+    return r;
+}
+
+Reply Interpreter::cmd_module(const Words& w) {
+    if (w.size() > 2) throw CommandError("usage: module [NAME]");
+    const auto dirs = module_path();
+    std::map<std::string, std::string> modules, rmod_files;
+    scan_dirs(dirs, modules, rmod_files);
+    Reply r;
+    if (w.size() == 1) {
+        std::string text = "modules on the module path:";
+        nlohmann::json jm = nlohmann::json::array(), jr = nlohmann::json::array();
+        for (const auto& [name, path] : modules) {
+            text += "\n  " + pad(name, 14) + " " + path;
+            jm.push_back({{"name", name}, {"path", path}});
+        }
+        if (modules.empty()) text += "\n  (none)";
+        text += "\nrmod files:";
+        for (const auto& [name, path] : rmod_files) {
+            std::string module, desc;
+            try {
+                const auto f = read_rmod(path);
+                module = f.module;
+                desc = f.desc;
+            } catch (const std::exception& e) {
+                desc = std::string("unreadable: ") + e.what();
+            }
+            text += "\n  " + pad(name, 14) + " MODULE " + pad(module, 10) + " " + desc;
+            jr.push_back({{"name", name}, {"module", module}, {"desc", desc}, {"path", path}});
+        }
+        if (rmod_files.empty()) text += "\n  (none)";
+        r.text = text;
+        r.data = {{"path", dirs}, {"modules", jm}, {"rmods", jr}};
+        return r;
+    }
+
+    // One name: an .rmod (its ports and LOCAL keys), or a module (every .rmod using it).
+    const std::string& name = w[1];
+    std::vector<std::string> files;
+    if (const auto p = find_rmod_file(name)) {
+        files.push_back(*p);
+    } else {
+        for (const auto& [n, path] : rmod_files) {
+            try {
+                if (read_rmod(path).module == name) files.push_back(path);
+            } catch (const std::exception&) {
+            }
+        }
+        if (files.empty() && !modules.count(name))
+            throw CommandError("module: no module or .rmod named " + name + " on the module path (" +
+                               join(dirs, ":") + ")");
+    }
+    std::string text;
+    if (files.empty()) text = "module " + name + " (" + modules[name] + "): no .rmod file uses it";
+    svar::Table* tbl = nullptr;
+    try {
+        tbl = table();
+    } catch (const std::exception&) {
+    }
+    nlohmann::json jr = nlohmann::json::array();
+    for (const auto& path : files) {
+        const RmodFile f = read_rmod(path);
+        if (!text.empty()) text += "\n";
+        text += "rmod " + f.name + " (" + path + "): MODULE " + f.module + (modules.count(f.module) ? "" : " (no .so found)") +
+                "\n  " + f.desc + "\n  " + std::string(to_string(f.type)) +
+                (f.freq > 0 ? ", " + fmt("%g", f.freq) + " Hz" : std::string());
+        nlohmann::json ports = nlohmann::json::object();
+        auto list = [&](const char* label, const std::vector<std::string>& internal) {
+            nlohmann::json jp = nlohmann::json::array();
+            text += "\n  " + pad(label, 10);
+            if (internal.empty()) text += "none";
+            for (const auto& port : internal) {
+                const std::string global = f.global_name(port);
+                std::string desc = global == port ? port : port + "=" + global;
+                nlohmann::json j = {{"port", port}, {"svar", global}};
+                if (tbl) {
+                    if (const auto ix = tbl->find(global)) {
+                        const auto info = tbl->var(*ix);
+                        desc += " (" + type_text(info) + (info.units().empty() ? "" : ", " + std::string(info.units())) + ")";
+                        j["type"] = type_text(info);
+                        j["units"] = std::string(info.units());
+                    } else {
+                        desc += " (not in the SVAR table)";
+                    }
+                }
+                text += desc + " ";
+                jp.push_back(std::move(j));
+            }
+            ports[label] = std::move(jp);
+        };
+        list("in-const", f.in_consts);
+        list("out-const", f.out_consts);
+        list("in-var", f.in_vars);
+        list("out-var", f.out_vars);
+        nlohmann::json local = nlohmann::json::object();
+        text += "\n  LOCAL";
+        if (f.local.entries().empty()) text += "    none";
+        for (const auto& e : f.local.entries()) {
+            text += "\n    " + pad(e.key, 12) + " " + join(e.values);
+            local[e.key] = join(e.values);
+        }
+        jr.push_back({{"name", f.name}, {"path", path}, {"module", f.module}, {"desc", f.desc},
+                      {"tasktype", std::string(to_string(f.type))}, {"freq", f.freq}, {"ports", ports},
+                      {"local", local}});
+    }
+    r.text = text;
+    r.data = {{"name", name}, {"rmods", jr}};
+    return r;
+}
+
+Reply Interpreter::cmd_reconfig(const Words& w) {
+    // reconfig on a, off b  |  reconfig on a , off b: commas separate items.
+    std::vector<std::vector<std::string>> groups(1);
+    for (std::size_t i = 1; i < w.size(); ++i) {
+        std::string word = w[i];
+        while (!word.empty()) {
+            const auto comma = word.find(',');
+            const std::string part = word.substr(0, comma);
+            if (!part.empty()) groups.back().push_back(part);
+            if (comma == std::string::npos) break;
+            groups.emplace_back();
+            word.erase(0, comma + 1);
+        }
+    }
+    if (groups.back().empty()) groups.pop_back();
+    if (groups.empty()) throw CommandError("usage: reconfig SIG RMOD [, SIG RMOD ...]");
+    std::vector<sbs::ReconfigItem> items;
+    std::vector<std::string> names;
+    for (std::size_t i = 0; i < groups.size(); ++i) {
+        const auto& g = groups[i];
+        if (g.size() != 2 || !is_signal_word(g[0]))
+            throw CommandError("reconfig: item " + std::to_string(i) + " '" + join(g) +
+                               "' is not SIG RMOD (SIG: on off kill clear); nothing was sent");
+        const auto id = sbs_.find(g[1]);
+        if (!id) throw CommandError("reconfig: item " + std::to_string(i) + ": no task " + g[1] + "; nothing was sent");
+        items.emplace_back(*id, signal_of(g[0]));
+        names.push_back(g[0] + " " + g[1]);
+    }
+    default_rmod_ = groups.back()[1];
+    const auto res = sbs_.reconfig(std::span<const sbs::ReconfigItem>(items));
+    for (std::size_t i = 0; i < items.size(); ++i)
+        if (items[i].signal == sbs::Control::kill && sbs_.status(items[i].task).state == State::NOT_CREATED)
+            rmods_.erase(groups[i][1]);
+    Reply r;
+    nlohmann::json applied = nlohmann::json::array();
+    for (std::size_t i = 0; i < res.processed; ++i) applied.push_back(names[i]);
+    if (!res) {
+        r = Reply::failure("reconfig", "reconfig stopped at " + res.message + " (" + std::to_string(res.processed) +
+                                           " of " + std::to_string(items.size()) + " items applied)");
+        r.data = {{"applied", applied}, {"failed", res.failed}};
+        return r;
+    }
+    r.text = "reconfig: " + std::to_string(res.processed) + " items applied: " + join(names, ", ");
+    r.data = {{"applied", applied}};
+    return r;
+}
+
+Reply Interpreter::cmd_freq(const Words& w) {
+    if (w.size() > 3) throw CommandError("usage: freq [RMOD] [HZ]");
+    std::string rmod;
+    std::string hz;
+    if (w.size() == 3) {
+        rmod = w[1];
+        hz = w[2];
+    } else if (w.size() == 2) {
+        (is_task(w[1]) ? rmod : hz) = w[1];
+    }
+    const sbs::TaskId id = task_of(rmod);
+    if (!hz.empty()) {
+        char* end = nullptr;
+        const double v = std::strtod(hz.c_str(), &end);
+        if (end == hz.c_str() || *end != '\0' || !(v > 0) || !std::isfinite(v))
+            throw CommandError("freq: '" + hz + "' is not a frequency in Hz (a positive number)");
+        sbs_.freq_set(id, v);
+    }
+    const double now = sbs_.freq_get(id);
+    Reply r;
+    r.text = default_rmod_ + " " + fmt("%g", now) + " Hz";
+    r.data = {{"rmod", default_rmod_}, {"freq", now}};
+    return r;
+}
+
+Reply Interpreter::cmd_help(const Words& w) {
+    Reply r;
+    if (w.size() > 1) {
+        for (const auto& c : command_table()) {
+            if (w[1] == c.name) {
+                r.text = std::string(c.usage) + "\n  " + c.help;
+                if (w[1] == "status") r.text += "\n  fields: " + join(status_field_names());
+                return r;
+            }
+        }
+        throw CommandError("help: unknown command '" + w[1] + "'");
+    }
+    std::string text = "commands (the RMOD defaults to the one named last, shown in the prompt):";
+    for (const auto& c : command_table()) text += "\n  " + pad(c.usage, 34) + " " + c.help;
+    r.text = text;
+    return r;
+}
+
+// ----------------------------------------------------------------- completion
+
+std::vector<std::string> Interpreter::complete(std::string_view line) {
+    std::lock_guard lock(mutex_);
+    // Words so far; the last one is being typed (empty after a space).
+    std::vector<std::string> words;
+    {
+        std::string cur;
+        for (char c : line) {
+            if (c == ' ' || c == '\t') {
+                if (!cur.empty()) words.push_back(cur);
+                cur.clear();
+            } else if (c == ';') {
+                words.clear();
+                cur.clear();
+            } else {
+                cur += c;
+            }
+        }
+        words.push_back(cur);
+    }
+    const std::string prefix = words.back();
+    const std::size_t index = words.size() - 1;
+    std::set<std::string> cand;
+    auto add = [&](const std::vector<std::string>& v) { cand.insert(v.begin(), v.end()); };
+    auto variables = [&] {
+        try {
+            svar::Table& t = *table();
+            for (std::size_t i = 0; i < t.size(); ++i) cand.emplace(t.var(i).name());
+        } catch (const std::exception&) {
+        }
+    };
+    try {
+        if (index == 0) {
+            for (const auto& c : command_table()) cand.insert(c.name);
+        } else {
+            const std::string& c = words[0];
+            if (c == "help" && index == 1) {
+                for (const auto& x : command_table()) cand.insert(x.name);
+            } else if ((c == "on" || c == "off" || c == "kill" || c == "clear" || c == "freq") && index == 1) {
+                add(live_rmods());
+            } else if (c == "status") {
+                if (index == 1) {
+                    add(live_rmods());
+                    cand.insert({"all", "set"});
+                } else if (words[1] == "set") {
+                    add(status_field_names());
+                    if (index == 2) cand.insert({"default", "all"});
+                }
+            } else if (c == "display") {
+                if (index == 1) {
+                    add(live_rmods());
+                    cand.insert("all");
+                }
+                variables();
+            } else if (c == "set") {
+                if (index == 1) {
+                    add(live_rmods());
+                    add(local_keys(default_rmod_));
+                } else if (index == 2 && is_task(words[1])) {
+                    add(local_keys(words[1]));
+                }
+            } else if (c == "spawn" || c == "module") {
+                if (index == 1) {
+                    std::map<std::string, std::string> modules, rmod_files;
+                    scan_dirs(module_path(), modules, rmod_files);
+                    for (const auto& [n, p] : rmod_files) cand.insert(n);
+                    if (c == "module")
+                        for (const auto& [n, p] : modules) cand.insert(n);
+                } else if (index == 2 && c == "spawn") {
+                    for (const auto& r : sbs_.file().rtpus) cand.insert(r.name);
+                }
+            } else if (c == "reconfig") {
+                // Alternating SIG RMOD; a comma starts a new item.
+                std::size_t pos = 0;
+                for (std::size_t i = 1; i < index; ++i) {
+                    for (char ch : words[i])
+                        if (ch == ',') pos = 0;
+                    if (!words[i].empty() && words[i] != ",") pos = words[i].back() == ',' ? 0 : pos + 1;
+                }
+                if (pos % 2 == 0) {
+                    cand.insert({"on", "off", "kill", "clear"});
+                } else {
+                    add(live_rmods());
+                }
+            }
+        }
+    } catch (const std::exception&) {
+        // Completion never reports errors; it just offers nothing more.
+    }
+    std::vector<std::string> out;
+    for (const auto& s : cand)
+        if (s.compare(0, prefix.size(), prefix) == 0) out.push_back(s);
+    return out;
+}
+
+}  // namespace chimera::cli

@@ -1,0 +1,95 @@
+// tools/sbs/commands.hpp — the commands of the `sbs` command line (thesis
+// §4.4.1), run against a subsystem this process is the master of. The prompt,
+// `-c` scripts and the network server all call Interpreter::execute(), so a
+// command means the same thing wherever it is typed.
+#pragma once
+
+#include "reply.hpp"
+
+#include <chimera/prof.hpp>
+#include <chimera/sbs.hpp>
+#include <chimera/svar.hpp>
+
+#include <map>
+#include <mutex>
+#include <optional>
+#include <string>
+#include <string_view>
+#include <vector>
+
+namespace chimera::cli {
+
+/// One command of the table (help text and completion come from it).
+struct CommandInfo {
+    const char* name;
+    const char* usage;
+    const char* help;
+};
+
+/// All commands, in alphabetical order (as §4.4.1 lists them).
+const std::vector<CommandInfo>& command_table();
+
+/// The status fields of §4.4.1 (plus the Linux additions) that `status set`
+/// may choose from, in display order.
+const std::vector<std::string>& status_field_names();
+
+class Interpreter {
+public:
+    /// `module_dirs`: folders added with --module-path (already given to the
+    /// subsystem with add_module_path()).
+    Interpreter(sbs::Subsystem& subsystem, std::vector<std::string> module_dirs);
+
+    /// Runs ONE command (no `;`). Never throws: failures are replies.
+    Reply execute(std::string_view command);
+
+    /// The default RMOD: the one the last command was directed to (§4.4.1).
+    const std::string& default_rmod() const noexcept { return default_rmod_; }
+    /// "SBS <subsystem><<rmod>> ".
+    std::string prompt() const;
+
+    /// Completion candidates for the last (partial) word of `line`, already
+    /// filtered by that word as a prefix and sorted.
+    std::vector<std::string> complete(std::string_view line);
+
+    /// Every folder searched for modules and .rmod files, in search order:
+    /// CHIMERA_MODULE_PATH, --module-path, the .sbs's folder, the installed folder.
+    std::vector<std::string> module_path() const;
+
+    /// Lets go of the shared segments this interpreter mapped, so the
+    /// subsystem's finish() (their last user) removes them.
+    void detach();
+
+private:
+    using Words = std::vector<std::string>;
+    Reply run(const Words& w);
+    Reply cmd_spawn(const Words& w);
+    Reply cmd_control(const Words& w, sbs::Control signal);
+    Reply cmd_set(const Words& w);
+    Reply cmd_status(const Words& w);
+    Reply cmd_display(const Words& w);
+    Reply cmd_module(const Words& w);
+    Reply cmd_reconfig(const Words& w);
+    Reply cmd_freq(const Words& w);
+    Reply cmd_help(const Words& w);
+
+    /// The task named `rmod` (or the default one when empty); throws
+    /// std::runtime_error naming what is wrong. Makes it the default RMOD.
+    sbs::TaskId task_of(const std::string& rmod);
+    bool is_task(std::string_view name) const;
+    std::vector<std::string> live_rmods() const;
+    /// A .rmod file for `name`: a path, or NAME[.rmod] in the module path.
+    std::optional<std::string> find_rmod_file(const std::string& name) const;
+    svar::Table* table();
+    std::vector<std::string> local_keys(const std::string& rmod) const;
+
+    sbs::Subsystem& sbs_;
+    std::vector<std::string> extra_dirs_;
+    std::string default_rmod_;
+    std::vector<std::string> fields_;
+    std::map<std::string, RmodFile> rmods_;  // rmod name -> the file it was spawned from
+    std::optional<svar::Table> table_;
+    std::optional<prof::StatusReader> prof_;
+    std::mutex mutex_;  // one command at a time, whichever interface sent it
+};
+
+}  // namespace chimera::cli

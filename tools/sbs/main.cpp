@@ -1,0 +1,407 @@
+// sbs — the command-line interface of a subsystem (thesis §4.4.1) and its
+// network interface (§4.4.2).
+//
+//   sbs arm.sbs                          start the subsystem, give the prompt `SBS arm<rmod>`
+//   sbs arm.sbs -c 'spawn pid; on pid; status' [--json]
+//   sbs arm.sbs --listen [--socket P]    prompt; `network` passes control to a peer
+//   sbs arm.sbs --serve [-c 'spawn ...'] no prompt: the network has control (sbsNetwork)
+//   sbs arm.sbs --tcp 127.0.0.1:7000 --token T --serve
+//
+// When the subsystem already runs and its master listens on the default
+// socket, `sbs FILE.sbs` attaches to it as a network peer instead.
+#include "client.hpp"
+#include "command_line.hpp"
+#include "commands.hpp"
+#include "server.hpp"
+
+#include <chimera/ipc/segment.hpp>
+#include <chimera/sbs.hpp>
+
+#include <CLI/CLI.hpp>
+#include <editline/readline.h>
+
+#include <unistd.h>
+
+#include <atomic>
+#include <csignal>
+#include <cstdio>
+#include <cstdlib>
+#include <cstring>
+#include <functional>
+#include <iostream>
+#include <memory>
+#include <string>
+
+using namespace chimera;
+using chimera::cli::Action;
+using chimera::cli::Reply;
+
+namespace {
+
+std::atomic<bool> g_interrupted{false};
+
+extern "C" void on_interrupt(int) { g_interrupted.store(true); }
+
+void catch_interrupts() {
+    struct sigaction sa {};
+    sa.sa_handler = on_interrupt;
+    sigemptyset(&sa.sa_mask);
+    sa.sa_flags = 0;  // no SA_RESTART: a blocking read returns so the flag is seen
+    sigaction(SIGINT, &sa, nullptr);
+    sigaction(SIGTERM, &sa, nullptr);
+    sigaction(SIGHUP, &sa, nullptr);
+}
+
+using Executor = std::function<Reply(std::string_view)>;
+
+/// Runs one line (one or more commands separated by `;`): each reply is
+/// printed; stops at the first failure. Returns the last reply (the failing
+/// one, if any).
+Reply run_line(const Executor& exec, std::string_view line, bool json, bool errors_to_stderr) {
+    std::vector<std::string> commands;
+    try {
+        commands = cli::split_commands(line);
+    } catch (const cli::SyntaxError& e) {
+        commands.clear();
+        Reply r = Reply::failure("", e.what());
+        if (json) std::cout << cli::to_json_line(r) << std::endl;
+        else (errors_to_stderr ? std::cerr : std::cout) << "error: " << r.error << std::endl;
+        return r;
+    }
+    Reply last;
+    for (const auto& c : commands) {
+        last = exec(c);
+        if (json) {
+            std::cout << cli::to_json_line(last) << std::endl;
+        } else if (last.ok) {
+            if (!last.text.empty()) std::cout << last.text << std::endl;
+        } else {
+            if (!last.text.empty()) std::cout << last.text << std::endl;
+            (errors_to_stderr ? std::cerr : std::cout) << "error: " << last.error << std::endl;
+        }
+        if (!last.ok || last.action != Action::none) break;
+    }
+    return last;
+}
+
+// ----------------------------------------------------------------- line editing
+
+cli::Interpreter* g_interp = nullptr;
+std::vector<std::string> g_matches;
+std::size_t g_match_index = 0;
+
+char* next_match(const char*, int state) {
+    if (state == 0) g_match_index = 0;
+    if (g_match_index >= g_matches.size()) return nullptr;
+    return ::strdup(g_matches[g_match_index++].c_str());
+}
+
+char** complete_line(const char* text, int, int) {
+    rl_attempted_completion_over = 1;  // never fall back to file names
+    if (g_interp == nullptr) return nullptr;
+    g_matches = g_interp->complete(std::string(rl_line_buffer, static_cast<std::size_t>(rl_point)));
+    // The candidates are for the whole last word; libedit passes that word as `text`.
+    std::vector<std::string> keep;
+    for (auto& m : g_matches)
+        if (m.compare(0, std::strlen(text), text) == 0) keep.push_back(std::move(m));
+    g_matches = std::move(keep);
+    return rl_completion_matches(text, next_match);
+}
+
+std::string history_file() {
+    const char* home = std::getenv("HOME");
+    return home != nullptr && *home != '\0' ? std::string(home) + "/.chimera_sbs_history" : std::string();
+}
+
+struct NetworkSetup {
+    bool listen = false;
+    std::string unix_path;  // empty: the default
+    std::string tcp;        // [host:]port
+    std::string token;
+};
+
+class Master {
+public:
+    Master(sbs::Subsystem& subsystem, cli::Interpreter& interp, NetworkSetup net, bool serve)
+        : sbs_(subsystem), interp_(interp), net_(std::move(net)), serve_(serve) {}
+
+    /// Starts the server if asked for on the command line (or by `network`).
+    cli::NetworkServer& server() {
+        if (!server_) {
+            cli::ServerOptions o;
+            o.subsystem = sbs_.name();
+            o.serve = serve_;
+            if (net_.listen || net_.tcp.empty())
+                o.unix_path = net_.unix_path.empty() ? cli::default_socket_path(sbs_.name()) : net_.unix_path;
+            if (!net_.tcp.empty()) {
+                o.tcp = true;
+                std::string port = net_.tcp;
+                if (const auto colon = net_.tcp.rfind(':'); colon != std::string::npos) {
+                    o.tcp_host = net_.tcp.substr(0, colon);
+                    if (o.tcp_host.size() > 2 && o.tcp_host.front() == '[' && o.tcp_host.back() == ']')
+                        o.tcp_host = o.tcp_host.substr(1, o.tcp_host.size() - 2);
+                    port = net_.tcp.substr(colon + 1);
+                }
+                char* end = nullptr;
+                const long p = std::strtol(port.c_str(), &end, 10);
+                if (port.empty() || *end != '\0' || p < 0 || p > 65535)
+                    throw cli::ServerError("--tcp: '" + port + "' is not a port number (0-65535)");
+                o.tcp_port = static_cast<std::uint16_t>(p);
+                o.token = net_.token;
+            }
+            server_ = std::make_unique<cli::NetworkServer>(
+                o, [this](std::string_view line) { return execute_network(line); });
+            server_->start();
+            std::string where;
+            if (!server_->unix_path().empty()) where = "unix socket " + server_->unix_path();
+            if (server_->tcp_port() != 0)
+                where += (where.empty() ? "" : " and ") + std::string("TCP ") + o.tcp_host + ":" +
+                         std::to_string(server_->tcp_port());
+            std::cerr << "sbs: subsystem " << sbs_.name() << " listening on " << where << std::endl;
+        }
+        return *server_;
+    }
+
+    /// `network`: control goes to one peer until it quits or is lost (§4.4.2).
+    /// Returns false when the peer asked for the subsystem to finish.
+    bool hand_over() {
+        auto& s = server();
+        g_interrupted = false;
+        const auto end = s.hand_over(&g_interrupted, [] {
+            std::cout << "control passed to the network; Ctrl-C takes it back" << std::endl;
+        });
+        g_interrupted = false;
+        switch (end) {
+            case cli::NetworkServer::SessionEnd::peer_quit: std::cout << "network peer quit: control is back" << std::endl; break;
+            case cli::NetworkServer::SessionEnd::peer_lost: std::cout << "network connection lost: control is back" << std::endl; break;
+            case cli::NetworkServer::SessionEnd::interrupted: std::cout << "control taken back from the network" << std::endl; break;
+            case cli::NetworkServer::SessionEnd::finish: std::cout << "network peer asked to finish" << std::endl; return false;
+            case cli::NetworkServer::SessionEnd::stopped: return false;
+        }
+        return true;
+    }
+
+    void stop() {
+        if (server_) server_->stop();
+    }
+
+private:
+    Reply execute_network(std::string_view line) {
+        std::vector<std::string> commands;
+        try {
+            commands = cli::split_commands(line);
+        } catch (const cli::SyntaxError& e) {
+            return Reply::failure("", e.what());
+        }
+        if (commands.size() > 1)
+            return Reply::failure("", "one command per request line (found " + std::to_string(commands.size()) +
+                                          " separated by ';')");
+        if (commands.empty()) {
+            Reply r;
+            r.rmod = interp_.default_rmod();
+            return r;
+        }
+        return interp_.execute(commands[0]);
+    }
+
+    sbs::Subsystem& sbs_;
+    cli::Interpreter& interp_;
+    NetworkSetup net_;
+    bool serve_;
+    std::unique_ptr<cli::NetworkServer> server_;
+};
+
+/// The prompt, with libedit when stdin is a terminal, plain lines otherwise.
+/// Returns the exit status.
+int interactive(sbs::Subsystem& subsystem, cli::Interpreter& interp, Master& master) {
+    const bool tty = ::isatty(STDIN_FILENO) != 0;
+    const std::string hist = history_file();
+    if (tty) {
+        g_interp = &interp;
+        rl_readline_name = const_cast<char*>("sbs");
+        rl_attempted_completion_function = complete_line;
+        rl_completion_append_character = ' ';
+        using_history();
+        if (!hist.empty()) read_history(hist.c_str());
+        std::cout << "Chimera subsystem " << subsystem.name() << " (" << subsystem.file().path
+                  << "): type help for the commands, quit to finish" << std::endl;
+    }
+    int status = 0;
+    for (;;) {
+        std::string line;
+        if (tty) {
+            g_interrupted = false;
+            char* raw = readline(interp.prompt().c_str());
+            if (raw == nullptr) {
+                if (g_interrupted.exchange(false)) {  // Ctrl-C: a fresh prompt, not an exit
+                    std::cout << std::endl;
+                    continue;
+                }
+                std::cout << std::endl;
+                break;  // end of input
+            }
+            line = raw;
+            std::free(raw);
+            if (line.find_first_not_of(" \t") != std::string::npos) add_history(line.c_str());
+        } else {
+            if (!std::getline(std::cin, line)) break;
+        }
+        const Reply r = run_line([&](std::string_view c) { return interp.execute(c); }, line, false, false);
+        if (!r.ok) status = 1;
+        if (r.action == Action::quit || r.action == Action::finish) break;
+        if (r.action == Action::network) {
+            try {
+                if (!master.hand_over()) break;
+            } catch (const std::exception& e) {
+                std::cout << "error: network: " << e.what() << std::endl;
+                status = 1;
+            }
+        }
+    }
+    if (tty && !hist.empty()) write_history(hist.c_str());
+    return tty ? 0 : status;
+}
+
+// ----------------------------------------------------------------- attach mode
+
+/// A command sent to a master that already runs the subsystem.
+Reply remote_execute(cli::NetworkClient& client, std::string_view command) {
+    const auto j = client.request(command, 60000);
+    Reply r;
+    r.ok = j.value("ok", false);
+    r.command = j.value("cmd", "");
+    r.text = j.value("text", "");
+    r.error = j.value("error", "");
+    r.rmod = j.value("rmod", "");
+    if (j.contains("data")) r.data = j["data"];
+    if (r.command == "quit" && r.ok) r.action = Action::quit;
+    return r;
+}
+
+int attached(cli::NetworkClient& client, const std::string& script, bool json) {
+    const auto& hello = client.hello();
+    if (!hello.value("ok", false)) {
+        std::cerr << "sbs: " << hello.value("error", std::string("refused by the master")) << std::endl;
+        return 1;
+    }
+    Executor exec = [&](std::string_view c) -> Reply {
+        try {
+            return remote_execute(client, c);
+        } catch (const std::exception& e) {
+            return Reply::failure("", e.what());
+        }
+    };
+    if (!script.empty()) {
+        const Reply r = run_line(exec, script, json, true);
+        exec("quit");
+        return r.ok ? 0 : 1;
+    }
+    std::cerr << "sbs: attached to the master of subsystem " << hello.value("subsystem", std::string("?"))
+              << " (pid " << hello.value("pid", 0) << ")" << std::endl;
+    std::string line;
+    std::string rmod;
+    const bool tty = ::isatty(STDIN_FILENO) != 0;
+    for (;;) {
+        if (tty) std::cout << "SBS " << hello.value("subsystem", std::string()) << "<" << rmod << "> " << std::flush;
+        if (!std::getline(std::cin, line)) break;
+        const Reply r = run_line(exec, line, json, false);
+        rmod = r.rmod;
+        if (r.action == Action::quit || r.command == "finish") break;
+    }
+    return 0;
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+    CLI::App app{"sbs: command line and network interface of a Chimera subsystem (thesis §4.4)"};
+    std::string sbs_path, script;
+    bool json = false, serve = false, no_attach = false;
+    NetworkSetup net;
+    std::vector<std::string> module_dirs;
+    app.add_option("file", sbs_path, "the subsystem's .sbs file")->required()->check(CLI::ExistingFile);
+    app.add_option("-c,--command", script, "run these commands (separated by ; or newlines) and exit");
+    app.add_flag("--json", json, "print every reply as one JSON object per line (for -c)");
+    app.add_flag("--listen", net.listen,
+                 "listen on a Unix socket, owner only (default $XDG_RUNTIME_DIR/chimera/NAME.sock, "
+                 "else /tmp/chimera-UID/NAME.sock)");
+    app.add_option("--socket", net.unix_path, "the Unix socket path for --listen (implies --listen)");
+    app.add_option("--tcp", net.tcp, "listen on TCP [host:]port as well (host: loopback unless given)");
+    app.add_option("--token", net.token, "token a TCP peer must send first (required off loopback)");
+    app.add_flag("--serve", serve,
+                 "no prompt: the network has control from the start (after -c), until a peer sends finish");
+    app.add_option("--module-path", module_dirs, "a folder with modules and .rmod files (repeatable)");
+    app.add_flag("--no-attach", no_attach, "never attach to a running master; start the subsystem here");
+    CLI11_PARSE(app, argc, argv);
+    if (!net.unix_path.empty()) net.listen = true;
+    if (!net.token.empty() && net.tcp.empty()) {
+        std::cerr << "sbs: --token is for --tcp" << std::endl;
+        return 2;
+    }
+
+    std::unique_ptr<sbs::Subsystem> subsystem;
+    try {
+        const SbsFile file = read_sbs(sbs_path);
+        // Already running: talk to its master over the network interface.
+        if (!no_attach && ipc::Segment::exists(ipc::segment_name(file.subsystem, "svar"))) {
+            std::string path;
+            try {
+                path = net.unix_path.empty() ? cli::default_socket_path(file.subsystem) : net.unix_path;
+            } catch (const std::exception&) {
+            }
+            if (!path.empty() && ::access(path.c_str(), F_OK) == 0) {
+                try {
+                    auto client = cli::NetworkClient::connect_unix(path);
+                    return attached(client, script, json);
+                } catch (const cli::ClientError& e) {
+                    std::cerr << "sbs: subsystem " << file.subsystem << " is running but its master does not answer on "
+                              << path << ": " << e.what() << std::endl;
+                    return 1;
+                }
+            }
+        }
+        subsystem = sbs::Subsystem::init(file);
+    } catch (const std::exception& e) {
+        std::cerr << "sbs: " << e.what() << std::endl;
+        return 1;
+    }
+    for (const auto& d : module_dirs) subsystem->add_module_path(d);
+
+    cli::Interpreter interp(*subsystem, module_dirs);
+    Master master(*subsystem, interp, net, serve);
+    int status = 0;
+    try {
+        // With --serve the sockets open once the script has run, so a peer
+        // never finds them while the script still has control.
+        if ((net.listen || !net.tcp.empty()) && !serve) master.server();
+        if (serve || !script.empty() || net.listen || !net.tcp.empty() || ::isatty(STDIN_FILENO))
+            catch_interrupts();
+        if (!script.empty()) {
+            const Reply r = run_line([&](std::string_view c) { return interp.execute(c); }, script, json, true);
+            if (!r.ok) status = 1;
+            if (r.action == Action::quit || r.action == Action::finish) serve = false;
+            if (r.action == Action::network && !serve) {
+                if (!master.hand_over()) serve = false;
+            }
+        }
+        if (serve && status == 0) {
+            const auto end = master.server().serve_forever(&g_interrupted);
+            if (end == cli::NetworkServer::SessionEnd::interrupted)
+                std::cerr << "sbs: interrupted: finishing subsystem " << subsystem->name() << std::endl;
+        } else if (script.empty()) {
+            status = interactive(*subsystem, interp, master);
+        }
+    } catch (const std::exception& e) {
+        std::cerr << "sbs: " << e.what() << std::endl;
+        status = 1;
+    }
+    master.stop();
+    interp.detach();
+    try {
+        subsystem->finish();
+    } catch (const std::exception& e) {
+        std::cerr << "sbs: finish: " << e.what() << std::endl;
+        status = 1;
+    }
+    return status;
+}
