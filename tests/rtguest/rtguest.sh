@@ -1,15 +1,21 @@
 #!/usr/bin/env bash
 # Runs test programs inside a Debian PREEMPT_RT kernel booted under qemu.
 #
-#   rtguest.sh [--keep] TEST_PROGRAM...
+#   rtguest.sh [--keep] [--require] TEST_PROGRAM[@GTEST_FILTER]...
+#
+# --keep keeps the work directory (initramfs, console log); --require turns
+# "cannot be prepared here" into a failure instead of a skip (meson passes it
+# when -Drt_guest_tests=enabled). A program given as path@filter runs with
+# GTEST_FILTER=filter in the guest.
 #
 # What it does (everything downloaded or built is cached under
 # $CHIMERA_RTGUEST_CACHE, default /var/cache/chimera-rtguest, so a second run
 # starts the guest straight away):
 #   1. installs qemu-system-x86, busybox-static and the linux-headers package
 #      matching Debian's linux-image-rt-amd64 (apt-get), downloads the kernel
-#      image and linux-source packages (apt-get download) and unpacks them into
-#      the cache (the host's own kernel is not touched);
+#      image and linux-source packages (apt-get download) and unpacks the
+#      kernel and the few modules the guest loads into the cache (the host's
+#      own kernel is not touched); older kernel versions are dropped from it;
 #   2. builds gpio-sim out of tree (Debian's RT config has it switched off):
 #      drivers/gpio/gpio-sim.c plus kernel/irq/irq_sim.c, whose use of the
 #      unexported irq_to_desc() is replaced by generic_handle_irq();
@@ -21,7 +27,8 @@
 #      vcan0 and a gpio-sim chip, runs every test program, and powers off;
 #   5. returns the tests' status, read from the marker line the guest prints
 #      on its serial console. Exit 77 (meson's "skipped") when the guest
-#      cannot be prepared here (no root and no cache, no apt, no qemu).
+#      cannot be prepared here (not x86_64, no root and nothing installed, no
+#      apt, no network), unless --require.
 #
 # Timing numbers measured inside a TCG guest mean nothing; the guest tests
 # assert behaviour only.
@@ -31,16 +38,29 @@ here="$(cd "$(dirname "$0")" && pwd)"
 cache="${CHIMERA_RTGUEST_CACHE:-/var/cache/chimera-rtguest}"
 timeout_s="${CHIMERA_RTGUEST_TIMEOUT:-600}"
 keep=0
-if [[ "${1:-}" == "--keep" ]]; then keep=1; shift; fi
+require=0
+while [[ "${1:-}" == --* ]]; do
+    case "$1" in
+        --keep) keep=1 ;;
+        --require) require=1 ;;
+        *) echo "$0: unknown option $1" >&2; exit 2 ;;
+    esac
+    shift
+done
 tests=("$@")
-if ((${#tests[@]} == 0)); then echo "usage: $0 [--keep] TEST_PROGRAM..." >&2; exit 2; fi
+if ((${#tests[@]} == 0)); then
+    echo "usage: $0 [--keep] [--require] TEST_PROGRAM[@GTEST_FILTER]..." >&2; exit 2
+fi
 
 say() { echo "rtguest: $*"; }
-skip() { say "SKIP: $*"; exit 77; }
+skip() {
+    if ((require)); then say "FAIL (rt_guest_tests=enabled): $*"; exit 1; fi
+    say "SKIP: $*"; exit 77
+}
 
 if [[ "$(uname -m)" != x86_64 ]]; then skip "x86_64 host needed"; fi
-mkdir -p "$cache" 2>/dev/null || skip "cannot create cache $cache"
-[[ -w "$cache" ]] || skip "cache $cache is not writable"
+mkdir -p "$cache" 2>/dev/null || skip "cannot create cache $cache (set CHIMERA_RTGUEST_CACHE)"
+[[ -w "$cache" ]] || skip "cache $cache is not writable (set CHIMERA_RTGUEST_CACHE)"
 
 # Serialise concurrent runs (two build trees testing at once share the cache).
 exec 9>"$cache/.lock"
@@ -52,14 +72,30 @@ as_root() {
 }
 
 # --- 1. packages ----------------------------------------------------------
+# linux-image-rt-amd64 is a meta package: its dependency names the kernel.
+rt_kernel_version() {
+    apt-cache depends linux-image-rt-amd64 2>/dev/null |
+        sed -n 's/^ *Depends: linux-image-\(.*-rt-amd64\)$/\1/p' | head -n1
+}
+apt_updated=0
+apt_update() {  # once per run; stale package lists name versions the mirror dropped
+    ((apt_updated)) && return 0
+    apt_updated=1
+    as_root apt-get update -qq >>"$cache/apt-update.log" 2>&1
+}
 kver=""
 if command -v apt-cache >/dev/null; then
-    # linux-image-rt-amd64 is a meta package: its dependency names the kernel.
-    kver="$(apt-cache depends linux-image-rt-amd64 2>/dev/null |
-        sed -n 's/^ *Depends: linux-image-\(.*-rt-amd64\)$/\1/p' | head -n1)"
+    kver="$(rt_kernel_version)"
+    if [[ -z "$kver" ]] && apt_update; then kver="$(rt_kernel_version)"; fi
 fi
 if [[ -z "$kver" && -f "$cache/kver" ]]; then kver="$(cat "$cache/kver")"; fi
 [[ -n "$kver" ]] || skip "cannot find the linux-image-rt-amd64 kernel version (apt-cache)"
+# A newer kernel version replaces the older one in the cache.
+if [[ -f "$cache/kver" && "$(cat "$cache/kver")" != "$kver" ]]; then
+    old="$(cat "$cache/kver")"
+    say "dropping the cached kernel $old"
+    rm -rf "$cache/kernel-$old" "$cache/gpio-sim-$old" "$cache/debs/linux-image-${old}"_*.deb
+fi
 echo "$kver" >"$cache/kver"
 say "kernel $kver, cache $cache"
 
@@ -71,21 +107,38 @@ command -v make >/dev/null || need_pkgs+=(make)
 command -v gcc >/dev/null || need_pkgs+=(gcc)
 if ((${#need_pkgs[@]})); then
     say "installing ${need_pkgs[*]}"
+    [[ $EUID -eq 0 ]] || skip "not root: cannot apt-get install ${need_pkgs[*]}"
     as_root apt-get install -y -qq --no-install-recommends "${need_pkgs[@]}" >"$cache/apt-install.log" 2>&1 ||
-    { as_root apt-get update -qq >/dev/null 2>&1 &&
+    { apt_update &&
       as_root apt-get install -y -qq --no-install-recommends "${need_pkgs[@]}" >"$cache/apt-install.log" 2>&1; } ||
         skip "could not install ${need_pkgs[*]} (see $cache/apt-install.log)"
 fi
 busybox_bin=/bin/busybox
 
-kdir="$cache/kernel-$kver"
-if [[ ! -f "$kdir/.done" ]]; then
+download() {  # download PACKAGE[=VERSION] into the cache, updating the lists once if needed
     mkdir -p "$cache/debs"
-    (cd "$cache/debs" && apt-get download "linux-image-$kver" >"$cache/apt-download.log" 2>&1) ||
-        skip "apt-get download linux-image-$kver failed (see $cache/apt-download.log)"
+    (cd "$cache/debs" && apt-get download "$1" >>"$cache/apt-download.log" 2>&1) ||
+    { apt_update && (cd "$cache/debs" && apt-get download "$1" >>"$cache/apt-download.log" 2>&1); }
+}
+
+# Only the kernel and the modules the guest loads are unpacked (the package's
+# whole module tree is 400 MB). Debian 12's modules are plain .ko files.
+guest_modules=(fs/configfs/configfs.ko net/can/can.ko net/can/can-raw.ko
+               drivers/net/can/dev/can-dev.ko drivers/net/can/vcan.ko)
+kdir="$cache/kernel-$kver"
+if [[ ! -f "$kdir/.done" || "$(cat "$kdir/.done")" != "${guest_modules[*]}" ]]; then
+    imgdeb="$(ls "$cache/debs/linux-image-${kver}"_*.deb 2>/dev/null | head -n1 || true)"
+    if [[ -z "$imgdeb" ]]; then
+        download "linux-image-$kver" ||
+            skip "apt-get download linux-image-$kver failed (see $cache/apt-download.log)"
+        imgdeb="$(ls "$cache/debs/linux-image-${kver}"_*.deb | head -n1)"
+    fi
     rm -rf "$kdir" && mkdir -p "$kdir"
-    dpkg -x "$cache/debs/linux-image-${kver}"_*.deb "$kdir"
-    touch "$kdir/.done"
+    members=("./boot/vmlinuz-$kver")
+    for m in "${guest_modules[@]}"; do members+=("./lib/modules/$kver/kernel/$m"); done
+    dpkg-deb --fsys-tarfile "$imgdeb" | tar -x -C "$kdir" "${members[@]}" ||
+        skip "the kernel package lacks one of ${members[*]}"
+    echo "${guest_modules[*]}" >"$kdir/.done"
 fi
 vmlinuz="$kdir/boot/vmlinuz-$kver"
 kmods="$kdir/lib/modules/$kver/kernel"
@@ -102,8 +155,8 @@ if [[ ! -f "$gdir/gpio-sim.ko" ]]; then
     series="$(echo "$kver" | sed -n 's/^\([0-9]*\.[0-9]*\)\..*/\1/p')"
     srcdeb="$(ls "$cache/debs/linux-source-${series}_${srcver}"_all.deb 2>/dev/null | head -n1 || true)"
     if [[ -z "$srcdeb" ]]; then
-        (cd "$cache/debs" && apt-get download "linux-source-${series}=${srcver}" >>"$cache/apt-download.log" 2>&1) ||
-            skip "apt-get download linux-source-${series}=${srcver} failed"
+        download "linux-source-${series}=${srcver}" ||
+            skip "apt-get download linux-source-${series}=${srcver} failed (see $cache/apt-download.log)"
         srcdeb="$(ls "$cache/debs/linux-source-${series}_${srcver}"_all.deb | head -n1)"
     fi
     rm -rf "$gdir" && mkdir -p "$gdir/tmp"
@@ -125,6 +178,8 @@ if [[ ! -f "$gdir/gpio-sim.ko" ]]; then
     say "building gpio-sim.ko against linux-headers-$kver"
     make -C "/lib/modules/$kver/build" M="$gdir" -j1 modules >"$gdir/build.log" 2>&1 ||
         { tail -n 30 "$gdir/build.log"; say "FAIL: gpio-sim build"; exit 1; }
+    # The module is all that is needed from the source package (140 MB).
+    rm -f "$srcdeb"
 fi
 
 # --- 3. initramfs ------------------------------------------------------------
@@ -132,8 +187,7 @@ work="$(mktemp -d "${TMPDIR:-/tmp}/chimera-rtguest.XXXXXX")"
 cleanup() { if ((keep)); then say "kept $work"; else rm -rf "$work"; fi; }
 trap cleanup EXIT
 root="$work/root"
-mkdir -p "$root"/{bin,sbin,dev,proc,sys,tmp,run,lib/modules,tests,etc}
-cp "$busybox_bin" "$root/bin/busybox"
+mkdir -p "$root"/{bin,sbin,dev,proc,sys,tmp,run,lib/modules,tests,filters,etc}
 for applet in sh mount umount mkdir cat echo insmod ip ls sleep poweroff grep sed tr \
               head tail dmesg mknod ln env printf uname nproc timeout cut seq basename \
               date rm find wc test [ true false; do
@@ -142,19 +196,23 @@ done
 copy_with_libs() {  # copy a program and the shared libraries it needs
     local prog="$1" dest="$2"
     cp "$prog" "$dest"
-    ldd "$prog" 2>/dev/null | grep -o '/[^ ]*' | while read -r lib; do
+    # A static program has no libraries: ldd fails and nothing is copied.
+    { ldd "$prog" 2>/dev/null || true; } | { grep -o '/[^ ]*' || true; } | while read -r lib; do
         mkdir -p "$root$(dirname "$lib")"
         [[ -e "$root$lib" ]] || cp -L "$lib" "$root$lib"
     done
 }
+copy_with_libs "$busybox_bin" "$root/bin/busybox"
 i=0
-for t in "${tests[@]}"; do
+for arg in "${tests[@]}"; do
+    t="${arg%%@*}"
     [[ -x "$t" ]] || { say "FAIL: $t is not an executable"; exit 1; }
     i=$((i + 1))
-    copy_with_libs "$t" "$root/tests/$(printf '%02d' $i)-$(basename "$t")"
+    name="$(printf '%02d' $i)-$(basename "$t")"
+    copy_with_libs "$t" "$root/tests/$name"
+    if [[ "$arg" == *@* ]]; then printf '%s\n' "${arg#*@}" >"$root/filters/$name"; fi
 done
-for m in fs/configfs/configfs.ko net/can/can.ko net/can/can-raw.ko \
-         drivers/net/can/dev/can-dev.ko drivers/net/can/vcan.ko; do
+for m in "${guest_modules[@]}"; do
     cp "$kmods/$m" "$root/lib/modules/"
 done
 cp "$gdir/gpio-sim.ko" "$root/lib/modules/"
