@@ -466,6 +466,9 @@ public:
     std::vector<TaskStatus> status_and_reset();
     void reset_all();
     void reset_rtpu(int rtpu);
+    /// As StatusSegment::set_accounting, from any process (e.g. `chimtop
+    /// --half-tick`, to compare figures with the thesis's): resets the RTPU.
+    void set_accounting(int rtpu, Accounting accounting, std::int64_t tick_ns);
 
     /// True while the segment is published and its creator process exists.
     bool alive() const noexcept;

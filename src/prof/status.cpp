@@ -93,6 +93,16 @@ void bump_epoch(StatusHeader* h, int rtpu, const Accounting* accounting,
     detail::write_end(b->seq);
 }
 
+void set_rtpu_accounting(StatusHeader* h, const std::string& name, int rtpu, Accounting accounting,
+                         std::int64_t tick_ns) {
+    check_rtpu(h, rtpu, "status segment " + name);
+    if (accounting == Accounting::half_tick && tick_ns <= 0)
+        throw StatusError("status segment " + name + ": half-tick accounting needs a tick > 0");
+    const std::int64_t tick = accounting == Accounting::half_tick ? tick_ns : 1;
+    HeaderLock lock(h, "status segment " + name);
+    bump_epoch(h, rtpu, &accounting, &tick);
+}
+
 std::optional<RawSlot> read_slot(const StatusHeader* h, std::uint32_t index) {
     const TaskSlotData* s = slot_at(h, index);
     for (int attempt = 0; attempt < 1000; ++attempt) {
@@ -587,13 +597,7 @@ void StatusSegment::reset_rtpu(int rtpu) {
 }
 
 void StatusSegment::set_accounting(int rtpu, Accounting accounting, std::int64_t tick_ns) {
-    StatusHeader* h = header();
-    check_rtpu(h, rtpu, "status segment " + name());
-    if (accounting == Accounting::half_tick && tick_ns <= 0)
-        throw StatusError("status segment " + name() + ": half-tick accounting needs a tick > 0");
-    const std::int64_t tick = accounting == Accounting::half_tick ? tick_ns : 1;
-    HeaderLock lock(h, "status segment " + name());
-    bump_epoch(h, rtpu, &accounting, &tick);
+    set_rtpu_accounting(header(), name(), rtpu, accounting, tick_ns);
 }
 
 std::vector<TaskStatus> StatusSegment::snapshot() const { return snapshot(ipc::now_ns()); }
@@ -660,6 +664,10 @@ void StatusReader::reset_rtpu(int rtpu) {
     check_rtpu(h, rtpu, "status segment " + name());
     HeaderLock lock(h, "status segment " + name());
     bump_epoch(h, rtpu, nullptr, nullptr);
+}
+
+void StatusReader::set_accounting(int rtpu, Accounting accounting, std::int64_t tick_ns) {
+    set_rtpu_accounting(header_of(segment_), name(), rtpu, accounting, tick_ns);
 }
 
 bool StatusReader::alive() const noexcept {

@@ -36,6 +36,11 @@ out=$("$CHIMTOP" "$SUB" --once --fields rmod,bogus 2>&1); rc=$?
 check "unknown field rejected (exit 2)" test $rc -eq 2
 check "...naming it" has "$out" "unknown status field 'bogus'"
 
+out=$("$CHIMTOP" --list-fields 2>&1); rc=$?
+check "--list-fields needs no subsystem" test $rc -eq 0
+check "...and lists the §4.4.1 fields" test "$(awk '{print $1}' <<<"$out" | head -22 | xargs)" = \
+    "rmod rtpu tid S crit state cycle miss refF refT mezF mezT ptime totC tick minU maxU avgU minC maxC avgC warn"
+
 start_writer || exit 1
 sleep 0.6
 

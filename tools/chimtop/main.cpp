@@ -12,6 +12,8 @@
 
 #include <CLI/CLI.hpp>
 #include <algorithm>
+#include <chrono>
+#include <cstdint>
 #include <cmath>
 #include <cstdio>
 #include <iostream>
@@ -34,9 +36,12 @@ using chimera::prof::TaskStatus;
 /// is dropped when its creator is gone or the name now names a new segment.
 class Attachment {
 public:
-    explicit Attachment(std::string subsystem)
+    /// `half_tick_ns` >= 0: on every (re-)attachment, switch each RTPU to
+    /// half-tick accounting with that tick (0: back to nanoseconds).
+    Attachment(std::string subsystem, std::int64_t half_tick_ns)
         : subsystem_(std::move(subsystem)),
-          path_("/dev/shm" + chimera::ipc::segment_name(subsystem_, "status")) {}
+          path_("/dev/shm" + chimera::ipc::segment_name(subsystem_, "status")),
+          half_tick_ns_(half_tick_ns) {}
 
     bool refresh() {
         if (reader_ && (!reader_->alive() || inode() != inode_)) {
@@ -47,15 +52,33 @@ public:
             const ino_t before = inode();
             reader_ = StatusReader::try_attach(subsystem_);
             if (reader_ && inode() != before) reader_.reset();  // replaced while attaching
-            if (reader_) inode_ = before;
+            if (reader_) {
+                inode_ = before;
+                apply_accounting();
+            }
         }
         return reader_.has_value();
     }
+    /// Why the last accounting change failed ("" if it did not).
+    const std::string& error() const { return error_; }
     StatusReader* reader() { return reader_ ? &*reader_ : nullptr; }
     const std::string& subsystem() const { return subsystem_; }
     int restarts() const { return restarts_; }
 
 private:
+    void apply_accounting() {
+        if (half_tick_ns_ < 0) return;
+        using chimera::prof::Accounting;
+        try {
+            for (std::uint32_t r = 0; r < reader_->rtpus(); ++r)
+                reader_->set_accounting(static_cast<int>(r),
+                                        half_tick_ns_ > 0 ? Accounting::half_tick : Accounting::nanoseconds,
+                                        half_tick_ns_);
+            error_.clear();
+        } catch (const std::exception& e) {
+            error_ = e.what();
+        }
+    }
     ino_t inode() const {
         struct stat st;
         return ::stat(path_.c_str(), &st) == 0 ? st.st_ino : 0;
@@ -65,6 +88,8 @@ private:
     std::optional<StatusReader> reader_;
     ino_t inode_ = 0;
     int restarts_ = 0;
+    std::int64_t half_tick_ns_ = -1;
+    std::string error_;
 };
 
 struct Options {
@@ -78,13 +103,18 @@ struct Options {
     bool svar_pane = false;
     std::string svar_segment;
     double wait_s = 0;
+    double sample_s = 0;
+    double half_tick_ms = -1;  ///< < 0: leave the accounting as it is
+    std::int64_t half_tick_ns() const {
+        return half_tick_ms < 0 ? -1 : static_cast<std::int64_t>(std::llround(half_tick_ms * 1e6));
+    }
 };
 
 volatile sig_atomic_t g_stop = 0;
 void on_signal(int) { g_stop = 1; }
 
 int run_once(const Options& o, const std::vector<std::string>& fields) {
-    Attachment a(o.subsystem);
+    Attachment a(o.subsystem, o.half_tick_ns());
     const auto give_up = std::chrono::steady_clock::now() + std::chrono::duration<double>(o.wait_s);
     while (!a.refresh()) {
         if (std::chrono::steady_clock::now() >= give_up) {
@@ -93,6 +123,15 @@ int run_once(const Options& o, const std::vector<std::string>& fields) {
             return 1;
         }
         std::this_thread::sleep_for(std::chrono::milliseconds(50));
+    }
+    if (!a.error().empty()) {
+        std::cerr << "chimtop: " << a.error() << "\n";
+        return 1;
+    }
+    if (o.sample_s > 0) {
+        // A profile of exactly this window: reset every RTPU, wait, look.
+        a.reader()->reset_all();
+        std::this_thread::sleep_for(std::chrono::duration<double>(o.sample_s));
     }
     auto tasks = a.reader()->snapshot();
     chimtop::sort_tasks(tasks, o.sort, o.descending);
@@ -119,7 +158,7 @@ int run_once(const Options& o, const std::vector<std::string>& fields) {
 class Ui {
 public:
     Ui(Options o, std::vector<std::string> fields)
-        : o_(std::move(o)), fields_(std::move(fields)), attach_(o_.subsystem) {
+        : o_(std::move(o)), fields_(std::move(fields)), attach_(o_.subsystem, o_.half_tick_ns()) {
         auto it = std::find(fields_.begin(), fields_.end(), o_.sort);
         sort_col_ = it == fields_.end() ? 0 : static_cast<int>(it - fields_.begin());
         if (it == fields_.end()) o_.sort = fields_[0];
@@ -237,7 +276,7 @@ private:
         attron(A_BOLD);
         mvprintw(y++, 0, "chimtop  subsystem %s  refresh %.3g Hz  sort %s %s%s", o_.subsystem.c_str(),
                  o_.rate_hz, o_.sort.c_str(), o_.descending ? "desc" : "asc",
-                 attach_.restarts() ? "  (re-attached)" : "");
+                 up && attach_.restarts() ? "  (re-attached)" : "");
         attroff(A_BOLD);
         mvprintw(y++, 0, "q quit  </> sort column  r reverse  f fields  +/- rate  up/down select  v SVAR pane  z reset");
         if (!up) {
@@ -294,6 +333,7 @@ private:
     }
 
     void footer() {
+        if (!attach_.error().empty()) message_ = attach_.error();
         if (!message_.empty()) mvaddnstr(LINES - 1, 0, message_.c_str(), COLS);
     }
 
@@ -310,7 +350,7 @@ private:
 int main(int argc, char** argv) {
     Options o;
     CLI::App app{"chimtop: live status of a Chimera subsystem's tasks (thesis §4.4.1 fields)"};
-    app.add_option("subsystem", o.subsystem, "subsystem name (segment /chimera.<name>.status)")->required();
+    app.add_option("subsystem", o.subsystem, "subsystem name (segment /chimera.<name>.status)");
     app.add_option("-f,--fields", o.fields_text,
                    "comma-separated fields, in display order (like `status set`); --list-fields shows them");
     app.add_option("-s,--sort", o.sort, "field to sort by");
@@ -322,6 +362,14 @@ int main(int argc, char** argv) {
     app.add_option("--svar-segment", o.svar_segment,
                    "SVAR table segment (default /chimera.<subsystem>.svar)");
     app.add_option("--wait", o.wait_s, "with --once/--json: seconds to wait for the subsystem");
+    app.add_option("--sample", o.sample_s,
+                   "with --once/--json: reset profiling, wait this many seconds, then print "
+                   "(a profile of exactly that window)")
+        ->check(CLI::Range(0.0, 3600.0));
+    app.add_option("--half-tick", o.half_tick_ms,
+                   "switch every RTPU to the thesis's half-tick accounting with this tick in ms "
+                   "(0: back to nanoseconds); resets profiling, re-applied after a restart")
+        ->check(CLI::Range(0.0, 1000.0));
     bool list = false;
     app.add_flag("--list-fields", list, "list the status fields and exit");
     CLI11_PARSE(app, argc, argv);
@@ -329,6 +377,10 @@ int main(int argc, char** argv) {
     if (list) {
         for (const auto& f : chimtop::all_fields()) std::printf("%-7s %s\n", f.name, f.help);
         return 0;
+    }
+    if (o.subsystem.empty()) {
+        std::cerr << "chimtop: which subsystem? (chimtop SUBSYSTEM; --help for the options)\n";
+        return 2;
     }
     std::vector<std::string> fields;
     try {

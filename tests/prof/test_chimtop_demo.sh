@@ -1,0 +1,167 @@
+#!/usr/bin/env bash
+# chimtop against the REAL Figure 3.7 subsystem (build/examples/demo, subsystem
+# fig3_7), whose task runtime publishes every task's status: --once and --json
+# show puma_torque, jtraj and jpid ON and cycling with the §4.4.1 fields
+# consistent with each other; --svar shows the variables each task reads and
+# writes; the live view (tmux) waits while the subsystem is gone and
+# re-attaches when it is started again.
+# Usage: test_chimtop_demo.sh CHIMTOP DEMO
+set -u
+CHIMTOP=$1
+DEMO=$2
+SUB=fig3_7
+SEG=/dev/shm/chimera.$SUB.status
+SOCK=chimtopdemo_$$
+LOG=/tmp/chimtop_demo_$$
+fail=0
+check() {  # check "description" command...
+    local what=$1; shift
+    if "$@"; then echo "ok   - $what"; else echo "FAIL - $what"; fail=1; fi
+}
+has() { grep -q -- "$2" <<<"$1"; }
+demo_pid=
+cleanup() {
+    tmux -L "$SOCK" kill-server 2>/dev/null
+    [ -n "$demo_pid" ] && kill "$demo_pid" 2>/dev/null && wait "$demo_pid" 2>/dev/null
+    rm -f "$LOG".*
+}
+trap cleanup EXIT
+
+# The subsystem name is fixed by fig3_7.sbs: let another run of the demo end.
+for _ in $(seq 300); do [ -e "$SEG" ] || break; sleep 0.1; done
+
+# True when a --json snapshot has the three tasks ON with cycle > 0.
+ready_py='
+import json, sys
+t = {x["rmod"]: x for x in json.load(sys.stdin)["tasks"]}
+sys.exit(0 if all(n in t and t[n]["state"] == "ON" and t[n]["cycle"] > 0
+                  for n in ("puma_torque", "jtraj", "jpid")) else 1)'
+wait_ready() {
+    for _ in $(seq 150); do
+        "$CHIMTOP" "$SUB" --json 2>/dev/null | python3 -c "$ready_py" 2>/dev/null && return 0
+        sleep 0.1
+    done
+    return 1
+}
+
+# ---- the live view is up before the subsystem
+tmux -L "$SOCK" new-session -d -x 200 -y 45 \
+    "$CHIMTOP $SUB --rate 10 --fields rmod,rtpu,state,cycle,miss,mezF,avgC,policy --sort rmod"
+sleep 0.8
+check "tui: waits for the subsystem" has "$(tmux -L "$SOCK" capture-pane -p)" "waiting for subsystem '$SUB'"
+
+# ---- run 1: PID control for 4 s, then the swap to jpidg for 4 s
+"$DEMO" --seconds 8 --quiet > "$LOG.run1" 2>&1 &
+demo_pid=$!
+if ! wait_ready; then
+    echo "FAIL - the demo's tasks never showed ON with cycles"; cat "$LOG.run1"
+    "$CHIMTOP" "$SUB" --once 2>&1
+    exit 1
+fi
+sleep 0.3  # a few hundred cycles into the profile
+
+out=$("$CHIMTOP" "$SUB" --once --fields rmod,state,cycle --sort rmod)
+echo "$out"
+for t in puma_torque jtraj jpid; do
+    check "--once: $t ON with cycle > 0" \
+        awk -v t="$t" '$1 == t && $2 == "ON" && $3 > 0 { found = 1 } END { exit !found }' <<<"$out"
+done
+all=rmod,rtpu,tid,S,crit,state,cycle,miss,refF,refT,mezF,mezT,ptime,totC,tick,minU,maxU,avgU,minC,maxC,avgC,warn
+out=$("$CHIMTOP" "$SUB" --once --fields "$all")
+echo "$out"
+check "--once: header lists every §4.4.1 field in order" \
+    test "$(sed -n 2p <<<"$out" | xargs | tr ' ' ,)" = "$all"
+check "--once: five task rows" test "$(sed -n '3,$p' <<<"$out" | grep -cE '^(puma_torque|jtraj|jpid|grav_comp|jpidg) ')" -eq 5
+
+json=$("$CHIMTOP" "$SUB" --json --svar)
+check "--json: §4.4.1 fields of the real tasks agree with each other" python3 -c '
+import json, sys
+j = json.loads(sys.argv[1])
+assert j["subsystem"] == "fig3_7"
+t = {x["rmod"]: x for x in j["tasks"]}
+assert set(t) == {"puma_torque", "jtraj", "jpid", "grav_comp", "jpidg"}, t.keys()
+ref = {"puma_torque": 500.0, "jtraj": 100.0, "jpid": 500.0, "grav_comp": 100.0, "jpidg": 500.0}
+rtpu = {"puma_torque": 1, "jtraj": 0, "jpid": 0, "grav_comp": 0, "jpidg": 0}
+for n, x in t.items():
+    assert x["refF"] == ref[n] and abs(x["refT"] - 1 / ref[n]) < 1e-12, (n, x["refF"], x["refT"])
+    assert x["rtpu"] == rtpu[n] and x["S"] == "P" and x["tid"] > 0, (n, x)
+    assert x["policy"] != "" and x["clock"] in ("perf-page", "thread-cputime"), (n, x)
+    assert x["consistent"] and x["error"] == "", (n, x)
+    assert x["tick"] == 1e-9 and x["accounting"] == "ns"
+assert t["jpidg"]["state"] == "OFF" and t["jpidg"]["cycle"] == 0
+for n in ("puma_torque", "jtraj", "jpid"):
+    x = t[n]
+    assert x["state"] == "ON" and x["cycle"] > 0 and x["ptime"] > 0, (n, x)
+    # mezF = n_c / ptime; avgC = q_t / accounted (the first cycle dropped)
+    assert abs(x["mezF"] * x["ptime"] - x["cycle"]) < 1e-6 * x["cycle"] + 1e-9, (n, x)
+    if x["accounted"] > 0:
+        assert x["accounted"] == x["cycle"] - 1, (n, x)
+        assert 0 < x["minC"] <= x["avgC"] <= x["maxC"], (n, x)
+        assert abs(x["avgC"] * x["accounted"] - x["totC"]) < 1e-9 + 1e-9 * x["totC"], (n, x)
+        for u, c in (("minU", "minC"), ("maxU", "maxC"), ("avgU", "avgC")):
+            assert abs(x[u] - x[c] / x["refT"] * 100) < 1e-6, (n, u, x)
+    # mezT: ptime / (cycle + miss) rounded to the 1 ns tick
+    assert abs(x["mezT"] - x["ptime"] / (x["cycle"] + x["miss"])) < 2e-9, (n, x)
+sv = t["jpid"]["svar"]
+assert "error" not in sv, sv
+assert set(sv["in"]) == {"Q_REF", "Q^_REF", "Q_MEZ", "Q^_MEZ"}, sv["in"].keys()
+assert list(sv["out"]) == ["T_REF"] and len(sv["out"]["T_REF"]) == 6, sv
+assert list(t["puma_torque"]["svar"]["in"]) == ["T_REF"], t["puma_torque"]["svar"]
+assert len(t["puma_torque"]["svar"]["out"]["Q_MEZ"]) == 6
+assert set(t["jtraj"]["svar"]["out"]) == {"Q_REF", "Q^_REF", "Q^^_REF"}
+' "$json" || echo "$json"
+
+out=$("$CHIMTOP" "$SUB" --once --svar --fields rmod,state)
+check "--once --svar: jpid's pane lists T_REF with 6 values" \
+    grep -qE "^  out T_REF  double\[6\] ( [-0-9.e+]+){6} Nm" <<<"$out"
+
+# Half-tick accounting (§6.7), switched from chimtop, over a 0.5 s window:
+# every CPU time is a whole number of half-ticks, mezT a whole number of ticks.
+json=$("$CHIMTOP" "$SUB" --json --half-tick 1 --sample 0.5)
+check "--half-tick 1: the thesis's quantisation on the real tasks" python3 -c '
+import json, sys
+t = {x["rmod"]: x for x in json.loads(sys.argv[1])["tasks"]}
+whole = lambda v, q: abs(v / q - round(v / q)) < 1e-6
+for n in ("puma_torque", "jtraj"):
+    x = t[n]
+    assert x["accounting"] == "half-tick" and x["tick"] == 0.001, (n, x)
+    assert x["cycle"] > 0 and x["accounted"] > 0, (n, x)
+    for f in ("minC", "maxC", "totC"):
+        assert x[f] >= 0.0005 and whole(x[f], 0.0005), (n, f, x[f])
+    assert whole(x["mezT"], 0.001) and whole(x["ptime"], 0.001), (n, x)
+' "$json" || echo "$json"
+json=$("$CHIMTOP" "$SUB" --json --half-tick 0 --sample 0.2)
+check "--half-tick 0: back to nanoseconds" python3 -c '
+import json, sys
+t = {x["rmod"]: x for x in json.loads(sys.argv[1])["tasks"]}
+assert t["puma_torque"]["accounting"] == "ns" and t["puma_torque"]["tick"] == 1e-9
+' "$json"
+
+screen=$(tmux -L "$SOCK" capture-pane -p)
+echo "$screen"
+check "tui: rows of the real tasks" test "$(grep -cE '^(puma_torque|jtraj|jpid|grav_comp|jpidg) ' <<<"$screen")" -eq 5
+check "tui: puma_torque ON on RTPU 1" grep -qE '^puma_torque +1 +ON ' <<<"$screen"
+
+wait "$demo_pid"; rc=$?; demo_pid=
+check "demo run 1 exits 0" test $rc -eq 0
+check "demo removed its status segment" test ! -e "$SEG"
+sleep 0.5
+check "tui: subsystem stopped -> waiting" has "$(tmux -L "$SOCK" capture-pane -p)" "waiting for subsystem '$SUB'"
+
+# ---- run 2: the same subsystem started again (jpid hands over to jpidg
+# after 1.5 s, so only the tasks that stay ON are looked at)
+"$DEMO" --seconds 3 --quiet > "$LOG.run2" 2>&1 &
+demo_pid=$!
+for _ in $(seq 150); do
+    "$CHIMTOP" "$SUB" --once --fields rmod,state,cycle 2>/dev/null |
+        awk '$1 == "jtraj" && $2 == "ON" && $3 > 0 { f = 1 } END { exit !f }' && break
+    sleep 0.1
+done
+sleep 0.3
+screen=$(tmux -L "$SOCK" capture-pane -p)
+echo "$screen"
+check "tui: re-attached to the restarted subsystem" has "$screen" "(re-attached)"
+check "tui: its tasks shown again" grep -qE '^jtraj +0 +ON +[1-9]' <<<"$screen"
+wait "$demo_pid"; rc=$?; demo_pid=
+check "demo run 2 exits 0" test $rc -eq 0
+exit $fail
