@@ -47,9 +47,31 @@
 //
 // Real-time path: cycle() (and sync() for synchronous tasks) should not allocate,
 // block, or take locks other than through the runtime.
+//
+// Timing failures (thesis §6.3, ARCHITECTURE §6). The scheduler watches every
+// periodic cycle: DEADLINE (not done by the end of its period), MAXEXEC (more
+// CPU time than the .rmod's WCET, or EFFECTIVE) and MINEXEC. A module opts in
+// by overriding timing_failure(): it runs in the task's own thread, from a
+// signal handler, so it may only do async-signal-safe work (atomics, the
+// chimera::muf task API such as set_criticality; no allocation, no locks, no
+// stdio, no Task methods other than the const accessors). Its answer:
+//   FailureAction::resume       carry on (the default; the failure is counted)
+//   FailureAction::skip_next    carry on, and skip the next release
+//   FailureAction::abort_cycle  abandon the cycle: the runtime jumps back to the
+//                               mark it set just before cycle(); the out-vars of
+//                               that cycle are not written and it counts as missed
+// Handlers are held off while the runtime holds the SVAR table lock and run as
+// soon as it is released, so an aborted cycle never leaves the lock held. The
+// jump skips destructors: a module whose cycle owns resources that must be
+// released (heap memory, a mutex, an err::HandlerScope, ...) says so with
+// abortable() == false, and its cycle (and every cycle of a combined task it is
+// part of) is then never aborted — abort_cycle acts as resume. The runtime's
+// own locks (warnings, signals, the flags) hold handlers off too, and a cycle
+// that raises an error is not abandoned once its error handling has begun.
 #pragma once
 
 #include <chimera/err.hpp>
+#include <chimera/muf/rt.hpp>
 #include <chimera/sbs_files.hpp>
 
 #include <cstddef>
@@ -200,6 +222,12 @@ public:
     /// Synchronous tasks: block until the external event, then return; the
     /// cycle follows.
     virtual Result sync(Task&) { return Result::OK; }
+    /// A timing failure of this task's cycle (see the header comment): runs in
+    /// the task's thread from a signal handler; async-signal-safe code only.
+    virtual muf::FailureAction timing_failure(Task&, muf::Failure) noexcept { return muf::FailureAction::resume; }
+    /// False when cycle() must never be abandoned half-way (it owns resources
+    /// whose destructors must run).
+    virtual bool abortable() const noexcept { return true; }
 };
 
 /// The C-ABI table exported by CHIMERA_MODULE (the thesis's _sbsFunc_t).
@@ -212,7 +240,7 @@ struct ChimeraModuleAbi {
     void (*destroy)(Module*);
 };
 inline constexpr std::uint32_t CHIMERA_MODULE_MAGIC = 0x43484d4dU;  // "CHMM"
-inline constexpr std::uint32_t CHIMERA_MODULE_ABI_VERSION = 1;
+inline constexpr std::uint32_t CHIMERA_MODULE_ABI_VERSION = 2;  // 2: timing_failure, abortable
 
 /// Symbol name looked up for MODULE `name`: "chimera_module_<name>".
 std::string module_symbol(std::string_view name);

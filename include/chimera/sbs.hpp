@@ -29,10 +29,34 @@
 // with add_module_path(), the .rmod's own folder, and the installed module
 // folder.
 //
-// Scheduling: tasks get SCHED_FIFO priorities ordered by frequency (rate
-// monotonic) unless the RTPU's BACKEND is `other`; without real-time privilege
-// the subsystem says so once on stderr and runs best-effort (status shows the
-// policy each task really got).
+// Scheduling (thesis ch. 6, ARCHITECTURE §5): each RTPU of the .sbs gets one
+// muf::RtpuScheduler, made when its first task is spawned, with the policy of
+// its SCHEDULER line (RM, EDF or MUF) and the backend of its BACKEND key (fifo:
+// a dispatcher gives the task threads SCHED_FIFO priorities 10..79 in urgency
+// order; deadline: SCHED_DEADLINE reservations for the critical set; other:
+// SCHED_OTHER, best effort).
+//  - A periodic task joins the scheduler when it is turned on and leaves it
+//    when it stops running (off, error, kill): a task that is not ON is never
+//    released and does not count in the RTPU's analysis. Its period is the
+//    .rmod's FREQ/PERIOD (freq_set: from the next release), its C the .rmod's
+//    WCET, its E the EFFECTIVE of a soft task, its criticality the CRIT line or
+//    the MUF assignment. Without WCET, C is taken as 0: every task is then in
+//    the critical set (crit 5 under MUF) and no MAXEXEC budget is armed; give
+//    WCET to let the analysis choose the critical set and to have cycles that
+//    overrun their budget reported. The first release comes one period after on.
+//  - Missed releases (late, skipped, or aborted by a handler) are the task's
+//    misses; DEADLINE/MAXEXEC/MINEXEC failures go to the modules'
+//    timing_failure() (module.hpp) and are counted in the status.
+//  - Aperiodic tasks serve their events under a server (§6.5, servers of the
+//    runtime built on the public muf API only): TASKTYPE deferrable or sporadic
+//    with PERIOD (or FREQ) and WCET is the MUF deferrable / sporadic server of
+//    capacity WCET per period (criticality 6 while it has capacity, 4 when it is
+//    used up); background, or a sporadic/deferrable task without them, runs at
+//    criticality 2, below every periodic task.
+//  - Synchronous tasks, and every task thread while not running (spawning, OFF,
+//    ERROR), stay pinned at SCHED_FIFO 9, just below the scheduler's band.
+// Without real-time privilege the subsystem says so once on stderr and runs
+// best effort; status shows the policy each task really got.
 #pragma once
 
 #include <chimera/module.hpp>
@@ -111,7 +135,12 @@ struct TaskStatus {
     int crit = 0;
     State state = State::NOT_CREATED;
     std::uint64_t cycles = 0;   ///< since turned on
-    std::uint64_t misses = 0;   ///< releases that came while the previous cycle still ran
+    std::uint64_t misses = 0;   ///< releases missed: late, skipped or aborted cycles
+    /// Timing failures seen by the RTPU's scheduler (§6.3) since the task was
+    /// spawned; for a server, DEADLINE is its replenishment time and MAXEXEC its
+    /// capacity used up.
+    std::uint64_t deadline_failures = 0, maxexec_failures = 0, minexec_failures = 0;
+    std::uint64_t aborted = 0;  ///< cycles abandoned by a timing_failure() answer
     double ref_freq = 0, ref_period = 0;
     double mez_freq = 0;        ///< measured cycles per second since turned on
     double mez_period = 0;      ///< mean measured period between releases

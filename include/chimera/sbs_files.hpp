@@ -17,6 +17,17 @@
 //   FREQ hz  |  PERIOD seconds     exactly one of them; required for periodic and
 //                                  synchronous tasks, optional for aperiodic ones
 //                                  (their server period)
+//   [WCET seconds]                 C, the worst-case execution time: the MAXEXEC
+//                                  budget of each cycle and the analysis's C; for a
+//                                  sporadic or deferrable server, its capacity.
+//                                  Absent: 0, which puts the task in the critical
+//                                  set and arms no budget (see sbs.hpp).
+//   [EFFECTIVE seconds]            E of a guaranteed soft real-time task (§6.4,
+//                                  periodic only): the analysis reserves E, not C;
+//                                  past E the task drops to criticality 3 until its
+//                                  deadline (Listing 2).
+//   [CRIT n]                       explicit MUF criticality 1..62 (§6.2.3); else
+//                                  the analysis assigns it
 //   [LOCAL]                        free `KEY value...` lines up to EOF, read by the
 //                                  module (module-dependent configuration)
 //   EOF
@@ -108,6 +119,9 @@ struct RmodFile {
     TaskType type = TaskType::periodic;
     double freq = 0.0;    ///< Hz (0 for an aperiodic task without FREQ/PERIOD)
     double period = 0.0;  ///< seconds, always 1/freq when freq > 0
+    double wcet = 0.0;       ///< WCET, seconds (0: not given)
+    double effective = 0.0;  ///< EFFECTIVE, seconds (0: a hard task, E = C)
+    std::optional<int> crit; ///< CRIT
     LocalConfig local;
 
     /// The global SVAR name of an internal port name (SVARALIAS applied).

@@ -493,6 +493,7 @@ sigjmp_buf* RtpuScheduler::cycle_mark(TaskHandle h) noexcept {
 }
 
 void RtpuScheduler::arm_abort(TaskHandle) noexcept { detail::set_abort_armed(); }
+void RtpuScheduler::disarm_abort(TaskHandle) noexcept { detail::clear_abort(); }
 
 // ------------------------------------------------------------------ status
 

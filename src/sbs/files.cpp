@@ -234,6 +234,38 @@ RmodFile parse_rmod(cfg::Reader& r, const std::string& path) {
                        (next ? next->keyword : std::string("EOF")));
     }
 
+    // Scheduling parameters (ARCHITECTURE §5, §6.4-6.5), each at most once, in any order.
+    std::set<std::string> timing;
+    for (const cfg::Line* n = r.peek(); n && (n->keyword == "WCET" || n->keyword == "EFFECTIVE" ||
+                                           n->keyword == "CRIT");
+         n = r.peek()) {
+        cfg::Line t = *r.next();
+        if (!timing.insert(t.keyword).second) r.fail(t, t.keyword + " given twice");
+        r.require_args(t, 1);
+        if (t.keyword == "CRIT") {
+            const std::int64_t c = r.to_int(t, 0, "CRIT");
+            if (c < 1 || c > 62) r.fail(t, "CRIT must be 1..62 (0 and 63 are reserved), found " + t.args[0]);
+            f.crit = static_cast<int>(c);
+            continue;
+        }
+        const double v = r.to_double(t, 0, t.keyword);
+        if (!positive_finite(v)) r.fail(t, t.keyword + " must be a positive number of seconds");
+        (t.keyword == "WCET" ? f.wcet : f.effective) = v;
+        if (f.period > 0 && v > f.period)
+            r.fail(t, t.keyword + " " + t.args[0] + " s exceeds the period " + std::to_string(f.period) + " s");
+        if (f.wcet > 0 && f.effective > f.wcet)
+            r.fail(t, "EFFECTIVE (" + std::to_string(f.effective) + " s) exceeds WCET (" + std::to_string(f.wcet) +
+                          " s): E is at most C (§6.4)");
+    }
+    if (f.effective > 0 && f.type != TaskType::periodic)
+        r.fail(r.peek() ? r.peek()->number : r.end_line(),
+               "EFFECTIVE makes a soft real-time task, which must be periodic (TASKTYPE " +
+                   std::string(to_string(f.type)) + ")");
+    if ((f.type == TaskType::deferrable || f.type == TaskType::sporadic) && (f.wcet > 0) != (f.period > 0))
+        r.fail(r.peek() ? r.peek()->number : r.end_line(),
+               "a " + std::string(to_string(f.type)) + " server needs both PERIOD (or FREQ) and WCET (its " +
+                   "capacity), or neither (then it serves in the background)");
+
     if (r.accept("LOCAL")) {
         std::set<std::string> keys;
         while (r.peek() != nullptr) {

@@ -3,6 +3,7 @@
 #pragma once
 
 #include "chimera/module.hpp"
+#include "chimera/muf/rt.hpp"
 #include "chimera/prof.hpp"
 #include "chimera/sbs.hpp"
 #include "chimera/svar.hpp"
@@ -20,27 +21,61 @@
 namespace chimera::sbs::detail {
 
 class SubsystemCore;
+class TaskCore;
 
 /// Finds the C-ABI table of MODULE `name` (in the program, then as
 /// <name>.so / lib<name>.so in `dirs`); throws sbs::Error listing what was tried.
 const ChimeraModuleAbi& load_module(const std::string& name, const std::vector<std::string>& dirs);
 
-/// The periodic wait, kept behind this interface so a per-RTPU dispatcher
-/// (src/muf) can take the place of the plain clock.
+/// Timing-failure counters of a task (thesis §6.3), from its RTPU's scheduler.
+struct TimingCounts {
+    std::uint64_t deadline = 0, maxexec = 0, minexec = 0, aborted = 0;
+};
+
+/// How a task thread is scheduled and paced: its membership in the RTPU's
+/// muf::RtpuScheduler (src/muf). One per task, used only by the task thread
+/// (counts() and policy() may be read by anyone).
+///
+/// While the task is not running (spawning, OFF, ERROR, synchronous tasks) its
+/// thread is outside the scheduler, at the RTPU's idle level (idle()). start()
+/// joins the scheduler (add_task + attach_current_thread, the failure handler
+/// installed), stop() leaves it (remove_task + detach), so a task turned off is
+/// never released and the RTPU's analysis counts only the tasks that run.
 class Pacer {
 public:
     virtual ~Pacer() = default;
-    /// Called when the task turns on: the first release is `first_ns`.
-    virtual void start(std::int64_t first_ns, std::int64_t period_ns) noexcept = 0;
-    virtual void set_period(std::int64_t period_ns) noexcept = 0;
-    /// Blocks until the next release or until `word` no longer holds `seen`
-    /// (a command arrived). Returns true at a release; adds releases that
-    /// passed while the previous cycle still ran to `missed`.
+    /// Pinned to the RTPU's CPU, SCHED_FIFO just below the scheduler's band
+    /// (SCHED_OTHER for BACKEND other or without privilege). Returns the policy text.
+    virtual std::string idle() = 0;
+    /// The task turns on. Throws sbs::Error (e.g. SCHED_DEADLINE admission refused).
+    virtual void start() = 0;
+    /// The task stops running (off, error, kill); back to idle(). Idempotent.
+    virtual void stop() noexcept = 0;
+    virtual bool running() const noexcept = 0;
+    /// Throws sbs::Error when the scheduler refuses it.
+    virtual void set_period(std::int64_t period_ns) = 0;
+    /// Periodic: blocks until the next release or until `word` no longer holds
+    /// `seen` (a command arrived). Returns true at a release; `missed` is set to
+    /// the releases missed since start().
     virtual bool wait(std::atomic<std::uint32_t>& word, std::uint32_t seen, std::uint64_t& missed) noexcept = 0;
+    /// The mark an aborted cycle jumps to (nullptr: cycles are not abortable),
+    /// armed just before cycle() and disarmed as soon as it returns.
+    virtual sigjmp_buf* cycle_mark() noexcept = 0;
+    virtual void arm_abort() noexcept = 0;
+    virtual void disarm_abort() noexcept = 0;
+    /// After the cycle's out-vars: the job is complete (deadline disarmed).
+    virtual void cycle_done() noexcept = 0;
+    /// Aperiodic servers: around the service of one event.
+    virtual void event_begin() noexcept = 0;
+    virtual void event_end() noexcept = 0;
+    /// The task's criticality now (0 when not running).
+    virtual int crit() const noexcept = 0;
+    virtual TimingCounts counts() const noexcept = 0;
+    /// What the thread really runs under (policy_of()).
+    virtual std::string policy() const = 0;
 };
-/// Absolute-time futex wait on CLOCK_MONOTONIC: sleeps until the release,
-/// wakes early for a command. No allocation; one system call per cycle.
-std::unique_ptr<Pacer> make_clock_pacer();
+/// The pacer of `task` on its RTPU's scheduler.
+std::unique_ptr<Pacer> make_rtpu_pacer(TaskCore& task, muf::RtpuScheduler& scheduler);
 
 /// Master -> task requests, applied by the task thread between method calls.
 enum class CmdKind : std::uint8_t { none, on, off, kill, clear, reinit, set, get, freq };
@@ -132,6 +167,11 @@ public:
     pthread_t thread{};
     bool joinable = false;
 
+    // --- scheduling (set by the master before start(); the pacer lives on the thread) ---
+    muf::RtpuScheduler* scheduler = nullptr;
+    std::unique_ptr<Pacer> pacer;
+    bool abortable = true;  // every object's abortable()
+
     // --- profiling and the published status (§4.4.1, §6.7) ---
     prof::TaskSlot slot;                  // claimed by the master at spawn, released after the thread ends
     prof::TaskProfiler* profiler = nullptr;  // lives on the task thread's stack while it runs
@@ -141,7 +181,10 @@ public:
 private:
     static void* thread_main(void* self) noexcept;
     void run();
-    void sched_setup();
+    /// The policy text of the status (and of the status segment).
+    void publish_policy(std::string text) noexcept;
+    /// Leaves the RTPU's scheduler (no more releases) and publishes the idle policy.
+    void stop_running() noexcept;
 };
 
 /// The subsystem: the .sbs, the global table, the tasks, the signal queue.
@@ -152,6 +195,13 @@ public:
 
     SbsFile file;
     svar::Table table;
+    /// One scheduler per RTPU (index as in file.rtpus), created when the first
+    /// task is spawned there; declared before `tasks` so it outlives their threads.
+    std::mutex schedulers_mu;
+    std::vector<std::unique_ptr<muf::RtpuScheduler>> schedulers;
+    muf::RtpuScheduler& scheduler(const RtpuSpec& rtpu);  // throws Error
+    /// Says once per subsystem that real-time scheduling was refused.
+    void warn_no_privilege(const std::string& why) noexcept;
     static constexpr std::uint32_t kMaxTasks = 128;  // status slots; a spawn past them is refused
     prof::StatusSegment status;  // /chimera.<subsystem>.status, read by chimtop and the sbs tool
     int rtpu_index(const RtpuSpec& rtpu) const noexcept;

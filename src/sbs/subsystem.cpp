@@ -100,6 +100,43 @@ SubsystemCore::SubsystemCore(SbsFile f) : file(std::move(f)) {
     }
 }
 
+muf::RtpuScheduler& SubsystemCore::scheduler(const RtpuSpec& rtpu) {
+    std::lock_guard<std::mutex> lock(schedulers_mu);
+    if (schedulers.size() < file.rtpus.size()) schedulers.resize(file.rtpus.size());
+    auto& s = schedulers[static_cast<std::size_t>(rtpu_index(rtpu))];
+    if (s) return *s;
+    muf::RtpuOptions o;
+    o.name = rtpu.name;
+    o.cpu = rtpu.cpu;
+    switch (rtpu.scheduler) {
+        case Scheduler::RM: o.policy = muf::Policy::rm; break;
+        case Scheduler::EDF: o.policy = muf::Policy::edf; break;
+        case Scheduler::MUF: o.policy = muf::Policy::muf; break;
+    }
+    switch (rtpu.backend) {
+        case Backend::fifo: o.backend = muf::Backend::fifo; break;
+        case Backend::deadline: o.backend = muf::Backend::deadline; break;
+        case Backend::other: o.backend = muf::Backend::other; break;
+    }
+    o.quiet = true;  // the subsystem says it once (warn_no_privilege)
+    try {
+        s = std::make_unique<muf::RtpuScheduler>(o);
+    } catch (const muf::SchedError& e) {
+        throw Error(file.path + ":" + std::to_string(rtpu.line) + ": RTPU " + rtpu.name + ": " + e.what());
+    }
+    if (!s->privileged())
+        warn_no_privilege("the scheduler of RTPU " + rtpu.name + " may not use SCHED_FIFO");
+    return *s;
+}
+
+void SubsystemCore::warn_no_privilege(const std::string& why) noexcept {
+    if (rt_warned.exchange(true)) return;
+    std::fprintf(stderr,
+                 "chimera: subsystem %s: no real-time privilege (%s); its tasks run best effort under "
+                 "SCHED_OTHER, timing failures are still detected, and status shows each task's policy\n",
+                 file.subsystem.c_str(), why.c_str());
+}
+
 int SubsystemCore::rtpu_index(const RtpuSpec& rtpu) const noexcept {
     for (std::size_t i = 0; i < file.rtpus.size(); ++i)
         if (file.rtpus[i].name == rtpu.name) return static_cast<int>(i);
@@ -232,6 +269,7 @@ TaskId Subsystem::spawn_combined(const std::vector<std::string>& rmod_paths, std
     }
     auto task = std::make_unique<detail::TaskCore>(c, id, *rtpu, std::move(rmods));
     detail::TaskCore* t = task.get();
+    t->scheduler = &c.scheduler(*rtpu);  // the RTPU's, made with its first task
 
     // Out-const values before the new task writes them: a change means the
     // tasks reading them must re-initialise (§3.5, reinit).
@@ -498,6 +536,13 @@ TaskStatus Subsystem::status_without_profile(TaskId id) const {
                            static_cast<double>(s.cycles - 1);
     }
     s.max_cycle_time = static_cast<double>(t->max_cycle_ns.load()) * 1e-9;
+    if (t->pacer) {
+        const detail::TimingCounts tc = t->pacer->counts();
+        s.deadline_failures = tc.deadline;
+        s.maxexec_failures = tc.maxexec;
+        s.minexec_failures = tc.minexec;
+        s.aborted = tc.aborted;
+    }
     s.warnings = t->warnings.load();
     {
         std::lock_guard<std::mutex> lock(t->msg_mu);
@@ -602,6 +647,10 @@ void Subsystem::finish() {
     {
         std::lock_guard<std::mutex> lock(c.tasks_mu);
         c.tasks.clear();
+    }
+    {
+        std::lock_guard<std::mutex> lock(c.schedulers_mu);
+        c.schedulers.clear();  // every task thread has left: the dispatchers stop
     }
     c.status.close();  // removed with the subsystem: a restart can create it again
     c.table.destroy();

@@ -3,6 +3,7 @@
 #include "internal.hpp"
 
 #include "chimera/ipc/clock.hpp"
+#include "chimera/muf/rt.hpp"
 #include "chimera/ipc/futex.hpp"
 #include "chimera/trace.hpp"
 
@@ -54,39 +55,6 @@ bool routes_to_error(Phase p) noexcept {
     return p == Phase::on || p == Phase::cycle || p == Phase::off || p == Phase::sync || p == Phase::reinit;
 }
 
-class ClockPacer final : public Pacer {
-public:
-    void start(std::int64_t first_ns, std::int64_t period_ns) noexcept override {
-        next_ = first_ns;
-        period_ = period_ns;
-    }
-    void set_period(std::int64_t period_ns) noexcept override { period_ = period_ns; }
-    bool wait(std::atomic<std::uint32_t>& word, std::uint32_t seen, std::uint64_t& missed) noexcept override {
-        for (;;) {
-            const std::int64_t now = ipc::now_ns();
-            if (now >= next_) break;
-            if (word.load(std::memory_order_acquire) != seen) return false;
-            ipc::futex_wait_until(word, seen, next_);
-            if (word.load(std::memory_order_acquire) != seen) return false;
-        }
-        const std::int64_t now = ipc::now_ns();
-        const std::int64_t release = next_;
-        next_ += period_;
-        if (now >= next_ && period_ > 0) {
-            // Releases that fell while the previous cycle still ran: skipped, counted.
-            const std::int64_t late = (now - next_) / period_ + 1;
-            missed += static_cast<std::uint64_t>(late);
-            next_ += late * period_;
-        }
-        (void)release;
-        return true;
-    }
-
-private:
-    std::int64_t next_ = 0;
-    std::int64_t period_ = 0;
-};
-
 std::string join_names(const std::vector<std::string>& v, const char* sep) {
     std::string s;
     for (std::size_t i = 0; i < v.size(); ++i) {
@@ -110,9 +78,31 @@ int crit_for(const RtpuSpec& r, TaskType type, double freq) {
     return std::clamp(1 + static_cast<int>(std::lround(x * 61.0)), 1, 62);
 }
 
-}  // namespace
+// Runs `body` (the objects' cycle methods) with the cycle abortable: a timing
+// failure handler answering abort_cycle jumps back here (siglongjmp to the mark)
+// and the call returns false. Kept apart so that nothing of the caller's frame
+// lives across the jump; the abort is disarmed as soon as cycle returns.
+template <typename Body>
+[[gnu::noinline]] bool run_abortable(Pacer& pacer, sigjmp_buf& mark, Body& body) {
+    if (sigsetjmp(mark, 1) != 0) return false;
+    pacer.arm_abort();
+    body();
+    pacer.disarm_abort();
+    return true;
+}
 
-std::unique_ptr<Pacer> make_clock_pacer() { return std::make_unique<ClockPacer>(); }
+// An SVAR transfer under the table lock: timing-failure handlers are held off
+// until it is released (ARCHITECTURE §6), so an aborted cycle never leaves the
+// lock held.
+template <typename Copy>
+svar::Status guarded(Copy&& copy) noexcept {
+    muf::enter_critical();
+    const svar::Status st = copy();
+    muf::leave_critical();
+    return st;
+}
+
+}  // namespace
 
 // ------------------------------------------------------------------ TaskCore
 
@@ -214,6 +204,7 @@ TaskCore::TaskCore(SubsystemCore& s, int task_id, const RtpuSpec& r, std::vector
         objects.clear();
         throw;
     }
+    for (const auto& o : objects) abortable = abortable && o.module->abortable();
 }
 
 TaskCore::~TaskCore() {
@@ -258,6 +249,8 @@ void TaskCore::set_state(State s) noexcept {
     if (from != s) CHIMERA_TRACE_STATE_TRANSITION(name.c_str(), static_cast<int>(prof_state(from)),
                                                   static_cast<int>(prof_state(s)));
     if (slot.valid()) slot.set_state(prof_state(s));
+    // Leaving ON (off, error, a cycle that turned the task off): no more releases.
+    if (from == State::ON && s != State::ON) stop_running();
 }
 
 void TaskCore::start() {
@@ -276,6 +269,8 @@ void TaskCore::start() {
         slot = sbs.status.claim(who);  // throws StatusError when the segment is full: spawn fails cleanly
         slot.set_state(prof::TaskState::spawning);
     }
+    if (!scheduler) throw Error("spawn " + name + ": no scheduler for RTPU " + rtpu.name);
+    if (!pacer) pacer = make_rtpu_pacer(*this, *scheduler);
     pthread_attr_t attr;
     pthread_attr_init(&attr);
     pthread_attr_setstacksize(&attr, 1u << 20);
@@ -311,34 +306,19 @@ std::string TaskCore::request(CmdKind kind, std::string a, std::string key, doub
     return cmd_result;
 }
 
-void TaskCore::sched_setup() {
-    std::string pol;
-    cpu_set_t set;
-    CPU_ZERO(&set);
-    CPU_SET(rtpu.cpu, &set);
-    const int prc = pthread_setaffinity_np(pthread_self(), sizeof(set), &set);
-    if (rtpu.backend == Backend::other) {
-        pol = "SCHED_OTHER";
-    } else {
-        sched_param sp{};
-        sp.sched_priority = 10 + crit.load();
-        const int rc = pthread_setschedparam(pthread_self(), SCHED_FIFO, &sp);
-        if (rc == 0) {
-            pol = "SCHED_FIFO " + std::to_string(sp.sched_priority);
-            if (rtpu.backend == Backend::deadline) pol += " (deadline backend: FIFO until muf assigns reservations)";
-        } else {
-            pol = "SCHED_OTHER (best effort: " + std::string(std::strerror(rc)) + ")";
-            if (!sbs.rt_warned.exchange(true))
-                std::fprintf(stderr,
-                             "chimera: no real-time privilege (SCHED_FIFO refused: %s); tasks run best-effort "
-                             "under SCHED_OTHER\n",
-                             std::strerror(rc));
-        }
-    }
-    if (prc != 0) pol += ", not pinned (CPU " + std::to_string(rtpu.cpu) + ": " + std::strerror(prc) + ")";
-    else pol += ", CPU " + std::to_string(rtpu.cpu);
+void TaskCore::publish_policy(std::string text) noexcept {
     std::lock_guard<std::mutex> lock(msg_mu);
-    policy = pol;
+    policy = std::move(text);
+    if (slot.valid()) slot.set_policy(policy);
+}
+
+void TaskCore::stop_running() noexcept {
+    if (!pacer || !pacer->running()) return;
+    pacer->stop();
+    try {
+        publish_policy(pacer->policy());
+    } catch (const std::exception&) {
+    }
 }
 
 // The thread: spawn, then the state machine until kill.
@@ -348,8 +328,15 @@ void TaskCore::run() {
         std::string tn = name.substr(0, 15);
         pthread_setname_np(pthread_self(), tn.c_str());
     }
-    sched_setup();
-    std::unique_ptr<Pacer> pacer = make_clock_pacer();
+    try {
+        publish_policy(pacer->idle());
+    } catch (const std::exception& e) {
+        publish_policy(std::string("unknown (") + e.what() + ")");
+    }
+    struct StopAtExit {
+        TaskCore& t;
+        ~StopAtExit() { t.stop_running(); }
+    } stop_at_exit{*this};
 
     // The profiler opens the thread's own CPU-time counter, so it is made here.
     std::optional<prof::TaskProfiler> task_profiler;
@@ -399,6 +386,9 @@ void TaskCore::run() {
     };
     // error() of the current object; its answer mapped to an outcome.
     auto route = [&](const err::Error& e) -> Outcome {
+        // Error handling allocates and calls error(): a cycle that failed is
+        // no longer abandoned by a timing-failure handler.
+        pacer->disarm_abort();
         record(e);
         sbs.print(rtpu, true,
                   "ERROR> " + objects[current].rmod.name + ": " + std::string(e.message) + " (code " +
@@ -469,6 +459,8 @@ void TaskCore::run() {
                                 std::string("state variable transfer of ") + what + " failed: " + svar::to_string(st),
                                 nullptr, 0});
     };
+    auto copy_in = [&](const svar::VarSet& set) { return guarded([&] { return local->copy_from_global(set); }); };
+    auto copy_out = [&](const svar::VarSet& set) { return guarded([&] { return local->copy_to_global(set); }); };
     auto last_error = [&]() { return err::Error{err_code, err_owned_module, err_owned_message, nullptr, 0}; };
 
     auto enter_error = [&]() {
@@ -481,9 +473,9 @@ void TaskCore::run() {
 
     // ---- spawn: in-consts, init, out-consts (Figure 3.10) ----
     next_state.store(State::OFF);
-    Outcome o = transfer(local->copy_from_global(set_in_consts), "in-consts");
+    Outcome o = transfer(copy_in(set_in_consts), "in-consts");
     if (o == Outcome::ok) o = call_all(Phase::init, [](Module& m, Task& t) { return m.init(t); });
-    if (o == Outcome::ok) o = transfer(local->copy_to_global(set_out_consts), "out-consts");
+    if (o == Outcome::ok) o = transfer(copy_out(set_out_consts), "out-consts");
     else if (o == Outcome::off) o = route(err::Error{err::code::method_failed, objects[current].rmod.module,
                                                       "init() returned OFF", nullptr, 0});
     if (o != Outcome::ok) {
@@ -509,7 +501,7 @@ void TaskCore::run() {
     auto do_off_method = [&]() -> Outcome {  // off, out-vars
         next_state.store(State::OFF);
         Outcome r = call_all(Phase::off, [](Module& m, Task& t) { return m.off(t); });
-        if (r == Outcome::ok || r == Outcome::off) r = transfer(local->copy_to_global(set_out_vars), "out-vars");
+        if (r == Outcome::ok || r == Outcome::off) r = transfer(copy_out(set_out_vars), "out-vars");
         return r;
     };
     auto apply_error_outcome = [&](Outcome r) {
@@ -524,18 +516,32 @@ void TaskCore::run() {
         if (profiler) profiler->cycle_begin();
         const std::int64_t t0 = ipc::now_ns();
         last_release_ns.store(t0, std::memory_order_relaxed);
-        Outcome r = transfer(local->copy_from_global(set_in_vars), "in-vars");
+        Outcome r = transfer(copy_in(set_in_vars), "in-vars");
         CHIMERA_TRACE_SVAR_COPY(name.c_str(), 0, static_cast<std::uint32_t>(set_in_vars.size()), in_var_bytes);
-        if (r == Outcome::ok) r = call_all(Phase::cycle, [](Module& m, Task& t) { return m.cycle(t); });
-        if (r == Outcome::ok || r == Outcome::off) {
-            const Outcome w = transfer(local->copy_to_global(set_out_vars), "out-vars");
+        bool aborted = false;
+        if (r == Outcome::ok) {
+            auto cycle_all = [&] { r = call_all(Phase::cycle, [](Module& m, Task& t) { return m.cycle(t); }); };
+            if (sigjmp_buf* mark = pacer->cycle_mark())
+                aborted = !run_abortable(*pacer, *mark, cycle_all);
+            else
+                cycle_all();
+        }
+        // An aborted cycle publishes nothing: its outputs are half-made.
+        if (!aborted && (r == Outcome::ok || r == Outcome::off)) {
+            const Outcome w = transfer(copy_out(set_out_vars), "out-vars");
             CHIMERA_TRACE_SVAR_COPY(name.c_str(), 1, static_cast<std::uint32_t>(set_out_vars.size()), out_var_bytes);
             cycles.fetch_add(1, std::memory_order_relaxed);
             if (w != Outcome::ok) r = w;
         }
+        pacer->cycle_done();
         const std::int64_t dt = ipc::now_ns() - t0;
         if (dt > max_cycle_ns.load(std::memory_order_relaxed)) max_cycle_ns.store(dt, std::memory_order_relaxed);
         if (profiler) profiler->cycle_end();
+        if (const int c = pacer->crit(); c != 0 && c != crit.load(std::memory_order_relaxed)) {
+            crit.store(c, std::memory_order_relaxed);  // a handler moved it (soft task, server)
+            if (slot.valid()) slot.set_crit(c);
+        }
+        if (aborted) return;
         if (r == Outcome::off) {
             // Goal reached: the task turns itself off and tells the master.
             const Outcome f = do_off_method();
@@ -573,9 +579,31 @@ void TaskCore::run() {
                         break;
                     }
                     next_state.store(State::ON);
-                    Outcome r = transfer(local->copy_from_global(set_on), "in-vars and out-vars");
+                    Outcome r = transfer(copy_in(set_on), "in-vars and out-vars");
                     if (r == Outcome::ok) r = call_all(Phase::on, [](Module& m, Task& t) { return m.on(t); });
-                    if (r == Outcome::ok) r = transfer(local->copy_to_global(set_out_vars), "out-vars");
+                    if (r == Outcome::ok) r = transfer(copy_out(set_out_vars), "out-vars");
+                    std::string refused_by_scheduler;
+                    if (r == Outcome::ok) {
+                        // Join the RTPU's scheduler (admission on the deadline
+                        // backend); the first release is one period from now.
+                        try {
+                            pacer->start();
+                        } catch (const std::exception& e) {
+                            refused_by_scheduler = e.what();
+                        }
+                        if (!refused_by_scheduler.empty()) {
+                            const Outcome f = do_off_method();  // undo on()
+                            if (f != Outcome::ok && f != Outcome::off) apply_error_outcome(f);
+                            else next_state.store(State::OFF);
+                            result = "refused by the scheduler: " + refused_by_scheduler;
+                            break;
+                        }
+                        publish_policy(pacer->policy());
+                        if (const int c = pacer->crit(); c != 0) {
+                            crit.store(c);
+                            if (slot.valid()) slot.set_crit(c);
+                        }
+                    }
                     if (r == Outcome::ok) {
                         cycles.store(0);
                         misses.store(0);
@@ -584,7 +612,6 @@ void TaskCore::run() {
                         missed = 0;
                         const std::int64_t now = ipc::now_ns();
                         on_since_ns.store(now);
-                        pacer->start(now, period_ns.load());
                         if (profiler) profiler->start();  // profiling restarts on the RTPU (§6.7)
                         set_state(State::ON);
                     } else if (r == Outcome::off) {
@@ -673,7 +700,7 @@ void TaskCore::run() {
                         break;
                     }
                     next_state.store(s);
-                    Outcome r = transfer(local->copy_from_global(set_in_consts), "in-consts");
+                    Outcome r = transfer(copy_in(set_in_consts), "in-consts");
                     if (r == Outcome::ok) r = call_all(Phase::reinit, [](Module& m, Task& t) { return m.reinit(t); });
                     if (r != Outcome::ok && r != Outcome::off) {
                         apply_error_outcome(r);
@@ -731,30 +758,24 @@ void TaskCore::run() {
                 }
                 case CmdKind::freq: {
                     const std::int64_t p = static_cast<std::int64_t>(std::llround(1e9 / hz));
+                    try {
+                        pacer->set_period(p);  // from the next release
+                    } catch (const std::exception& e) {
+                        result = std::string("the scheduler refused the new period: ") + e.what();
+                        break;
+                    }
                     period_ns.store(p);
-                    pacer->set_period(p);
                     for (auto& ob : objects) {
                         ob.rmod.freq = hz;
                         ob.rmod.period = 1.0 / hz;
                     }
-                    crit.store(crit_for(rtpu, type, hz));
+                    const int c = pacer->running() && pacer->crit() != 0 ? pacer->crit() : crit_for(rtpu, type, hz);
+                    crit.store(c);
                     if (slot.valid()) {
                         slot.set_ref_freq(hz);
-                        slot.set_crit(crit.load());
+                        slot.set_crit(c);
                     }
-                    if (rtpu.backend != Backend::other) {
-                        sched_param sp{};
-                        int pol = 0;
-                        pthread_getschedparam(pthread_self(), &pol, &sp);
-                        if (pol == SCHED_FIFO) {
-                            sp.sched_priority = 10 + crit.load();
-                            pthread_setschedparam(pthread_self(), SCHED_FIFO, &sp);
-                            std::lock_guard<std::mutex> ml(msg_mu);
-                            policy = "SCHED_FIFO " + std::to_string(sp.sched_priority) + ", CPU " +
-                                     std::to_string(rtpu.cpu);
-                            if (slot.valid()) slot.set_policy(policy);
-                        }
-                    }
+                    if (pacer->running()) publish_policy(pacer->policy());
                     break;
                 }
                 case CmdKind::none: break;
@@ -776,7 +797,10 @@ void TaskCore::run() {
         }
         switch (type) {
             case TaskType::periodic: {
-                if (!pacer->wait(word, seen, missed)) continue;  // a request came in
+                if (!pacer->wait(word, seen, missed)) {  // a request came in
+                    ipc::futex_wait(word, seen);  // (returns at once when it did)
+                    continue;
+                }
                 if (const std::uint64_t before = misses.load(std::memory_order_relaxed); missed != before) {
                     if (profiler) profiler->missed(static_cast<std::uint32_t>(missed - before));
                     misses.store(missed, std::memory_order_relaxed);
@@ -805,7 +829,9 @@ void TaskCore::run() {
                     continue;
                 }
                 events.fetch_sub(1, std::memory_order_acq_rel);
+                pacer->event_begin();
                 run_cycle();
+                pacer->event_end();
                 break;
             }
         }
@@ -846,7 +872,11 @@ std::uint32_t Task::signals() const noexcept { return core_->signals_sent.load(s
 std::uint32_t Task::sigmask() const noexcept {
     return core_->own_sigmask.load() ? core_->sigmask.load() : core_->sbs.wide_mask.load();
 }
-void Task::send_signal(int signal) noexcept { core_->sbs.post_signal(*core_, signal); }
+void Task::send_signal(int signal) noexcept {
+    muf::enter_critical();  // the signal queue's lock
+    core_->sbs.post_signal(*core_, signal);
+    muf::leave_critical();
+}
 std::string_view Task::arg() const noexcept { return core_->arg; }
 void Task::reply(std::string text) {
     core_->reply = std::move(text);
@@ -854,7 +884,9 @@ void Task::reply(std::string text) {
 }
 bool Task::illegal_configuration() const noexcept { return core_->sbs.table.illegal_configuration() != 0; }
 void Task::set_illegal_configuration(bool illegal) noexcept {
+    muf::enter_critical();  // the flag's lock
     core_->sbs.set_flag(sbs::detail::SubsystemCore::kIllegalTask, illegal);
+    muf::leave_critical();
     send_signal(illegal ? sig::ILLEGAL : sig::LEGAL);
 }
 bool Task::command_pending() const noexcept {
@@ -864,30 +896,35 @@ void Task::error(int code, std::string_view message, const char* file, int line)
     err::invoke(code, module(), message, file, line);
 }
 void Task::warning(std::string_view message) noexcept {
-    TaskCore& c = *core_;
-    c.warnings.fetch_add(1, std::memory_order_relaxed);
-    if (c.slot.valid()) c.slot.warning(message);
-    {
-        std::unique_lock<std::mutex> lock(c.msg_mu, std::try_to_lock);
-        if (lock.owns_lock()) {
-            const std::size_t n = std::min(message.size(), sizeof(c.last_msg) - 1);
-            std::memcpy(c.last_msg, message.data(), n);
-            c.last_msg[n] = '\0';
-            c.last_num.store(-1);
-            if (c.first_warning.empty()) {
-                try {
-                    c.first_warning.assign(message);
-                } catch (...) {
+    // Locks and allocation: a timing-failure handler (an abort) waits until they are done.
+    muf::enter_critical();
+    [&]() noexcept {
+        TaskCore& c = *core_;
+        c.warnings.fetch_add(1, std::memory_order_relaxed);
+        if (c.slot.valid()) c.slot.warning(message);
+        {
+            std::unique_lock<std::mutex> lock(c.msg_mu, std::try_to_lock);
+            if (lock.owns_lock()) {
+                const std::size_t n = std::min(message.size(), sizeof(c.last_msg) - 1);
+                std::memcpy(c.last_msg, message.data(), n);
+                c.last_msg[n] = '\0';
+                c.last_num.store(-1);
+                if (c.first_warning.empty()) {
+                    try {
+                        c.first_warning.assign(message);
+                    } catch (...) {
+                    }
                 }
             }
         }
-    }
-    if (c.rtpu.errprint == ErrPrint::warnings) {
-        try {
-            c.sbs.print(c.rtpu, false, "WARNING> " + std::string(rmod()) + ": " + std::string(message));
-        } catch (...) {
+        if (c.rtpu.errprint == ErrPrint::warnings) {
+            try {
+                c.sbs.print(c.rtpu, false, "WARNING> " + std::string(rmod()) + ": " + std::string(message));
+            } catch (...) {
+            }
         }
-    }
+    }();
+    muf::leave_critical();
     send_signal(sig::WARNING);
 }
 

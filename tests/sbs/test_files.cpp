@@ -169,3 +169,34 @@ TEST(SbsFile, Errors) {
     EXPECT_EQ(error_of([] { sbs("SUBSYSTEM s\nSVARFILE t.svar\nRTPU x 1 2\nEOF\n"); }),
               "sub.sbs:3: RTPU takes 1 to 2 arguments, found 3");
 }
+
+TEST(RmodFile, SchedulingParameters) {
+    auto f = rmod("MODULE a\nDESC d\nTASKTYPE periodic\nFREQ 100\nCRIT 6\nWCET 0.004\nEFFECTIVE 0.002\nEOF\n");
+    EXPECT_DOUBLE_EQ(f.wcet, 0.004);
+    EXPECT_DOUBLE_EQ(f.effective, 0.002);
+    EXPECT_EQ(f.crit, 6);
+    auto g = rmod("MODULE a\nDESC d\nTASKTYPE periodic\nFREQ 100\nLOCAL\nWCET_NOT 1\nEOF\n");
+    EXPECT_EQ(g.wcet, 0.0);  // absent: C = 0 (every task in the critical set)
+    EXPECT_FALSE(g.crit);
+    auto s = rmod("MODULE a\nDESC d\nTASKTYPE deferrable\nPERIOD 0.1\nWCET 0.005\nEOF\n");
+    EXPECT_DOUBLE_EQ(s.period, 0.1);
+    EXPECT_DOUBLE_EQ(s.wcet, 0.005);
+}
+
+TEST(RmodFile, SchedulingParameterErrors) {
+    EXPECT_EQ(error_of([] { rmod("MODULE a\nDESC d\nTASKTYPE periodic\nFREQ 100\nWCET 0.02\nEOF\n"); }),
+              "qmdiff.rmod:5: WCET 0.02 s exceeds the period 0.010000 s");
+    EXPECT_EQ(error_of([] { rmod("MODULE a\nDESC d\nTASKTYPE periodic\nFREQ 10\nWCET 0.01\nWCET 0.02\nEOF\n"); }),
+              "qmdiff.rmod:6: WCET given twice");
+    EXPECT_EQ(error_of([] { rmod("MODULE a\nDESC d\nTASKTYPE periodic\nFREQ 10\nWCET 0.01\nEFFECTIVE 0.02\nEOF\n"); }),
+              "qmdiff.rmod:6: EFFECTIVE (0.020000 s) exceeds WCET (0.010000 s): E is at most C (§6.4)");
+    EXPECT_EQ(error_of([] { rmod("MODULE a\nDESC d\nTASKTYPE periodic\nFREQ 10\nCRIT 63\nEOF\n"); }),
+              "qmdiff.rmod:5: CRIT must be 1..62 (0 and 63 are reserved), found 63");
+    EXPECT_EQ(error_of([] { rmod("MODULE a\nDESC d\nTASKTYPE periodic\nFREQ 10\nWCET -1\nEOF\n"); }),
+              "qmdiff.rmod:5: WCET must be a positive number of seconds");
+    EXPECT_EQ(error_of([] { rmod("MODULE a\nDESC d\nTASKTYPE deferrable\nWCET 0.01\nEOF\n"); }),
+              "qmdiff.rmod:5: a deferrable server needs both PERIOD (or FREQ) and WCET (its capacity), or "
+              "neither (then it serves in the background)");
+    EXPECT_EQ(error_of([] { rmod("MODULE a\nDESC d\nTASKTYPE sporadic\nPERIOD 0.1\nEFFECTIVE 0.01\nEOF\n"); }),
+              "qmdiff.rmod:6: EFFECTIVE makes a soft real-time task, which must be periodic (TASKTYPE sporadic)");
+}

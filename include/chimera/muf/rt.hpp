@@ -174,6 +174,10 @@ public:
     /// `if (sigsetjmp(*cycle_mark(h), 1) == 0) { arm_abort(h); cycle(); }`.
     sigjmp_buf* cycle_mark(TaskHandle h) noexcept;
     void arm_abort(TaskHandle h) noexcept;
+    /// Once cycle has returned: a handler can no longer jump to the mark (the
+    /// frame that set it may be gone). cycle_complete() does this too; call it
+    /// earlier when the runtime has more to do in the job after cycle.
+    void disarm_abort(TaskHandle h) noexcept;
 
     /// The policy the thread really got, e.g. "SCHED_FIFO 42 CPU 1",
     /// "SCHED_DEADLINE 2000000/10000000", "SCHED_OTHER (no privilege)".

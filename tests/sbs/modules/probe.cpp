@@ -10,12 +10,20 @@
 //   SIGNAL n                      cycle sends SBS signal n
 //   SYNC_MS n                     sync() sleeps n ms (synchronous tasks)
 //   BUSY_US n                     cycle() burns n us of the thread's own CPU time
+//   SLEEP_MS n                    cycle() then sleeps n ms (read at init and set)
+//   FAILURE resume|skip|abort     timing_failure()'s answer (read at init and set)
+// get FAILURES answers "deadline maxexec minexec wrong_thread": the timing
+// failures timing_failure() saw, and how many of them ran outside the task's
+// own thread (counted with atomics only: it runs from a signal handler).
 // Records go to chimera_test_record(), defined by the test program.
 #include <chimera/module.hpp>
 #include <chimera/svar.hpp>
 
+#include <atomic>
 #include <chrono>
 #include <cstdio>
+#include <sys/syscall.h>
+#include <unistd.h>
 #include <stdexcept>
 #include <string>
 #include <thread>
@@ -47,6 +55,8 @@ public:
         if (!f.in_consts.empty()) cin_ = t.translate<double>(f.in_consts[0]);
         if (!f.out_consts.empty()) cout_ = t.translate<double>(f.out_consts[0]);
         if (cout_) *cout_ = t.local().number("COUT_VALUE", 0.0);
+        task_tid_ = static_cast<long>(::syscall(SYS_gettid));
+        read_timing(t);
         record(t, "init");
         return act(t, "INIT");
     }
@@ -66,6 +76,8 @@ public:
         else if (out_) *out_ = static_cast<double>(n_);
         if (t.local().has("SIGNAL")) t.send_signal(static_cast<int>(t.local().number("SIGNAL", 0)));
         if (const double busy_us = t.local().number("BUSY_US", 0.0); busy_us > 0) burn_cpu_ns(busy_us * 1e3);
+        // Last, with nothing held: a timing failure may abandon the cycle here.
+        if (sleep_ms_ > 0) std::this_thread::sleep_for(std::chrono::milliseconds(sleep_ms_));
         const double off_after = t.local().number("OFF_AFTER", 0.0);
         if (off_after > 0 && static_cast<double>(n_) >= off_after) return Result::OFF;
         return act(t, "CYCLE");
@@ -94,10 +106,14 @@ public:
     Result set(Task& t) override {
         std::string line = std::string(t.rmod()) + " set " + std::string(t.arg());
         chimera_test_record(line.c_str());
+        read_timing(t);
         return Result::OK;
     }
     Result get(Task& t) override {
         if (t.arg() == "CYCLES") t.reply(std::to_string(n_));
+        if (t.arg() == "FAILURES")
+            t.reply(std::to_string(failures_[1].load()) + " " + std::to_string(failures_[2].load()) + " " +
+                    std::to_string(failures_[3].load()) + " " + std::to_string(wrong_thread_.load()));
         return Result::OK;
     }
     Result sync(Task& t) override {
@@ -105,7 +121,20 @@ public:
         return act(t, "SYNC");
     }
 
+    chimera::muf::FailureAction timing_failure(Task&, chimera::muf::Failure kind) noexcept override {
+        failures_[static_cast<int>(kind) & 3].fetch_add(1, std::memory_order_relaxed);
+        if (static_cast<long>(::syscall(SYS_gettid)) != task_tid_) wrong_thread_.fetch_add(1, std::memory_order_relaxed);
+        return action_;
+    }
+
 private:
+    void read_timing(Task& t) {
+        sleep_ms_ = static_cast<int>(t.local().number("SLEEP_MS", 0.0));
+        const std::string f = t.local().text("FAILURE").value_or("resume");
+        action_ = f == "abort"  ? chimera::muf::FailureAction::abort_cycle
+                  : f == "skip" ? chimera::muf::FailureAction::skip_next
+                                : chimera::muf::FailureAction::resume;
+    }
     static Result result_of(const std::string& s) {
         if (s == "OK") return Result::OK;
         if (s == "OFF") return Result::OFF;
@@ -138,6 +167,11 @@ private:
     double* cin_ = nullptr;
     double* cout_ = nullptr;
     long n_ = 0;
+    long task_tid_ = 0;
+    int sleep_ms_ = 0;
+    chimera::muf::FailureAction action_ = chimera::muf::FailureAction::resume;
+    std::atomic<long> failures_[4] = {};
+    std::atomic<long> wrong_thread_{0};
 };
 
 }  // namespace
