@@ -161,7 +161,7 @@ public:
 
     // --- signals, arguments, flags -----------------------------------------
     std::uint32_t signals() const noexcept;  ///< bitmap of signals this task has sent
-    std::uint32_t sigmask() const noexcept;  ///< bitmap the master catches from this task
+    std::uint32_t signal_mask() const noexcept;  ///< bitmap the master catches from this task (not `sigmask`: a glibc macro)
     /// Sends an SBS signal to the master (sbsSigSend); masked signals are
     /// dropped. Real-time safe: no allocation.
     void send_signal(int signal) noexcept;

@@ -10,14 +10,17 @@
 #include <algorithm>
 #include <cerrno>
 #include <cmath>
+#include <csignal>
 #include <cstdio>
 #include <cstring>
 #include <filesystem>
-#include <sched.h>
+#include <mutex>
 #include <optional>
+#include <sched.h>
 #include <set>
 #include <sys/syscall.h>
 #include <unistd.h>
+#include <vector>
 
 namespace chimera::sbs::detail {
 
@@ -89,6 +92,48 @@ template <typename Body>
     body();
     pacer.disarm_abort();
     return true;
+}
+
+// Crash containment (the thesis's "a task that faults is suspended, the others
+// run on"): while a module method runs, SIGSEGV/SIGBUS/SIGFPE/SIGILL raised by
+// that thread jump back to the runtime, which halts the task in ERROR. The
+// handler runs on a per-thread alternate stack, so a stack overflow is caught
+// too. Outside module methods (or in threads that are not tasks) the previous
+// disposition is restored and the fault happens again, as it would have.
+// Best effort by nature: a module that corrupted shared state (the heap, a
+// lock it held) can still bring the process down later.
+thread_local sigjmp_buf* t_crash_mark = nullptr;
+constexpr int kCrashSignals[] = {SIGSEGV, SIGBUS, SIGFPE, SIGILL};
+struct sigaction g_previous_action[NSIG];
+
+void on_crash_signal(int signo, siginfo_t*, void*) {
+    if (sigjmp_buf* mark = t_crash_mark) {
+        t_crash_mark = nullptr;
+        siglongjmp(*mark, signo);
+    }
+    sigaction(signo, &g_previous_action[signo], nullptr);  // not ours: fault again, as before
+}
+
+void install_crash_handlers() {
+    static std::once_flag once;
+    std::call_once(once, [] {
+        struct sigaction sa {};
+        sa.sa_sigaction = &on_crash_signal;
+        sa.sa_flags = SA_SIGINFO | SA_ONSTACK;
+        sigemptyset(&sa.sa_mask);
+        for (int sig : kCrashSignals) sigaction(sig, &sa, &g_previous_action[sig]);
+    });
+}
+
+// Runs `body` with crash containment; returns the signal that stopped it, or 0.
+template <typename Body>
+[[gnu::noinline]] int run_contained(sigjmp_buf& mark, Body& body) {
+    if (const int signo = sigsetjmp(mark, 1); signo != 0) return signo;
+    sigjmp_buf* const outer = t_crash_mark;
+    t_crash_mark = &mark;
+    body();
+    t_crash_mark = outer;
+    return 0;
 }
 
 // An SVAR transfer under the table lock: timing-failure handlers are held off
@@ -324,6 +369,20 @@ void TaskCore::stop_running() noexcept {
 // The thread: spawn, then the state machine until kill.
 void TaskCore::run() {
     tid.store(static_cast<long>(::syscall(SYS_gettid)));
+    // The crash handler's own stack (a module's stack overflow must still be caught).
+    std::vector<char> crash_stack(std::max<std::size_t>(64 * 1024, static_cast<std::size_t>(SIGSTKSZ)));
+    stack_t alt{};
+    alt.ss_sp = crash_stack.data();
+    alt.ss_size = crash_stack.size();
+    sigaltstack(&alt, nullptr);
+    install_crash_handlers();
+    struct AltStackOff {
+        ~AltStackOff() {
+            stack_t off{};
+            off.ss_flags = SS_DISABLE;
+            sigaltstack(&off, nullptr);
+        }
+    } alt_stack_off;
     {
         std::string tn = name.substr(0, 15);
         pthread_setname_np(pthread_self(), tn.c_str());
@@ -421,9 +480,19 @@ void TaskCore::run() {
         phase = p;
         current = i;
         decided.reset();
-        Result r;
+        Result r = Result::OK;
         try {
-            r = fn(*objects[i].module, *objects[i].view);
+            auto method = [&] { r = fn(*objects[i].module, *objects[i].view); };
+            sigjmp_buf crash_mark;
+            if (const int signo = run_contained(crash_mark, method); signo != 0) {
+                // The module's state is unknown: error() is not called, the task halts.
+                pacer->disarm_abort();
+                const std::string msg = std::string("crashed with ") + sigabbrev_np(signo) + " (" +
+                                        strsignal(signo) + ") in " + phase_name(p) + "()";
+                record(err::Error{err::code::exception, objects[i].rmod.module, msg, nullptr, 0});
+                sbs.print(rtpu, true, "ERROR> " + objects[i].rmod.name + ": " + msg);
+                return Outcome::error_halt;
+            }
         } catch (const err::Aborted& a) {
             if (decided) return *decided;
             return route(a.error());  // a user handler aborted: still the module's error()
@@ -525,6 +594,7 @@ void TaskCore::run() {
                 aborted = !run_abortable(*pacer, *mark, cycle_all);
             else
                 cycle_all();
+            t_crash_mark = nullptr;  // an aborted cycle jumped past its containment frame
         }
         // An aborted cycle publishes nothing: its outputs are half-made.
         if (!aborted && (r == Outcome::ok || r == Outcome::off)) {
@@ -869,7 +939,7 @@ std::string_view Task::error_message() const noexcept { return core_->last_msg; 
 std::string Task::global_name(std::string_view port) const { return core_->objects[object_].rmod.global_name(port); }
 void* Task::local_table_ptr() const noexcept { return core_->local.get(); }
 std::uint32_t Task::signals() const noexcept { return core_->signals_sent.load(std::memory_order_relaxed); }
-std::uint32_t Task::sigmask() const noexcept {
+std::uint32_t Task::signal_mask() const noexcept {
     return core_->own_sigmask.load() ? core_->sigmask.load() : core_->sbs.wide_mask.load();
 }
 void Task::send_signal(int signal) noexcept {

@@ -464,6 +464,25 @@ TEST_F(Sbs, AThrowingTaskDoesNotTakeTheOthersDown) {
     EXPECT_EQ(s.status(bad).error, "exception: CYCLE threw");
 }
 
+TEST_F(Sbs, ACrashingTaskIsHaltedInErrorAndTheOthersRunOn) {
+    auto& s = init();
+    auto good = s.spawn(rmod("good", "SVARALIAS OUT=A\nOUTVAR OUT\n", "periodic"));
+    auto bad = s.spawn(rmod("bad", "SVARALIAS OUT=B\nOUTVAR OUT\n", "periodic", "CYCLE CRASH\n"));
+    ASSERT_TRUE(s.reconfig({{good, Control::on}, {bad, Control::on}}));
+    ASSERT_TRUE(eventually([&] { return s.status(bad).state == State::ERROR; }));
+    EXPECT_EQ(s.status(bad).error, "crashed with SEGV (Segmentation fault) in cycle()");
+    // error() is not called on a module whose state is unknown.
+    EXPECT_EQ(methods("bad"), (std::vector<std::string>{"init", "on", "cycle"}));
+    const auto n = s.status(good).cycles;
+    ASSERT_TRUE(eventually([&] { return s.status(good).cycles >= n + 5; }));
+    EXPECT_EQ(s.status(good).state, State::ON);
+    // The faulty task can still be killed, and the table is not left locked.
+    s.control(bad, Control::kill);
+    EXPECT_EQ(s.status(bad).state, State::NOT_CREATED);
+    put("B", 3.0);
+    EXPECT_EQ(get("B"), 3.0);
+}
+
 // ------------------------------------------------------------------ signals
 
 TEST_F(Sbs, SignalsWithPerTaskAndSubsystemMasks) {

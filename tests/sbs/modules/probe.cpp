@@ -1,7 +1,7 @@
 // A test module that records what it saw: every method call, the state, and
 // the values of its ports in the local table at that moment. Its behaviour is
 // chosen by LOCAL keys (read at every call, so sbsSet can change them):
-//   INIT/ON/CYCLE/OFFM/KILL/SYNC  OK | ERROR | THROW | INVOKE | OFF   (what the method does)
+//   INIT/ON/CYCLE/OFFM/KILL/SYNC  OK | ERROR | THROW | INVOKE | OFF | CRASH   (what the method does)
 //   ERROR_RET / CLEAR_RET         OK | OFF | CONTINUE | ERROR          (error()/clear() answer)
 //   COUT_VALUE v                  written to the out-const by init
 //   OUT_ON v / OUT_OFF v          written to the out-var by on / off
@@ -144,6 +144,10 @@ private:
     Result act(Task& t, const char* key) {
         const std::string what = t.local().text(key).value_or("OK");
         if (what == "THROW") throw std::runtime_error(std::string(key) + " threw");
+        if (what == "CRASH") {
+            volatile int* nowhere = nullptr;
+            *nowhere = 1;  // a module bug: SIGSEGV in the task's own thread
+        }
         if (what == "INVOKE") {
             t.error(chimera::err::code::user + 1, std::string(key) + " invoked an error");
             std::string line = std::string(t.rmod()) + " after-invoke";
