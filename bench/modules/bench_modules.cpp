@@ -1,0 +1,161 @@
+// Cycle cost of each control module at 6 DOF (issue 8), and of a combined
+// 6-joint control task compared with LinuxCNC HAL's 1 kHz thread
+// (PERFORMANCE.md: ~700 ns p50 for 6 x 5 = 31 functions).
+//
+// No thread and no scheduler: each task is built by the runtime's own
+// TaskCore (src/sbs/internal.hpp: module loaded from its .so, local table,
+// transfer sets, the Task view), taken through in-consts -> init ->
+// out-consts -> on exactly as spawn/on do, and then its methods are called
+// directly in the benchmark loop:
+//   <rmod>/cycle      the module's cycle() alone, on the local table
+//   <rmod>/task       in-vars copy (one table lock) + cycle() + out-vars copy:
+//                     what one release of the task costs minus the wake-up
+// The robot interface (robotsim, PUMA 560) is made first: it produces the NDOF
+// and DH in-consts the others configure from (§3.5).
+//
+//   build/bench/modules/bench_modules --benchmark_repetitions=5
+//       --benchmark_report_aggregates_only=true   (one command line)
+#include "internal.hpp"
+
+#include <chimera/sbs_files.hpp>
+#include <chimera/svar.hpp>
+
+#include <benchmark/benchmark.h>
+#include <unistd.h>
+
+#include <cstdio>
+#include <cstdlib>
+#include <memory>
+#include <string>
+#include <vector>
+
+#ifndef BENCH_MODULES_DIR
+#error "BENCH_MODULES_DIR (this folder) must be defined by the build"
+#endif
+#ifndef BENCH_MODULE_PATH
+#error "BENCH_MODULE_PATH (module build folders) must be defined by the build"
+#endif
+#ifndef BENCH_SOURCE_ROOT
+#error "BENCH_SOURCE_ROOT must be defined by the build"
+#endif
+
+namespace {
+
+using namespace chimera;
+using sbs::detail::SubsystemCore;
+using sbs::detail::TaskCore;
+
+std::string rmod_path(const std::string& rel) { return std::string(BENCH_SOURCE_ROOT) + "/modules/" + rel; }
+// The combined task's objects: the library's .rmod files at one rate, 1 kHz (§3.8.1).
+std::string here(const std::string& name) { return std::string(BENCH_MODULES_DIR) + "/" + name; }
+
+// One subsystem for the whole run: the table, the robot, the tasks.
+class Bench {
+public:
+    Bench() {
+        SbsFile f;
+        f.path = "bench_modules";
+        f.subsystem = "bench_modules" + std::to_string(::getpid());
+        f.svarfile = std::string(BENCH_MODULES_DIR) + "/bench_modules.svar";
+        RtpuSpec r;
+        r.name = "cpu0";
+        r.cpu = 0;
+        r.backend = Backend::other;
+        f.rtpus.push_back(r);
+        f.master = "cpu0";
+        core_ = std::make_unique<SubsystemCore>(f);
+        std::string path = BENCH_MODULE_PATH;
+        for (std::size_t pos = 0; pos <= path.size();) {
+            const std::size_t colon = std::min(path.find(':', pos), path.size());
+            if (colon > pos) core_->module_dirs.push_back(path.substr(pos, colon - pos));
+            pos = colon + 1;
+        }
+        make({rmod_path("robotsim/puma_torque.rmod")});
+    }
+    ~Bench() {
+        for (auto& t : tasks_)
+            for (auto& o : t->objects) o.module->kill(*o.view);
+        tasks_.clear();
+        core_->table.destroy();
+    }
+
+    /// A task of these objects, initialised and turned on.
+    TaskCore& make(const std::vector<std::string>& rmods) {
+        std::vector<RmodFile> files;
+        for (const auto& p : rmods) files.push_back(read_rmod(p));
+        auto t = std::make_unique<TaskCore>(*core_, static_cast<int>(tasks_.size()), core_->file.rtpus[0],
+                                            std::move(files));
+        t->local->copy_from_global(t->set_in_consts);
+        for (auto& o : t->objects)
+            if (o.module->init(*o.view) != Result::OK) throw std::runtime_error(o.rmod.name + ": init failed");
+        t->local->copy_to_global(t->set_out_consts);
+        t->local->copy_from_global(t->set_on);
+        for (auto& o : t->objects)
+            if (o.module->on(*o.view) != Result::OK) throw std::runtime_error(o.rmod.name + ": on failed");
+        t->local->copy_to_global(t->set_out_vars);
+        tasks_.push_back(std::move(t));
+        return *tasks_.back();
+    }
+
+private:
+    std::unique_ptr<SubsystemCore> core_;
+    std::vector<std::unique_ptr<TaskCore>> tasks_;
+};
+
+Bench& bench() {
+    static Bench b;
+    return b;
+}
+
+void run_cycle(benchmark::State& state, TaskCore& t, bool with_transfer) {
+    for (auto _ : state) {
+        if (with_transfer) t.local->copy_from_global(t.set_in_vars);
+        for (auto& o : t.objects) benchmark::DoNotOptimize(o.module->cycle(*o.view));
+        if (with_transfer) t.local->copy_to_global(t.set_out_vars);
+        benchmark::ClobberMemory();
+    }
+}
+
+void register_module(const std::string& label, std::vector<std::string> rmods) {
+    TaskCore* task = nullptr;
+    try {
+        task = &bench().make(rmods);
+    } catch (const std::exception& e) {
+        std::fprintf(stderr, "bench_modules: %s: %s\n", label.c_str(), e.what());
+        std::exit(1);
+    }
+    benchmark::RegisterBenchmark((label + "/cycle").c_str(), [task](benchmark::State& s) { run_cycle(s, *task, false); });
+    benchmark::RegisterBenchmark((label + "/task").c_str(), [task](benchmark::State& s) { run_cycle(s, *task, true); });
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+    // Each module on its own, with its library .rmod.
+    register_module("robotsim_puma_torque", {rmod_path("robotsim/puma_torque.rmod")});
+    register_module("trajgen_jtraj", {rmod_path("trajgen/jtraj.rmod")});
+    register_module("pid_jpidg", {rmod_path("pid/jpidg.rmod")});
+    register_module("diff_qmdiff", {rmod_path("diff/qmdiff.rmod")});
+    register_module("integ_qrinteg", {rmod_path("integ/qrinteg.rmod")});
+    register_module("gravcomp", {rmod_path("dyn/grav_comp.rmod")});
+    register_module("invdyn", {rmod_path("dyn/invdyn.rmod")});
+    register_module("fwdkin", {rmod_path("kin/fwdkin.rmod")});
+    register_module("invkin", {rmod_path("kin/invkin.rmod")});
+    register_module("dlsik", {rmod_path("kin/dlsik.rmod")});
+    register_module("join_tjoin", {rmod_path("join/tjoin.rmod")});
+    register_module("ctc_pidacc+invdyn", {rmod_path("ctc/ctc_pid.rmod"), rmod_path("ctc/ctc_invdyn.rmod")});
+    // The combined 6-joint control task against HAL's thread: trajectory
+    // (position, velocity, acceleration), differentiator of the measured
+    // positions, gravity compensation and PID with gravity feed-forward, as
+    // ONE task with one in-vars and one out-vars transfer.
+    register_module("combined_6joint",
+                    {here("c_traj.rmod"), here("c_diff.rmod"), here("c_grav.rmod"), here("c_pid.rmod")});
+    // The same without gravity compensation: the closest match to HAL's five
+    // simple functions per joint (signal generator, differentiator, PID with
+    // its limiter), no rigid-body dynamics.
+    register_module("combined_6joint_nograv", {here("c_traj.rmod"), here("c_diff.rmod"), here("c_pid_nograv.rmod")});
+    benchmark::Initialize(&argc, argv);
+    benchmark::RunSpecifiedBenchmarks();
+    benchmark::Shutdown();
+    return 0;
+}
