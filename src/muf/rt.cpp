@@ -144,6 +144,9 @@ RtpuScheduler::Impl::Impl(RtpuOptions o) : options(std::move(o)) {
                          ": " + std::strerror(rc));
     }
     dispatcher_running = true;
+    if (const std::string note = detail::raise_timer_thread(options.cpu, options.fifo_high);
+        !note.empty() && !options.quiet)
+        std::fprintf(stderr, "chimera: rtpu %s: %s\n", options.name.c_str(), note.c_str());
 }
 
 RtpuScheduler::Impl::~Impl() {

@@ -153,6 +153,12 @@ int set_deadline_policy(pid_t tid, std::int64_t runtime_ns, std::int64_t deadlin
                         std::int64_t period_ns) noexcept;
 /// Text of what the thread really runs under, from the kernel.
 std::string describe_policy(pid_t tid);
+/// On a PREEMPT_RT kernel (/sys/kernel/realtime = 1), POSIX timers expire in the
+/// per-CPU `ktimers/<cpu>` thread, which runs at SCHED_FIFO 1: a task spinning
+/// above it would never see its DEADLINE timer. Raises that thread to `prio`
+/// when it is below. Returns a one-line note of what was done ("" when nothing
+/// was needed: not PREEMPT_RT, or already high enough); throws nothing.
+std::string raise_timer_thread(int cpu, int prio);
 /// The kernel's SCHED_DEADLINE bandwidth limit per CPU (sched_rt_runtime/period), or 0.95.
 double deadline_bandwidth_per_cpu() noexcept;
 
