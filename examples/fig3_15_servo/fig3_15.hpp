@@ -1,16 +1,13 @@
-// fig3_15.hpp — where the Figures 3.15/3.16 subsystem's files are, for its master
-// program and tests: the .sbs of this folder, the .rmod files (this folder
-// first, then the module folders that ship them) and the module shared
-// objects of the build tree. meson passes the folders as defines.
+// fig3_15.hpp — where the Figures 3.15/3.16 subsystem (its master program and tests) finds its files: the
+// fig3_15.sbs of this folder, the .rmod files and the module shared objects of the
+// build tree (see examples/common/example_files.hpp).
 #pragma once
 
-#include <chimera/sbs.hpp>
+#include "example_files.hpp"
 
-#include <sched.h>
-
-#include <filesystem>
 #include <string>
 #include <string_view>
+#include <utility>
 #include <vector>
 
 #ifndef FIG3_15_RMOD_PATH
@@ -22,59 +19,18 @@
 
 namespace fig3_15 {
 
-inline std::vector<std::string> split_path(std::string_view path) {
-    std::vector<std::string> out;
-    while (!path.empty()) {
-        const auto colon = path.find(':');
-        if (colon != 0) out.emplace_back(path.substr(0, colon));
-        if (colon == std::string_view::npos) break;
-        path.remove_prefix(colon + 1);
-    }
-    return out;
-}
-
 /// This example's folder (the first .rmod folder).
-inline std::string example_dir() { return split_path(FIG3_15_RMOD_PATH).front(); }
+inline std::string example_dir() { return chimera_examples::split_path(FIG3_15_RMOD_PATH).front(); }
 
 /// The path of `<name>.rmod`: this example's folder first, then the modules'.
-inline std::string rmod(std::string_view name) {
-    std::string searched;
-    for (const auto& dir : split_path(FIG3_15_RMOD_PATH)) {
-        const auto p = std::filesystem::path(dir) / (std::string(name) + ".rmod");
-        if (std::filesystem::exists(p)) return p.string();
-        searched += (searched.empty() ? "" : ", ") + dir;
-    }
-    throw chimera::sbs::Error(std::string(name) + ".rmod not found in " + searched);
-}
+inline std::string rmod(std::string_view name) { return chimera_examples::find_rmod(FIG3_15_RMOD_PATH, name); }
 
-/// Reads fig3_15.sbs. An RTPU whose CPU this process may not use is moved onto
-/// an allowed CPU (`notes` gets one line per move); `subsystem`, when given,
-/// replaces the SUBSYSTEM name (tests run side by side under unique names).
+/// Reads fig3_15.sbs, moving RTPUs onto CPUs this process may use (see load_sbs).
 inline chimera::SbsFile load_sbs(std::vector<std::string>* notes = nullptr, std::string subsystem = {}) {
-    chimera::SbsFile file = chimera::read_sbs(example_dir() + "/fig3_15.sbs");
-    if (!subsystem.empty()) file.subsystem = std::move(subsystem);
-    cpu_set_t allowed;
-    CPU_ZERO(&allowed);
-    if (sched_getaffinity(0, sizeof(allowed), &allowed) != 0) return file;
-    std::vector<int> cpus;
-    for (int c = 0; c < CPU_SETSIZE; ++c)
-        if (CPU_ISSET(c, &allowed)) cpus.push_back(c);
-    if (cpus.empty()) return file;
-    for (std::size_t i = 0; i < file.rtpus.size(); ++i) {
-        auto& r = file.rtpus[i];
-        if (r.cpu >= 0 && r.cpu < CPU_SETSIZE && CPU_ISSET(r.cpu, &allowed)) continue;
-        const int to = cpus[i % cpus.size()];
-        if (notes)
-            notes->push_back("RTPU " + r.name + ": CPU " + std::to_string(r.cpu) +
-                             " is not available to this process, using CPU " + std::to_string(to));
-        r.cpu = to;
-    }
-    return file;
+    return chimera_examples::load_sbs(example_dir() + "/fig3_15.sbs", notes, std::move(subsystem));
 }
 
 /// Adds the build tree's module folders to a subsystem's module path.
-inline void add_module_dirs(chimera::sbs::Subsystem& sbs) {
-    for (const auto& d : split_path(FIG3_15_MODULE_PATH)) sbs.add_module_path(d);
-}
+inline void add_module_dirs(chimera::sbs::Subsystem& sbs) { chimera_examples::add_module_dirs(sbs, FIG3_15_MODULE_PATH); }
 
 }  // namespace fig3_15
