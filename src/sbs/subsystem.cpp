@@ -554,6 +554,12 @@ TaskStatus Subsystem::status_without_profile(TaskId id) const {
             s.error = t->error_text;
         }
     }
+    // While the task runs, the dispatcher moves its priority and a handler may
+    // move its criticality: show what the kernel and the scheduler say now.
+    if (t->pacer && s.state == State::ON && t->pacer->running()) {
+        s.policy = t->pacer->policy();
+        if (const int c = t->pacer->crit(); c != 0) s.crit = c;
+    }
     return s;
 }
 
