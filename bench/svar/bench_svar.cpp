@@ -14,6 +14,7 @@
 //                       (svarCopyFromShm / svarCopyToShm): one lock
 //   TbufWriteRead       one item written and read back (tbufWrite + tbufRead)
 //   PthreadMutexWriteRead  the same item through a mutex-protected buffer
+//   PthreadMutexWriteReadStamped  the same, time-stamped by the writer as TBUF does
 //   MonotonicClock      the clock read that tbufWrite's time-stamp costs
 //
 // Arguments are {nelem, count}: `count` variables of float[nelem]. The table
@@ -355,6 +356,31 @@ void BM_PthreadMutexWriteRead(benchmark::State& state) {
     set_counters(state, bytes);
 }
 
+// Like for like with TBUF's default write(): the writer also time-stamps the
+// item (one CLOCK_MONOTONIC read), and the stamp travels with it.
+void BM_PthreadMutexWriteReadStamped(benchmark::State& state) {
+    std::size_t bytes = static_cast<std::size_t>(state.range(0));
+    Buffers shared(bytes), b(bytes);
+    pthread_mutex_t m = PTHREAD_MUTEX_INITIALIZER;
+    std::int64_t shared_stamp = 0, stamp = 0;
+    for (auto _ : state) {
+        benchmark::DoNotOptimize(bytes);
+        const std::int64_t now = chimera::ipc::now_ns();
+        pthread_mutex_lock(&m);
+        std::memcpy(shared.d(0), b.s(0), bytes);
+        shared_stamp = now;
+        pthread_mutex_unlock(&m);
+        pthread_mutex_lock(&m);
+        std::memcpy(b.d(0), shared.d(0), bytes);
+        stamp = shared_stamp;
+        pthread_mutex_unlock(&m);
+        benchmark::DoNotOptimize(stamp);
+        benchmark::DoNotOptimize(b.dst.data());
+        benchmark::ClobberMemory();
+    }
+    set_counters(state, bytes);
+}
+
 void transfer_args(benchmark::internal::Benchmark* b) {
     b->ArgNames({"nelem", "count"});
     for (int count : {1, 2, 6})
@@ -386,6 +412,7 @@ BENCHMARK(BM_SvarCopyTo)->Apply(transfer_args);
 BENCHMARK(BM_TbufWriteRead)->Apply(tbuf_args);
 BENCHMARK(BM_MonotonicClock);
 BENCHMARK(BM_PthreadMutexWriteRead)->Apply(mutex_write_read_args);
+BENCHMARK(BM_PthreadMutexWriteReadStamped)->Apply(mutex_write_read_args);
 
 int main(int argc, char** argv) {
     benchmark::Initialize(&argc, argv);
