@@ -20,9 +20,11 @@
 #include <CLI/CLI.hpp>
 #include <editline/readline.h>
 
+#include <poll.h>
 #include <unistd.h>
 
 #include <atomic>
+#include <cerrno>
 #include <csignal>
 #include <cstdio>
 #include <cstdlib>
@@ -50,6 +52,33 @@ void catch_interrupts() {
     sigaction(SIGINT, &sa, nullptr);
     sigaction(SIGTERM, &sa, nullptr);
     sigaction(SIGHUP, &sa, nullptr);
+}
+
+// Ctrl-C at the prompt must give a fresh prompt whenever it comes. libedit
+// reads on through an interrupted read(), and a SIGINT that lands while it is
+// busy (not blocked in read) would go unseen, so the prompt reads its own keys:
+// once SIGINT has been caught it feeds libedit "kill line, accept" — the
+// half-typed line is dropped, readline() returns "" and the loop prompts again.
+int g_abandon_step = -1;  // -1: reading keys; 0, 1: next key of kAbandon
+
+int prompt_getc(FILE* in) {
+    static constexpr unsigned char kAbandon[] = {0x15, '\n'};  // Ctrl-U (kill line), Enter
+    for (;;) {
+        if (g_abandon_step < 0 && g_interrupted.load()) g_abandon_step = 0;
+        if (g_abandon_step >= 0) {
+            const unsigned char key = kAbandon[g_abandon_step++];
+            if (g_abandon_step == 2) g_abandon_step = -1;
+            return key;
+        }
+        pollfd p{fileno(in), POLLIN, 0};
+        const int rc = poll(&p, 1, 100);  // the timeout re-checks a SIGINT that came just before poll()
+        if (rc < 0 && errno != EINTR) return EOF;
+        if (rc <= 0) continue;
+        unsigned char key = 0;
+        const ssize_t n = read(p.fd, &key, 1);
+        if (n == 1) return key;
+        if (n == 0 || (errno != EINTR && errno != EAGAIN)) return EOF;
+    }
 }
 
 using Executor = std::function<Reply(std::string_view)>;
@@ -219,6 +248,7 @@ int interactive(sbs::Subsystem& subsystem, cli::Interpreter& interp, Master& mas
     if (tty) {
         g_interp = &interp;
         rl_readline_name = const_cast<char*>("sbs");
+        rl_getc_function = prompt_getc;
         rl_attempted_completion_function = complete_line;
         rl_completion_append_character = ' ';
         using_history();
@@ -232,11 +262,11 @@ int interactive(sbs::Subsystem& subsystem, cli::Interpreter& interp, Master& mas
         if (tty) {
             g_interrupted = false;
             char* raw = readline(interp.prompt().c_str());
+            if (g_interrupted.exchange(false)) {  // Ctrl-C: the line was dropped, a fresh prompt
+                std::free(raw);
+                continue;
+            }
             if (raw == nullptr) {
-                if (g_interrupted.exchange(false)) {  // Ctrl-C: a fresh prompt, not an exit
-                    std::cout << std::endl;
-                    continue;
-                }
                 std::cout << std::endl;
                 break;  // end of input
             }
