@@ -81,13 +81,21 @@ int crit_for(const RtpuSpec& r, TaskType type, double freq) {
     return std::clamp(1 + static_cast<int>(std::lround(x * 61.0)), 1, 62);
 }
 
+// The marks below are set with sigsetjmp(mark, 0): saving the signal mask
+// would cost a system call on every cycle. A jump out of a signal handler
+// leaves that handler's signals blocked, so the (rare) jumped-to path puts
+// back the mask the thread runs with, `normal_mask`, taken once at its start.
+
 // Runs `body` (the objects' cycle methods) with the cycle abortable: a timing
 // failure handler answering abort_cycle jumps back here (siglongjmp to the mark)
 // and the call returns false. Kept apart so that nothing of the caller's frame
 // lives across the jump; the abort is disarmed as soon as cycle returns.
 template <typename Body>
-[[gnu::noinline]] bool run_abortable(Pacer& pacer, sigjmp_buf& mark, Body& body) {
-    if (sigsetjmp(mark, 1) != 0) return false;
+[[gnu::noinline]] bool run_abortable(Pacer& pacer, sigjmp_buf& mark, const sigset_t& normal_mask, Body& body) {
+    if (sigsetjmp(mark, 0) != 0) {
+        pthread_sigmask(SIG_SETMASK, &normal_mask, nullptr);
+        return false;
+    }
     pacer.arm_abort();
     body();
     pacer.disarm_abort();
@@ -127,8 +135,11 @@ void install_crash_handlers() {
 
 // Runs `body` with crash containment; returns the signal that stopped it, or 0.
 template <typename Body>
-[[gnu::noinline]] int run_contained(sigjmp_buf& mark, Body& body) {
-    if (const int signo = sigsetjmp(mark, 1); signo != 0) return signo;
+[[gnu::noinline]] int run_contained(sigjmp_buf& mark, const sigset_t& normal_mask, Body& body) {
+    if (const int signo = sigsetjmp(mark, 0); signo != 0) {
+        pthread_sigmask(SIG_SETMASK, &normal_mask, nullptr);
+        return signo;
+    }
     sigjmp_buf* const outer = t_crash_mark;
     t_crash_mark = &mark;
     body();
@@ -376,6 +387,8 @@ void TaskCore::run() {
     alt.ss_size = crash_stack.size();
     sigaltstack(&alt, nullptr);
     install_crash_handlers();
+    sigset_t normal_mask;  // restored after a jump out of a signal handler (see run_abortable)
+    pthread_sigmask(SIG_SETMASK, nullptr, &normal_mask);
     struct AltStackOff {
         ~AltStackOff() {
             stack_t off{};
@@ -484,7 +497,7 @@ void TaskCore::run() {
         try {
             auto method = [&] { r = fn(*objects[i].module, *objects[i].view); };
             sigjmp_buf crash_mark;
-            if (const int signo = run_contained(crash_mark, method); signo != 0) {
+            if (const int signo = run_contained(crash_mark, normal_mask, method); signo != 0) {
                 // The module's state is unknown: error() is not called, the task halts.
                 pacer->disarm_abort();
                 const std::string msg = std::string("crashed with ") + sigabbrev_np(signo) + " (" +
@@ -591,7 +604,7 @@ void TaskCore::run() {
         if (r == Outcome::ok) {
             auto cycle_all = [&] { r = call_all(Phase::cycle, [](Module& m, Task& t) { return m.cycle(t); }); };
             if (sigjmp_buf* mark = pacer->cycle_mark())
-                aborted = !run_abortable(*pacer, *mark, cycle_all);
+                aborted = !run_abortable(*pacer, *mark, normal_mask, cycle_all);
             else
                 cycle_all();
             t_crash_mark = nullptr;  // an aborted cycle jumped past its containment frame
