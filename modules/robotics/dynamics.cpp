@@ -1,6 +1,7 @@
 // Inverse dynamics, gravity, inertia matrix, and the forward-dynamics simulator.
 #include "robotics/dynamics.hpp"
 
+#include <algorithm>
 #include <cmath>
 
 namespace chimera::robotics {
@@ -81,7 +82,15 @@ ArmSimulator::ArmSimulator(const RobotModel& model)
       zero_(Eigen::VectorXd::Zero(static_cast<Eigen::Index>(n_))),
       rhs_(Eigen::VectorXd::Zero(static_cast<Eigen::Index>(n_))),
       m_(Eigen::MatrixXd::Zero(static_cast<Eigen::Index>(n_), static_cast<Eigen::Index>(n_))),
-      llt_(static_cast<Eigen::Index>(n_)) {}
+      llt_(static_cast<Eigen::Index>(n_)),
+      locked_(n_, 0) {}
+
+void ArmSimulator::set_locked(std::size_t joint, bool locked) noexcept {
+    if (joint >= n_) return;
+    locked_[joint] = locked ? 1 : 0;
+    if (locked) qd_[static_cast<Eigen::Index>(joint)] = 0;
+    any_locked_ = std::find(locked_.begin(), locked_.end(), 1) != locked_.end();
+}
 
 void ArmSimulator::reset(const Eigen::Ref<const Eigen::VectorXd>& q,
                          const Eigen::Ref<const Eigen::VectorXd>& qd) noexcept {
@@ -99,9 +108,21 @@ bool ArmSimulator::step(const Eigen::Ref<const Eigen::VectorXd>& tau, double dt,
         // bias = C(q,qd) qd + g(q) + B qd: inverse dynamics with zero acceleration.
         if (!dyn_.inverse(q_, qd_, zero_, bias_)) return false;
         if (!dyn_.mass(q_, m_)) return false;
+        rhs_ = tau - bias_;
+        if (any_locked_) {
+            // A locked joint's row and column become the identity's and its
+            // right-hand side 0: its qdd is 0 and the free joints solve their
+            // own block of M, the constrained dynamics.
+            for (Eigen::Index j = 0; j < m_.rows(); ++j) {
+                if (!locked_[static_cast<std::size_t>(j)]) continue;
+                m_.row(j).setZero();
+                m_.col(j).setZero();
+                m_(j, j) = 1;
+                rhs_[j] = 0;
+            }
+        }
         llt_.compute(m_);
         if (llt_.info() != Eigen::Success) return false;
-        rhs_ = tau - bias_;
         llt_.solveInPlace(rhs_);
         qdd_ = rhs_;
         // Semi-implicit Euler: velocity first, then position with the new velocity.

@@ -28,25 +28,7 @@ namespace {
 class RobotSim : public chimera::Module {
 public:
     chimera::Result init(chimera::Task& t) override {
-        const std::string robot = rb::local_word(t, "ROBOT", "puma560");
-        if (robot == "puma560") {
-            model_ = rb::puma560();
-        } else if (robot == "planar2") {
-            model_ = rb::planar2();
-        } else if (robot == "urdf") {
-            const auto* e = t.local().find("ROBOT");
-            if (e->values.size() != 4) {
-                rb::module_error(t, "line " + std::to_string(e->line) +
-                                        ": ROBOT urdf takes FILE ROOT-LINK TIP-LINK");
-            }
-            try {
-                model_ = rb::RobotModel::from_urdf(e->values[1], e->values[2], e->values[3]);
-            } catch (const std::exception& ex) {
-                rb::module_error(t, ex.what());
-            }
-        } else {
-            rb::module_error(t, "LOCAL ROBOT '" + robot + "': expected puma560, planar2 or urdf");
-        }
+        model_ = rb::robot_from_local(t);
         n_ = model_.ndof();
         const std::string mode = rb::local_word(t, "MODE", "torque");
         if (mode != "torque" && mode != "position") {

@@ -8,6 +8,8 @@
 // the model (DhLink::rotor_inertia, DhLink::damping).
 #pragma once
 
+#include <vector>
+
 #include <Eigen/Core>
 #include <Eigen/Cholesky>
 #include <kdl/chaindynparam.hpp>
@@ -65,6 +67,11 @@ public:
                const Eigen::Ref<const Eigen::VectorXd>& qd) noexcept;
     /// Advances by `dt` seconds in `substeps` equal steps with the torque held.
     bool step(const Eigen::Ref<const Eigen::VectorXd>& tau, double dt, int substeps = 1) noexcept;
+    /// Locks a joint (its brake): from now on it does not move (qd = qdd = 0)
+    /// and the others move as the constrained arm does (exact: the locked rows
+    /// and columns leave the mass matrix). Unlocking lets it move again.
+    void set_locked(std::size_t joint, bool locked) noexcept;
+    bool locked(std::size_t joint) const noexcept { return locked_[joint] != 0; }
 
     const Eigen::VectorXd& q() const noexcept { return q_; }
     const Eigen::VectorXd& qd() const noexcept { return qd_; }
@@ -77,6 +84,8 @@ private:
     Eigen::VectorXd q_, qd_, qdd_, bias_, zero_, rhs_;
     Eigen::MatrixXd m_;
     Eigen::LLT<Eigen::MatrixXd> llt_;
+    std::vector<char> locked_;
+    bool any_locked_ = false;
     double t_ = 0;
 };
 

@@ -77,15 +77,17 @@ inline RobotModel read_model(Task& t) {
     }
 }
 
+// --- LOCAL values ----------------------------------------------------------------
+// The LocalConfig versions serve programs that read a .rmod without a task (the
+// CAN drive simulator reads its robot's); their errors name the .rmod file.
+
+[[noreturn]] inline void config_error(const LocalConfig& lc, const std::string& message) {
+    throw std::invalid_argument(lc.file + ": " + message);
+}
+
 /// A LOCAL key with one value (applied to every joint) or exactly n values.
-inline Eigen::VectorXd local_vector(const Task& t, std::string_view key, std::size_t n) {
-    const LocalConfig& lc = t.local();
-    std::vector<double> v;
-    try {
-        v = lc.numbers(key);
-    } catch (const std::invalid_argument& e) {
-        module_error(t, e.what());
-    }
+inline Eigen::VectorXd local_vector(const LocalConfig& lc, std::string_view key, std::size_t n) {
+    const std::vector<double> v = lc.numbers(key);  // throws naming file, line and key
     Eigen::VectorXd out(static_cast<Eigen::Index>(n));
     if (v.size() == 1) {
         out.setConstant(v[0]);
@@ -93,34 +95,76 @@ inline Eigen::VectorXd local_vector(const Task& t, std::string_view key, std::si
         for (std::size_t i = 0; i < n; ++i) out[static_cast<Eigen::Index>(i)] = v[i];
     } else {
         const LocalConfig::Entry* e = lc.find(key);
-        module_error(t, "line " + std::to_string(e ? e->line : 0) + ": LOCAL " + std::string(key) +
-                            " has " + std::to_string(v.size()) + " values, expected 1 or " +
-                            std::to_string(n));
+        config_error(lc, "line " + std::to_string(e ? e->line : 0) + ": LOCAL " + std::string(key) +
+                             " has " + std::to_string(v.size()) + " values, expected 1 or " +
+                             std::to_string(n));
     }
     return out;
 }
 
 /// Like local_vector, with a default when the key is absent.
-inline Eigen::VectorXd local_vector(const Task& t, std::string_view key, std::size_t n,
+inline Eigen::VectorXd local_vector(const LocalConfig& lc, std::string_view key, std::size_t n,
                                     double fallback) {
-    if (!t.local().has(key)) return Eigen::VectorXd::Constant(static_cast<Eigen::Index>(n), fallback);
-    return local_vector(t, key, n);
+    if (!lc.has(key)) return Eigen::VectorXd::Constant(static_cast<Eigen::Index>(n), fallback);
+    return local_vector(lc, key, n);
 }
 
 /// A LOCAL word (first token), or `fallback` when absent.
-inline std::string local_word(const Task& t, std::string_view key, std::string fallback) {
-    const LocalConfig::Entry* e = t.local().find(key);
+inline std::string local_word(const LocalConfig& lc, std::string_view key, std::string fallback) {
+    const LocalConfig::Entry* e = lc.find(key);
     if (!e || e->values.empty()) return fallback;
     return e->values.front();
 }
 
+/// The robot of `ROBOT puma560 | planar2 | urdf FILE ROOT-LINK TIP-LINK`
+/// (default puma560).
+inline RobotModel robot_from_local(const LocalConfig& lc) {
+    const std::string robot = local_word(lc, "ROBOT", "puma560");
+    if (robot == "puma560") return puma560();
+    if (robot == "planar2") return planar2();
+    if (robot == "urdf") {
+        const LocalConfig::Entry* e = lc.find("ROBOT");
+        if (e->values.size() != 4)
+            config_error(lc, "line " + std::to_string(e->line) + ": ROBOT urdf takes FILE ROOT-LINK TIP-LINK");
+        try {
+            return RobotModel::from_urdf(e->values[1], e->values[2], e->values[3]);
+        } catch (const std::exception& ex) {
+            config_error(lc, ex.what());
+        }
+    }
+    config_error(lc, "LOCAL ROBOT '" + robot + "': expected puma560, planar2 or urdf");
+}
+
+// The task versions: errors name the rmod as module_error does.
+template <typename F>
+auto with_rmod_errors(const Task& t, F&& f) -> decltype(f()) {
+    try {
+        return f();
+    } catch (const std::invalid_argument& e) {
+        std::string m = e.what();
+        const std::string& file = t.local().file;
+        if (!file.empty() && m.rfind(file + ": ", 0) == 0) m.erase(0, file.size() + 2);
+        module_error(t, m);
+    }
+}
+
+inline Eigen::VectorXd local_vector(const Task& t, std::string_view key, std::size_t n) {
+    return with_rmod_errors(t, [&] { return local_vector(t.local(), key, n); });
+}
+inline Eigen::VectorXd local_vector(const Task& t, std::string_view key, std::size_t n,
+                                    double fallback) {
+    return with_rmod_errors(t, [&] { return local_vector(t.local(), key, n, fallback); });
+}
+inline std::string local_word(const Task& t, std::string_view key, std::string fallback) {
+    return local_word(t.local(), key, std::move(fallback));
+}
+inline RobotModel robot_from_local(const Task& t) {
+    return with_rmod_errors(t, [&] { return robot_from_local(t.local()); });
+}
+
 /// A LOCAL single number with a default, errors naming the rmod.
 inline double local_number(const Task& t, std::string_view key, double fallback) {
-    try {
-        return t.local().number(key, fallback);
-    } catch (const std::invalid_argument& e) {
-        module_error(t, e.what());
-    }
+    return with_rmod_errors(t, [&] { return t.local().number(key, fallback); });
 }
 
 using VecMap = Eigen::Map<Eigen::VectorXd>;

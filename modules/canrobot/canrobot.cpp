@@ -1,0 +1,470 @@
+// canrobot — robot interface over a CAN bus (thesis §7.3: an SAI driver as a
+// port-based object). It drives one CANopen joint drive per joint with the
+// CiA 402 subset of canrobot/cia402.hpp, through the IOD RCB driver (§7.2), and
+// has exactly the ports of robotsim, so a subsystem runs against the real arm
+// (or the simulated drives of `candrive`) or against the in-process simulation
+// by swapping this one module (transparent simulation).
+//
+// Ports (internal names; SVARALIAS may rename them):
+//   OUTCONST NDOF (int), DH (double[16*(NDOF+1)])   from LOCAL ROBOT, as robotsim
+//   INVAR    torque mode:   T_REF                  joint torques (N m) -> CST target torque
+//            position mode: Q_REF [Q^_REF]         rad, rad/s -> CSP target position, velocity offset
+//   OUTVAR   Q_MEZ [Q^_MEZ]                        position / velocity actual, latched at the last SYNC
+//
+// Each cycle: read every drive's feedback (never blocking), check it (fresh
+// TPDO2, heartbeat, state, fault), publish it, send the targets (RPDO1, RPDO2)
+// and then the SYNC at which they take effect. One cycle of transport delay:
+// the positions a cycle publishes were latched at the previous cycle's SYNC.
+//
+// Safety, as a control engineer expects it:
+//   - init starts the drives (NMT) and fails, naming the node, if one does not answer;
+//   - on walks every drive through the CiA 402 state machine to operation
+//     enabled (resetting a fault) and fails, naming the node and its state or
+//     fault code, when one does not get there in ENABLE_TIMEOUT; in position
+//     mode it refuses to start with Q_REF more than ON_TOLERANCE away;
+//   - a drive that faults, leaves operation enabled, stops sending feedback or
+//     heartbeats is an error naming the node: the task goes to ERROR and every
+//     drive gets a quick stop (brakes); a master that dies stops sending RPDOs
+//     and the drives fault on their RPDO timeout;
+//   - off switches the drives off (shutdown: brakes), kill returns them to
+//     pre-operational;
+//   - with STABILITY hold, while the illegal-configuration flag is up (§3.10)
+//     the drives hold the position they had when it rose, in their own CSP loop.
+// The LOCAL keys are in README.md.
+#include <chimera/iod.hpp>
+#include <chimera/module.hpp>
+
+#include <algorithm>
+#include <array>
+#include <chrono>
+#include <cmath>
+#include <cstdio>
+#include <cstring>
+#include <ctime>
+#include <memory>
+#include <stdexcept>
+#include <string>
+#include <thread>
+#include <vector>
+
+#include "canrobot/bus_config.hpp"
+#include "canrobot/cia402.hpp"
+#include "robotics/ports.hpp"
+
+namespace rb = chimera::robotics;
+namespace iod = chimera::iod;
+using namespace chimera::canrobot::cia402;
+
+namespace {
+
+// Ports of a node's device, in the order of the generated database.
+constexpr int kRpdo1Ports = 0;     // controlword, mode, target torque (3 x 16 bits)
+constexpr int kRpdo2Ports = 3;     // target position, velocity offset (2 x 32)
+constexpr int kTpdo1Ports = 5;     // statusword, mode display, error code (3 x 16)
+constexpr int kTpdo2Ports = 8;     // position, velocity (2 x 32)
+constexpr int kHeartbeatPort = 10; // NMT state (8)
+
+// Error numbers this module raises (task.error codes).
+constexpr int kErrNoFeedback = 1;
+constexpr int kErrHeartbeat = 2;
+constexpr int kErrDriveFault = 3;
+constexpr int kErrDriveState = 4;
+constexpr int kErrBus = 5;
+
+std::string hex(std::uint32_t v) {
+    char b[16];
+    std::snprintf(b, sizeof b, "0x%03X", v);
+    return b;
+}
+
+// The IOD database of the bus: one device per node (so a second master for a
+// node is refused by the IOD port reservation), plus the bus's single SYNC
+// producer and NMT master.
+std::string bus_database(const std::string& interface, const std::vector<int>& nodes) {
+    std::string db;
+    for (int n : nodes) {
+        db += "DEVICE " + interface + ".node" + std::to_string(n) + " RCB socketcan\nPATH " + interface + "\n";
+        db += "FRAME " + hex(cob_id(kRpdo1, n)) + " OUT 3 16\n";
+        db += "FRAME " + hex(cob_id(kRpdo2, n)) + " OUT 2 32\n";
+        db += "FRAME " + hex(cob_id(kTpdo1, n)) + " IN 3 16\n";
+        db += "FRAME " + hex(cob_id(kTpdo2, n)) + " IN 2 32\n";
+        db += "FRAME " + hex(cob_id(kHeartbeat, n)) + " IN 1 8\nEND\n";
+    }
+    db += "DEVICE " + interface + ".sync RCB socketcan\nPATH " + interface + "\nFRAME 0x080 OUT 1 8\nEND\n";
+    db += "DEVICE " + interface + ".nmt RCB socketcan\nPATH " + interface + "\nFRAME 0x000 OUT 2 8\nEND\nEOF\n";
+    return db;
+}
+
+std::int64_t realtime_ns() noexcept {  // the clock of the kernel's receive stamps
+    timespec ts;
+    clock_gettime(CLOCK_REALTIME, &ts);
+    return ts.tv_sec * 1'000'000'000LL + ts.tv_nsec;
+}
+
+class CanRobot : public chimera::Module {
+public:
+    chimera::Result init(chimera::Task& t) override {
+        model_ = rb::robot_from_local(t);
+        n_ = model_.ndof();
+        try {
+            bus_ = chimera::canrobot::BusConfig::from_local(t.local(), n_);
+        } catch (const std::invalid_argument& e) {
+            rb::module_error(t, e.what());
+        }
+        const std::string mode = rb::local_word(t, "MODE", "torque");
+        if (mode != "torque" && mode != "position")
+            rb::module_error(t, "LOCAL MODE '" + mode + "': expected torque or position");
+        position_mode_ = mode == "position";
+        hold_on_illegal_ = rb::local_word(t, "STABILITY", "hold") == "hold";
+        heartbeat_timeout_ns_ = static_cast<std::int64_t>(rb::local_number(t, "HEARTBEAT_TIMEOUT", 0.5) * 1e9);
+        feedback_misses_ = static_cast<int>(rb::local_number(t, "FEEDBACK_MISSES", 10));
+        enable_timeout_ = rb::local_number(t, "ENABLE_TIMEOUT", 1.0);
+        on_tolerance_ = rb::local_number(t, "ON_TOLERANCE", 0.05);
+        if (heartbeat_timeout_ns_ <= 0 || feedback_misses_ < 1 || !(enable_timeout_ > 0) || !(on_tolerance_ > 0))
+            rb::module_error(t, "LOCAL HEARTBEAT_TIMEOUT, FEEDBACK_MISSES, ENABLE_TIMEOUT and ON_TOLERANCE must be positive");
+
+        if (rb::listed(t.rmod_file().out_consts, "NDOF"))
+            *t.translate<std::int32_t>("NDOF") = static_cast<std::int32_t>(n_);
+        if (rb::listed(t.rmod_file().out_consts, "DH")) {
+            if (!model_.has_dh())
+                rb::module_error(t, "robot " + model_.name() + " has no DH parameters; remove DH from OUTCONST");
+            model_.pack_dh(std::span<double>(rb::vec_port(t, "DH", rb::dh_size(n_)), rb::dh_size(n_)));
+        }
+        if (position_mode_) {
+            q_ref_ = rb::vec_port(t, "Q_REF", n_);
+            if (rb::has_in_var(t, "Q^_REF")) qd_ref_ = rb::vec_port(t, "Q^_REF", n_);
+        } else {
+            t_ref_ = rb::vec_port(t, "T_REF", n_);
+        }
+        q_mez_ = rb::vec_port(t, "Q_MEZ", n_);
+        if (rb::has_out_var(t, "Q^_MEZ")) qd_mez_ = rb::vec_port(t, "Q^_MEZ", n_);
+        hold_q_.assign(n_, 0.0);
+
+        open_bus(t);
+        start_nodes(t);
+        return chimera::Result::OK;
+    }
+
+    chimera::Result on(chimera::Task& t) override {
+        // Every drive one CiA 402 step per round, a SYNC per round for fresh
+        // feedback, until all are enabled.
+        const auto deadline = Clock::now() + std::chrono::duration<double>(enable_timeout_);
+        for (;;) {
+            read_feedback();
+            bool all_enabled = true;
+            for (Node& d : nodes_) all_enabled = all_enabled && d.state == DriveState::operation_enabled && d.seen_tpdo2;
+            if (all_enabled) break;
+            if (Clock::now() > deadline) {
+                std::string why;
+                for (std::size_t j = 0; j < n_; ++j) {
+                    const Node& d = nodes_[j];
+                    if (d.state == DriveState::operation_enabled && d.seen_tpdo2) continue;
+                    why += (why.empty() ? "" : "; ") + describe(j) + " is in '" + std::string(to_string(d.state)) + "'";
+                    if (d.error) why += " with error " + hex(d.error) + " " + std::string(error_name(d.error));
+                    if (!d.seen_tpdo2) why += ", no position (TPDO2) received";
+                }
+                t.error(kErrDriveState, "cannot enable the drives within ENABLE_TIMEOUT " +
+                                            std::to_string(enable_timeout_) + " s: " + why);
+                return chimera::Result::ERROR;
+            }
+            for (std::size_t j = 0; j < n_; ++j) {
+                Node& d = nodes_[j];
+                d.controlword = controlword_toward_enabled(d.state, d.controlword);
+                // CSP: the arm's own position as the target, enabling never moves
+                // it. CST: the torque the controller asks for now (0 when none
+                // is on yet), as robotsim applies it from its first cycle.
+                const double torque = position_mode_ ? 0.0 : clamp_torque(j, t_ref_[j]);
+                send_targets(j, d.controlword, position_mode_ ? kModeCsp : kModeCst, torque, d.q, 0);
+            }
+            send_sync();
+            std::this_thread::sleep_for(std::chrono::milliseconds(2));
+        }
+        publish();
+        if (position_mode_) {
+            for (std::size_t j = 0; j < n_; ++j) {
+                if (std::fabs(q_ref_[j] - nodes_[j].q) > on_tolerance_) {
+                    char m[200];
+                    std::snprintf(m, sizeof m, "Q_REF of joint %zu is %.4f rad from the arm (%.4f vs %.4f), more than "
+                                  "ON_TOLERANCE %.4f: refusing to jump",
+                                  j + 1, std::fabs(q_ref_[j] - nodes_[j].q), q_ref_[j], nodes_[j].q, on_tolerance_);
+                    t.error(kErrDriveState, m);
+                    return chimera::Result::ERROR;
+                }
+            }
+        }
+        holding_ = false;
+        return chimera::Result::OK;
+    }
+
+    chimera::Result cycle(chimera::Task& t) override {
+        if (const int failed = check_feedback()) {
+            t.error(failed, failure_);
+            return chimera::Result::ERROR;
+        }
+        publish();
+
+        const bool hold = hold_on_illegal_ && t.illegal_configuration();
+        if (hold && !holding_) {
+            for (std::size_t j = 0; j < n_; ++j) hold_q_[j] = nodes_[j].q;
+        }
+        holding_ = hold;
+        int unsent = 0;
+        for (std::size_t j = 0; j < n_; ++j) {
+            const bool csp = holding_ || position_mode_;
+            const double torque = csp ? 0.0 : clamp_torque(j, t_ref_[j]);
+            const double q = holding_ ? hold_q_[j] : position_mode_ ? q_ref_[j] : 0.0;
+            const double qd = holding_ || !qd_ref_ ? 0.0 : qd_ref_[j];
+            unsent += !send_targets(j, kCwEnableOperation, csp ? kModeCsp : kModeCst, torque, q, qd);
+        }
+        unsent += !send_sync();
+        // A transmit queue that stays full is a bus that is down (no ACK, bus-off).
+        unsent_cycles_ = unsent ? unsent_cycles_ + 1 : 0;
+        if (unsent_cycles_ > feedback_misses_) {
+            std::snprintf(failure_, sizeof failure_, "cannot send on %s for %d cycles (bus down, or no other node ACKs?)",
+                          bus_.interface.c_str(), unsent_cycles_);
+            t.error(kErrBus, failure_);
+            return chimera::Result::ERROR;
+        }
+        return chimera::Result::OK;
+    }
+
+    chimera::Result off(chimera::Task&) override {
+        switch_all(kCwShutdown);  // ready to switch on: no torque, brakes
+        publish();
+        return chimera::Result::OK;
+    }
+
+    chimera::Result kill(chimera::Task&) override {
+        if (nmt_) {
+            switch_all(kCwShutdown);
+            for (const Node& d : nodes_) send_nmt(NmtCommand::enter_preoperational, d.node);
+        }
+        nodes_.clear();
+        sync_.reset();
+        nmt_.reset();
+        return chimera::Result::OK;
+    }
+
+    chimera::Result error(chimera::Task&, const chimera::err::Error&) override {
+        switch_all(kCwQuickStop);  // every drive stops and brakes; the operator clears
+        return chimera::Result::ERROR;
+    }
+
+private:
+    using Clock = std::chrono::steady_clock;
+
+    struct Node {
+        int node = 0;
+        std::unique_ptr<iod::Device> rpdo1;     // controlword, mode, target torque
+        std::unique_ptr<iod::Device> rpdo2;     // target position, velocity offset (CSP only)
+        std::unique_ptr<iod::Device> feedback;  // TPDO1, TPDO2, heartbeat
+        std::array<std::int32_t, 6> in{};       // statusword, mode, error, position, velocity, NMT state
+        DriveState state = DriveState::not_ready_to_switch_on;
+        std::uint16_t error = 0;
+        std::uint16_t controlword = 0;
+        NmtState nmt = NmtState::boot_up;
+        double q = 0, qd = 0;
+        long tpdo1_stamp = 0, tpdo2_stamp = 0, heartbeat_stamp = 0;
+        bool seen_tpdo2 = false;
+        int missed = 0;  // cycles in a row without a new TPDO2
+    };
+
+    std::string describe(std::size_t joint) const {
+        return "node " + std::to_string(nodes_[joint].node) + " (joint " + std::to_string(joint + 1) + ") on " +
+               bus_.interface;
+    }
+
+    void open_bus(chimera::Task& t) {
+        const std::string& ifc = bus_.interface;
+        try {
+            const auto db = iod::Database::from_string(bus_database(ifc, bus_.nodes),
+                                                       std::string(t.rmod()) + ".rmod (CAN devices of " + ifc + ")");
+            constexpr unsigned nowait = iod::WAITNONE;
+            sync_ = iod::open(db, ifc + ".sync", 0, 0, iod::WRITE | iod::BYTE | nowait);
+            nmt_ = iod::open(db, ifc + ".nmt", 0, 1, iod::WRITE | iod::BYTE | nowait);
+            for (int id : bus_.nodes) {
+                Node d;
+                d.node = id;
+                const std::string dev = ifc + ".node" + std::to_string(id);
+                d.rpdo1 = iod::open(db, dev, kRpdo1Ports, kRpdo2Ports - 1, iod::WRITE | iod::LONG | iod::SIGNED | nowait);
+                d.rpdo2 = iod::open(db, dev, kRpdo2Ports, kTpdo1Ports - 1, iod::WRITE | iod::LONG | iod::SIGNED | nowait);
+                d.feedback = iod::open(db, dev, kTpdo1Ports, kHeartbeatPort, iod::READ | iod::LONG | iod::SIGNED | nowait);
+                nodes_.push_back(std::move(d));
+            }
+        } catch (const iod::Error& e) {
+            nodes_.clear();
+            sync_.reset();
+            nmt_.reset();
+            const std::string m = e.what();
+            rb::module_error(t, m + (m.find("already open") != std::string::npos
+                                         ? " (another canrobot task or program is the master of this bus or node)"
+                                         : ""));
+        }
+    }
+
+    void start_nodes(chimera::Task& t) {
+        for (const Node& d : nodes_) send_nmt(NmtCommand::start, d.node);
+        // A drive entering operational answers with its TPDO1 at once; its
+        // heartbeat (the liveness the cycle checks) comes within its period.
+        const auto deadline = Clock::now() + std::chrono::duration<double>(enable_timeout_);
+        for (;;) {
+            read_feedback();
+            std::string missing;
+            for (std::size_t j = 0; j < n_; ++j)
+                if (!nodes_[j].tpdo1_stamp || !nodes_[j].heartbeat_stamp)
+                    missing += (missing.empty() ? "" : ", ") + describe(j) +
+                               (nodes_[j].tpdo1_stamp ? " (no heartbeat)" : " (no TPDO1, no answer to NMT start)");
+            if (missing.empty()) return;
+            if (Clock::now() > deadline) {
+                kill(t);
+                rb::module_error(t, "no answer within ENABLE_TIMEOUT " + std::to_string(enable_timeout_) + " s from " +
+                                        missing + ": is the drive powered, on the bus, with that node id?");
+            }
+            std::this_thread::sleep_for(std::chrono::milliseconds(2));
+        }
+    }
+
+    // Reads every drive's frames (non-blocking); decodes what is new.
+    void read_feedback() noexcept {
+        for (std::size_t j = 0; j < n_; ++j) {
+            Node& d = nodes_[j];
+            read_status_ = d.feedback->read(d.in.data(), d.in.size());
+            if (read_status_ < 0) return;
+            const long s1 = d.feedback->status(iod::Status::CAN_TIMESTAMP, kTpdo1Ports);
+            const long s2 = d.feedback->status(iod::Status::CAN_TIMESTAMP, kTpdo2Ports);
+            const long hb = d.feedback->status(iod::Status::CAN_TIMESTAMP, kHeartbeatPort);
+            if (s1 != d.tpdo1_stamp) {
+                d.tpdo1_stamp = s1;
+                d.state = decode_statusword(static_cast<std::uint16_t>(d.in[0]));
+                d.error = static_cast<std::uint16_t>(d.in[2]);
+            }
+            d.missed = s2 != d.tpdo2_stamp ? 0 : d.missed + 1;
+            if (s2 != d.tpdo2_stamp) {
+                d.tpdo2_stamp = s2;
+                d.seen_tpdo2 = true;
+                const auto jj = static_cast<Eigen::Index>(j);
+                d.q = from_counts(d.in[3], bus_.counts_per_rev[jj]);
+                d.qd = from_counts(d.in[4], bus_.counts_per_rev[jj]);
+            }
+            if (hb != d.heartbeat_stamp) {
+                d.heartbeat_stamp = hb;
+                d.nmt = static_cast<NmtState>(d.in[5] & 0xFF);
+            }
+        }
+    }
+
+    // 0 when every drive is well, else the error number (message in failure_).
+    int check_feedback() noexcept {
+        read_feedback();
+        if (read_status_ < 0) {
+            std::snprintf(failure_, sizeof failure_, "reading %s: %s", bus_.interface.c_str(),
+                          std::strerror(static_cast<int>(-read_status_)));
+            return kErrBus;
+        }
+        const std::int64_t now = realtime_ns();
+        for (std::size_t j = 0; j < n_; ++j) {
+            const Node& d = nodes_[j];
+            const int node = d.node;
+            const int joint = static_cast<int>(j) + 1;
+            if (d.state == DriveState::fault || d.state == DriveState::fault_reaction_active) {
+                std::snprintf(failure_, sizeof failure_, "node %d (joint %d) on %s: drive fault, error code 0x%04X %s",
+                              node, joint, bus_.interface.c_str(), d.error, std::string(error_name(d.error)).c_str());
+                return kErrDriveFault;
+            }
+            if (d.state != DriveState::operation_enabled) {
+                std::snprintf(failure_, sizeof failure_, "node %d (joint %d) on %s left operation enabled: now '%s'",
+                              node, joint, bus_.interface.c_str(), std::string(to_string(d.state)).c_str());
+                return kErrDriveState;
+            }
+            if (d.missed > feedback_misses_) {
+                std::snprintf(failure_, sizeof failure_,
+                              "node %d (joint %d) on %s: no position (TPDO2) for %d cycles (FEEDBACK_MISSES %d)",
+                              node, joint, bus_.interface.c_str(), d.missed, feedback_misses_);
+                return kErrNoFeedback;
+            }
+            const double silent = static_cast<double>(now - d.heartbeat_stamp) * 1e-9;
+            if (silent * 1e9 > static_cast<double>(heartbeat_timeout_ns_)) {
+                std::snprintf(failure_, sizeof failure_, "node %d (joint %d) on %s: no heartbeat for %.3f s (HEARTBEAT_TIMEOUT %.3f)",
+                              node, joint, bus_.interface.c_str(), silent, static_cast<double>(heartbeat_timeout_ns_) * 1e-9);
+                return kErrHeartbeat;
+            }
+            if (d.nmt != NmtState::operational) {
+                std::snprintf(failure_, sizeof failure_, "node %d (joint %d) on %s reports NMT state %s",
+                              node, joint, bus_.interface.c_str(), std::string(to_string(d.nmt)).c_str());
+                return kErrHeartbeat;
+            }
+        }
+        return 0;
+    }
+
+    void publish() noexcept {
+        for (std::size_t j = 0; j < n_; ++j) {
+            q_mez_[j] = nodes_[j].q;
+            if (qd_mez_) qd_mez_[j] = nodes_[j].qd;
+        }
+    }
+
+    // RPDO1, and RPDO2 in CSP (after RPDO1: a mode change resets the drive's
+    // CSP target to where the joint is). No RPDO2 before the joint's position
+    // is known: the drive keeps holding where it is. False when not sent.
+    bool send_targets(std::size_t joint, std::uint16_t controlword, std::int16_t mode, double torque, double q,
+                      double qd) noexcept {
+        const auto j = static_cast<Eigen::Index>(joint);
+        const std::array<std::int32_t, 3> rpdo1{controlword, mode, torque_to_permille(torque, bus_.rated_torque[j])};
+        if (nodes_[joint].rpdo1->write(rpdo1.data(), rpdo1.size()) < 0) return false;
+        if (mode != kModeCsp || !nodes_[joint].seen_tpdo2) return true;
+        const double cpr = bus_.counts_per_rev[j];
+        const std::array<std::int32_t, 2> rpdo2{to_counts(q, cpr), to_counts(qd, cpr)};
+        return nodes_[joint].rpdo2->write(rpdo2.data(), rpdo2.size()) >= 0;
+    }
+
+    double clamp_torque(std::size_t joint, double torque) const noexcept {
+        const double limit = bus_.torque_limit[static_cast<Eigen::Index>(joint)];
+        return std::clamp(torque, -limit, limit);
+    }
+
+    bool send_sync() noexcept {
+        sync_counter_ = static_cast<std::uint8_t>(sync_counter_ % kSyncCounterOverflow + 1);
+        return sync_->write(&sync_counter_, 1) >= 0;
+    }
+
+    void send_nmt(NmtCommand c, int node) noexcept {
+        const std::uint8_t frame[2] = {static_cast<std::uint8_t>(c), static_cast<std::uint8_t>(node)};
+        nmt_->write(frame, 2);
+    }
+
+    // One controlword to every drive (acts on receipt, no SYNC needed).
+    void switch_all(std::uint16_t controlword) noexcept {
+        for (std::size_t j = 0; j < nodes_.size(); ++j) {
+            nodes_[j].controlword = controlword;
+            send_targets(j, controlword, position_mode_ ? kModeCsp : kModeCst, 0, nodes_[j].q, 0);
+        }
+    }
+
+    rb::RobotModel model_;
+    std::size_t n_ = 0;
+    chimera::canrobot::BusConfig bus_;
+    bool position_mode_ = false;
+    bool hold_on_illegal_ = true;
+    bool holding_ = false;
+    std::int64_t heartbeat_timeout_ns_ = 0;
+    int feedback_misses_ = 10;
+    double enable_timeout_ = 1.0;
+    double on_tolerance_ = 0.05;
+    double* t_ref_ = nullptr;
+    double* q_ref_ = nullptr;
+    double* qd_ref_ = nullptr;
+    double* q_mez_ = nullptr;
+    double* qd_mez_ = nullptr;
+    std::vector<double> hold_q_;
+    std::vector<Node> nodes_;
+    std::unique_ptr<iod::Device> sync_, nmt_;
+    std::uint8_t sync_counter_ = 0;
+    long read_status_ = 0;
+    int unsent_cycles_ = 0;
+    char failure_[256] = {};
+};
+
+}  // namespace
+
+CHIMERA_MODULE(canrobot, CanRobot)

@@ -1,0 +1,450 @@
+// The CAN robot protocol (modules/canrobot/canrobot/cia402.hpp) and the
+// simulated drives (drive_sim.hpp), exactly, with a controllable clock: no
+// socket, no thread, no sleep. What the drives promise the canrobot module:
+// NMT and heartbeats, the CiA 402 state machine, feedback latched at SYNC,
+// targets taking effect at SYNC, brakes when not enabled, RPDO deadline
+// monitoring, fault and fault reset, CSP holding position.
+#include "canrobot/bus_config.hpp"
+#include "canrobot/cia402.hpp"
+#include "canrobot/drive_sim.hpp"
+#include "robotics/dynamics.hpp"
+
+#include <chimera/cfg.hpp>
+#include <chimera/sbs_files.hpp>
+
+#include <gtest/gtest.h>
+
+#include <cmath>
+#include <fstream>
+#include <functional>
+#include <numbers>
+#include <string>
+#include <vector>
+
+namespace {
+
+using namespace chimera::canrobot;
+using namespace chimera::canrobot::cia402;
+namespace rb = chimera::robotics;
+
+constexpr std::int64_t kMs = 1'000'000;
+constexpr double kCounts = 1 << 20;
+
+// --- the protocol's pure parts ---------------------------------------------------
+
+TEST(Cia402, StatuswordRoundTripsEveryState) {
+    for (DriveState s : {DriveState::not_ready_to_switch_on, DriveState::switch_on_disabled,
+                         DriveState::ready_to_switch_on, DriveState::switched_on, DriveState::operation_enabled,
+                         DriveState::quick_stop_active, DriveState::fault_reaction_active, DriveState::fault})
+        EXPECT_EQ(decode_statusword(encode_statusword(s)), s) << to_string(s);
+    // The values of the CiA 402 state table (with bit 9, remote).
+    EXPECT_EQ(encode_statusword(DriveState::switch_on_disabled), 0x0240);
+    EXPECT_EQ(encode_statusword(DriveState::ready_to_switch_on), 0x0221);
+    EXPECT_EQ(encode_statusword(DriveState::switched_on), 0x0233);
+    EXPECT_EQ(encode_statusword(DriveState::operation_enabled), 0x0237);
+    EXPECT_EQ(encode_statusword(DriveState::fault), 0x0208);
+    // Manufacturer bits do not change the state read.
+    EXPECT_EQ(decode_statusword(0x8237 | 0x0400), DriveState::operation_enabled);
+}
+
+TEST(Cia402, ControlwordTransitions) {
+    using S = DriveState;
+    EXPECT_EQ(next_state(S::switch_on_disabled, kCwShutdown, 0), S::ready_to_switch_on);     // 2
+    EXPECT_EQ(next_state(S::switch_on_disabled, kCwEnableOperation, 0), S::switch_on_disabled);
+    EXPECT_EQ(next_state(S::ready_to_switch_on, kCwSwitchOn, 0), S::switched_on);            // 3
+    EXPECT_EQ(next_state(S::switched_on, kCwEnableOperation, 0), S::operation_enabled);      // 4
+    EXPECT_EQ(next_state(S::operation_enabled, kCwSwitchOn, 0), S::switched_on);             // 5
+    EXPECT_EQ(next_state(S::switched_on, kCwShutdown, 0), S::ready_to_switch_on);            // 6
+    EXPECT_EQ(next_state(S::ready_to_switch_on, kCwDisableVoltage, 0), S::switch_on_disabled); // 7
+    EXPECT_EQ(next_state(S::operation_enabled, kCwShutdown, 0), S::ready_to_switch_on);      // 8
+    EXPECT_EQ(next_state(S::operation_enabled, kCwDisableVoltage, 0), S::switch_on_disabled); // 9
+    EXPECT_EQ(next_state(S::switched_on, kCwQuickStop, 0), S::switch_on_disabled);           // 10
+    EXPECT_EQ(next_state(S::operation_enabled, kCwQuickStop, 0), S::quick_stop_active);      // 11
+    EXPECT_EQ(next_state(S::quick_stop_active, kCwDisableVoltage, 0), S::switch_on_disabled); // 12
+    EXPECT_EQ(next_state(S::quick_stop_active, kCwEnableOperation, 0), S::operation_enabled); // 16
+    EXPECT_EQ(next_state(S::operation_enabled, kCwEnableOperation, 0), S::operation_enabled);
+    // Fault reset acts on the rising edge of bit 7 only.
+    EXPECT_EQ(next_state(S::fault, kCwFaultReset, 0), S::switch_on_disabled);                // 15
+    EXPECT_EQ(next_state(S::fault, kCwFaultReset, kCwFaultReset), S::fault);
+    EXPECT_EQ(next_state(S::fault, kCwEnableOperation, 0), S::fault);
+}
+
+TEST(Cia402, TheMastersStepsReachOperationEnabledFromEveryState) {
+    for (DriveState start : {DriveState::switch_on_disabled, DriveState::ready_to_switch_on,
+                             DriveState::switched_on, DriveState::quick_stop_active, DriveState::fault}) {
+        DriveState s = start;
+        std::uint16_t cw = 0;
+        int steps = 0;
+        while (s != DriveState::operation_enabled && steps < 10) {
+            const std::uint16_t next = controlword_toward_enabled(s, cw);
+            s = next_state(s, next, cw);
+            cw = next;
+            ++steps;
+        }
+        EXPECT_EQ(s, DriveState::operation_enabled) << "from " << to_string(start);
+        EXPECT_LE(steps, 5) << "from " << to_string(start);
+    }
+}
+
+TEST(Cia402, UnitConversionsRoundAndSaturate) {
+    EXPECT_EQ(torque_to_permille(1.234, 10.0), 123);
+    EXPECT_EQ(torque_to_permille(-1.236, 10.0), -124);
+    EXPECT_EQ(torque_to_permille(1e6, 10.0), 32767);
+    EXPECT_EQ(torque_to_permille(-1e6, 10.0), -32768);
+    EXPECT_EQ(torque_to_permille(std::nan(""), 10.0), 0);
+    EXPECT_DOUBLE_EQ(permille_to_torque(123, 10.0), 1.23);
+    EXPECT_EQ(to_counts(std::numbers::pi, kCounts), 1 << 19);
+    EXPECT_EQ(to_counts(-2 * std::numbers::pi, kCounts), -(1 << 20));
+    EXPECT_EQ(to_counts(1e9, kCounts), INT32_MAX);
+    EXPECT_NEAR(from_counts(to_counts(0.785398, kCounts), kCounts), 0.785398, 2 * std::numbers::pi / kCounts);
+    EXPECT_EQ(error_name(kErrRpdoTimeout), "RPDO timeout");
+}
+
+// --- configuration ---------------------------------------------------------------------
+
+chimera::RmodFile rmod_from(const std::string& local_lines) {
+    const std::string text =
+        "MODULE canrobot\nDESC test\nOUTVAR Q_MEZ\nTASKTYPE periodic\nFREQ 100\nLOCAL\n" + local_lines + "EOF\n";
+    auto reader = chimera::cfg::Reader::from_string(text, "bus.rmod");
+    return chimera::parse_rmod(reader, "bus.rmod");
+}
+
+std::string config_error(const std::string& local_lines) {
+    try {
+        DriveConfig::from_rmod(rmod_from(local_lines));
+    } catch (const std::invalid_argument& e) {
+        return e.what();
+    }
+    return "(accepted)";
+}
+
+TEST(BusConfig, ReadsTheRmodAndNamesWhatIsWrong) {
+    const auto c = DriveConfig::from_rmod(
+        rmod_from("ROBOT planar2\nINTERFACE can1\nNODES 7 9\nRATED_TORQUE 5\nTLIMIT 100 50\nQ0 0.1 0.2\n"));
+    EXPECT_EQ(c.bus.interface, "can1");
+    EXPECT_EQ(c.bus.nodes, (std::vector<int>{7, 9}));
+    EXPECT_DOUBLE_EQ(c.bus.rated_torque[1], 5.0);
+    EXPECT_DOUBLE_EQ(c.bus.torque_limit[1], 50.0);
+    EXPECT_DOUBLE_EQ(c.bus.counts_per_rev[0], kCounts);
+    EXPECT_DOUBLE_EQ(c.q0[1], 0.2);
+
+    EXPECT_NE(config_error("ROBOT planar2\nNODES 1 2\nRATED_TORQUE 5\n").find("INTERFACE"), std::string::npos);
+    const std::string count = config_error("ROBOT planar2\nINTERFACE can0\nNODES 1 2 3\nRATED_TORQUE 5\n");
+    EXPECT_NE(count.find("bus.rmod"), std::string::npos) << count;
+    EXPECT_NE(count.find("line 9"), std::string::npos) << count;
+    EXPECT_NE(count.find("3 node ids, the robot has 2 joints"), std::string::npos) << count;
+    EXPECT_NE(config_error("ROBOT planar2\nINTERFACE can0\nNODES 4 4\nRATED_TORQUE 5\n").find("appears twice"),
+              std::string::npos);
+    EXPECT_NE(config_error("ROBOT planar2\nINTERFACE can0\nNODES 0 4\nRATED_TORQUE 5\n").find("not 1..127"),
+              std::string::npos);
+    EXPECT_NE(config_error("ROBOT planar2\nINTERFACE can0\nNODES 1 2\n").find("RATED_TORQUE"), std::string::npos);
+    const std::string limit = config_error("ROBOT planar2\nINTERFACE can0\nNODES 1 2\nRATED_TORQUE 1\nTLIMIT 40\n");
+    EXPECT_NE(limit.find("more than the bus can carry"), std::string::npos) << limit;
+    EXPECT_NE(config_error("ROBOT scara\nINTERFACE can0\nNODES 1 2\nRATED_TORQUE 1\n").find("ROBOT 'scara'"),
+              std::string::npos);
+}
+
+TEST(BusConfig, TheShippedRmodDescribesThePuma) {
+    const auto c = DriveConfig::from_rmod(chimera::read_rmod(CANROBOT_RMOD_DIR "/puma_can.rmod"));
+    EXPECT_EQ(c.model.ndof(), 6u);
+    EXPECT_EQ(c.bus.nodes, (std::vector<int>{1, 2, 3, 4, 5, 6}));
+    // Every peak torque is representable on the bus.
+    for (Eigen::Index j = 0; j < 6; ++j) EXPECT_LE(c.bus.torque_limit[j], 32.767 * c.bus.rated_torque[j]);
+}
+
+// --- the drives ------------------------------------------------------------------------
+
+DriveConfig planar_config() {
+    auto c = DriveConfig::from_rmod(rmod_from(
+        "ROBOT planar2\nINTERFACE vcan0\nNODES 3 4\nRATED_TORQUE 10\nQ0 0.4 -0.3\n"
+        "DRIVE_HEARTBEAT 0.1\nDRIVE_RPDO_TIMEOUT 0.05\nDRIVE_EVENT_TIMER 0.1\n"));
+    return c;
+}
+
+Frame frame(std::uint32_t id, std::initializer_list<std::uint8_t> bytes) {
+    Frame f;
+    f.id = id;
+    for (std::uint8_t b : bytes) f.data[f.len++] = b;
+    return f;
+}
+Frame rpdo1(int node, std::uint16_t cw, std::int16_t mode, std::int16_t torque) {
+    Frame f{.id = cob_id(kRpdo1, node), .len = 6, .data = {}};
+    put_u16(f, 0, cw);
+    put_u16(f, 2, static_cast<std::uint16_t>(mode));
+    put_u16(f, 4, static_cast<std::uint16_t>(torque));
+    return f;
+}
+Frame rpdo2(int node, std::int32_t position, std::int32_t velocity) {
+    Frame f{.id = cob_id(kRpdo2, node), .len = 8, .data = {}};
+    put_u32(f, 0, static_cast<std::uint32_t>(position));
+    put_u32(f, 4, static_cast<std::uint32_t>(velocity));
+    return f;
+}
+Frame nmt(NmtCommand c, int node) { return frame(kNmt, {static_cast<std::uint8_t>(c), static_cast<std::uint8_t>(node)}); }
+Frame sync_frame() { return frame(kSync, {1}); }
+
+// A bus with the drives on it, a clock the test moves, and every frame the
+// drives sent.
+class Drives : public ::testing::Test {
+protected:
+    Drives() : sim(planar_config()) {}
+
+    void SetUp() override { sim.power_on(now, sent); }
+
+    std::vector<Frame> send(const Frame& f) {
+        std::vector<Frame> out;
+        sim.receive(f, now, out);
+        sent.insert(sent.end(), out.begin(), out.end());
+        return out;
+    }
+    // Moves the clock to `t`, running every timer due on the way.
+    std::vector<Frame> run_until(std::int64_t t) {
+        std::vector<Frame> out;
+        while (sim.next_timer() <= t) {
+            now = std::max(now, sim.next_timer());
+            sim.tick(now, out);
+        }
+        now = t;
+        sim.tick(now, out);
+        sent.insert(sent.end(), out.begin(), out.end());
+        return out;
+    }
+    static std::vector<Frame> with_id(const std::vector<Frame>& frames, std::uint32_t id) {
+        std::vector<Frame> r;
+        for (const Frame& f : frames)
+            if (f.id == id) r.push_back(f);
+        return r;
+    }
+    void start_and_enable(std::int16_t mode, std::int16_t torque3 = 0, std::int16_t torque4 = 0) {
+        send(nmt(NmtCommand::start, 0));
+        std::uint16_t cw3 = 0, cw4 = 0;
+        for (int i = 0; i < 3; ++i) {
+            cw3 = controlword_toward_enabled(sim.state(0), cw3);
+            cw4 = controlword_toward_enabled(sim.state(1), cw4);
+            send(rpdo1(3, cw3, mode, torque3));
+            send(rpdo1(4, cw4, mode, torque4));
+        }
+        ASSERT_EQ(sim.state(0), DriveState::operation_enabled);
+        ASSERT_EQ(sim.state(1), DriveState::operation_enabled);
+    }
+    // A master cycling at `period`: targets, then SYNC, for `seconds`.
+    void master_cycles(double seconds, std::int64_t period, const std::function<void()>& targets) {
+        const std::int64_t end = now + static_cast<std::int64_t>(seconds * 1e9);
+        while (now < end) {
+            run_until(now + period);
+            targets();
+            send(sync_frame());
+        }
+    }
+
+    std::int64_t now = 5 * kMs;
+    DriveSim sim;
+    std::vector<Frame> sent;
+};
+
+TEST_F(Drives, PowerOnSendsBootUpAndWaitsPreoperational) {
+    ASSERT_EQ(sent.size(), 2u);
+    EXPECT_EQ(sent[0].id, 0x703u);
+    EXPECT_EQ(sent[1].id, 0x704u);
+    EXPECT_EQ(sent[0].len, 1);
+    EXPECT_EQ(sent[0].data[0], 0x00);  // boot-up
+    EXPECT_EQ(sim.nmt(0), NmtState::preoperational);
+    EXPECT_EQ(sim.state(0), DriveState::switch_on_disabled);
+    // Heartbeats every 100 ms, carrying the NMT state.
+    auto beats = with_id(run_until(now + 250 * kMs), 0x703);
+    ASSERT_EQ(beats.size(), 2u);
+    EXPECT_EQ(beats[0].data[0], 0x7F);
+}
+
+TEST_F(Drives, PdosAreIgnoredUntilNmtStart) {
+    EXPECT_TRUE(send(rpdo1(3, kCwShutdown, kModeCst, 0)).empty());
+    EXPECT_TRUE(send(sync_frame()).empty());  // no TPDO2 either
+    EXPECT_EQ(sim.state(0), DriveState::switch_on_disabled);
+    EXPECT_EQ(sim.ignored_frames(), 1u);
+
+    // Start node 4 only: it answers with its TPDO1 at once.
+    auto out = send(nmt(NmtCommand::start, 4));
+    ASSERT_EQ(out.size(), 1u);
+    EXPECT_EQ(out[0].id, 0x184u);
+    EXPECT_EQ(get_u16(out[0], 0), 0x0240);  // switch on disabled
+    EXPECT_EQ(sim.nmt(0), NmtState::preoperational);
+    EXPECT_EQ(sim.nmt(1), NmtState::operational);
+    EXPECT_EQ(with_id(run_until(now + 100 * kMs), 0x704).at(0).data[0], 0x05);
+}
+
+TEST_F(Drives, EnablingWalksTheStateMachineAndReportsEachStep) {
+    send(nmt(NmtCommand::start, 0));
+    sent.clear();
+    for (std::uint16_t cw : {kCwShutdown, kCwSwitchOn, kCwEnableOperation}) send(rpdo1(3, cw, kModeCst, 0));
+    const auto tpdo1 = with_id(sent, 0x183);
+    ASSERT_EQ(tpdo1.size(), 3u);  // on change: once per state, and the mode appeared with the first
+    EXPECT_EQ(get_u16(tpdo1[0], 0), 0x0221);
+    EXPECT_EQ(static_cast<std::int16_t>(get_u16(tpdo1[0], 2)), kModeCst);
+    EXPECT_EQ(get_u16(tpdo1[1], 0), 0x0233);
+    EXPECT_EQ(get_u16(tpdo1[2], 0), 0x0237);
+    EXPECT_EQ(sim.state(0), DriveState::operation_enabled);
+    EXPECT_EQ(sim.state(1), DriveState::switch_on_disabled);
+    // Unchanged status: no TPDO1 until the event timer.
+    EXPECT_TRUE(send(rpdo1(3, kCwEnableOperation, kModeCst, 0)).empty());
+}
+
+TEST_F(Drives, SyncLatchesPositionAndVelocity) {
+    send(nmt(NmtCommand::start, 0));
+    const auto out = send(sync_frame());
+    ASSERT_EQ(with_id(out, 0x283).size(), 1u);
+    ASSERT_EQ(with_id(out, 0x284).size(), 1u);
+    const Frame f = with_id(out, 0x284)[0];
+    EXPECT_EQ(f.len, 8);
+    EXPECT_EQ(static_cast<std::int32_t>(get_u32(f, 0)), to_counts(-0.3, kCounts));
+    EXPECT_EQ(static_cast<std::int32_t>(get_u32(f, 4)), 0);
+    EXPECT_EQ(sim.syncs(), 1u);
+}
+
+TEST_F(Drives, BrakesHoldTheArmWhileNotEnabled) {
+    send(nmt(NmtCommand::start, 0));
+    run_until(now + 2000 * kMs);  // gravity pulls, for two seconds
+    EXPECT_DOUBLE_EQ(sim.q()[0], 0.4);
+    EXPECT_DOUBLE_EQ(sim.q()[1], -0.3);
+    EXPECT_EQ(sim.torque(0), 0.0);
+}
+
+TEST_F(Drives, TargetTorqueTakesEffectAtSyncAndHoldsAgainstGravity) {
+    rb::Dynamics dyn(rb::planar2());
+    Eigen::VectorXd g(2);
+    ASSERT_TRUE(dyn.gravity(sim.q(), g));
+    const auto t3 = torque_to_permille(g[0], 10.0), t4 = torque_to_permille(g[1], 10.0);
+    start_and_enable(kModeCst, t3, t4);
+    run_until(now + kMs);
+    EXPECT_EQ(sim.torque(0), 0.0);  // received, not in effect before the SYNC
+    EXPECT_EQ(sim.torque(1), 0.0);
+    send(sync_frame());
+    run_until(now + kMs);
+    EXPECT_NEAR(sim.torque(0), g[0], 0.005);
+    EXPECT_NEAR(sim.torque(1), g[1], 0.005);
+
+    // A 500 Hz master sending the gravity torques, open loop: the raised arm
+    // is an unstable equilibrium, so the quantised torques (and the millisecond
+    // of zero torque before the first SYNC) drift it, slowly.
+    master_cycles(0.3, 2 * kMs, [&] {
+        send(rpdo1(3, kCwEnableOperation, kModeCst, t3));
+        send(rpdo1(4, kCwEnableOperation, kModeCst, t4));
+    });
+    EXPECT_NEAR(sim.q()[0], 0.4, 5e-3);
+    EXPECT_NEAR(sim.q()[1], -0.3, 5e-3);
+    EXPECT_EQ(sim.state(0), DriveState::operation_enabled);
+
+    // Zero torque for as long: the arm falls.
+    master_cycles(0.3, 2 * kMs, [&] {
+        send(rpdo1(3, kCwEnableOperation, kModeCst, 0));
+        send(rpdo1(4, kCwEnableOperation, kModeCst, 0));
+    });
+    EXPECT_GT(std::fabs(sim.q()[0] - 0.4), 0.1);
+}
+
+TEST_F(Drives, TorqueIsLimitedToTheDrivesMaximum) {
+    start_and_enable(kModeCst, 32767, -32768);
+    send(sync_frame());
+    run_until(now + kMs);
+    EXPECT_DOUBLE_EQ(sim.torque(0), 327.67);  // the bus's maximum for RATED_TORQUE 10 = the default TLIMIT
+    EXPECT_DOUBLE_EQ(sim.torque(1), -327.67);
+}
+
+TEST_F(Drives, NoRpdoWithinTheTimeoutFaultsAndBrakes) {
+    start_and_enable(kModeCst);
+    sent.clear();
+    run_until(now + 40 * kMs);
+    EXPECT_EQ(sim.state(0), DriveState::operation_enabled);  // 40 ms < 50 ms
+    run_until(now + 20 * kMs);
+    EXPECT_EQ(sim.state(0), DriveState::fault);
+    EXPECT_EQ(sim.error_code(0), kErrRpdoTimeout);
+    const auto tpdo1 = with_id(sent, 0x183);
+    ASSERT_FALSE(tpdo1.empty());
+    EXPECT_EQ(decode_statusword(get_u16(tpdo1.back(), 0)), DriveState::fault);
+    EXPECT_EQ(get_u16(tpdo1.back(), 4), kErrRpdoTimeout);
+    // Braked where it was: gravity no longer moves it.
+    const double q = sim.q()[0];
+    run_until(now + 500 * kMs);
+    EXPECT_DOUBLE_EQ(sim.q()[0], q);
+}
+
+TEST_F(Drives, FaultResetOnTheRisingEdgeClearsTheError) {
+    start_and_enable(kModeCst);
+    run_until(now + 100 * kMs);
+    ASSERT_EQ(sim.state(0), DriveState::fault);
+    send(rpdo1(3, kCwEnableOperation, kModeCst, 0));
+    EXPECT_EQ(sim.state(0), DriveState::fault);  // enable does not leave fault
+    send(rpdo1(3, kCwFaultReset, kModeCst, 0));
+    EXPECT_EQ(sim.state(0), DriveState::switch_on_disabled);
+    EXPECT_EQ(sim.error_code(0), kErrNone);
+}
+
+TEST_F(Drives, AnUnsupportedModeIsAFault) {
+    start_and_enable(kModeCst);
+    send(rpdo1(3, kCwEnableOperation, 3 /* profile velocity */, 0));
+    EXPECT_EQ(sim.state(0), DriveState::fault);
+    EXPECT_EQ(sim.error_code(0), kErrParameter);
+    EXPECT_EQ(sim.mode(0), 3);
+}
+
+TEST_F(Drives, NmtStopIgnoresPdosSoTheRpdoTimeoutStopsTheDrive) {
+    start_and_enable(kModeCst);
+    send(nmt(NmtCommand::stop, 3));
+    EXPECT_EQ(sim.nmt(0), NmtState::stopped);
+    for (int i = 0; i < 40; ++i) {
+        run_until(now + 2 * kMs);
+        send(rpdo1(3, kCwEnableOperation, kModeCst, 0));
+        send(rpdo1(4, kCwEnableOperation, kModeCst, 0));
+    }
+    EXPECT_EQ(sim.state(0), DriveState::fault);             // its RPDOs were ignored
+    EXPECT_EQ(sim.state(1), DriveState::operation_enabled);  // node 4 is served
+}
+
+TEST_F(Drives, ResetNodeRebootsItsCommunicationAndDisablesIt) {
+    start_and_enable(kModeCst);
+    const auto out = send(nmt(NmtCommand::reset_node, 4));
+    ASSERT_EQ(with_id(out, 0x704).size(), 1u);
+    EXPECT_EQ(with_id(out, 0x704)[0].data[0], 0x00);
+    EXPECT_EQ(sim.nmt(1), NmtState::preoperational);
+    EXPECT_EQ(sim.state(1), DriveState::switch_on_disabled);
+    EXPECT_EQ(sim.state(0), DriveState::operation_enabled);
+}
+
+TEST_F(Drives, CspHoldsWhereEnabledAndFollowsTargets) {
+    start_and_enable(kModeCsp);
+    // No RPDO2 yet: the drive holds where it was enabled, against gravity.
+    master_cycles(1.0, 2 * kMs, [&] {
+        send(rpdo1(3, kCwEnableOperation, kModeCsp, 0));
+        send(rpdo1(4, kCwEnableOperation, kModeCsp, 0));
+    });
+    EXPECT_NEAR(sim.q()[0], 0.4, 2e-3);
+    EXPECT_NEAR(sim.q()[1], -0.3, 2e-3);
+    // A target 0.1 rad away is reached.
+    master_cycles(2.0, 2 * kMs, [&] {
+        send(rpdo1(3, kCwEnableOperation, kModeCsp, 0));
+        send(rpdo2(3, to_counts(0.5, kCounts), 0));
+        send(rpdo1(4, kCwEnableOperation, kModeCsp, 0));
+    });
+    EXPECT_NEAR(sim.q()[0], 0.5, 2e-3);
+    EXPECT_NEAR(sim.q()[1], -0.3, 2e-3);
+}
+
+TEST_F(Drives, FramesForOtherNodesAreNotAnswered) {
+    send(nmt(NmtCommand::start, 5));
+    EXPECT_EQ(sim.nmt(0), NmtState::preoperational);
+    send(nmt(NmtCommand::start, 0));
+    EXPECT_TRUE(send(rpdo1(5, kCwShutdown, kModeCst, 0)).empty());
+    EXPECT_TRUE(send(frame(0x185, {0, 0})).empty());
+    EXPECT_EQ(sim.state(0), DriveState::switch_on_disabled);
+}
+
+TEST(DriveSimPuma, ThePumaStartsAtQ0Braked) {
+    DriveSim sim(DriveConfig::from_rmod(chimera::read_rmod(CANROBOT_RMOD_DIR "/puma_can.rmod")));
+    std::vector<Frame> out;
+    sim.power_on(0, out);
+    EXPECT_EQ(out.size(), 6u);
+    sim.tick(1'000'000'000, out);
+    EXPECT_NEAR(sim.q()[1], 0.785398, 1e-9);
+    EXPECT_NEAR(sim.q()[2], 3.141593, 1e-9);
+}
+
+}  // namespace
