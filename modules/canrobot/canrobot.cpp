@@ -29,7 +29,11 @@
 //   - off switches the drives off (shutdown: brakes), kill returns them to
 //     pre-operational;
 //   - with STABILITY hold, while the illegal-configuration flag is up (§3.10)
-//     the drives hold the position they had when it rose, in their own CSP loop.
+//     the drives hold the position they had when it rose, in their own CSP
+//     loop; turned on inside a reconfiguration, the drives are enabled that
+//     way, so the brakes open onto a hold, not onto a torque no controller
+//     has computed yet. Turn the interface on in the same reconfig as its
+//     controller.
 // The LOCAL keys are in README.md.
 #include <chimera/iod.hpp>
 #include <chimera/module.hpp>
@@ -147,7 +151,14 @@ public:
 
     chimera::Result on(chimera::Task& t) override {
         // Every drive one CiA 402 step per round, a SYNC per round for fresh
-        // feedback, until all are enabled.
+        // feedback, until all are enabled. Turned on inside a reconfiguration
+        // (the illegal-configuration flag is up) with STABILITY hold, the
+        // drives are enabled holding where they are, in their own CSP loop:
+        // the brakes never open onto a torque command no controller has made
+        // yet (T_REF is 0 until the controller runs), and the cycle goes on
+        // holding until the flag drops.
+        holding_ = hold_on_illegal_ && t.illegal_configuration();
+        const bool csp = position_mode_ || holding_;
         const auto deadline = Clock::now() + std::chrono::duration<double>(enable_timeout_);
         for (;;) {
             read_feedback();
@@ -173,8 +184,8 @@ public:
                 // CSP: the arm's own position as the target, enabling never moves
                 // it. CST: the torque the controller asks for now (0 when none
                 // is on yet), as robotsim applies it from its first cycle.
-                const double torque = position_mode_ ? 0.0 : clamp_torque(j, t_ref_[j]);
-                send_targets(j, d.controlword, position_mode_ ? kModeCsp : kModeCst, torque, d.q, 0);
+                const double torque = csp ? 0.0 : clamp_torque(j, t_ref_[j]);
+                send_targets(j, d.controlword, csp ? kModeCsp : kModeCst, torque, d.q, 0);
             }
             send_sync();
             std::this_thread::sleep_for(std::chrono::milliseconds(2));
@@ -192,7 +203,7 @@ public:
                 }
             }
         }
-        holding_ = false;
+        for (std::size_t j = 0; j < n_; ++j) hold_q_[j] = nodes_[j].q;
         return chimera::Result::OK;
     }
 

@@ -36,6 +36,8 @@ if mkdir $g && mkdir $g/bank0 $g/bank1; then
 else
     setup_fail "gpio-sim configfs"
 fi
+# Library folders of the test programs and the files they brought (rtguest.sh).
+[ -f /etc/ld-library-path ] && export LD_LIBRARY_PATH="$(tr '\n' ':' </etc/ld-library-path)"
 export CHIMERA_VCAN=vcan0 CHIMERA_VCAN1=vcan1 CHIMERA_RTGUEST=1 GTEST_COLOR=no
 
 # Each program may have a Google Test filter (rtguest.sh PROGRAM@FILTER) and

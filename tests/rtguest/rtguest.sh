@@ -1,12 +1,15 @@
 #!/usr/bin/env bash
 # Runs test programs inside a Debian PREEMPT_RT kernel booted under qemu.
 #
-#   rtguest.sh [--keep] [--require] TEST_PROGRAM[@GTEST_FILTER]...
+#   rtguest.sh [--keep] [--require] [--file PATH]... TEST_PROGRAM[@GTEST_FILTER]...
 #
 # --keep keeps the work directory (initramfs, console log); --require turns
 # "cannot be prepared here" into a failure instead of a skip (meson passes it
 # when -Drt_guest_tests=enabled). A program given as path@filter runs with
-# GTEST_FILTER=filter in the guest.
+# GTEST_FILTER=filter in the guest. --file copies a file or folder the tests
+# need (module shared objects, .rmod files, a helper program) into the guest
+# at the same absolute path; executables and shared objects bring their
+# shared libraries.
 #
 # What it does (everything downloaded or built is cached under
 # $CHIMERA_RTGUEST_CACHE, default /var/cache/chimera-rtguest, so a second run
@@ -39,10 +42,13 @@ cache="${CHIMERA_RTGUEST_CACHE:-/var/cache/chimera-rtguest}"
 timeout_s="${CHIMERA_RTGUEST_TIMEOUT:-600}"
 keep=0
 require=0
+files=()
 while [[ "${1:-}" == --* ]]; do
     case "$1" in
         --keep) keep=1 ;;
         --require) require=1 ;;
+        --file) [[ $# -ge 2 ]] || { echo "$0: --file needs a path" >&2; exit 2; }
+                files+=("$2"); shift ;;
         *) echo "$0: unknown option $1" >&2; exit 2 ;;
     esac
     shift
@@ -200,6 +206,11 @@ copy_with_libs() {  # copy a program and the shared libraries it needs
     { ldd "$prog" 2>/dev/null || true; } | { grep -o '/[^ ]*' || true; } | while read -r lib; do
         mkdir -p "$root$(dirname "$lib")"
         [[ -e "$root$lib" ]] || cp -L "$lib" "$root$lib"
+        # The test programs run from /tests, where a RUNPATH relative to
+        # $ORIGIN (meson's, for libchimera.so in the build tree) finds nothing:
+        # the guest's init puts every library folder on LD_LIBRARY_PATH.
+        grep -qxF "$(dirname "$lib")" "$root/etc/ld-library-path" 2>/dev/null ||
+            dirname "$lib" >>"$root/etc/ld-library-path"
     done
 }
 copy_with_libs "$busybox_bin" "$root/bin/busybox"
@@ -211,6 +222,16 @@ for arg in "${tests[@]}"; do
     name="$(printf '%02d' $i)-$(basename "$t")"
     copy_with_libs "$t" "$root/tests/$name"
     if [[ "$arg" == *@* ]]; then printf '%s\n' "${arg#*@}" >"$root/filters/$name"; fi
+done
+for f in "${files[@]}"; do
+    [[ -e "$f" ]] || { say "FAIL: --file $f does not exist"; exit 1; }
+    f="$(realpath "$f")"
+    mkdir -p "$root$(dirname "$f")"
+    if [[ -d "$f" ]]; then
+        cp -a "$f" "$root$(dirname "$f")/"
+    else
+        copy_with_libs "$f" "$root$f"
+    fi
 done
 for m in "${guest_modules[@]}"; do
     cp "$kmods/$m" "$root/lib/modules/"
