@@ -3,7 +3,12 @@
 // reconfiguration (§3.10) that swaps the PID controller for PID with gravity
 // compensation in one reconfig call while the robot interface keeps cycling.
 //
-//   build/examples/demo [--seconds N] [--quiet]
+//   build/examples/demo [--seconds N] [--quiet] [--robot RMOD]
+//
+// --robot names the robot interface's .rmod: puma_torque (default, the
+// simulated arm in-process) or puma_can (the arm's drives on a CAN bus, with
+// candrive simulating them: modules/canrobot/README.md) — the transparent
+// simulation of §7.3, one module swapped.
 //
 // The tasks (all created at start-up, as §3.10 does for dynamic
 // reconfiguration; rmod files from modules/ and this folder):
@@ -45,15 +50,18 @@ constexpr double kRadToDeg = 180.0 / std::numbers::pi;
 struct Options {
     double seconds = 6.0;  // half before the swap, half after
     bool quiet = false;
+    std::string robot = "puma_torque";
 };
 
 [[noreturn]] void usage(const char* prog, int code) {
     std::fprintf(code ? stderr : stdout,
-                 "usage: %s [--seconds N] [--quiet]\n"
+                 "usage: %s [--seconds N] [--quiet] [--robot RMOD]\n"
                  "  Runs the thesis's Figure 3.7 subsystem (PID joint control of a simulated PUMA 560)\n"
                  "  for N seconds (default 6): half on the PID controller, then a one-call\n"
                  "  reconfiguration to PID + gravity compensation, then the other half.\n"
-                 "  --quiet  leave out the tracking-error line printed every 0.5 s\n",
+                 "  --quiet  leave out the tracking-error line printed every 0.5 s\n"
+                 "  --robot  the robot interface: puma_torque (default, simulated in-process) or\n"
+                 "           puma_can (the drives on a CAN bus; see modules/canrobot/README.md)\n",
                  prog);
     std::exit(code);
 }
@@ -71,6 +79,8 @@ Options parse(int argc, char** argv) {
                 std::fprintf(stderr, "%s: --seconds takes a number from 0.5 to 3600, not '%s'\n", argv[0], argv[i]);
                 std::exit(2);
             }
+        } else if (a == "--robot" && i + 1 < argc) {
+            o.robot = argv[++i];
         } else if (a == "--help" || a == "-h") {
             usage(argv[0], 0);
         } else {
@@ -177,16 +187,16 @@ int run(const Options& opt) {
 
     std::printf("Figure 3.7: PID joint control of a simulated PUMA 560 (subsystem %s)\n", sbs->name().c_str());
     // The robot interface first: it produces the NDOF and DH in-consts the others configure from (§3.5).
-    const TaskId robot = sbs->spawn(fig3_7::rmod("puma_torque"), "robot");
+    const TaskId robot = sbs->spawn(fig3_7::rmod(opt.robot), "robot");
     const TaskId traj = sbs->spawn(fig3_7::rmod("jtraj"), "ctrl");
     const TaskId jpid = sbs->spawn(fig3_7::rmod("jpid"), "ctrl");
     const TaskId grav = sbs->spawn(fig3_7::rmod("grav_comp"), "ctrl");
     const TaskId jpidg = sbs->spawn(fig3_7::rmod("jpidg"), "ctrl");
-    std::printf("spawned puma_torque, jtraj, jpid, grav_comp, jpidg (all OFF)\n");
+    std::printf("spawned %s, jtraj, jpid, grav_comp, jpidg (all OFF)\n", opt.robot.c_str());
 
     auto r = sbs->reconfig({{robot, Control::on}, {grav, Control::on}, {traj, Control::on}, {jpid, Control::on}});
     if (!r) throw chimera::sbs::Error("turning the subsystem on: " + r.message);
-    std::printf("reconfig: on puma_torque, grav_comp, jtraj, jpid -- ok\n\n");
+    std::printf("reconfig: on %s, grav_comp, jtraj, jpid -- ok\n\n", opt.robot.c_str());
 
     // Detached before finish(): the table is removed by its last user.
     auto watch_owner = std::make_unique<Watch>(sbs->name());
