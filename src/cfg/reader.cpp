@@ -4,6 +4,8 @@
 #include <cerrno>
 #include <charconv>
 #include <cstdlib>
+#include <cstring>
+#include <filesystem>
 #include <fstream>
 #include <sstream>
 
@@ -11,8 +13,9 @@ namespace chimera::cfg {
 
 namespace {
 
+// Line 0 is the file as a whole (it cannot be opened or read): no line number.
 std::string make_what(const std::string& file, int line, const std::string& message) {
-    return file + ":" + std::to_string(line) + ": " + message;
+    return line > 0 ? file + ":" + std::to_string(line) + ": " + message : file + ": " + message;
 }
 
 // Removes a comment: '#' at the start of the line or after whitespace.
@@ -92,11 +95,22 @@ Reader::Reader(std::string file, std::vector<std::string> raw_lines)
     : file_(std::move(file)), raw_(std::move(raw_lines)) {}
 
 Reader Reader::from_file(const std::string& path) {
+    std::error_code ec;
+    if (std::filesystem::is_directory(path, ec))
+        throw ParseError(path, 0, "cannot read file: it is a directory");
+    errno = 0;
     std::ifstream in(path);
-    if (!in) throw ParseError(path, 0, "cannot open file");
+    if (!in) {
+        const int e = errno;
+        throw ParseError(path, 0, std::string("cannot open file: ") + (e ? std::strerror(e) : "reason unknown"));
+    }
     std::vector<std::string> lines;
     std::string line;
     while (std::getline(in, line)) lines.push_back(line);
+    if (in.bad()) {
+        const int e = errno;
+        throw ParseError(path, 0, std::string("cannot read file: ") + (e ? std::strerror(e) : "reason unknown"));
+    }
     return Reader(path, std::move(lines));
 }
 

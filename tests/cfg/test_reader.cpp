@@ -97,5 +97,7 @@ TEST(CfgReader, DuplicateDefineIsRefused) {
 
 TEST(CfgReader, UnreadableFile) {
     EXPECT_EQ(error_of([] { Reader::from_file("/nonexistent/x.svar"); }),
-              "/nonexistent/x.svar:0: cannot open file");
+              "/nonexistent/x.svar: cannot open file: No such file or directory");
+    // A directory opens as a stream but reads nothing: said as such, not as a truncated file.
+    EXPECT_EQ(error_of([] { Reader::from_file("/tmp"); }), "/tmp: cannot read file: it is a directory");
 }

@@ -54,7 +54,7 @@ run 1 check ctl.rmod truncated.svar bad_keyword.rmod nothere.svar notes.txt &&
 same "mixed check (stdout)" "$out" "ctl.rmod: ok, rmod ctl, module pid, periodic at 100 Hz; in-consts GAIN; out-consts none; in-vars Q_REF; out-vars TAU" &&
 same "mixed check (stderr)" "$err" "truncated.svar:6: truncated file: expected EOF as the last line, found end of file
 bad_keyword.rmod:9: a periodic task needs FREQ or PERIOD, found FRQ
-nothere.svar:0: cannot open file
+nothere.svar: cannot open file: No such file or directory
 notes.txt: unknown kind of file '.txt' (expected .svar, .rmod or .sbs)"
 
 # dump: every variable with its type, nelem, units, desc, init, min and max.

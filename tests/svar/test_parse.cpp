@@ -179,5 +179,5 @@ TEST(SvarParse, TruncatedFileIsReported) {
 
 TEST(SvarParse, MissingFileNamesIt) {
     EXPECT_EQ(error_of([] { parse_svar_file("/nonexistent/x.svar"); }),
-              "/nonexistent/x.svar:0: cannot open file");
+              "/nonexistent/x.svar: cannot open file: No such file or directory");
 }
