@@ -95,6 +95,7 @@ private:
     void repair() noexcept;
     /// V's body, lock held; returns the waiter to wake after unlocking.
     xm::layout::Waiter* release_unit() noexcept;
+    bool reclaim_granted() noexcept;
     layout::SemHeader* h_ = nullptr;
     ipc::Segment segment_;
     std::string name_;

@@ -24,8 +24,13 @@ inline constexpr std::int64_t kWaitSlice = 20'000'000;
 /// How long object operations wait for the object's lock before lock_timeout.
 inline constexpr std::int64_t kObjectLockTimeout = 2'000'000'000;
 
-/// True unless the thread certainly no longer exists (cheap: one tgkill).
+/// True unless the thread certainly no longer exists (cheap: one tgkill). A
+/// zombie (killed, not yet reaped) passes: the hand-off paths use this, and a
+/// grant to a zombie is taken back by the paths that find nothing available.
 bool thread_exists(std::int32_t pid, std::int32_t tid) noexcept;
+/// True when the thread runs: gone and zombie threads are not alive
+/// (ipc::owner_alive: tgkill, then /proc). For the reclaim paths.
+bool thread_alive(std::int32_t pid, std::int32_t tid) noexcept;
 
 /// Takes a free slot for the calling thread (under the object's lock).
 Waiter* waiter_add(Waiter* slots, std::uint32_t n, std::uint32_t& next_ticket,

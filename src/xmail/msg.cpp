@@ -131,7 +131,7 @@ void set_me(MsgHead* h) noexcept {
 // queue seems empty while handed messages are outstanding.
 void reclaim_handed(QueueHeader* q) noexcept {
     for (Waiter& w : q->recv_waiters) {
-        if (w.state != kSignaled || thread_exists(w.pid, w.tid)) continue;
+        if (w.state != kSignaled || thread_alive(w.pid, w.tid)) continue;
         if (w.handed != 0) {
             const std::uint32_t off = head_off(q, w.handed - 1);
             head_at(q, off)->state = layout::kHeadQueued;

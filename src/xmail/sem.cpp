@@ -164,6 +164,23 @@ void Semaphore::repair() noexcept {
     if (h_->kind == static_cast<std::uint32_t>(Kind::binary) && h_->value > 1) h_->value = 1;
 }
 
+// Units granted to waiters that died before taking them — killed after the
+// grant, or zombies the grant's cheap check let through — are passed on
+// (lock held). Looked at only when P finds no unit, and only while a grant is
+// outstanding. Returns true when a unit came back.
+bool Semaphore::reclaim_granted() noexcept {
+    bool back = false;
+    for (std::uint32_t i = 0; i < layout::kMaxWaiters; ++i) {
+        Waiter& w = h_->waiters[i];
+        if (w.state != kSignaled || thread_alive(w.pid, w.tid)) continue;
+        waiter_free(w);
+        ++h_->reclaimed_waiters;
+        if (Waiter* next = release_unit()) waiter_wake(*next);
+        back = true;
+    }
+    return back;
+}
+
 Status Semaphore::p(std::int64_t timeout_ns, std::int32_t priority) noexcept {
     if (!h_) return Status::bad_argument;
     const std::int64_t deadline = deadline_for(timeout_ns);
@@ -179,6 +196,7 @@ Status Semaphore::p(std::int64_t timeout_ns, std::int32_t priority) noexcept {
                 return Status::ok;
             }
         }
+        if (h_->value <= 0) reclaim_granted();
         if (h_->value > 0) {
             --h_->value;
             ipc::unlock(h_->mutex);

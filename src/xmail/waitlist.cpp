@@ -14,6 +14,11 @@ bool thread_exists(std::int32_t pid, std::int32_t tid) noexcept {
     return syscall(SYS_tgkill, pid, tid, 0) == 0 || errno != ESRCH;
 }
 
+bool thread_alive(std::int32_t pid, std::int32_t tid) noexcept {
+    return ipc::owner_alive(static_cast<std::uint64_t>(static_cast<std::uint32_t>(pid)) << 32 |
+                            static_cast<std::uint32_t>(tid));
+}
+
 Waiter* waiter_add(Waiter* slots, std::uint32_t n, std::uint32_t& next_ticket,
                    std::int32_t priority) noexcept {
     for (std::uint32_t i = 0; i < n; ++i) {
@@ -34,7 +39,7 @@ Waiter* waiter_add(Waiter* slots, std::uint32_t n, std::uint32_t& next_ticket,
     bool freed = false;
     for (std::uint32_t i = 0; i < n; ++i) {
         Waiter& w = slots[i];
-        if (w.state != kFree && w.handed == 0 && !thread_exists(w.pid, w.tid)) {
+        if (w.state != kFree && w.handed == 0 && !thread_alive(w.pid, w.tid)) {
             waiter_free(w);
             freed = true;
         }

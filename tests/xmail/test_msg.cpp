@@ -1,6 +1,7 @@
 // Message queues over a plain memory block: Figure 5.2 structure, policies,
 // multi-block messages, blocking variants, waiter ordering, journal repair.
 #include <gtest/gtest.h>
+#include <sys/mman.h>
 #include <sys/wait.h>
 #include <unistd.h>
 
@@ -228,6 +229,32 @@ TEST(Msg, WaitingReceiversAreServedHighestPriorityFirst) {
     EXPECT_EQ(got[2], std::make_pair(3, std::string("C")));
     EXPECT_EQ(got[3], std::make_pair(1, std::string("D")));
     EXPECT_EQ(q.check(), "");
+}
+
+// A receiver killed while it waits, and not reaped yet (a zombie: it passes
+// the hand-off's cheap liveness check), may be handed a message; the next
+// receive finds the queue empty, takes the message back and gets it.
+TEST(Msg, AMessageHandedToAKilledUnreapedReceiverIsTakenBack) {
+    const auto p = params(8, 16, Policy::fifo);
+    const std::size_t size = Queue::memory_size(p);
+    void* mem = mmap(nullptr, size, PROT_READ | PROT_WRITE, MAP_SHARED | MAP_ANONYMOUS, -1, 0);
+    ASSERT_NE(mem, MAP_FAILED);
+    Queue q = Queue::over(mem, size, p);
+    const pid_t child = fork();
+    if (child == 0) {
+        Queue c = Queue::bind(mem, size);
+        recv_str(c, -1);
+        _exit(0);
+    }
+    while (q.stats().receive_waiters == 0) std::this_thread::yield();
+    kill(child, SIGKILL);
+    siginfo_t info{};
+    ASSERT_EQ(waitid(P_PID, static_cast<id_t>(child), &info, WEXITED | WNOWAIT), 0);  // a zombie now
+    ASSERT_EQ(send_str(q, "lost?"), Status::ok);
+    EXPECT_EQ(recv_str(q, 200'000'000), "lost?");
+    EXPECT_EQ(q.check(), "");
+    waitpid(child, nullptr, 0);
+    munmap(mem, size);
 }
 
 // Senders blocked on a full queue get the room in message-priority order

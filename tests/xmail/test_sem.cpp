@@ -131,6 +131,30 @@ TEST(Sem, GrantToADeadWaiterIsPassedOn) {
     munmap(mem, Semaphore::memory_size());
 }
 
+TEST(Sem, AUnitGrantedToAKilledUnreapedWaiterIsTakenBack) {
+    // As above, but the child is not reaped: a zombie passes tgkill's "does it
+    // exist" test, so V may grant it the unit; the next P must take it back.
+    void* mem = mmap(nullptr, Semaphore::memory_size(), PROT_READ | PROT_WRITE,
+                     MAP_SHARED | MAP_ANONYMOUS, -1, 0);
+    ASSERT_NE(mem, MAP_FAILED);
+    Semaphore s = Semaphore::over(mem, Kind::binary, 0);
+    const pid_t child = fork();
+    if (child == 0) {
+        Semaphore c = Semaphore::bind(mem);
+        c.p(-1, 10);
+        _exit(0);
+    }
+    while (s.waiting() == 0) std::this_thread::yield();
+    kill(child, SIGKILL);
+    siginfo_t info{};
+    ASSERT_EQ(waitid(P_PID, static_cast<id_t>(child), &info, WEXITED | WNOWAIT), 0);  // a zombie now
+    EXPECT_EQ(s.v(), Status::ok);
+    EXPECT_EQ(s.p(200'000'000), Status::ok) << "the unit stayed with the dead waiter";
+    EXPECT_EQ(s.try_p(), Status::would_block);  // and it was one unit, not two
+    waitpid(child, nullptr, 0);
+    munmap(mem, Semaphore::memory_size());
+}
+
 TEST(Sem, MutualExclusionAcrossProcesses) {
     struct Shared {
         alignas(64) unsigned char sem[Semaphore::memory_size()];
