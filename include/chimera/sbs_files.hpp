@@ -53,6 +53,10 @@
 //   [BACKEND   fifo | deadline | other]  Linux scheduling backend (ARCHITECTURE §5);
 //                                        `other` runs best-effort (SCHED_OTHER);
 //                                        default fifo
+//   [ACCOUNTING nanoseconds | halftick TICK]  how the RTPU's tasks' CPU time is
+//                                        profiled (§6.7): to the nanosecond (default),
+//                                        or quantised in half-ticks of a TICK-second
+//                                        clock, as the thesis measured (prof.hpp)
 //   EOF
 #pragma once
 
@@ -158,6 +162,8 @@ struct RtpuSpec {
     double minfreq = 1.0;
     double maxfreq = 1000.0;
     Backend backend = Backend::fifo;
+    bool half_tick = false;  ///< ACCOUNTING halftick
+    double tick = 0.001;     ///< its tick, seconds
     int line = 0;  ///< line of the RTPU keyword
 };
 

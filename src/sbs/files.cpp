@@ -334,9 +334,27 @@ SbsFile parse_sbs(cfg::Reader& r, const std::string& base_dir) {
         std::set<std::string> given;
         while (const cfg::Line* p = r.peek()) {
             if (p->keyword == "RTPU") break;
-            cfg::Line o = r.expect_one_of({"SCHEDULER", "USAGE", "ERRPRINT", "MINFREQ", "MAXFREQ", "BACKEND"});
+            cfg::Line o = r.expect_one_of(
+                {"SCHEDULER", "USAGE", "ERRPRINT", "MINFREQ", "MAXFREQ", "BACKEND", "ACCOUNTING"});
             if (!given.insert(o.keyword).second)
                 r.fail(o, o.keyword + " given twice for RTPU " + spec.name);
+            if (o.keyword == "ACCOUNTING") {
+                const std::string mode = o.args.empty() ? "" : o.args[0];
+                if (mode == "nanoseconds") {
+                    r.require_args(o, 1);
+                    spec.half_tick = false;
+                } else if (mode == "halftick") {
+                    if (o.args.size() != 2) r.fail(o, "ACCOUNTING halftick takes the tick in seconds, e.g. halftick 0.001");
+                    const double tick = r.to_double(o, 1, "the tick");
+                    if (!positive_finite(tick) || tick > 1.0)
+                        r.fail(o, "ACCOUNTING halftick: the tick must be more than 0 and at most 1 second");
+                    spec.half_tick = true;
+                    spec.tick = tick;
+                } else {
+                    r.fail(o, "ACCOUNTING must be nanoseconds or halftick TICK, found '" + mode + "'");
+                }
+                continue;
+            }
             r.require_args(o, 1);
             const std::string& v = o.args[0];
             if (o.keyword == "SCHEDULER") {

@@ -94,6 +94,10 @@ SubsystemCore::SubsystemCore(SbsFile f) : file(std::move(f)) {
     so.rtpus = static_cast<std::uint32_t>(std::max<std::size_t>(1, file.rtpus.size()));
     try {
         status = prof::StatusSegment::create(file.subsystem, kMaxTasks, so);
+        for (std::size_t i = 0; i < file.rtpus.size(); ++i)
+            if (file.rtpus[i].half_tick)
+                status.set_accounting(static_cast<int>(i), prof::Accounting::half_tick,
+                                      static_cast<std::int64_t>(std::llround(file.rtpus[i].tick * 1e9)));
     } catch (...) {
         table.destroy();  // nothing half-built is left behind
         throw;

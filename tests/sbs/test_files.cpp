@@ -146,6 +146,15 @@ TEST(SbsFile, Defaults) {
     EXPECT_EQ(f.rtpus[0].errprint, chimera::ErrPrint::warnings);
 }
 
+TEST(SbsFile, Accounting) {
+    auto f = sbs("SUBSYSTEM s\nSVARFILE t.svar\nRTPU cpu0\nACCOUNTING halftick 0.004\n"
+                 "RTPU cpu1\nACCOUNTING nanoseconds\nRTPU cpu2\nEOF\n");
+    EXPECT_TRUE(f.rtpus[0].half_tick);
+    EXPECT_DOUBLE_EQ(f.rtpus[0].tick, 0.004);
+    EXPECT_FALSE(f.rtpus[1].half_tick);
+    EXPECT_FALSE(f.rtpus[2].half_tick);  // the default
+}
+
 TEST(SbsFile, Errors) {
     EXPECT_EQ(error_of([] { sbs("SUBSYSTEM s\nSVARFILE t.svar\nMASTER cpu9\nRTPU cpu0\nEOF\n"); }),
               "sub.sbs:3: MASTER names RTPU 'cpu9', which is not defined in this file");
@@ -165,7 +174,14 @@ TEST(SbsFile, Errors) {
               "sub.sbs:4: RTPU 'cpu0' is defined twice");
     EXPECT_EQ(error_of([] { sbs("SUBSYSTEM s\nSVARFILE t.svar\nEOF\n"); }), "sub.sbs:3: expected RTPU, found EOF");
     EXPECT_EQ(error_of([] { sbs("SUBSYSTEM s\nSVARFILE t.svar\nRTPU cpu0\nPRIORITY 3\nEOF\n"); }),
-              "sub.sbs:4: expected SCHEDULER or USAGE or ERRPRINT or MINFREQ or MAXFREQ or BACKEND, found PRIORITY");
+              "sub.sbs:4: expected SCHEDULER or USAGE or ERRPRINT or MINFREQ or MAXFREQ or BACKEND or ACCOUNTING, "
+              "found PRIORITY");
+    EXPECT_EQ(error_of([] { sbs("SUBSYSTEM s\nSVARFILE t.svar\nRTPU cpu0\nACCOUNTING halftick\nEOF\n"); }),
+              "sub.sbs:4: ACCOUNTING halftick takes the tick in seconds, e.g. halftick 0.001");
+    EXPECT_EQ(error_of([] { sbs("SUBSYSTEM s\nSVARFILE t.svar\nRTPU cpu0\nACCOUNTING halftick 0\nEOF\n"); }),
+              "sub.sbs:4: ACCOUNTING halftick: the tick must be more than 0 and at most 1 second");
+    EXPECT_EQ(error_of([] { sbs("SUBSYSTEM s\nSVARFILE t.svar\nRTPU cpu0\nACCOUNTING ticks\nEOF\n"); }),
+              "sub.sbs:4: ACCOUNTING must be nanoseconds or halftick TICK, found 'ticks'");
     EXPECT_EQ(error_of([] { sbs("SUBSYSTEM s\nSVARFILE t.svar\nRTPU x 1 2\nEOF\n"); }),
               "sub.sbs:3: RTPU takes 1 to 2 arguments, found 3");
 }

@@ -10,6 +10,7 @@
 #include <gtest/gtest.h>
 
 #include <atomic>
+#include <cmath>
 #include <chrono>
 #include <condition_variable>
 #include <filesystem>
@@ -160,6 +161,18 @@ std::string what_of(F&& f) {
 bool has(const std::string& s, const std::string& part) { return s.find(part) != std::string::npos; }
 
 // ------------------------------------------------------------------ spawn / init
+
+TEST_F(Sbs, AnRtpusAccountingComesFromTheSbsFile) {
+    auto& s = init("ERRPRINT none\nACCOUNTING halftick 0.004\n");
+    auto t = s.spawn(rmod("t", "", "periodic"));
+    s.control(t, Control::on);
+    ASSERT_TRUE(eventually([&] { return s.status(t).profile.cycle >= 3; }));
+    const auto p = s.status(t).profile;
+    EXPECT_EQ(p.accounting, chimera::prof::Accounting::half_tick);
+    EXPECT_DOUBLE_EQ(p.tick, 0.004);
+    // Every CPU time is a whole number of half-ticks.
+    EXPECT_NEAR(std::fmod(p.tot_c / 0.002 + 1e-9, 1.0), 0.0, 1e-6);
+}
 
 TEST_F(Sbs, SpawnReadsInConstsRunsInitWritesOutConsts) {
     auto& s = init();
