@@ -7,6 +7,7 @@
 // compensation), then the feeder sweeps joints 1, 3 and 5 by
 // +-0.3 rad with a 2 s period for 2.5 s, ending at base + amp, and exits.
 #include "fig6_10.hpp"
+#include "teleop/feed.hpp"
 
 #include <chimera/ipc/segment.hpp>
 #include <chimera/sbs.hpp>
@@ -61,12 +62,16 @@ double max_diff(const Joints& a, const Joints& b) {
 
 std::string unique_name(const char* what) { return "fig6_10_" + std::string(what) + std::to_string(::getpid()); }
 
-// A copy of jteleop.rmod reading the feed `tbuf` (tests run side by side).
-std::filesystem::path teleop_rmod(const std::filesystem::path& dir, const std::string& tbuf) {
+// A copy of jteleop.rmod reading the feed `tbuf` (tests run side by side),
+// with LOCAL lines replaced by key (`extra`: {"TIMEOUT", "0.3"}, ...).
+std::filesystem::path teleop_rmod(const std::filesystem::path& dir, const std::string& tbuf,
+                                  const std::vector<std::pair<std::string, std::string>>& extra = {}) {
     std::ifstream in(fig6_10::rmod("jteleop"));
     std::stringstream text;
     text << in.rdbuf();
-    const std::string rmod = std::regex_replace(text.str(), std::regex("\nTBUF +[^\n]*"), "\nTBUF      " + tbuf);
+    std::string rmod = std::regex_replace(text.str(), std::regex("\nTBUF +[^\n]*"), "\nTBUF      " + tbuf);
+    for (const auto& [key, value] : extra)
+        rmod = std::regex_replace(rmod, std::regex("\n" + key + " +[^\n]*"), "\n" + key + " " + value);
     std::filesystem::create_directories(dir);
     const auto path = dir / "jteleop.rmod";
     std::ofstream(path) << rmod;
@@ -260,6 +265,54 @@ TEST_F(Fig610, ArmStaysAtTheOperatorsLastSetPoint) {
     // Settled, 0.5 s or more after the operator stopped (at zero velocity but
     // full deceleration): 0.005 rad; measured runs are below 0.002 rad.
     EXPECT_LT(max_diff(end.q_mez, last), 0.005);
+}
+
+TEST(Fig610Feed, ASilentOperatorStopsTheArmWhereItIsAndIsWarnedOf) {
+    // Deadman: one far set-point, then silence. Q_REF moves towards it at
+    // MAXSPEED; after TIMEOUT without a new item it stops where it is (not at
+    // the set-point) with a warning; a new item moves it again.
+    const auto dir = std::filesystem::temp_directory_path() / unique_name("deadman");
+    const std::string tbuf = unique_name("quiet");
+    auto sbs = Subsystem::init(fig6_10::load_sbs(nullptr, unique_name("deadman")));
+    fig6_10::add_module_dirs(*sbs);
+    const TaskId robot = sbs->spawn(fig6_10::rmod("puma_pidg"), "robot");
+    const TaskId grav = sbs->spawn(fig6_10::rmod("grav_comp"), "ctrl");
+    const TaskId diff = sbs->spawn(fig6_10::rmod("qrdiff"), "ctrl");
+    const TaskId teleop =
+        sbs->spawn(teleop_rmod(dir, tbuf, {{"MAXSPEED", "0.2"}, {"TIMEOUT", "0.3"}}).string(), "ctrl");
+    const auto on = sbs->reconfig({{grav, Control::on}, {robot, Control::on}, {diff, Control::on}, {teleop, Control::on}});
+    ASSERT_TRUE(on.ok) << on.message;
+    auto feed = chimera::teleop::open_feed(tbuf, kDof);
+    auto table = chimera::svar::Table::attach(chimera::ipc::segment_name(sbs->name(), "svar"));
+    const auto q_ref0 = [&] {
+        double q[kDof];
+        table.read(table.index_of("Q_REF"), q);
+        return q[0];
+    };
+    Joints far = kBase;
+    far[0] += 1.0;  // 5 s away at 0.2 rad/s
+    feed.write(far.data());
+    const auto t0 = Clock::now();
+    std::this_thread::sleep_for(std::chrono::milliseconds(900));
+    const double stopped = q_ref0();
+    std::this_thread::sleep_for(std::chrono::milliseconds(300));
+    const double later = q_ref0();
+    const double elapsed = std::chrono::duration<double>(Clock::now() - t0).count();
+    // It moved (~0.3 s x 0.2 rad/s), stopped short of the set-point, and stays.
+    EXPECT_GT(stopped - kBase[0], 0.04);
+    EXPECT_LT(stopped - kBase[0], 0.2 * elapsed);
+    EXPECT_DOUBLE_EQ(later, stopped);
+    const auto st = sbs->status(teleop);
+    EXPECT_GE(st.warnings, 1u);
+    EXPECT_NE(st.warning.find("operator feed silent"), std::string::npos) << st.warning;
+    // The operator speaks again: it moves on.
+    feed.write(far.data());
+    std::this_thread::sleep_for(std::chrono::milliseconds(200));
+    EXPECT_GT(q_ref0(), stopped + 0.01);
+    table.detach();
+    sbs->finish();
+    feed.destroy();
+    std::filesystem::remove_all(dir);
 }
 
 TEST(Fig610Feed, WrongJointCountIsRefusedByName) {
