@@ -96,6 +96,11 @@ enum class Status : int {
     CAN_LAST_ERROR = 202,  ///< can_id of the last error frame (CAN_ERR_* class bits)
     CAN_TIMESTAMP = 203,   ///< arg: port; kernel receive time (ns, CLOCK_REALTIME) of its frame
     PIO_EVENTS = 300,      ///< edge events seen since open
+    /// arg: a port of this instance (device numbering, start..end); edge
+    /// events seen on that port's lines since open (-EINVAL for another port).
+    /// Like PIO_EVENTS, a lower bound when the kernel's event buffer of a line
+    /// overflowed between two reads.
+    PIO_PORT_EVENTS = 301,
     MEM_SIZE = 400,        ///< bytes in the block
 };
 
@@ -108,6 +113,13 @@ enum class Control : int {
     MEM_SEEK = 400,
     /// SIO: discard unread input and unsent output.
     SIO_FLUSH = 101,
+    /// arg: microseconds, or -1 to wait without bound (the default). Bounds
+    /// how long one read with WAITONE or WAITALL blocks: when the time runs
+    /// out first, read() returns 0 with the buffer untouched, and what had
+    /// arrived stays pending for the next read. For a task that blocks on its
+    /// input (a synchronous task's sync()) and must still answer commands.
+    /// PIO only so far (-ENOTSUP elsewhere).
+    WAIT_TIMEOUT = 2,
 };
 
 /// Serial parameters (the thesis's iodSioParam_t).
@@ -221,7 +233,8 @@ protected:
     void port_to_element(std::uint32_t raw, void* buf, int index, int port_bits) const noexcept;
 
 private:
-    friend std::unique_ptr<Device> open(const Database&, std::string_view, int, int, unsigned);
+    friend std::unique_ptr<Device> open(const Database&, std::string_view, int, int, unsigned,
+                                        const void*);
     DeviceSpec spec_;
     int start_;
     int end_;
@@ -234,8 +247,14 @@ private:
 /// hardware does not have, unsupported size/conversion/WAIT flag, or the
 /// kernel interface missing ("no AF_CAN support in this kernel", "no gpiochip
 /// named ...").
+///
+/// `initial`, for a PIO device opened WRITE only: one element per port, laid
+/// out and converted as for write(), that the lines take as they are
+/// requested, so an output never shows any other value first (without it they
+/// come up at 0, which is not the safe state of an active-low output). An
+/// initial buffer for any other device or direction is refused.
 std::unique_ptr<Device> open(const Database& db, std::string_view name, int start, int end,
-                             unsigned flags);
+                             unsigned flags, const void* initial = nullptr);
 
 /// Value conversions of §7.2.1, exposed for tests and SAI modules.
 /// Port value (port_bits wide) → element (elem_bits wide).

@@ -188,7 +188,7 @@ int reserve_ports(const DeviceSpec& spec, int start, int end) {
 }  // namespace
 
 std::unique_ptr<Device> open(const Database& db, std::string_view name, int start, int end,
-                             unsigned flags) {
+                             unsigned flags, const void* initial) {
     const DeviceSpec* spec = db.find(name);
     if (!spec) throw Error("iod: no device named " + std::string(name) + " in the device database");
     const std::string who = detail::describe(*spec);
@@ -209,13 +209,15 @@ std::unique_ptr<Device> open(const Database& db, std::string_view name, int star
         else flags |= WAITONE;
     }
     if (!(flags & kSizeMask)) flags |= is_port_class(spec->device_class) ? LONG : BYTE;
+    if (initial && (spec->device_class != DeviceClass::PIO || (flags & kDirectionMask) != WRITE))
+        throw Error(who + ": initial values are for PIO devices opened WRITE only");
 
     // Reserve first: a refused double open never touches the hardware.
     const int lock_fd = reserve_ports(*spec, start, end);
     std::unique_ptr<Device> dev;
     try {
     switch (spec->device_class) {
-    case DeviceClass::PIO: dev = detail::make_pio(*spec, start, end, flags); break;
+    case DeviceClass::PIO: dev = detail::make_pio(*spec, start, end, flags, initial); break;
     case DeviceClass::RCB: dev = detail::make_can(*spec, start, end, flags); break;
     case DeviceClass::SIO: dev = detail::make_sio(*spec, start, end, flags); break;
     case DeviceClass::MEM: dev = detail::make_mem(*spec, start, end, flags); break;

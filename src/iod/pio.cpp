@@ -1,7 +1,8 @@
 // PIO on GPIO lines through libgpiod 1.6. A port is `width` adjacent lines
 // (bit i of the port value = line first+i). Input lines are requested with
 // both-edge events: a port "has new data" when an edge was seen on one of its
-// lines since the previous read, which is what the WAIT flags wait for.
+// lines since the previous read, which is what the WAIT flags wait for (for
+// at most WAIT_TIMEOUT). Output lines are requested at their initial values.
 #include "driver.hpp"
 
 #if CHIMERA_HAVE_GPIOD
@@ -22,7 +23,7 @@ namespace {
 
 class PioDevice final : public Device {
 public:
-    PioDevice(const DeviceSpec& spec, int start, int end, unsigned flags)
+    PioDevice(const DeviceSpec& spec, int start, int end, unsigned flags, const void* initial)
         : Device(spec, start, end, flags) {
         const std::string who = describe(spec);
         const unsigned dir = flags & kDirectionMask;
@@ -62,8 +63,11 @@ public:
             if (dir == READ) {
                 rc = gpiod_line_request_bulk_both_edges_events(&bulk_, consumer.c_str());
             } else {
-                int zeros[GPIOD_LINE_BULK_MAX_LINES] = {};
-                rc = gpiod_line_request_bulk_output(&bulk_, consumer.c_str(), zeros);
+                // Requested straight at their initial values: a line never
+                // drives 0 first on the way to a safe state of 1.
+                int values[GPIOD_LINE_BULK_MAX_LINES] = {};
+                if (initial) lines_of(initial, values);
+                rc = gpiod_line_request_bulk_output(&bulk_, consumer.c_str(), values);
             }
         }
         if (rc != 0) {
@@ -84,10 +88,23 @@ public:
         if (!(flags() & READ)) return -EBADF;
         if (count < static_cast<std::size_t>(nports())) return -EINVAL;
         const std::uint64_t all = nports() >= 64 ? ~0ull : ((1ull << nports()) - 1);
-        if (long rc = drain(0); rc < 0) return rc;
+        if (long rc = drain(nullptr, true); rc < 0) return rc;
         const unsigned wait = flags() & kWaitMask;
-        while ((wait == WAITALL && (changed_ & all) != all) || (wait == WAITONE && changed_ == 0)) {
-            if (long rc = drain(-1); rc < 0) return rc;
+        auto waiting = [&] {
+            return (wait == WAITALL && (changed_ & all) != all) || (wait == WAITONE && changed_ == 0);
+        };
+        if (waiting()) {
+            // CLOCK_MONOTONIC through the vDSO: no system call for the deadline.
+            timespec deadline{};
+            if (timeout_us_ >= 0) {
+                clock_gettime(CLOCK_MONOTONIC, &deadline);
+                add_us(deadline, timeout_us_);
+            }
+            do {
+                timespec left{};
+                if (timeout_us_ >= 0 && !time_left(deadline, left)) return 0;  // edges stay pending
+                if (long rc = drain(timeout_us_ >= 0 ? &left : nullptr, false); rc < 0) return rc;
+            } while (waiting());
         }
         if (wait == WAITNOALL && (changed_ & all) != all) return 0;
         const long fresh = std::popcount(changed_ & all);
@@ -107,26 +124,65 @@ public:
     long write(const void* buf, std::size_t count) noexcept override {
         if (!(flags() & WRITE)) return -EBADF;
         if (count < static_cast<std::size_t>(nports())) return -EINVAL;
-        const int w = spec().width;
         int values[GPIOD_LINE_BULK_MAX_LINES];
-        for (int p = 0; p < nports(); ++p) {
-            const std::uint32_t raw = element_to_port(buf, p, w);
-            for (int b = 0; b < w; ++b) values[p * w + b] = (raw >> b) & 1u;
-        }
+        lines_of(buf, values);
         if (gpiod_line_set_value_bulk(&bulk_, values) != 0) return -errno;
         return nports();
     }
 
 protected:
-    long class_status(Status cmd, long, void*) noexcept override {
+    long class_status(Status cmd, long arg, void*) noexcept override {
         if (cmd == Status::PIO_EVENTS) return static_cast<long>(events_);
+        if (cmd == Status::PIO_PORT_EVENTS) {
+            if (arg < start_port() || arg > end_port()) return -EINVAL;
+            return static_cast<long>(port_events_[static_cast<std::size_t>(arg - start_port())]);
+        }
+        return -ENOTSUP;
+    }
+
+    long class_control(Control cmd, long arg) noexcept override {
+        if (cmd == Control::WAIT_TIMEOUT) {
+            if (arg < -1) return -EINVAL;
+            timeout_us_ = arg;
+            return 0;
+        }
         return -ENOTSUP;
     }
 
 private:
-    // Reads pending edge events into changed_; timeout_ms < 0 blocks until one
-    // arrives. Polls the lines' event descriptors directly (no allocation).
-    long drain(int timeout_ms) noexcept {
+    // One element per port of `buf` (write()'s layout) -> one value per line.
+    void lines_of(const void* buf, int* values) const noexcept {
+        const int w = spec().width;
+        for (int p = 0; p < nports(); ++p) {
+            const std::uint32_t raw = element_to_port(buf, p, w);
+            for (int b = 0; b < w; ++b) values[p * w + b] = (raw >> b) & 1u;
+        }
+    }
+
+    static void add_us(timespec& t, long us) noexcept {
+        t.tv_sec += us / 1000000;
+        t.tv_nsec += (us % 1000000) * 1000;
+        if (t.tv_nsec >= 1000000000) {
+            t.tv_nsec -= 1000000000;
+            ++t.tv_sec;
+        }
+    }
+    // The time from now to `deadline` in `left`; false when it has passed.
+    static bool time_left(const timespec& deadline, timespec& left) noexcept {
+        timespec now{};
+        clock_gettime(CLOCK_MONOTONIC, &now);
+        long long ns = (static_cast<long long>(deadline.tv_sec) - now.tv_sec) * 1000000000LL +
+                       (deadline.tv_nsec - now.tv_nsec);
+        if (ns <= 0) return false;
+        left.tv_sec = static_cast<time_t>(ns / 1000000000LL);
+        left.tv_nsec = static_cast<long>(ns % 1000000000LL);
+        return true;
+    }
+
+    // Reads pending edge events into changed_ and the counters. `poll_only`:
+    // do not wait at all; otherwise wait up to `timeout` (nullptr: until an
+    // edge). Polls the lines' event descriptors directly (no allocation).
+    long drain(const timespec* timeout, bool poll_only) noexcept {
         if (!(flags() & READ)) return 0;
         pollfd fds[GPIOD_LINE_BULK_MAX_LINES];
         for (unsigned i = 0; i < nlines_; ++i) {
@@ -134,7 +190,8 @@ private:
             fds[i].events = POLLIN | POLLPRI;
             fds[i].revents = 0;
         }
-        int n = ::poll(fds, nlines_, timeout_ms);
+        const timespec zero{};
+        int n = ::ppoll(fds, nlines_, poll_only ? &zero : timeout, nullptr);
         if (n < 0) return errno == EINTR ? 0 : -errno;
         for (unsigned i = 0; i < nlines_ && n > 0; ++i) {
             if (!(fds[i].revents & (POLLIN | POLLPRI))) continue;
@@ -142,8 +199,10 @@ private:
             const int got = gpiod_line_event_read_multiple(bulk_.lines[i], ev, 16);
             if (got < 0) return -errno;
             if (got > 0) {
+                const unsigned port = i / static_cast<unsigned>(spec().width);
                 events_ += static_cast<unsigned long>(got);
-                changed_ |= 1ull << (i / static_cast<unsigned>(spec().width));
+                port_events_[port] += static_cast<unsigned long>(got);
+                changed_ |= 1ull << port;
             }
         }
         return 0;
@@ -155,17 +214,20 @@ private:
     bool requested_ = false;
     std::uint64_t changed_ = 0;  // bit per port: an edge since the last read
     unsigned long events_ = 0;
+    unsigned long port_events_[GPIOD_LINE_BULK_MAX_LINES] = {};  // per opened port
+    long timeout_us_ = -1;       // WAIT_TIMEOUT; -1: wait for as long as it takes
 };
 
 }  // namespace
 
-std::unique_ptr<Device> make_pio(const DeviceSpec& spec, int start, int end, unsigned flags) {
-    return std::make_unique<PioDevice>(spec, start, end, flags);
+std::unique_ptr<Device> make_pio(const DeviceSpec& spec, int start, int end, unsigned flags,
+                                 const void* initial) {
+    return std::make_unique<PioDevice>(spec, start, end, flags, initial);
 }
 
 #else
 
-std::unique_ptr<Device> make_pio(const DeviceSpec& spec, int, int, unsigned) {
+std::unique_ptr<Device> make_pio(const DeviceSpec& spec, int, int, unsigned, const void*) {
     throw Error(describe(spec) + ": this build of Chimera has no PIO driver (libgpiod was not "
                                  "found when it was configured: meson option gpiod)");
 }

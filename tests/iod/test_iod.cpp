@@ -198,6 +198,18 @@ TEST_F(IodOpen, FlagCombinationsAreCheckedAtOpen) {
               "device tty (lab.iod:19): SIGNED and TRUNC_LSB do not apply to a byte stream");
 }
 
+TEST_F(IodOpen, InitialValuesOnlyForPioOutputs) {
+    const std::uint8_t initial[2] = {1, 1};
+    EXPECT_EQ(what_of([&] { iod::open(db_, "din", 0, 1, iod::READ | iod::BYTE, initial); }),
+              "device din (lab.iod:8): initial values are for PIO devices opened WRITE only");
+    EXPECT_EQ(what_of([&] { iod::open(db_, "arm", 4, 5, iod::WRITE | iod::BYTE, initial); }),
+              "device arm (lab.iod:13): initial values are for PIO devices opened WRITE only");
+    // A PIO output gets as far as the chip (absent here): the values were accepted.
+    EXPECT_NE(what_of([&] { iod::open(db_, "dio0", 0, 1, iod::WRITE | iod::BYTE, initial); })
+                  .find("no gpiochip chimera-no-such-chip"),
+              std::string::npos);
+}
+
 TEST_F(IodOpen, MissingKernelInterfacesSaySo) {
     const std::string pio = what_of([&] { iod::open(db_, "dio0", 0, 0, iod::READ); });
     EXPECT_NE(pio.find("no gpiochip chimera-no-such-chip"), std::string::npos) << pio;
@@ -371,6 +383,8 @@ TEST_F(IodMem, TwoDevicesShareTheBlock) {
         ASSERT_EQ(b->control(iod::Control::SET_FLAGS, iod::READ | iod::WAITNOALL), 0);
         EXPECT_EQ(b->read(buf, 8), 0) << "WAITNOALL: all or nothing";
         EXPECT_EQ(b->control(iod::Control::SET_FLAGS, iod::RW), -EINVAL) << "direction is fixed";
+        EXPECT_EQ(b->control(iod::Control::WAIT_TIMEOUT, 1000), -ENOTSUP) << "PIO only";
+        EXPECT_EQ(b->status(iod::Status::PIO_PORT_EVENTS, 0L), -ENOTSUP) << "PIO only";
     }
     EXPECT_FALSE(chimera::ipc::Segment::exists(seg_)) << "the last instance removes the block";
 }

@@ -165,6 +165,76 @@ TEST_F(PioGuest, WaitFlagsWaitForEdges) {
     EXPECT_GE(in->status(iod::Status::PIO_EVENTS), 5);
 }
 
+TEST_F(PioGuest, OutputsComeUpAtTheirInitialValues) {
+    // Watch the lines from the moment they are requested: gpio-sim shows a
+    // released line at its pull, so pull them all up first and check that
+    // a port asked to start at 0b0110 does not show the pull or 0.
+    for (int i = 0; i < 8; ++i) pull(chip0_, i, true);
+    const std::uint8_t initial[2] = {0x6, 0x9};
+    auto out = iod::open(db_, "dio", 0, 1, iod::WRITE | iod::BYTE, initial);
+    const int expect[8] = {0, 1, 1, 0, 1, 0, 0, 1};
+    for (int i = 0; i < 8; ++i) EXPECT_EQ(value(chip0_, i), expect[i]) << "line " << i;
+    // Without initial values the lines come up at 0.
+    out.reset();
+    auto zeros = iod::open(db_, "dio", 0, 1, iod::WRITE | iod::BYTE);
+    for (int i = 0; i < 8; ++i) EXPECT_EQ(value(chip0_, i), 0) << "line " << i;
+}
+
+TEST_F(PioGuest, EdgesAreCountedPerPort) {
+    auto in = iod::open(db_, "bits", 1, 3, iod::READ | iod::BYTE);
+    std::uint8_t v[3];
+    // One pull at a time: gpio-sim's interrupts of one line coalesce when
+    // two changes come before the first is delivered.
+    pull(chip1_, 1, true);
+    usleep(20000);
+    pull(chip1_, 1, false);
+    usleep(20000);
+    pull(chip1_, 3, true);
+    usleep(20000);
+    EXPECT_EQ(in->read(v, 3), 2) << "ports 1 and 3 changed";
+    EXPECT_EQ(in->status(iod::Status::PIO_PORT_EVENTS, 1L), 2);
+    EXPECT_EQ(in->status(iod::Status::PIO_PORT_EVENTS, 2L), 0);
+    EXPECT_EQ(in->status(iod::Status::PIO_PORT_EVENTS, 3L), 1);
+    EXPECT_EQ(in->status(iod::Status::PIO_EVENTS), 3);
+    EXPECT_EQ(in->status(iod::Status::PIO_PORT_EVENTS, 0L), -EINVAL) << "not a port of this instance";
+    EXPECT_EQ(in->status(iod::Status::PIO_PORT_EVENTS, 4L), -EINVAL);
+}
+
+TEST_F(PioGuest, WaitTimeoutBoundsABlockingRead) {
+    auto in = iod::open(db_, "bits", 0, 1, iod::READ | iod::BYTE | iod::WAITONE);
+    ASSERT_EQ(in->control(iod::Control::WAIT_TIMEOUT, 50000), 0);
+    std::uint8_t v[2] = {9, 9};
+    EXPECT_EQ(in->read(v, 2), 0) << "no edge within 50 ms";
+    EXPECT_EQ(v[0], 9) << "buffer untouched on a timeout";
+    pull(chip1_, 1, true);
+    usleep(20000);
+    EXPECT_EQ(in->read(v, 2), 1) << "an edge that came in is returned";
+    EXPECT_EQ(v[1], 1);
+
+    ASSERT_EQ(in->control(iod::Control::SET_FLAGS, iod::READ | iod::BYTE | iod::WAITALL), 0);
+    pull(chip1_, 0, true);
+    usleep(20000);
+    std::uint8_t w[2] = {9, 9};
+    EXPECT_EQ(in->read(w, 2), 0) << "WAITALL: port 1 has no new edge";
+    EXPECT_EQ(w[0], 9);
+    pull(chip1_, 1, false);
+    usleep(20000);
+    EXPECT_EQ(in->read(w, 2), 2) << "port 0's edge stayed pending through the timeout";
+    EXPECT_EQ(w[0], 1);
+    EXPECT_EQ(w[1], 0);
+
+    EXPECT_EQ(in->control(iod::Control::WAIT_TIMEOUT, -2), -EINVAL);
+    ASSERT_EQ(in->control(iod::Control::WAIT_TIMEOUT, -1), 0);
+    std::thread t([&] {
+        usleep(100000);
+        pull(chip1_, 0, false);
+        usleep(20000);
+        pull(chip1_, 1, true);
+    });
+    EXPECT_EQ(in->read(w, 2), 2) << "-1: waits for as long as it takes";
+    t.join();
+}
+
 TEST_F(PioGuest, OpenedPortsAreRefusedToOtherInstances) {
     auto a = iod::open(db_, "bits", 0, 1, iod::READ);
     EXPECT_NE(what_of([&] { iod::open(db_, "bits", 1, 2, iod::READ); }).find("already open"),
