@@ -135,7 +135,12 @@ TEST(RtGuest, DeadlineAdmissionRefusesOverload) {
 }
 
 std::atomic<int> g_xcpu_tid{0};
-void on_xcpu(int) { g_xcpu_tid.store(static_cast<int>(gettid()), std::memory_order_relaxed); }
+// The first receiver only: a later overrun signal, delivered to the main
+// thread once the worker has gone, must not overwrite who got the first.
+void on_xcpu(int) {
+    int none = 0;
+    g_xcpu_tid.compare_exchange_strong(none, static_cast<int>(gettid()), std::memory_order_relaxed);
+}
 
 // A reservation that runs past its runtime with SCHED_FLAG_DL_OVERRUN gets
 // SIGXCPU (the timing-failure source of ARCHITECTURE §2). The signal is
