@@ -104,6 +104,8 @@ public:
     double number(std::string_view key, double fallback) const;
     /// Replaces (or adds) `key` (used by sbsSet; `line` 0 for run-time values).
     void set(std::string_view key, std::vector<std::string> values, int line = 0);
+    /// Removes `key` (nothing when absent).
+    void erase(std::string_view key);
     const std::vector<Entry>& entries() const noexcept { return entries_; }
 
     std::string file;  ///< the .rmod, for messages

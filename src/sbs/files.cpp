@@ -125,6 +125,10 @@ double LocalConfig::number(std::string_view key, double fallback) const {
     return v[0];
 }
 
+void LocalConfig::erase(std::string_view key) {
+    std::erase_if(entries_, [&](const Entry& e) { return e.key == key; });
+}
+
 void LocalConfig::set(std::string_view key, std::vector<std::string> values, int line) {
     for (auto& e : entries_) {
         if (e.key == key) {

@@ -810,8 +810,14 @@ void TaskCore::run() {
                     arg = key + " " + arg;
                     for (std::size_t i = 0; i < objects.size(); ++i) {
                         if (any && !objects[i].rmod.local.has(key)) continue;
-                        objects[i].rmod.local.set(key, values);
+                        LocalConfig& local = objects[i].rmod.local;
+                        std::optional<LocalConfig::Entry> before;
+                        if (const LocalConfig::Entry* e = local.find(key)) before = *e;
+                        local.set(key, values);
                         if (call(Phase::set, i, [](Module& m, Task& t) { return m.set(t); }) != Outcome::ok) {
+                            // Refused: LOCAL keeps what the module runs with.
+                            if (before) local.set(key, before->values, before->line);
+                            else local.erase(key);
                             result = "set " + key + ": " + err_owned_message;
                             break;
                         }

@@ -548,6 +548,12 @@ TEST_F(Sbs, FreqGetSetAndGetSetOfLocalConfiguration) {
     EXPECT_EQ(s.get(t, "GAIN"), "3 4");
     EXPECT_EQ(last("t", "set"), "t set GAIN 3 4");
     EXPECT_EQ(s.get(t, "CYCLES"), "0");  // answered by the module's get()
+    // A value the module refuses is not kept: LOCAL still holds the old one.
+    EXPECT_TRUE(has(what_of([&] { s.set(t, "GAIN", "REFUSE"); }), "probe refuses GAIN REFUSE"));
+    EXPECT_EQ(s.get(t, "GAIN"), "3 4");
+    EXPECT_TRUE(has(what_of([&] { s.set(t, "NEWKEY", "REFUSE"); }), "probe refuses"));
+    EXPECT_TRUE(has(what_of([&] { s.get(t, "NEWKEY"); }), "has no LOCAL key NEWKEY"));
+    EXPECT_EQ(s.status(t).state, chimera::State::OFF);  // refusing a value is not a task error
     EXPECT_TRUE(has(what_of([&] { s.get(t, "NOPE"); }), "has no LOCAL key NOPE"));
     EXPECT_THROW(s.freq_set(t, -1), chimera::sbs::Error);
 }

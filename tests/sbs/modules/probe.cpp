@@ -106,6 +106,11 @@ public:
     Result set(Task& t) override {
         std::string line = std::string(t.rmod()) + " set " + std::string(t.arg());
         chimera_test_record(line.c_str());
+        // A value a module cannot take: refused (the runtime must restore LOCAL).
+        if (t.arg().find("REFUSE") != std::string_view::npos) {
+            t.error(7, "probe refuses " + std::string(t.arg()));
+            return Result::ERROR;
+        }
         read_timing(t);
         return Result::OK;
     }
