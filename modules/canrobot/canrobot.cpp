@@ -27,7 +27,8 @@
 //     drive gets a quick stop (brakes); a master that dies stops sending RPDOs
 //     and the drives fault on their RPDO timeout;
 //   - off switches the drives off (shutdown: brakes), kill returns them to
-//     pre-operational;
+//     pre-operational — each confirmed by the drives, commands resent until
+//     then (a frame can be lost), for at most ENABLE_TIMEOUT;
 //   - with STABILITY hold, while the illegal-configuration flag is up (§3.10)
 //     the drives hold the position they had when it rose, in their own CSP
 //     loop; turned on inside a reconfiguration, the drives are enabled that
@@ -239,16 +240,21 @@ public:
         return chimera::Result::OK;
     }
 
-    chimera::Result off(chimera::Task&) override {
-        switch_all(kCwShutdown);  // ready to switch on: no torque, brakes
+    chimera::Result off(chimera::Task& t) override {
+        // Shutdown: ready to switch on, no torque, brakes — confirmed by every
+        // drive, or the task errs (and error() tries a quick stop).
+        if (!switch_all_confirmed(kCwShutdown)) {
+            t.error(kErrDriveState, failure_);
+            return chimera::Result::ERROR;
+        }
         publish();
         return chimera::Result::OK;
     }
 
-    chimera::Result kill(chimera::Task&) override {
+    chimera::Result kill(chimera::Task& t) override {
         if (nmt_) {
-            switch_all(kCwShutdown);
-            for (const Node& d : nodes_) send_nmt(NmtCommand::enter_preoperational, d.node);
+            if (!switch_all_confirmed(kCwShutdown)) t.warning(failure_);
+            if (!all_preoperational()) t.warning(failure_);
         }
         nodes_.clear();
         sync_.reset();
@@ -256,8 +262,10 @@ public:
         return chimera::Result::OK;
     }
 
-    chimera::Result error(chimera::Task&, const chimera::err::Error&) override {
-        switch_all(kCwQuickStop);  // every drive stops and brakes; the operator clears
+    chimera::Result error(chimera::Task& t, const chimera::err::Error&) override {
+        // Every drive stops and brakes; the operator clears. Unconfirmed, the
+        // drives' RPDO timeout is what is left.
+        if (!switch_all_confirmed(kCwQuickStop)) t.warning(failure_);
         return chimera::Result::ERROR;
     }
 
@@ -314,20 +322,30 @@ private:
     }
 
     void start_nodes(chimera::Task& t) {
-        for (const Node& d : nodes_) send_nmt(NmtCommand::start, d.node);
         // A drive entering operational answers with its TPDO1 at once; its
         // heartbeat (the liveness the cycle checks) comes within its period.
+        // NMT start goes again to a node that has not answered: a frame can
+        // be lost (a receiver that did not run for a while).
         const auto deadline = Clock::now() + std::chrono::duration<double>(enable_timeout_);
+        auto next_send = Clock::now();
         for (;;) {
+            if (Clock::now() >= next_send) {
+                for (const Node& d : nodes_)
+                    if (!d.tpdo1_stamp) send_nmt(NmtCommand::start, d.node);
+                next_send = Clock::now() + std::chrono::milliseconds(100);
+            }
             read_feedback();
+            // The heartbeat must say operational: one sent just before the
+            // start took effect (pre-operational) may arrive after the TPDO1.
             std::string missing;
             for (std::size_t j = 0; j < n_; ++j)
-                if (!nodes_[j].tpdo1_stamp || !nodes_[j].heartbeat_stamp)
+                if (!nodes_[j].tpdo1_stamp || nodes_[j].nmt != NmtState::operational)
                     missing += (missing.empty() ? "" : ", ") + describe(j) +
-                               (nodes_[j].tpdo1_stamp ? " (no heartbeat)" : " (no TPDO1, no answer to NMT start)");
+                               (nodes_[j].tpdo1_stamp ? " (no operational heartbeat)"
+                                                      : " (no TPDO1, no answer to NMT start)");
             if (missing.empty()) return;
             if (Clock::now() > deadline) {
-                kill(t);
+                kill(t);  // confirms nothing with the nodes that never answered
                 rb::module_error(t, "no answer within ENABLE_TIMEOUT " + std::to_string(enable_timeout_) + " s from " +
                                         missing + ": is the drive powered, on the bus, with that node id?");
             }
@@ -444,11 +462,89 @@ private:
         nmt_->write(frame, 2);
     }
 
-    // One controlword to every drive (acts on receipt, no SYNC needed).
-    void switch_all(std::uint16_t controlword) noexcept {
+    // `controlword` (shutdown or quick stop: it acts on receipt, no SYNC
+    // needed) to every drive that answered at init, again every 20 ms to
+    // those still enabled, until none is — or ENABLE_TIMEOUT, false, with
+    // the drives that did not follow named in failure_.
+    bool switch_all_confirmed(std::uint16_t controlword) noexcept {
+        const auto deadline = Clock::now() + std::chrono::duration<double>(enable_timeout_);
+        auto next_send = Clock::now();
+        for (;;) {
+            read_feedback();
+            int left = 0, first = -1;
+            for (std::size_t j = 0; j < nodes_.size(); ++j)
+                if (nodes_[j].tpdo1_stamp && !silent(nodes_[j]) && nodes_[j].state == DriveState::operation_enabled) {
+                    ++left;
+                    if (first < 0) first = static_cast<int>(j);
+                }
+            if (left == 0) return none_silent();
+            if (Clock::now() > deadline) {
+                std::snprintf(failure_, sizeof failure_,
+                              "%d drive(s) still enabled after controlword 0x%04X for ENABLE_TIMEOUT %.3f s, "
+                              "first node %d (joint %d) on %s",
+                              left, controlword, enable_timeout_, nodes_[static_cast<std::size_t>(first)].node,
+                              first + 1, bus_.interface.c_str());
+                return false;
+            }
+            if (Clock::now() >= next_send) {
+                for (std::size_t j = 0; j < nodes_.size(); ++j) {
+                    if (nodes_[j].state != DriveState::operation_enabled) continue;
+                    nodes_[j].controlword = controlword;
+                    send_targets(j, controlword, position_mode_ ? kModeCsp : kModeCst, 0, nodes_[j].q, 0);
+                }
+                next_send = Clock::now() + std::chrono::milliseconds(20);
+            }
+            std::this_thread::sleep_for(std::chrono::milliseconds(2));
+        }
+    }
+
+    // A drive whose heartbeat stopped (HEARTBEAT_TIMEOUT) cannot confirm
+    // anything: the confirming loops do not wait for it.
+    bool silent(const Node& d) const noexcept {
+        return realtime_ns() - d.heartbeat_stamp > heartbeat_timeout_ns_;
+    }
+    // True when every drive that answered at init still has a heartbeat; else
+    // false with failure_ naming the first silent one.
+    bool none_silent() noexcept {
         for (std::size_t j = 0; j < nodes_.size(); ++j) {
-            nodes_[j].controlword = controlword;
-            send_targets(j, controlword, position_mode_ ? kModeCsp : kModeCst, 0, nodes_[j].q, 0);
+            if (!nodes_[j].tpdo1_stamp || !silent(nodes_[j])) continue;
+            std::snprintf(failure_, sizeof failure_, "node %d (joint %zu) on %s does not answer (no heartbeat for %.3f s)",
+                          nodes_[j].node, j + 1, bus_.interface.c_str(),
+                          static_cast<double>(realtime_ns() - nodes_[j].heartbeat_stamp) * 1e-9);
+            return false;
+        }
+        return true;
+    }
+
+    // NMT pre-operational to every drive that answered at init, again every
+    // 50 ms, until each one's heartbeat says so (or ENABLE_TIMEOUT: false,
+    // failure_ names the first that did not).
+    bool all_preoperational() noexcept {
+        const auto deadline = Clock::now() + std::chrono::duration<double>(enable_timeout_);
+        const std::int64_t since = realtime_ns();
+        auto next_send = Clock::now();
+        for (;;) {
+            read_feedback();
+            int first = -1;
+            for (std::size_t j = 0; j < nodes_.size() && first < 0; ++j)
+                if (nodes_[j].tpdo1_stamp && !silent(nodes_[j]) &&
+                    (nodes_[j].heartbeat_stamp < since || nodes_[j].nmt != NmtState::preoperational))
+                    first = static_cast<int>(j);
+            if (first < 0) return none_silent();
+            if (Clock::now() > deadline) {
+                std::snprintf(failure_, sizeof failure_,
+                              "node %d (joint %d) on %s did not confirm NMT pre-operational within %.3f s",
+                              nodes_[static_cast<std::size_t>(first)].node, first + 1, bus_.interface.c_str(),
+                              enable_timeout_);
+                return false;
+            }
+            if (Clock::now() >= next_send) {
+                for (const Node& d : nodes_)
+                    if (d.tpdo1_stamp && d.nmt != NmtState::preoperational)
+                        send_nmt(NmtCommand::enter_preoperational, d.node);
+                next_send = Clock::now() + std::chrono::milliseconds(50);
+            }
+            std::this_thread::sleep_for(std::chrono::milliseconds(2));
         }
     }
 

@@ -348,6 +348,14 @@ std::int64_t monotonic_ns() noexcept {
     return ts.tv_sec * 1'000'000'000LL + ts.tv_nsec;
 }
 
+// CLOCK_MONOTONIC - CLOCK_REALTIME now (the two differ by a constant between
+// clock steps).
+std::int64_t realtime_to_monotonic() noexcept {
+    timespec rt;
+    clock_gettime(CLOCK_REALTIME, &rt);
+    return monotonic_ns() - (rt.tv_sec * 1'000'000'000LL + rt.tv_nsec);
+}
+
 class CanSocket {
 public:
     explicit CanSocket(const std::string& interface) {
@@ -364,6 +372,13 @@ public:
             ::close(fd_);
             throw std::runtime_error("no CAN interface named " + interface);
         }
+        // Room for a few seconds of a busy bus: a simulator that is not
+        // scheduled for a while (no real-time priority) must not drop frames.
+        const int bytes = 4 << 20;
+        if (::setsockopt(fd_, SOL_SOCKET, SO_RCVBUFFORCE, &bytes, sizeof bytes) != 0)
+            ::setsockopt(fd_, SOL_SOCKET, SO_RCVBUF, &bytes, sizeof bytes);  // up to rmem_max
+        const int on = 1;
+        ::setsockopt(fd_, SOL_SOCKET, SO_TIMESTAMPNS, &on, sizeof on);
         sockaddr_can addr{};
         addr.can_family = AF_CAN;
         addr.can_ifindex = static_cast<int>(ifindex);
@@ -400,17 +415,33 @@ public:
         out.clear();
     }
 
-    /// One frame, or false when none is waiting.
-    bool receive(Frame& f) {
+    /// One frame and the CLOCK_MONOTONIC time it reached the interface (the
+    /// kernel's receive stamp), or false when none is waiting.
+    bool receive(Frame& f, std::int64_t& arrived) {
         can_frame cf;
+        alignas(cmsghdr) char control[CMSG_SPACE(sizeof(timespec))];
         for (;;) {
-            const ssize_t r = ::recv(fd_, &cf, sizeof cf, MSG_DONTWAIT);
+            iovec iov{&cf, sizeof cf};
+            msghdr msg{};
+            msg.msg_iov = &iov;
+            msg.msg_iovlen = 1;
+            msg.msg_control = control;
+            msg.msg_controllen = sizeof control;
+            const ssize_t r = ::recvmsg(fd_, &msg, MSG_DONTWAIT);
             if (r < 0 && errno == EINTR) continue;
             if (r != static_cast<ssize_t>(sizeof cf)) return false;
             if (cf.can_id & (CAN_ERR_FLAG | CAN_EFF_FLAG | CAN_RTR_FLAG)) continue;  // not ours
             f.id = cf.can_id & CAN_SFF_MASK;
             f.len = std::min<std::uint8_t>(cf.can_dlc, 8);
             std::memcpy(f.data, cf.data, sizeof f.data);
+            arrived = monotonic_ns();
+            for (cmsghdr* c = CMSG_FIRSTHDR(&msg); c; c = CMSG_NXTHDR(&msg, c))
+                if (c->cmsg_level == SOL_SOCKET && c->cmsg_type == SO_TIMESTAMPNS) {
+                    timespec ts;
+                    std::memcpy(&ts, CMSG_DATA(c), sizeof ts);
+                    // The stamp is CLOCK_REALTIME: moved onto the monotonic clock.
+                    arrived = std::min<std::int64_t>(arrived, ts.tv_sec * 1'000'000'000LL + ts.tv_nsec + realtime_to_monotonic());
+                }
             return true;
         }
     }
@@ -437,9 +468,14 @@ void run_drive_bus(DriveSim& sim, const std::string& interface, const std::atomi
         pollfd p{bus.fd(), POLLIN, 0};
         if (::poll(&p, 1, static_cast<int>((wait_ns + 999'999) / 1'000'000)) < 0 && errno != EINTR)
             throw std::runtime_error("poll on " + interface + ": " + std::strerror(errno));
+        // Each frame acts at the time it arrived, not when this process got
+        // to it: a drive's firmware is never descheduled, so a simulator that
+        // was must not let the arm run on under a held torque meanwhile. (Its
+        // answers still leave late; the master sees that as missed feedback.)
         Frame f;
-        while (bus.receive(f)) {
-            sim.receive(f, monotonic_ns(), out);
+        std::int64_t arrived = 0;
+        while (bus.receive(f, arrived)) {
+            sim.receive(f, arrived, out);
             bus.send(out);
         }
         sim.tick(monotonic_ns(), out);

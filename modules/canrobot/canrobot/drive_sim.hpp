@@ -139,7 +139,8 @@ private:
 };
 
 /// Runs `sim` on the SocketCAN interface `interface` until `stop` is set:
-/// powers it on, then feeds it every frame and the timers. `each_second` (if
+/// powers it on, then feeds it every frame, at the time the kernel received
+/// it, and the timers. `each_second` (if
 /// set) is called about once a second with the simulation, for a status line.
 /// Throws std::runtime_error when the interface cannot be opened (naming it,
 /// and saying when the kernel has no AF_CAN).
