@@ -186,6 +186,11 @@ public:
     std::uint64_t faults() const noexcept { return faults_.load(std::memory_order_relaxed); }
     /// True when the executive got the SCHED_FIFO priority it was configured with.
     bool realtime() const noexcept { return realtime_.load(); }
+    /// Commands issued by the attached tasks and not yet completed (the one
+    /// running included): the SPP's backlog, for a status display.
+    std::size_t queued() const noexcept;
+    /// Tasks blocked in lock() right now, waiting to be granted the SPP.
+    int lock_waiters() const noexcept { return lock_waiters_.load(); }
 
 private:
     friend class Spp;
@@ -223,6 +228,7 @@ private:
     std::atomic<std::uint64_t> executed_{0};
     std::atomic<std::uint64_t> faults_{0};
     std::atomic<bool> realtime_{false};
+    std::atomic<int> lock_waiters_{0};
 
     std::mutex lock_mutex_;                // lock()/release() hand-over and slot allocation
     std::condition_variable lock_cv_;

@@ -81,6 +81,17 @@ Handle Processor::lookup(std::string_view name) const noexcept {
     return {};
 }
 
+std::size_t Processor::queued() const noexcept {
+    std::size_t n = 0;
+    for (const auto& sp : slots_) {
+        if (!sp->active.load(std::memory_order_acquire)) continue;
+        // head first: it only grows towards tail, so the difference cannot underflow.
+        const std::uint64_t head = sp->head.load(std::memory_order_acquire);
+        n += static_cast<std::size_t>(sp->tail.load(std::memory_order_acquire) - head);
+    }
+    return n;
+}
+
 void Processor::kick() noexcept {
     work_.fetch_add(1, std::memory_order_release);
     work_.notify_one();
@@ -282,7 +293,11 @@ void Spp::lock() {
     s.waiting = true;
     s.ticket = ++proc_->lock_ticket_;
     if (proc_->owner_.load() < 0) proc_->grant_next_locked();
-    proc_->lock_cv_.wait(lk, [&] { return proc_->owner_.load() == slot_; });
+    if (proc_->owner_.load() != slot_) {
+        proc_->lock_waiters_.fetch_add(1);
+        proc_->lock_cv_.wait(lk, [&] { return proc_->owner_.load() == slot_; });
+        proc_->lock_waiters_.fetch_sub(1);
+    }
     locked_ = true;
 }
 
