@@ -260,7 +260,9 @@ public:
     /// Issues WAKEUP and blocks until the executive reaches it: every command
     /// issued before has run. 0, or -ENOSPC when the buffer was full.
     int wait() noexcept;
-    /// Exclusive access for a job; blocks until granted (priority order).
+    /// Exclusive access for a job; blocks until granted (priority order). A
+    /// task locking again after release() waits for that release to run, and
+    /// for any higher-priority locker it hands the SPP to.
     void lock();
     /// Buffered end of the job: the lock passes on when the executive reaches it.
     int release() noexcept;

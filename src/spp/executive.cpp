@@ -293,9 +293,12 @@ void Spp::lock() {
     s.waiting = true;
     s.ticket = ++proc_->lock_ticket_;
     if (proc_->owner_.load() < 0) proc_->grant_next_locked();
-    if (proc_->owner_.load() != slot_) {
+    // Granted is "no longer waiting", not "owner is this slot": after release()
+    // the task is still the owner until the executive reaches its RELEASE, and
+    // that RELEASE may hand the SPP to a higher-priority locker first.
+    if (s.waiting) {
         proc_->lock_waiters_.fetch_add(1);
-        proc_->lock_cv_.wait(lk, [&] { return proc_->owner_.load() == slot_; });
+        proc_->lock_cv_.wait(lk, [&] { return !s.waiting; });
         proc_->lock_waiters_.fetch_sub(1);
     }
     locked_ = true;

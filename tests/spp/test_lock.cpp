@@ -126,3 +126,30 @@ TEST_F(SppLock, CommandsIssuedBeforeTheLockOfAnotherTaskWaitForItsJob) {
     ASSERT_EQ(other.wait(), 0);
     EXPECT_EQ(journal.entries(), (Entries{1, 2, 3, 50}));
 }
+
+// release() only queues the RELEASE: a task that locks again right after must
+// wait for it to run (and for any higher-priority locker it hands over to),
+// not find itself still the owner and go on as if granted.
+TEST_F(SppLock, LockingAgainWaitsUntilTheTasksBufferedReleaseHasRun) {
+    start();
+    spp::Spp& holder = task(1);
+    spp::Spp& s = task(2);
+    hold_executive(holder, 0);
+    s.lock();  // free: granted at once
+    record_all(s, {1});
+    ASSERT_EQ(s.release(), 0);  // queued behind the hold
+    std::atomic<bool> relocked{false};
+    int journal_at_relock = -1;
+    std::thread relocker([&] {
+        s.lock();
+        journal_at_relock = journal.size();
+        relocked.store(true);
+        EXPECT_EQ(s.release(), 0);
+        EXPECT_EQ(s.wait(), 0);
+    });
+    // Either lock() came back at once, or it is blocked until the RELEASE runs.
+    ASSERT_TRUE(eventually([&] { return relocked.load() || proc().lock_waiters() == 1; }));
+    gates[0].open();
+    relocker.join();
+    EXPECT_EQ(journal_at_relock, 2) << "lock() returned before the task's own RELEASE had run";
+}
