@@ -258,7 +258,9 @@ public:
     /// XFER SPP → task.
     int read(Handle variable, void* dst, std::size_t bytes, std::size_t offset = 0) noexcept;
     /// Issues WAKEUP and blocks until the executive reaches it: every command
-    /// issued before has run. 0, or -ENOSPC when the buffer was full.
+    /// issued before has run. 0, or -EPIPE after finish. The buffer keeps an
+    /// entry for the WAKEUP beyond its QUEUE commands, so a full buffer is no
+    /// obstacle and wait() sleeps at once.
     int wait() noexcept;
     /// Exclusive access for a job; blocks until granted (priority order). A
     /// task locking again after release() waits for that release to run, and

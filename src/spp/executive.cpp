@@ -12,9 +12,13 @@ namespace chimera::spp {
 
 // One task's command buffer: a single-producer (the task) single-consumer
 // (the executive) ring, allocated at init so issuing a command never allocates.
+// It holds QUEUE commands plus one entry kept for wait()'s WAKEUP, so that
+// wait() always has room and never has to spin for it.
 struct Processor::Slot {
-    explicit Slot(int i, int capacity) : index(i), ring(static_cast<std::size_t>(capacity)) {}
+    explicit Slot(int i, int capacity)
+        : index(i), capacity(static_cast<std::size_t>(capacity)), ring(this->capacity + 1) {}
     const int index;
+    const std::size_t capacity;  // QUEUE: commands other than the WAKEUP
     std::vector<Command> ring;
     std::atomic<std::uint64_t> head{0};   // next to run (executive)
     std::atomic<std::uint64_t> tail{0};   // next free (task)
@@ -242,7 +246,7 @@ int Spp::push(Processor::Command c) noexcept {
     if (finished_) return -EPIPE;
     Processor::Slot& s = *proc_->slots_[static_cast<std::size_t>(slot_)];
     const std::uint64_t t = s.tail.load(std::memory_order_relaxed);
-    if (t - s.head.load(std::memory_order_acquire) >= s.ring.size()) return -ENOSPC;
+    if (t - s.head.load(std::memory_order_acquire) >= s.capacity) return -ENOSPC;
     c.seq = proc_->next_seq_.fetch_add(1, std::memory_order_relaxed);
     s.ring[t % s.ring.size()] = c;
     s.tail.store(t + 1, std::memory_order_release);
@@ -273,9 +277,10 @@ int Spp::read(Handle v, void* dst, std::size_t bytes, std::size_t offset) noexce
 int Spp::wait() noexcept {
     if (finished_) return -EPIPE;
     Processor::Slot& s = *proc_->slots_[static_cast<std::size_t>(slot_)];
-    // The WAKEUP goes in even when the buffer is full: this call blocks anyway.
+    // The entry kept for the WAKEUP is free: push() leaves it, and the last
+    // WAKEUP has run (this task's previous wait() returned). No waiting for
+    // room here: a task above the executive on its CPU would spin forever.
     const std::uint64_t t = s.tail.load(std::memory_order_relaxed);
-    while (t - s.head.load(std::memory_order_acquire) >= s.ring.size()) std::this_thread::yield();
     const std::uint64_t seq = proc_->next_seq_.fetch_add(1, std::memory_order_relaxed);
     s.ring[t % s.ring.size()] = {CommandType::WAKEUP, {}, seq, {}, nullptr, 0, 0};
     s.tail.store(t + 1, std::memory_order_release);

@@ -14,6 +14,7 @@
 #include <cstdio>
 #include <cstdlib>
 #include <fstream>
+#include <functional>
 #include <sstream>
 #include <string>
 #include <thread>
@@ -54,6 +55,26 @@ void locate_executive(spp::Processor& proc) {
     ASSERT_EQ(s->call(s->translate("where")), 0);
     ASSERT_EQ(s->wait(), 0);
     ASSERT_EQ(placement.calls.load(), 1);
+}
+
+// Runs `body` on a thread pinned to `cpu` at SCHED_FIFO `priority`; false
+// when the thread could not get them (then `body` did not run).
+bool run_fifo_on(int cpu, int priority, const std::function<void()>& body) {
+    bool placed = false;
+    std::thread t([&] {
+        cpu_set_t set;
+        CPU_ZERO(&set);
+        CPU_SET(static_cast<unsigned>(cpu), &set);
+        sched_param sp{};
+        sp.sched_priority = priority;
+        if (pthread_setaffinity_np(pthread_self(), sizeof set, &set) != 0 ||
+            pthread_setschedparam(pthread_self(), SCHED_FIFO, &sp) != 0)
+            return;
+        placed = true;
+        body();
+    });
+    t.join();
+    return placed;
 }
 
 std::string read_file(const std::string& path) {
@@ -156,4 +177,55 @@ TEST(SppPlacement, InTheRtGuestTheKernelIsPreemptRtAndTheExecutiveRealTime) {
     EXPECT_EQ(placement.policy.load(), SCHED_FIFO);
     EXPECT_EQ(placement.priority.load(), 50);
     EXPECT_EQ(placement.cpu.load(), c.cpu);
+}
+
+// --- a task above the executive on its CPU -----------------------------------
+//
+// The deployment the executive's PRIORITY is for: a control task at a higher
+// SCHED_FIFO priority on the executive's own CPU. The executive runs only
+// while that task sleeps, and the task preempts it the instant it is woken.
+
+class SppAboveTheExecutive : public ::testing::Test {
+protected:
+    void SetUp() override {
+        if (!fifo_allowed()) GTEST_SKIP() << "SCHED_FIFO refused: no task can be placed above the executive";
+        reset_fixtures();
+        cpu_ = allowed_cpus().back();
+    }
+    std::unique_ptr<spp::Processor> start(int queue) {
+        spp::Config c = make_config(queue);
+        c.cpu = cpu_;
+        c.priority = 10;
+        return spp::Processor::init(c, make_library());
+    }
+    int cpu_ = 0;
+};
+
+// The task fills its command buffer and waits. It is above the executive on
+// the executive's CPU, so the executive can make room only while the task
+// sleeps: wait() must sleep at once, never spin until room appears.
+TEST_F(SppAboveTheExecutive, WaitOnAFullBufferSleepsAndLetsTheExecutiveRun) {
+    if (allowed_cpus().size() < 2) GTEST_SKIP() << "one CPU: nothing could open the gate";
+    auto proc = start(/*queue=*/4);
+    auto holder = spp::Spp::init(*proc, 1);
+    ASSERT_EQ(holder->call(holder->translate("hold"), tag_gate(0, 0)), 0);
+    gates[0].await_entered();
+    // Opens the gate (from any other CPU) once the task's buffer is full.
+    std::atomic<bool> full{false};
+    std::thread opener([&] {
+        while (!full.load()) std::this_thread::yield();
+        gates[0].open();
+    });
+    int wait_rc = -1;
+    ASSERT_TRUE(run_fifo_on(cpu_, 20, [&] {
+        auto s = spp::Spp::init(*proc, 2);
+        const spp::Handle rec = s->translate("record");
+        for (std::int64_t t : {1, 2, 3, 4}) EXPECT_EQ(s->call(rec, tag(t)), 0);
+        EXPECT_EQ(s->call(rec, tag(5)), -ENOSPC);
+        full.store(true);
+        wait_rc = s->wait();
+    }));
+    opener.join();
+    EXPECT_EQ(wait_rc, 0);
+    EXPECT_EQ(journal.entries(), (std::vector<std::int64_t>{0, 1, 2, 3, 4}));
 }
