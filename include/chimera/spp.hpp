@@ -209,7 +209,7 @@ private:
     Processor(const Config& config, const Library& library);
     void run() noexcept;
     Slot* pick() noexcept;
-    void execute(Slot& slot, const Command& c) noexcept;
+    void execute(const Command& c) noexcept;
     void grant_next_locked();
     void kick() noexcept;
 

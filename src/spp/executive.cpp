@@ -157,13 +157,26 @@ void Processor::run() noexcept {
         }
         const std::uint64_t h = s->head.load(std::memory_order_relaxed);
         const Command c = s->ring[h % s->ring.size()];
-        execute(*s, c);
+        execute(c);
+        // Retire the command before waking anybody (WAKEUP, RELEASE): a woken
+        // task above the executive on its CPU runs before the executive's next
+        // step, and must find the entry free and executed() up to date.
         s->head.store(h + 1, std::memory_order_release);
         executed_.fetch_add(1, std::memory_order_relaxed);
+        if (c.type == CommandType::WAKEUP) {
+            s->woken.store(c.seq, std::memory_order_release);
+            s->woken.notify_all();
+        } else if (c.type == CommandType::RELEASE) {
+            std::lock_guard<std::mutex> lk(lock_mutex_);
+            if (owner_.load() == s->index) {
+                owner_.store(-1, std::memory_order_release);
+                grant_next_locked();
+            }
+        }
     }
 }
 
-void Processor::execute(Slot& slot, const Command& c) noexcept {
+void Processor::execute(const Command& c) noexcept {
     switch (c.type) {
     case CommandType::CALL:
         try {
@@ -181,17 +194,8 @@ void Processor::execute(Slot& slot, const Command& c) noexcept {
         std::memcpy(c.user, memory_.get() + offsets_[c.target.index] + c.offset, c.bytes);
         break;
     case CommandType::WAKEUP:
-        slot.woken.store(c.seq, std::memory_order_release);
-        slot.woken.notify_all();
-        break;
-    case CommandType::RELEASE: {
-        std::lock_guard<std::mutex> lk(lock_mutex_);
-        if (owner_.load() == slot.index) {
-            owner_.store(-1, std::memory_order_release);
-            grant_next_locked();
-        }
-        break;
-    }
+    case CommandType::RELEASE:
+        break;  // they wake a task: done by run() once the command is retired
     }
 }
 

@@ -258,6 +258,7 @@ TEST_F(SppExecutive, QueuedCountsTheCommandsNotYetCompletedOfEveryTask) {
     EXPECT_EQ(proc().queued(), 4u);
     gates[0].open();
     ASSERT_EQ(s.wait(), 0);
+    EXPECT_EQ(proc().queued(), 0u);  // the WAKEUP too: retired before the task is woken
     EXPECT_EQ(journal.entries(), (Entries{0, 1, 2, 3}));
 }
 

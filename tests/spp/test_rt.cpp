@@ -229,3 +229,30 @@ TEST_F(SppAboveTheExecutive, WaitOnAFullBufferSleepsAndLetsTheExecutiveRun) {
     EXPECT_EQ(wait_rc, 0);
     EXPECT_EQ(journal.entries(), (std::vector<std::int64_t>{0, 1, 2, 3, 4}));
 }
+
+// The task is woken by its WAKEUP and runs before the executive takes
+// another step: by then the WAKEUP must be retired (buffer room, queued(),
+// executed()), not still in the buffer.
+TEST_F(SppAboveTheExecutive, WhenWaitReturnsItsWakeupIsAlreadyRetired) {
+    auto proc = start(/*queue=*/2);
+    int refused = 0, left_queued = 0, miscounted = 0;
+    ASSERT_TRUE(run_fifo_on(cpu_, 20, [&] {
+        auto s = spp::Spp::init(*proc, 1);
+        const spp::Handle rec = s->translate("record");
+        for (int round = 0; round < 50; ++round) {
+            const std::uint64_t ran = proc->executed();
+            refused += s->call(rec, tag(round)) != 0;
+            if (s->wait() != 0) ++refused;
+            left_queued += proc->queued() != 0;
+            miscounted += proc->executed() - ran != 2;  // the record and the WAKEUP
+            // QUEUE 2: both fit only if the WAKEUP's entry is free.
+            refused += s->call(rec, tag(round)) != 0;
+            refused += s->call(rec, tag(round)) != 0;
+            if (s->wait() != 0) ++refused;
+        }
+    }));
+    EXPECT_EQ(refused, 0);
+    EXPECT_EQ(left_queued, 0);
+    EXPECT_EQ(miscounted, 0);
+    EXPECT_EQ(journal.size(), 150);
+}
