@@ -172,7 +172,8 @@ enum class CommandType : std::uint8_t { CALL, WAKEUP, XFER_IN, XFER_OUT, RELEASE
 class Processor {
 public:
     /// Lays out the library's variables in MEMSIZE bytes and starts the
-    /// executive. Throws Error: unknown driver, library does not fit.
+    /// executive, pinned and raised as configured before this returns.
+    /// Throws Error: unknown driver, library does not fit, CPU not usable.
     static std::unique_ptr<Processor> init(const Config& config, const Library& library);
     ~Processor();  // stops the executive after the commands already issued
     Processor(const Processor&) = delete;
@@ -207,6 +208,7 @@ private:
     struct Slot;
 
     Processor(const Config& config, const Library& library);
+    int place() noexcept;
     void run() noexcept;
     Slot* pick() noexcept;
     void execute(const Command& c) noexcept;

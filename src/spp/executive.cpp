@@ -7,6 +7,7 @@
 #include <cerrno>
 #include <cstdio>
 #include <cstring>
+#include <future>
 
 namespace chimera::spp {
 
@@ -67,7 +68,23 @@ Processor::Processor(const Config& config, const Library& library)
 
 std::unique_ptr<Processor> Processor::init(const Config& config, const Library& library) {
     std::unique_ptr<Processor> p(new Processor(config, library));
-    p->thread_ = std::thread([q = p.get()] { q->run(); });
+    // The executive takes its CPU and policy before init returns: realtime()
+    // is settled for the caller, and a CPU it cannot have is an init error.
+    std::promise<int> placed;
+    std::future<int> pin_error = placed.get_future();
+    // The promise moves into the thread: set_value may still be touching it
+    // when init's get() returns.
+    p->thread_ = std::thread([q = p.get(), placed = std::move(placed)]() mutable {
+        const int rc = q->place();
+        placed.set_value(rc);
+        if (rc == 0) q->run();
+    });
+    if (const int rc = pin_error.get(); rc != 0) {
+        p->thread_.join();
+        throw Error("SPP " + config.name + " (" + config.file + ":" + std::to_string(config.line) +
+                    "): cannot pin the executive to CPU " + std::to_string(config.cpu) + ": " +
+                    std::strerror(rc));
+    }
     return p;
 }
 
@@ -128,14 +145,20 @@ Processor::Slot* Processor::pick() noexcept {
     return best;
 }
 
-void Processor::run() noexcept {
+// Pins the executive thread (CPU) and raises it (PRIORITY). Returns the
+// error of pinning, or 0; no SCHED_FIFO is not an error: best effort.
+int Processor::place() noexcept {
     if (config_.cpu >= 0) {
-        cpu_set_t set;
-        CPU_ZERO(&set);
-        CPU_SET(static_cast<unsigned>(config_.cpu), &set);
-        if (pthread_setaffinity_np(pthread_self(), sizeof set, &set) != 0)
-            std::fprintf(stderr, "spp %s: cannot pin the executive to CPU %d; it runs unpinned\n",
-                         config_.name.c_str(), config_.cpu);
+        // Sized for the CPU, which may lie beyond a fixed cpu_set_t (CPU_SETSIZE).
+        const auto cpu = static_cast<std::size_t>(config_.cpu);
+        cpu_set_t* set = CPU_ALLOC(cpu + 1);
+        if (!set) return ENOMEM;
+        const std::size_t size = CPU_ALLOC_SIZE(cpu + 1);
+        CPU_ZERO_S(size, set);
+        CPU_SET_S(cpu, size, set);
+        const int rc = pthread_setaffinity_np(pthread_self(), size, set);
+        CPU_FREE(set);
+        if (rc != 0) return rc;
     }
     if (config_.priority > 0) {
         sched_param sp{};
@@ -147,6 +170,10 @@ void Processor::run() noexcept {
                          "spp %s: no real-time privilege (%s); the executive runs SCHED_OTHER\n",
                          config_.name.c_str(), std::strerror(rc));
     }
+    return 0;
+}
+
+void Processor::run() noexcept {
     for (;;) {
         const std::uint32_t seen = work_.load(std::memory_order_acquire);
         Slot* s = pick();

@@ -116,6 +116,34 @@ TEST(SppPlacement, TheExecutiveRunsSchedFifoAtItsPriorityWhereAllowed) {
     EXPECT_EQ(placement.priority.load(), 37);
 }
 
+// realtime() is for the caller of init to check its configuration took: it
+// must be right when init returns, not once the executive thread got going.
+TEST(SppPlacement, RealtimeIsSettledWhenInitReturns) {
+    const bool allowed = fifo_allowed();
+    spp::Config c = make_config();
+    c.priority = 20;
+    c.cpu = allowed_cpus().back();
+    for (int attempt = 0; attempt < 20; ++attempt) {
+        auto proc = spp::Processor::init(c, make_library());
+        ASSERT_EQ(proc->realtime(), allowed) << "attempt " << attempt;
+    }
+}
+
+// A CPU the executive cannot run on is a configuration error, reported by
+// init like the others, not an executive quietly running elsewhere.
+TEST(SppPlacement, ACpuTheExecutiveCannotRunOnIsAnInitErrorNamingTheSppAndLine) {
+    spp::Config c = make_config();
+    c.cpu = 4095;  // the largest CPU the file format takes; no test machine has it
+    c.file = "lab.spp";
+    c.line = 12;
+    try {
+        spp::Processor::init(c, make_library());
+        ADD_FAILURE() << "init accepted CPU 4095";
+    } catch (const spp::Error& e) {
+        EXPECT_EQ(std::string(e.what()), "SPP fpa0 (lab.spp:12): cannot pin the executive to CPU 4095: Invalid argument");
+    }
+}
+
 TEST(SppPlacement, WithoutPriorityTheExecutiveIsSchedOther) {
     auto proc = spp::Processor::init(make_config(), make_library());
     locate_executive(*proc);
