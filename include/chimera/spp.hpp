@@ -37,7 +37,7 @@
 //     [QUEUE <commands>]     # command buffer entries per task, default 64
 //     [TASKS <n>]            # tasks that may use it at once, default 8
 //     [CPU <n>]              # pin the executive to this CPU
-//     [PRIORITY <1-99>]      # run it SCHED_FIFO (best effort without privilege)
+//     [PRIORITY <1-99>]      # run it SCHED_FIFO (without privilege: SCHED_OTHER, said once per process)
 //   END
 //   EOF
 #pragma once
@@ -185,7 +185,8 @@ public:
     /// Commands the executive has run, and routines that threw.
     std::uint64_t executed() const noexcept { return executed_.load(std::memory_order_relaxed); }
     std::uint64_t faults() const noexcept { return faults_.load(std::memory_order_relaxed); }
-    /// True when the executive got the SCHED_FIFO priority it was configured with.
+    /// True when the executive got the SCHED_FIFO priority it was configured
+    /// with (settled when init returns).
     bool realtime() const noexcept { return realtime_.load(); }
     /// Commands issued by the attached tasks and not yet completed (the one
     /// running included): the SPP's backlog, for a status display.

@@ -11,6 +11,10 @@
 
 namespace chimera::spp {
 
+namespace {
+std::atomic<bool> g_warned_no_privilege{false};
+}  // namespace
+
 // One task's command buffer: a single-producer (the task) single-consumer
 // (the executive) ring, allocated at init so issuing a command never allocates.
 // It holds QUEUE commands plus one entry kept for wait()'s WAKEUP, so that
@@ -164,11 +168,16 @@ int Processor::place() noexcept {
         sched_param sp{};
         sp.sched_priority = config_.priority;
         const int rc = pthread_setschedparam(pthread_self(), SCHED_FIFO, &sp);
-        if (rc == 0) realtime_.store(true);
-        else
+        if (rc == 0) {
+            realtime_.store(true);
+        } else if (!g_warned_no_privilege.exchange(true)) {
+            // Once per process, as the MUF scheduler does: each Processor's
+            // realtime() tells which executives it applies to.
             std::fprintf(stderr,
-                         "spp %s: no real-time privilege (%s); the executive runs SCHED_OTHER\n",
+                         "spp %s: no real-time privilege (SCHED_FIFO refused: %s); executives run "
+                         "best effort under SCHED_OTHER\n",
                          config_.name.c_str(), std::strerror(rc));
+        }
     }
     return 0;
 }
