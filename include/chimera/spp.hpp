@@ -48,6 +48,7 @@
 #include <cstdint>
 #include <memory>
 #include <mutex>
+#include <new>
 #include <stdexcept>
 #include <string>
 #include <string_view>
@@ -127,6 +128,7 @@ class Library {
 public:
     /// Throws Error when the name is already used.
     void add_routine(std::string name, Routine fn);
+    /// `align`: any power of two; the variable's address has it.
     void add_variable(std::string name, std::size_t bytes, std::size_t align = 16);
 
     struct RoutineEntry {
@@ -220,7 +222,11 @@ private:
     std::vector<Library::RoutineEntry> routines_;
     std::vector<Library::VariableEntry> variables_;
     std::vector<std::size_t> offsets_;
-    std::unique_ptr<std::byte[]> memory_;
+    struct AlignedDelete {  // memory_ comes from an over-aligned operator new[]
+        std::size_t align;
+        void operator()(std::byte* p) const noexcept { ::operator delete[](p, std::align_val_t{align}); }
+    };
+    std::unique_ptr<std::byte[], AlignedDelete> memory_;
     std::vector<std::unique_ptr<Slot>> slots_;
     Memory view_;
 

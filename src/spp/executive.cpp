@@ -4,6 +4,7 @@
 #include <pthread.h>
 #include <sched.h>
 
+#include <algorithm>
 #include <cerrno>
 #include <cstdio>
 #include <cstring>
@@ -55,6 +56,7 @@ Processor::Processor(const Config& config, const Library& library)
     if (config.driver != "thread")
         throw Error("SPP " + config.name + ": unknown driver " + config.driver);
     std::size_t at = 0;
+    std::size_t base_align = 64;  // a cache line at least, for any routine's data
     for (const auto& v : variables_) {
         at = (at + v.align - 1) & ~(v.align - 1);
         offsets_.push_back(at);
@@ -63,9 +65,13 @@ Processor::Processor(const Config& config, const Library& library)
             throw Error("SPP " + config.name + " (" + config.file + ":" + std::to_string(config.line) +
                         "): library variable " + v.name + " does not fit in MEMSIZE " +
                         std::to_string(config.memsize));
+        base_align = std::max(base_align, v.align);
     }
-    // Aligned for any routine's data; zeroed like freshly initialised SPP memory.
-    memory_.reset(new (std::align_val_t{64}) std::byte[config.memsize]());
+    // Offsets are aligned relative to the base: the base must have the
+    // largest alignment asked for. Zeroed like freshly initialised SPP memory.
+    memory_ = {static_cast<std::byte*>(::operator new[](config.memsize, std::align_val_t{base_align})),
+               AlignedDelete{base_align}};
+    std::memset(memory_.get(), 0, config.memsize);
     for (int i = 0; i < config.tasks; ++i) slots_.push_back(std::make_unique<Slot>(i, config.queue));
     view_.proc_ = this;
 }

@@ -192,6 +192,35 @@ TEST(SppLibrary, MemoryStartsZeroed) {
     }
 }
 
+// misalignment(variable, alignment): journals the variable's address modulo
+// the alignment, taken where the routine sees it.
+void misalignment(spp::Memory& m, const spp::Args& a) {
+    const auto address = reinterpret_cast<std::uintptr_t>(m.at(a.h(0)));
+    journal.add(static_cast<std::int64_t>(address % static_cast<std::uintptr_t>(a.i(1))));
+}
+
+// add_variable takes any power-of-two alignment (a cache line, a page for
+// DMA-style buffers): the address must have it, not just the offset.
+TEST(SppLibrary, EveryVariableGetsTheAlignmentItAskedFor) {
+    reset_fixtures();
+    spp::Library lib;
+    lib.add_variable("byte", 1, 1);
+    lib.add_variable("line", 64, 128);
+    lib.add_variable("page", 4096, 4096);
+    lib.add_routine("misalignment", misalignment);
+    spp::Config c = make_config();
+    c.memsize = 3 * 4096;
+    // Several SPPs: one base address could be page-aligned by chance.
+    for (int instance = 0; instance < 4; ++instance) {
+        auto proc = spp::Processor::init(c, lib);
+        auto s = spp::Spp::init(*proc, 1);
+        for (const auto& [name, align] : {std::pair{"byte", 1}, std::pair{"line", 128}, std::pair{"page", 4096}})
+            ASSERT_EQ(s->call(s->translate("misalignment"), spp::Args{}.add(s->translate(name)).add(align)), 0);
+        ASSERT_EQ(s->wait(), 0);
+    }
+    EXPECT_EQ(journal.entries(), std::vector<std::int64_t>(12, 0));
+}
+
 // --- translate -----------------------------------------------------------------
 
 TEST(SppTranslate, GivesRoutineAndVariableHandlesAndNamesAnUnknownSymbol) {
