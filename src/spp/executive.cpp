@@ -58,13 +58,16 @@ Processor::Processor(const Config& config, const Library& library)
     std::size_t at = 0;
     std::size_t base_align = 64;  // a cache line at least, for any routine's data
     for (const auto& v : variables_) {
-        at = (at + v.align - 1) & ~(v.align - 1);
-        offsets_.push_back(at);
-        at += v.bytes;
-        if (at > config.memsize)
+        // In differences from MEMSIZE, which cannot wrap around as sums can
+        // (at <= memsize throughout). An alignment beyond MEMSIZE does not fit
+        // either: the memory itself would have to be that aligned.
+        const std::size_t pad = (v.align - at % v.align) % v.align;
+        if (v.align > config.memsize || pad > config.memsize - at || v.bytes > config.memsize - at - pad)
             throw Error("SPP " + config.name + " (" + config.file + ":" + std::to_string(config.line) +
                         "): library variable " + v.name + " does not fit in MEMSIZE " +
                         std::to_string(config.memsize));
+        offsets_.push_back(at + pad);
+        at += pad + v.bytes;
         base_align = std::max(base_align, v.align);
     }
     // Offsets are aligned relative to the base: the base must have the

@@ -171,6 +171,25 @@ TEST(SppLibrary, AVariableThatDoesNotFitInMemsizeIsAnInitErrorNamingItAndTheFile
     EXPECT_NO_THROW(spp::Processor::init(c, lib));
 }
 
+// A size near SIZE_MAX must not wrap the layout's running offset around to
+// "fits": size_of() would then allow XFERs far outside the SPP's memory.
+TEST(SppLibrary, AHugeVariableDoesNotFitEvenWhenTheSumWrapsAround) {
+    spp::Library lib;
+    lib.add_variable("a", 16);
+    lib.add_variable("huge", std::numeric_limits<std::size_t>::max() - 8);
+    EXPECT_EQ(error_of([&] { spp::Processor::init(make_config(), lib); }),
+              "SPP fpa0 (test.spp:1): library variable huge does not fit in MEMSIZE 4096");
+    spp::Library aligned;
+    aligned.add_variable("a", 16);
+    aligned.add_variable("far", 8, std::size_t{1} << 63);
+    EXPECT_EQ(error_of([&] { spp::Processor::init(make_config(), aligned); }),
+              "SPP fpa0 (test.spp:1): library variable far does not fit in MEMSIZE 4096");
+    spp::Library aligned_first;
+    aligned_first.add_variable("far", 8, std::size_t{1} << 63);
+    EXPECT_EQ(error_of([&] { spp::Processor::init(make_config(), aligned_first); }),
+              "SPP fpa0 (test.spp:1): library variable far does not fit in MEMSIZE 4096");
+}
+
 TEST(SppLibrary, AnUnknownDriverIsAnInitErrorNamingTheSpp) {
     spp::Config c = make_config();
     c.driver = "mercury";
