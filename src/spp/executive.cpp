@@ -28,7 +28,11 @@ struct Processor::Slot {
     std::vector<Command> ring;
     std::atomic<std::uint64_t> head{0};   // next to run (executive)
     std::atomic<std::uint64_t> tail{0};   // next free (task)
-    std::atomic<std::uint64_t> woken{0};  // seq of the last WAKEUP run
+    // WAKEUPs run, the word wait() sleeps on. 32 bits: std::atomic waits on
+    // that size with a futex on its own address; on a 64-bit word libstdc++
+    // sleeps on a word shared by every address of a hash bucket, and each
+    // WAKEUP would wake all tasks sleeping in that bucket.
+    std::atomic<std::uint32_t> wakeups{0};
     std::atomic<int> priority{0};
     std::atomic<bool> active{false};
     // Under lock_mutex_:
@@ -209,8 +213,8 @@ void Processor::run() noexcept {
         s->head.store(h + 1, std::memory_order_release);
         executed_.fetch_add(1, std::memory_order_relaxed);
         if (c.type == CommandType::WAKEUP) {
-            s->woken.store(c.seq, std::memory_order_release);
-            s->woken.notify_all();
+            s->wakeups.fetch_add(1, std::memory_order_release);
+            s->wakeups.notify_all();
         } else if (c.type == CommandType::RELEASE) {
             std::lock_guard<std::mutex> lk(lock_mutex_);
             if (owner_.load() == s->index) {
@@ -329,14 +333,15 @@ int Spp::wait() noexcept {
     // The entry kept for the WAKEUP is free: push() leaves it, and the last
     // WAKEUP has run (this task's previous wait() returned). No waiting for
     // room here: a task above the executive on its CPU would spin forever.
+    // For the same reason no WAKEUP of this task is pending: the count stays
+    // as read here until the executive runs the one issued now.
+    const std::uint32_t before = s.wakeups.load(std::memory_order_acquire);
     const std::uint64_t t = s.tail.load(std::memory_order_relaxed);
     const std::uint64_t seq = proc_->next_seq_.fetch_add(1, std::memory_order_relaxed);
     s.ring[t % s.ring.size()] = {CommandType::WAKEUP, {}, seq, {}, nullptr, 0, 0};
     s.tail.store(t + 1, std::memory_order_release);
     proc_->kick();
-    for (std::uint64_t w = s.woken.load(std::memory_order_acquire); w < seq;
-         w = s.woken.load(std::memory_order_acquire))
-        s.woken.wait(w, std::memory_order_acquire);
+    while (s.wakeups.load(std::memory_order_acquire) == before) s.wakeups.wait(before, std::memory_order_acquire);
     return 0;
 }
 

@@ -5,6 +5,8 @@
 // by sleeping.
 #include <gtest/gtest.h>
 
+#include <sys/resource.h>
+
 #include <cerrno>
 #include <thread>
 #include <vector>
@@ -152,4 +154,49 @@ TEST_F(SppLock, LockingAgainWaitsUntilTheTasksBufferedReleaseHasRun) {
     gates[0].open();
     relocker.join();
     EXPECT_EQ(journal_at_relock, 2) << "lock() returned before the task's own RELEASE had run";
+}
+
+// A task sleeping in wait() is woken by its own WAKEUP only: every other
+// task's WAKEUP that woke it as well would cost it a switch in and out, at its
+// (possibly high) priority. Each round one task holds the lock, so the others'
+// commands stay queued and they sleep in wait() while the holder waits 1000
+// times; whatever wait() sleeps on must not be shared between tasks (with 8
+// tasks, any sharing between two of them shows in some round).
+TEST_F(SppLock, AnotherTasksWakeupDoesNotWakeATaskSleepingInWait) {
+    // A wait() that sleeps once switches about 5 times (the sleep, and the
+    // yields of libstdc++'s spin before it); one woken by every WAKEUP of a
+    // task sharing its word switches hundreds of times.
+    constexpr int kTasks = 8, kHolderWaits = 1000, kMostSwitches = 20;
+    start(/*queue=*/4, kTasks);
+    std::vector<spp::Spp*> tasks;
+    for (int t = 0; t < kTasks; ++t) tasks.push_back(&task(t + 1));
+    for (int holder = 0; holder < kTasks; ++holder) {
+        tasks[static_cast<std::size_t>(holder)]->lock();
+        std::vector<std::thread> sleepers;
+        std::vector<long> switches(kTasks, 0);
+        for (int t = 0; t < kTasks; ++t) {
+            if (t == holder) continue;
+            sleepers.emplace_back([&, t] {
+                spp::Spp& s = *tasks[static_cast<std::size_t>(t)];
+                record_all(s, {t});
+                rusage before{}, after{};
+                getrusage(RUSAGE_THREAD, &before);
+                EXPECT_EQ(s.wait(), 0);
+                getrusage(RUSAGE_THREAD, &after);
+                // Both kinds: a spurious wake-up may end in sleeping again
+                // (voluntary) or in spinning and yielding (involuntary).
+                switches[static_cast<std::size_t>(t)] =
+                    after.ru_nvcsw - before.ru_nvcsw + after.ru_nivcsw - before.ru_nivcsw;
+            });
+        }
+        // Every sleeper has issued its record and WAKEUP.
+        ASSERT_TRUE(eventually([&] { return proc().queued() == 2u * (kTasks - 1); }));
+        spp::Spp& h = *tasks[static_cast<std::size_t>(holder)];
+        for (int k = 0; k < kHolderWaits; ++k) ASSERT_EQ(h.wait(), 0);
+        ASSERT_EQ(h.release(), 0);
+        for (auto& th : sleepers) th.join();
+        for (int t = 0; t < kTasks; ++t)
+            EXPECT_LE(switches[static_cast<std::size_t>(t)], kMostSwitches)
+                << "task " << t << " slept in wait() while task " << holder << " waited " << kHolderWaits << " times";
+    }
 }
