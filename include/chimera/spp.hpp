@@ -231,6 +231,7 @@ private:
     Memory view_;
 
     std::atomic<std::uint32_t> work_{0};   // bumped on every new command; the executive waits on it
+    std::atomic<bool> idle_{false};         // the executive is (about to be) asleep on work_
     std::atomic<std::uint64_t> next_seq_{1};
     std::atomic<int> owner_{-1};           // slot holding the lock, or -1
     std::atomic<bool> stop_{false};

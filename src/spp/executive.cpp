@@ -130,9 +130,15 @@ std::size_t Processor::queued() const noexcept {
     return n;
 }
 
+// A new command (or a lock grant, or stop): wake the executive if it sleeps.
+// notify_one() alone is not enough to keep the promise of no system call
+// while the executive is busy: libstdc++ makes the futex call whenever any
+// thread waits on an address of work_'s hash bucket, not only the executive.
+// Sequentially consistent with run()'s idle_ store and work_ load: either
+// the executive sees this increment before it sleeps, or this sees idle_.
 void Processor::kick() noexcept {
-    work_.fetch_add(1, std::memory_order_release);
-    work_.notify_one();
+    work_.fetch_add(1, std::memory_order_seq_cst);
+    if (idle_.load(std::memory_order_seq_cst)) work_.notify_one();
 }
 
 // The next task to serve. While a task holds the lock only its commands run;
@@ -201,7 +207,9 @@ void Processor::run() noexcept {
         Slot* s = pick();
         if (!s) {
             if (stop_.load()) return;
-            work_.wait(seen, std::memory_order_acquire);
+            idle_.store(true, std::memory_order_seq_cst);
+            work_.wait(seen, std::memory_order_seq_cst);  // returns at once if work_ moved
+            idle_.store(false, std::memory_order_relaxed);
             continue;
         }
         const std::uint64_t h = s->head.load(std::memory_order_relaxed);
