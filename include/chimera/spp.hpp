@@ -177,7 +177,10 @@ public:
     /// executive, pinned and raised as configured before this returns.
     /// Throws Error: unknown driver, library does not fit, CPU not usable.
     static std::unique_ptr<Processor> init(const Config& config, const Library& library);
-    ~Processor();  // stops the executive after the commands already issued
+    /// Every Spp attached must have finished (been destroyed) first, so all
+    /// their commands have run; one still attached aborts the program, naming
+    /// the SPP, rather than leave it pointing into freed memory.
+    ~Processor();
     Processor(const Processor&) = delete;
     Processor& operator=(const Processor&) = delete;
 

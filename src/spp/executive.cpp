@@ -7,6 +7,7 @@
 #include <algorithm>
 #include <cerrno>
 #include <cstdio>
+#include <cstdlib>
 #include <cstring>
 #include <future>
 
@@ -106,6 +107,18 @@ std::unique_ptr<Processor> Processor::init(const Config& config, const Library& 
 }
 
 Processor::~Processor() {
+    int attached = 0;
+    {
+        std::lock_guard<std::mutex> lk(lock_mutex_);
+        for (const auto& sp : slots_) attached += sp->in_use ? 1 : 0;
+    }
+    if (attached > 0) {
+        // Their Spp objects point into this Processor: going on would leave
+        // each task's next call, or its finish(), writing freed memory.
+        std::fprintf(stderr, "spp %s: destroyed while %d task%s still attached (finish every Spp first)\n",
+                     config_.name.c_str(), attached, attached == 1 ? " is" : "s are");
+        std::abort();
+    }
     stop_.store(true);
     kick();
     if (thread_.joinable()) thread_.join();

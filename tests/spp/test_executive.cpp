@@ -340,3 +340,28 @@ TEST_F(SppExecutive, TheDestructorFinishesAndTheFreedSlotServesANewTask) {
     ASSERT_EQ(second->wait(), 0);
     EXPECT_EQ(journal.entries(), (Entries{1, 2, 3}));
 }
+
+// --- the Processor outliving its tasks -----------------------------------------------
+
+// A task still attached keeps pointers into the Processor: destroying it then
+// would leave that task's next call (or its finish) writing freed memory. It
+// is a programming error, stopped where it happens, with its name.
+TEST(SppProcessorDeathTest, DestroyingItWhileATaskIsAttachedStopsTheProgramNamingIt) {
+    GTEST_FLAG_SET(death_test_style, "threadsafe");
+    EXPECT_DEATH(
+        {
+            auto proc = spp::Processor::init(make_config(), make_library());
+            spp::Spp* attached = spp::Spp::init(*proc, 1).release();  // never finished
+            static_cast<void>(attached);
+            proc.reset();
+        },
+        "spp fpa0: destroyed while 1 task is still attached");
+}
+
+TEST(SppProcessor, DestroyingItAfterItsTasksFinishedIsQuiet) {
+    auto proc = spp::Processor::init(make_config(), make_library());
+    auto s = spp::Spp::init(*proc, 1);
+    ASSERT_EQ(s->call(s->translate("record"), tag(1)), 0);
+    s.reset();
+    proc.reset();
+}
