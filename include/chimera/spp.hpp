@@ -175,7 +175,8 @@ class Processor {
 public:
     /// Lays out the library's variables in MEMSIZE bytes and starts the
     /// executive, pinned and raised as configured before this returns.
-    /// Throws Error: unknown driver, library does not fit, CPU not usable.
+    /// Throws Error: unknown driver, a value out of the file format's range
+    /// (for a Config made in code), library does not fit, CPU not usable.
     static std::unique_ptr<Processor> init(const Config& config, const Library& library);
     /// Every Spp attached must have finished (been destroyed) first, so all
     /// their commands have run; one still attached aborts the program, naming

@@ -60,6 +60,18 @@ Processor::Processor(const Config& config, const Library& library)
     : config_(config), routines_(library.routines()), variables_(library.variables()) {
     if (config.driver != "thread")
         throw Error("SPP " + config.name + ": unknown driver " + config.driver);
+    // The ranges the file reader enforces, for a Config written in code.
+    const std::string where = "SPP " + config.name + " (" + config.file + ":" + std::to_string(config.line) + "): ";
+    const auto check = [&](bool ok, const std::string& rule, long long found) {
+        if (!ok) throw Error(where + rule + ", found " + std::to_string(found));
+    };
+    check(config.memsize >= 1 && config.memsize <= (std::size_t{1} << 34), "MEMSIZE must be 1..16G bytes",
+          static_cast<long long>(config.memsize));
+    check(config.queue >= 2 && config.queue <= (1 << 16), "QUEUE must be 2..65536", config.queue);
+    check(config.tasks >= 1 && config.tasks <= 256, "TASKS must be 1..256", config.tasks);
+    check(config.cpu >= -1 && config.cpu <= 4095, "CPU must be 0..4095 (-1: not pinned)", config.cpu);
+    check(config.priority >= 0 && config.priority <= 99, "PRIORITY must be 1..99 (0: not real-time)",
+          config.priority);
     std::size_t at = 0;
     std::size_t base_align = 64;  // a cache line at least, for any routine's data
     for (const auto& v : variables_) {

@@ -190,6 +190,28 @@ TEST(SppLibrary, AHugeVariableDoesNotFitEvenWhenTheSumWrapsAround) {
               "SPP fpa0 (test.spp:1): library variable far does not fit in MEMSIZE 4096");
 }
 
+// A Config written in code gets the checks a file gets: a PRIORITY of 100
+// must not surface later as "no real-time privilege (Invalid argument)".
+TEST(SppLibrary, AConfigMadeInCodeIsCheckedAsAFileIsAtInit) {
+    const auto init_error = [](auto&& change) {
+        spp::Config c = make_config();
+        change(c);
+        return error_of([&] { spp::Processor::init(c, make_library()); });
+    };
+    EXPECT_EQ(init_error([](spp::Config& c) { c.priority = 100; }),
+              "SPP fpa0 (test.spp:1): PRIORITY must be 1..99 (0: not real-time), found 100");
+    EXPECT_EQ(init_error([](spp::Config& c) { c.priority = -1; }),
+              "SPP fpa0 (test.spp:1): PRIORITY must be 1..99 (0: not real-time), found -1");
+    EXPECT_EQ(init_error([](spp::Config& c) { c.queue = 0; }),
+              "SPP fpa0 (test.spp:1): QUEUE must be 2..65536, found 0");
+    EXPECT_EQ(init_error([](spp::Config& c) { c.tasks = 0; }),
+              "SPP fpa0 (test.spp:1): TASKS must be 1..256, found 0");
+    EXPECT_EQ(init_error([](spp::Config& c) { c.cpu = -2; }),
+              "SPP fpa0 (test.spp:1): CPU must be 0..4095 (-1: not pinned), found -2");
+    EXPECT_EQ(init_error([](spp::Config& c) { c.memsize = 0; }),
+              "SPP fpa0 (test.spp:1): MEMSIZE must be 1..16G bytes, found 0");
+}
+
 TEST(SppLibrary, AnUnknownDriverIsAnInitErrorNamingTheSpp) {
     spp::Config c = make_config();
     c.driver = "mercury";
