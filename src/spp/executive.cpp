@@ -80,8 +80,7 @@ Processor::Processor(const Config& config, const Library& library)
         // either: the memory itself would have to be that aligned.
         const std::size_t pad = (v.align - at % v.align) % v.align;
         if (v.align > config.memsize || pad > config.memsize - at || v.bytes > config.memsize - at - pad)
-            throw Error("SPP " + config.name + " (" + config.file + ":" + std::to_string(config.line) +
-                        "): library variable " + v.name + " does not fit in MEMSIZE " +
+            throw Error(where + "library variable " + v.name + " does not fit in MEMSIZE " +
                         std::to_string(config.memsize));
         offsets_.push_back(at + pad);
         at += pad + v.bytes;
