@@ -160,9 +160,11 @@ std::size_t Processor::queued() const noexcept {
 // thread waits on an address of work_'s hash bucket, not only the executive.
 // Sequentially consistent with run()'s idle_ store and work_ load: either
 // the executive sees this increment before it sleeps, or this sees idle_.
+// The first kick clears idle_: the rest of a burst (write, call, read, wait)
+// finds the executive already woken and makes no system call.
 void Processor::kick() noexcept {
     work_.fetch_add(1, std::memory_order_seq_cst);
-    if (idle_.load(std::memory_order_seq_cst)) work_.notify_one();
+    if (idle_.exchange(false, std::memory_order_seq_cst)) work_.notify_one();
 }
 
 // The next task to serve. While a task holds the lock only its commands run;
@@ -233,7 +235,7 @@ void Processor::run() noexcept {
             if (stop_.load()) return;
             idle_.store(true, std::memory_order_seq_cst);
             work_.wait(seen, std::memory_order_seq_cst);  // returns at once if work_ moved
-            idle_.store(false, std::memory_order_relaxed);
+            idle_.store(false, std::memory_order_relaxed);  // when no kick cleared it
             continue;
         }
         const std::uint64_t h = s->head.load(std::memory_order_relaxed);
