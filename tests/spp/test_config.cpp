@@ -132,7 +132,7 @@ TEST(SppConfig, LoadConfigNamesTheFileItRead) {
     ASSERT_EQ(configs.size(), 1u);
     EXPECT_EQ(configs[0].file, path);
     std::remove(path);
-    EXPECT_EQ(error_of([&] { spp::load_config(path); }), std::string(path) + ":0: cannot open file");
+    EXPECT_EQ(error_of([&] { spp::load_config(path); }), std::string(path) + ": cannot open file: No such file or directory");
 }
 
 TEST(SppConfig, FindConfigNamesTheMissingSpp) {
