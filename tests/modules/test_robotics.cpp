@@ -23,8 +23,6 @@
 #include "robotics/pid.hpp"
 #include "robotics/trajectory.hpp"
 
-using chimera::test::alloc_count;
-using chimera::test::alloc_counting;
 
 namespace rb = chimera::robotics;
 using Eigen::VectorXd;
@@ -490,13 +488,10 @@ TEST(ClosedLoop, PumaFollowsQuinticTrajectoryWithinStatedError) {
 
 // ---------------------------------------------------------------- no allocation
 TEST(NoAllocation, CounterSeesAnAllocation) {
-    alloc_count = 0;
-    alloc_counting = true;
+    void* volatile p = nullptr;
     // A direct call: new-expressions may be elided by the compiler, this may not.
-    void* volatile p = ::operator new(64);
-    alloc_counting = false;
+    EXPECT_EQ(chimera::test::allocations_in([&] { p = ::operator new(64); }), 1);
     ::operator delete(p);
-    EXPECT_EQ(alloc_count.load(), 1);
 }
 
 TEST(NoAllocation, PerCycleCallsDoNotTouchTheHeap) {
@@ -517,8 +512,7 @@ TEST(NoAllocation, PerCycleCallsDoNotTouchTheHeap) {
     sim.reset(q, VectorXd::Zero(6));
     // Warm up once (first calls may size lazily).
     kin.fk(q, x);
-    alloc_count = 0;
-    alloc_counting = true;
+    chimera::test::alloc_count_start();
     for (int i = 0; i < 10; ++i) {
         kin.fk(q, x);
         kin.fk(q, f);
@@ -534,6 +528,5 @@ TEST(NoAllocation, PerCycleCallsDoNotTouchTheHeap) {
         pid.update(q, qd, q, qd, out, 1e-3, out);
         traj.evaluate(0.3 * i, p, v, a);
     }
-    alloc_counting = false;
-    EXPECT_EQ(alloc_count.load(), 0);
+    EXPECT_EQ(chimera::test::alloc_count_stop(), 0);
 }

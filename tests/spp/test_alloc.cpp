@@ -8,64 +8,15 @@
 #include <cstddef>
 #include <thread>
 
+#include "alloc_counter.hpp"
 #include "executive_fixture.hpp"
-
-extern "C" {
-void* __libc_malloc(std::size_t);
-void* __libc_calloc(std::size_t, std::size_t);
-void* __libc_realloc(void*, std::size_t);
-void* __libc_memalign(std::size_t, std::size_t);
-}
-
-namespace {
-std::atomic<bool> g_counting{false};
-std::atomic<long> g_allocations{0};
-inline void count() noexcept {
-    if (g_counting.load(std::memory_order_relaxed)) g_allocations.fetch_add(1, std::memory_order_relaxed);
-}
-}  // namespace
-
-extern "C" {
-void* malloc(std::size_t n) {
-    count();
-    return __libc_malloc(n);
-}
-void* calloc(std::size_t n, std::size_t m) {
-    count();
-    return __libc_calloc(n, m);
-}
-void* realloc(void* p, std::size_t n) {
-    count();
-    return __libc_realloc(p, n);
-}
-void* aligned_alloc(std::size_t a, std::size_t n) {
-    count();
-    return __libc_memalign(a, n);
-}
-void* memalign(std::size_t a, std::size_t n) {
-    count();
-    return __libc_memalign(a, n);
-}
-int posix_memalign(void** out, std::size_t a, std::size_t n) {
-    count();
-    *out = __libc_memalign(a, n);
-    return *out ? 0 : ENOMEM;
-}
-}
 
 using namespace spp_test;
 namespace spp = chimera::spp;
 
 namespace {
 
-template <typename F>
-long allocations_in(F&& body) {
-    g_allocations.store(0);
-    g_counting.store(true);
-    body();
-    g_counting.store(false);
-    return g_allocations.load();
-}
+using chimera::test::allocations_in;
 
 // The promise is part of the interface: a change that dropped noexcept from
 // one of these would fail to compile here.

@@ -13,68 +13,22 @@
 #include <string>
 #include <vector>
 
+#include "alloc_counter.hpp"
 #include "chimera/msg.hpp"
 #include "chimera/sem.hpp"
 #include "chimera/xmail.hpp"
 #include "common.hpp"
-
-// glibc's own entry points, under the names it exports for exactly this use.
-extern "C" {
-void* __libc_malloc(std::size_t);
-void* __libc_calloc(std::size_t, std::size_t);
-void* __libc_realloc(void*, std::size_t);
-void* __libc_memalign(std::size_t, std::size_t);
-}
-
-namespace {
-thread_local bool t_counting = false;  // local-exec TLS of the executable: safe inside malloc
-thread_local long t_allocations = 0;
-inline void count() noexcept {
-    if (t_counting) ++t_allocations;
-}
-}  // namespace
-
-extern "C" {
-void* malloc(std::size_t n) {
-    count();
-    return __libc_malloc(n);
-}
-void* calloc(std::size_t n, std::size_t m) {
-    count();
-    return __libc_calloc(n, m);
-}
-void* realloc(void* p, std::size_t n) {
-    count();
-    return __libc_realloc(p, n);
-}
-void* aligned_alloc(std::size_t a, std::size_t n) {
-    count();
-    return __libc_memalign(a, n);
-}
-void* memalign(std::size_t a, std::size_t n) {
-    count();
-    return __libc_memalign(a, n);
-}
-int posix_memalign(void** out, std::size_t a, std::size_t n) {
-    count();
-    *out = __libc_memalign(a, n);
-    return *out ? 0 : 12;  // ENOMEM
-}
-}
 
 using namespace chimera;
 using xm::Status;
 
 namespace {
 
-// Runs `body` with counting on; returns how many allocations it made.
+// Allocations by this thread only: the peers' threads in these tests are not
+// on the path under test.
 template <typename F>
 long allocations_in(F&& body) {
-    t_allocations = 0;
-    t_counting = true;
-    body();
-    t_counting = false;
-    return t_allocations;
+    return chimera::test::allocations_in(body, chimera::test::AllocScope::this_thread);
 }
 
 }  // namespace

@@ -11,6 +11,7 @@
 // skip. The modules are linked into this program (the guest has no module
 // folders); the runtime finds them in the program. No timing is asserted (a
 // TCG guest is slow and irregular): every "eventually" waits up to 10 s.
+#include "alloc_counter.hpp"
 #include <chimera/iod.hpp>
 #include <chimera/ipc/segment.hpp>
 #include <chimera/module.hpp>
@@ -39,26 +40,6 @@ using chimera::State;
 using chimera::sbs::Control;
 using chimera::sbs::Subsystem;
 using chimera::sbs::TaskId;
-
-// --- operator new calls made by one thread (the task under test) --------------------
-namespace {
-std::atomic<long> g_alloc_tid{0};  // 0: not counting
-std::atomic<long> g_allocs{0};
-
-void* counted_alloc(std::size_t n) {
-    if (const long tid = g_alloc_tid.load(std::memory_order_relaxed); tid != 0 && tid == ::gettid())
-        g_allocs.fetch_add(1, std::memory_order_relaxed);
-    if (void* p = std::malloc(n ? n : 1)) return p;
-    throw std::bad_alloc();
-}
-}  // namespace
-
-void* operator new(std::size_t n) { return counted_alloc(n); }
-void* operator new[](std::size_t n) { return counted_alloc(n); }
-void operator delete(void* p) noexcept { std::free(p); }
-void operator delete[](void* p) noexcept { std::free(p); }
-void operator delete(void* p, std::size_t) noexcept { std::free(p); }
-void operator delete[](void* p, std::size_t) noexcept { std::free(p); }
 
 // --- pinprobe: a test module ----------------------------------------------------------
 // Placed before a dout in a combined task, its kill() runs after the dout's
@@ -173,7 +154,7 @@ protected:
             chimera::svar::Table::attach(chimera::ipc::segment_name(name_, "svar")));
     }
     void TearDown() override {
-        g_alloc_tid = 0;
+        chimera::test::alloc_count_stop();
         global_.reset();
         if (sbs_) sbs_->finish();
         sbs_.reset();
@@ -422,11 +403,9 @@ TEST_F(DioGuest, CyclesDoNotAllocate) {
     more_cycles(out, 3);
 
     auto count_on = [&](TaskId id, const std::function<void()>& during) -> long {
-        g_allocs = 0;
-        g_alloc_tid = sbs_->status(id).tid;
+        chimera::test::alloc_count_start(chimera::test::AllocScope::thread, sbs_->status(id).tid);
         during();
-        g_alloc_tid = 0;
-        return g_allocs.load();
+        return chimera::test::alloc_count_stop();
     };
     EXPECT_EQ(count_on(in, [&] {
                   for (int i = 0; i < 10; ++i) {
