@@ -122,20 +122,29 @@ inline LockStatus try_lock(LockWord& lock) noexcept {
     return expected == me ? LockStatus::already_held : LockStatus::busy;
 }
 
+/// The uncontended acquisition alone, for a caller that has its owner word
+/// (self_owner_id(), never 0) at hand: one CAS from free to `self`. False, and
+/// nothing changed, when the lock was not free; lock() does the rest then
+/// (already held, spin, poll, recover, time out).
+inline bool lock_if_free(LockWord& lock, std::uint64_t self) noexcept {
+    std::uint64_t expected = 0;
+    return lock.owner.compare_exchange_strong(expected, self, std::memory_order_acquire,
+                                              std::memory_order_relaxed);
+}
+
 /// The contended path of lock(); out of line.
 LockStatus lock_slow(LockWord& lock, const LockOptions& options) noexcept;
 
 /// Acquires the lock: one CAS when free, else spin, poll, recover or time out.
 inline LockStatus lock(LockWord& lock, const LockOptions& options = {}) noexcept {
-    std::uint64_t expected = 0;
-    if (lock.owner.compare_exchange_strong(expected, self_owner_id(), std::memory_order_acquire,
-                                           std::memory_order_relaxed)) [[likely]]
+    if (lock_if_free(lock, self_owner_id())) [[likely]]
         return LockStatus::acquired;
     return lock_slow(lock, options);
 }
 
-/// Releases the lock: true; false (and nothing changed) when the caller does
-/// not hold it, e.g. because a waiter reset it after a timeout.
+/// Releases the lock held by `self` (the caller's owner word, as given to
+/// lock_if_free): true; false (and nothing changed) when the caller does not
+/// hold it, e.g. because a waiter reset it after a timeout.
 ///
 /// A check and a plain release store, not a compare-and-swap: a locked
 /// instruction here would double the cost of an uncontended transfer. Only a
@@ -144,11 +153,13 @@ inline LockStatus lock(LockWord& lock, const LockOptions& options = {}) noexcept
 /// check and the store, the store frees the new holder's lock, and that holder
 /// learns it when its own unlock() returns false. The reset is reported as
 /// forced in any case, and forced already means "data may be torn".
-inline bool unlock(LockWord& lock) noexcept {
-    if (lock.owner.load(std::memory_order_relaxed) != self_owner_id()) return false;
+inline bool unlock(LockWord& lock, std::uint64_t self) noexcept {
+    if (lock.owner.load(std::memory_order_relaxed) != self) return false;
     lock.owner.store(0, std::memory_order_release);
     return true;
 }
+/// The same, `self` being the caller's owner word (self_owner_id()).
+inline bool unlock(LockWord& lock) noexcept { return unlock(lock, self_owner_id()); }
 
 /// Takes the lock over from a holder known to be dead (CAS from its word);
 /// counts and reports the recovery. Exposed for services that find a dead
