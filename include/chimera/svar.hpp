@@ -308,6 +308,7 @@ private:
     };
     std::vector<Entry> entries_;
     std::vector<std::uint32_t> indices_;  // global indices, for the undo record
+    bool small_ = true;                   // every variable 8 to 64 bytes (copied inline)
 };
 
 /// A task's private copy of the variables it uses (svarAttach's local table).
@@ -395,15 +396,31 @@ private:
                const std::vector<const char*>& list_names);
     void* translate_raw(std::string_view name, std::optional<Type> type, std::size_t size);
     VarSet set_of(const std::vector<std::string>& names, const char* list_name) const;
-    const LocalVar* local_at(const void* p) const noexcept;
-    Status single(const LocalVar* v, bool to_global) noexcept;
+    // One per 16 bytes (the variables' alignment) of the local buffer; the
+    // slot of the variable at local offset `off` is at byte `off` of slots_.
+    struct Slot {
+        std::uint32_t bytes;          // 0: no variable starts here
+        std::uint32_t global_index;
+        std::uint64_t global_offset;  // from the table's data area
+    };
+    const Slot* slot_at(const void* p) const noexcept;
+    Status single(std::size_t local_offset, bool to_global) noexcept;
+    Status single_slow(std::size_t local_offset, bool to_global) noexcept;
+    Status copy_from_global_slow(const VarSet& set) noexcept;
+    Status copy_to_global_slow(const VarSet& set) noexcept;
 
     Table* global_;
+    // The global table's cycle-path addresses, taken from global_ when the
+    // local table is built: a transfer reaches each with one load.
+    detail::TableHeader* hdr_ = nullptr;   // the lock word and the undo record
+    std::byte* gdata_ = nullptr;           // the data area
+    std::byte* gundo_ = nullptr;           // the undo area (mirrors the data area)
+    std::uint32_t* gundo_list_ = nullptr;  // the undo index list
     std::unique_ptr<std::byte[], void (*)(std::byte*)> buffer_;
     std::vector<LocalVar> vars_;              // sorted by local_offset
-    // local_offset / detail::kVarAlign → vars_ index, -1 where no variable
-    // starts: read(ptr)/write(ptr) find their variable with one look-up.
-    std::vector<std::int32_t> var_at_slot_;
+    // read(ptr)/write(ptr) find their variable, and check that there is one,
+    // with one load from here.
+    std::vector<Slot> slots_;
     std::vector<std::int32_t> by_global_;     // global index → vars_ index, -1 if absent
     VarSet in_consts_, out_consts_, in_vars_, out_vars_, on_set_;
 };

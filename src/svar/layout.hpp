@@ -83,13 +83,13 @@ namespace chimera::svar {
 
 namespace detail {
 
-// Copies one variable. Small ones (float[6], double[6]: the usual joint
-// vectors) are moved with two to four unaligned 8- or 16-byte loads and stores
-// inline: a call to memcpy, its size dispatch included, costs as much as the
-// copy itself, and a multi-variable transfer makes one per variable.
-[[gnu::always_inline]] inline void copy_var(std::byte* dst, const std::byte* src,
-                                            std::size_t n) noexcept {
-    if (n >= 16 && n <= 64) {
+// Copies a variable of 8 to 64 bytes (float[6], double[6]: the usual joint
+// vectors) with two to four unaligned 8- or 16-byte loads and stores, inline:
+// a call to memcpy, its size dispatch included, costs as much as the copy
+// itself, and a multi-variable transfer makes one per variable.
+[[gnu::always_inline]] inline void copy_small(std::byte* dst, const std::byte* src,
+                                              std::size_t n) noexcept {
+    if (n >= 16) {
         std::byte a[16], b[16], c[16], d[16];
         std::memcpy(a, src, 16);
         std::memcpy(b, src + n - 16, 16);
@@ -101,15 +101,45 @@ namespace detail {
         }
         std::memcpy(dst, a, 16);
         std::memcpy(dst + n - 16, b, 16);
-    } else if (n >= 8 && n < 16) {
+    } else {
         std::byte a[8], b[8];
         std::memcpy(a, src, 8);
         std::memcpy(b, src + n - 8, 8);
         std::memcpy(dst, a, 8);
         std::memcpy(dst + n - 8, b, 8);
-    } else {
-        std::memcpy(dst, src, n);
     }
+}
+
+/// True for the sizes copy_small() takes.
+constexpr bool is_small(std::size_t n) noexcept { return n - 8 <= 56; }
+
+// Copies one variable of any size: copy_small() or memcpy.
+[[gnu::always_inline]] inline void copy_var(std::byte* dst, const std::byte* src,
+                                            std::size_t n) noexcept {
+    if (is_small(n))
+        copy_small(dst, src, n);
+    else
+        std::memcpy(dst, src, n);
+}
+
+// The undo record around a write into the global table (see svar.hpp). The
+// writer saves the old contents of its write-set into the undo area and their
+// indices into the undo list, then marks the record active; writes; clears
+// the mark.
+inline void undo_mark(TableHeader& h, std::uint32_t count, std::uint64_t writer) noexcept {
+    h.undo_count = count;
+    h.undo_writer = writer;
+    // Release: the saved copy is complete before the record is marked active.
+    h.undo_active.store(1, std::memory_order_release);
+    // And no store of the write-set moves above the mark: a holder that dies
+    // stops at an instruction boundary, so the order the waiter must be able
+    // to rely on is program order, which the compiler must not change.
+    std::atomic_signal_fence(std::memory_order_seq_cst);
+}
+
+inline void undo_clear(TableHeader& h) noexcept {
+    // Release: the new data is complete before the record is dropped.
+    h.undo_active.store(0, std::memory_order_release);
 }
 
 }  // namespace detail

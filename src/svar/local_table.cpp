@@ -51,6 +51,10 @@ LocalTable::~LocalTable() = default;
 void LocalTable::build(const std::vector<const std::vector<std::string>*>& lists,
                        const std::vector<const char*>& list_names) {
     if (!global_->valid()) throw Error("local table: the global table is not attached");
+    hdr_ = global_->hdr_;
+    gdata_ = global_->data_;
+    gundo_ = global_->seg_.at_bytes(hdr_->undo_offset);
+    gundo_list_ = global_->seg_.at_bytes<std::uint32_t>(hdr_->undo_index_offset);
     by_global_.assign(global_->size(), -1);
     std::size_t offset = 0;
     for (std::size_t l = 0; l < lists.size(); ++l) {
@@ -70,9 +74,9 @@ void LocalTable::build(const std::vector<const std::vector<std::string>*>& lists
         }
     }
     buffer_.reset(alloc_buffer(offset));
-    var_at_slot_.assign(offset / detail::kVarAlign + 1, -1);
-    for (std::size_t i = 0; i < vars_.size(); ++i)
-        var_at_slot_[vars_[i].local_offset / detail::kVarAlign] = static_cast<std::int32_t>(i);
+    slots_.assign(offset / detail::kVarAlign + 1, Slot{0, 0, 0});
+    for (const LocalVar& v : vars_)
+        slots_[v.local_offset / detail::kVarAlign] = Slot{v.bytes, v.global_index, v.global_offset};
     // Start from the table's current values, so a translated pointer never
     // shows garbage even before the first copy.
     const Status s = global_->acquire();
@@ -99,6 +103,7 @@ VarSet LocalTable::set_of(const std::vector<std::string>& names, const char* lis
         set.entries_.push_back(
             VarSet::Entry{v.global_index, v.bytes, v.global_offset, v.local_offset});
         set.indices_.push_back(v.global_index);
+        set.small_ = set.small_ && detail::is_small(v.bytes);
     }
     return set;
 }
@@ -154,79 +159,154 @@ void* LocalTable::translate_any(std::string_view name) {
 }
 
 // Inlined into read/write: with the lock they are the whole cycle path.
-[[gnu::always_inline]] inline const LocalTable::LocalVar* LocalTable::local_at(
+[[gnu::always_inline]] inline const LocalTable::Slot* LocalTable::slot_at(
     const void* p) const noexcept {
+    static_assert(sizeof(Slot) == detail::kVarAlign, "the slot of offset off is at byte off");
     // Compared as integers: a pointer outside the buffer is not an error here.
-    const auto addr = reinterpret_cast<std::uintptr_t>(p);
-    const auto base = reinterpret_cast<std::uintptr_t>(buffer_.get());
-    const std::uintptr_t off = addr - base;  // wraps to a huge value below the buffer
-    if (off % detail::kVarAlign != 0) return nullptr;
-    const std::uintptr_t slot = off / detail::kVarAlign;
-    if (addr < base || slot >= var_at_slot_.size()) return nullptr;
-    const std::int32_t i = var_at_slot_[slot];
-    return i < 0 ? nullptr : &vars_[static_cast<std::size_t>(i)];
+    const std::uintptr_t off =
+        reinterpret_cast<std::uintptr_t>(p) - reinterpret_cast<std::uintptr_t>(buffer_.get());
+    // Below the buffer, off wraps to a huge value and fails the bound.
+    const std::uintptr_t end = slots_.size() * sizeof(Slot);
+    if (off % detail::kVarAlign != 0 || off >= end) return nullptr;
+    const auto* slot = reinterpret_cast<const Slot*>(
+        reinterpret_cast<const std::byte*>(slots_.data()) + off);
+    return slot->bytes != 0 ? slot : nullptr;
 }
 
 std::optional<std::size_t> LocalTable::index_of(const void* local) const noexcept {
-    if (const LocalVar* v = local_at(local)) return v->global_index;
+    if (const Slot* v = slot_at(local)) return v->global_index;
     return std::nullopt;
 }
 
-[[gnu::always_inline]] inline Status LocalTable::single(const LocalVar* v, bool to_global) noexcept {
+// The uncontended transfer of one variable of 8 to 64 bytes, inlined into
+// read/write/read_ix/write_ix: the lock's CAS, the copy (a write inside its
+// undo record), the release store, and no call. A function that makes calls
+// saves callee-saved registers on entry, and the locked CAS then waits for
+// those stores to drain; this path needs none. Anything else (this thread's
+// owner word not cached yet, the lock not free, a variable outside 8..64
+// bytes) goes to single_slow(), a tail call.
+[[gnu::always_inline]] inline Status LocalTable::single(std::size_t local_offset,
+                                                        bool to_global) noexcept {
+    const Slot& v = slots_[local_offset / detail::kVarAlign];
+    const std::uint64_t me = ipc::detail::t_self_owner_id;
+    const std::size_t n = v.bytes;
+    detail::TableHeader& h = *hdr_;
+    if (me == 0 || !detail::is_small(n) || !ipc::lock_if_free(h.lock, me)) [[unlikely]]
+        return single_slow(local_offset, to_global);
+    std::byte* const gvar = gdata_ + v.global_offset;
+    std::byte* const lvar = buffer_.get() + local_offset;
+    if (to_global) {
+        detail::copy_small(gundo_ + v.global_offset, gvar, n);
+        gundo_list_[0] = v.global_index;
+        detail::undo_mark(h, 1, me);
+        detail::copy_small(gvar, lvar, n);
+        detail::undo_clear(h);
+    } else {
+        detail::copy_small(lvar, gvar, n);
+    }
+    return ipc::unlock(h.lock, me) ? Status::ok : Status::lock_lost;
+}
+
+// Every other single-variable transfer: the full acquisition (spin, recover a
+// dead holder and roll its write back, time out), any size.
+[[gnu::noinline]] Status LocalTable::single_slow(std::size_t local_offset, bool to_global) noexcept {
+    const Slot& v = slots_[local_offset / detail::kVarAlign];
     Table& g = *global_;
-    const std::uint64_t goff = v->global_offset;
     const Status s = g.acquire();
     if (!transferred(s)) return s;
+    std::byte* const gvar = gdata_ + v.global_offset;
+    std::byte* const lvar = buffer_.get() + local_offset;
     if (to_global) {
-        g.save_undo(&v->global_index, 1);
-        detail::copy_var(g.data_ + goff, buffer_.get() + v->local_offset, v->bytes);
+        g.save_undo(&v.global_index, 1);
+        detail::copy_var(gvar, lvar, v.bytes);
         g.clear_undo();
     } else {
-        detail::copy_var(buffer_.get() + v->local_offset, g.data_ + goff, v->bytes);
+        detail::copy_var(lvar, gvar, v.bytes);
     }
     return g.release(s);
 }
 
 Status LocalTable::read(const void* local) noexcept {
-    const LocalVar* v = local_at(local);
-    return v ? single(v, false) : Status::bad_argument;
+    if (!slot_at(local)) return Status::bad_argument;
+    return single(static_cast<const std::byte*>(local) - buffer_.get(), false);
 }
 
 Status LocalTable::write(const void* local) noexcept {
-    const LocalVar* v = local_at(local);
-    return v ? single(v, true) : Status::bad_argument;
+    if (!slot_at(local)) return Status::bad_argument;
+    return single(static_cast<const std::byte*>(local) - buffer_.get(), true);
 }
 
 Status LocalTable::read_ix(std::size_t index) noexcept {
     if (index >= by_global_.size() || by_global_[index] < 0) return Status::bad_argument;
-    return single(&vars_[static_cast<std::size_t>(by_global_[index])], false);
+    return single(vars_[static_cast<std::size_t>(by_global_[index])].local_offset, false);
 }
 
 Status LocalTable::write_ix(std::size_t index) noexcept {
     if (index >= by_global_.size() || by_global_[index] < 0) return Status::bad_argument;
-    return single(&vars_[static_cast<std::size_t>(by_global_[index])], true);
+    return single(vars_[static_cast<std::size_t>(by_global_[index])].local_offset, true);
 }
 
+// The multi-variable transfers: like single(), the uncontended copy of a set
+// whose variables are all 8 to 64 bytes has no call in it; anything else goes
+// to the _slow() variant.
 Status LocalTable::copy_from_global(const VarSet& set) noexcept {
-    if (set.entries_.empty()) return Status::ok;
+    const VarSet::Entry* const first = set.entries_.data();
+    const VarSet::Entry* const last = first + set.entries_.size();
+    if (first == last) return Status::ok;
+    const std::uint64_t me = ipc::detail::t_self_owner_id;
+    detail::TableHeader& h = *hdr_;
+    if (me == 0 || !set.small_ || !ipc::lock_if_free(h.lock, me)) [[unlikely]]
+        return copy_from_global_slow(set);
+    std::byte* const local = buffer_.get();
+    const std::byte* const data = gdata_;
+    for (const VarSet::Entry* e = first; e != last; ++e)
+        detail::copy_small(local + e->local_offset, data + e->global_offset, e->bytes);
+    return ipc::unlock(h.lock, me) ? Status::ok : Status::lock_lost;
+}
+
+[[gnu::noinline]] Status LocalTable::copy_from_global_slow(const VarSet& set) noexcept {
     Table& g = *global_;
     const Status s = g.acquire();
     if (!transferred(s)) return s;
-    std::byte* local = buffer_.get();
-    const std::byte* data = g.data_;
+    std::byte* const local = buffer_.get();
+    const std::byte* const data = gdata_;
     for (const VarSet::Entry& e : set.entries_)
         detail::copy_var(local + e.local_offset, data + e.global_offset, e.bytes);
     return g.release(s);
 }
 
 Status LocalTable::copy_to_global(const VarSet& set) noexcept {
-    if (set.entries_.empty()) return Status::ok;
+    const VarSet::Entry* const first = set.entries_.data();
+    const VarSet::Entry* const last = first + set.entries_.size();
+    if (first == last) return Status::ok;
+    const std::uint64_t me = ipc::detail::t_self_owner_id;
+    detail::TableHeader& h = *hdr_;
+    if (me == 0 || !set.small_ || !ipc::lock_if_free(h.lock, me)) [[unlikely]]
+        return copy_to_global_slow(set);
+    const std::byte* const local = buffer_.get();
+    std::byte* const data = gdata_;
+    std::byte* const undo = gundo_;
+    // The undo record, from the set's own entries (the offsets and sizes the
+    // descriptors hold, copied when the set was made).
+    std::uint32_t* list = gundo_list_;
+    for (const VarSet::Entry* e = first; e != last; ++e) {
+        detail::copy_small(undo + e->global_offset, data + e->global_offset, e->bytes);
+        *list++ = e->global_index;
+    }
+    detail::undo_mark(h, static_cast<std::uint32_t>(last - first), me);
+    for (const VarSet::Entry* e = first; e != last; ++e)
+        detail::copy_small(data + e->global_offset, local + e->local_offset, e->bytes);
+    detail::undo_clear(h);
+    return ipc::unlock(h.lock, me) ? Status::ok : Status::lock_lost;
+}
+
+[[gnu::noinline]] Status LocalTable::copy_to_global_slow(const VarSet& set) noexcept {
     Table& g = *global_;
     const Status s = g.acquire();
     if (!transferred(s)) return s;
     g.save_undo(set.indices_.data(), set.indices_.size());
-    const std::byte* local = buffer_.get();
-    std::byte* data = g.data_;
+    const std::byte* const local = buffer_.get();
+    std::byte* const data = gdata_;
     for (const VarSet::Entry& e : set.entries_)
         detail::copy_var(data + e.global_offset, local + e.local_offset, e.bytes);
     g.clear_undo();

@@ -313,16 +313,10 @@ void Table::save_undo(const std::uint32_t* indices, std::size_t count) noexcept 
         detail::copy_var(undo + d.data_offset, data_ + d.data_offset, d.bytes);
         list[i] = indices[i];
     }
-    hdr_->undo_count = static_cast<std::uint32_t>(count);
-    hdr_->undo_writer = ipc::self_owner_id();
-    // Release: the saved copy is complete before the record is marked active.
-    hdr_->undo_active.store(1, std::memory_order_release);
+    detail::undo_mark(*hdr_, static_cast<std::uint32_t>(count), ipc::self_owner_id());
 }
 
-void Table::clear_undo() noexcept {
-    // Release: the new data is complete before the record is dropped.
-    hdr_->undo_active.store(0, std::memory_order_release);
-}
+void Table::clear_undo() noexcept { detail::undo_clear(*hdr_); }
 
 void Table::roll_back() noexcept {
     if (hdr_->undo_active.load(std::memory_order_acquire) == 0) return;
