@@ -96,8 +96,13 @@ int main(int argc, char** argv) {
     const std::string prefix = "hotpath" + std::to_string(getpid());
     svar::Table table = svar::Table::create(ipc::segment_name(prefix, "svar"), file);
     std::remove(file.c_str());
+    // Both paths of every transfer: variables of 8 to 64 bytes are copied
+    // inline (Q_REF, Q_MEZ, the sensor's out-vars), others and sets holding
+    // one through the general path (TAU, float[32]).
     svar::LocalTable local(table, {}, {}, {"Q_REF", "Q_MEZ"}, {"TAU"});
+    svar::LocalTable sensor(table, {}, {}, {}, {"Q_MEZ"});
     float* q_ref = local.translate<float>("Q_REF");
+    float* q_mez = sensor.translate<float>("Q_MEZ");
     float* tau = local.translate<float>("TAU");
     const std::size_t tau_ix = table.index_of("TAU");
     float tool_buffer[32] = {};
@@ -109,8 +114,12 @@ int main(int argc, char** argv) {
     long failures = 0;
     auto round = [&](long i) {
         failures += local.read(q_ref) != svar::Status::ok;
+        q_ref[0] = static_cast<float>(i);
+        failures += local.write(q_ref) != svar::Status::ok;
         tau[0] = static_cast<float>(i);
         failures += local.write(tau) != svar::Status::ok;
+        q_mez[0] = static_cast<float>(i);
+        failures += sensor.copy_out_vars() != svar::Status::ok;
         failures += local.copy_in_vars() != svar::Status::ok;
         failures += local.copy_out_vars() != svar::Status::ok;
         failures += local.read_ix(tau_ix) != svar::Status::ok;
@@ -137,7 +146,8 @@ int main(int argc, char** argv) {
     marker("hot path end\n");
 
     const long allocations = g_allocations.load();
-    std::printf("%ld rounds of read, write, read_ix, copy_in_vars, copy_out_vars, Table::read, "
+    std::printf("%ld rounds of read, write, read_ix, copy_in_vars, copy_out_vars (inline and "
+                "general paths), Table::read, "
                 "tbuf write+read: %ld allocations, %ld failed operations\n",
                 iterations, allocations, failures);
     tb.destroy();

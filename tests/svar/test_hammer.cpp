@@ -17,12 +17,35 @@ using namespace svar_test;
 
 namespace {
 
-const char* kTable =
-    "NAME A\nTYPE float\nDESC a\nUNITS none\nNELEM 32\n"
-    "NAME B\nTYPE float\nDESC b\nUNITS none\nNELEM 32\n"
-    "NAME C\nTYPE double\nDESC c\nUNITS none\nNELEM 8\n"
-    "NAME S\nTYPE struct[64]\nDESC s\nUNITS none\nNELEM 1\n"
-    "EOF\n";
+// Two tables: in the first, A and B (float[32], 128 bytes) are copied by the
+// general path (memcpy, Table::acquire); in the second every variable is 8 to
+// 64 bytes, so an uncontended copy takes the inline path with no call and a
+// contended one the general path. C is double[nc], S struct[64] in both.
+struct HammerTable {
+    const char* name;
+    const char* text;
+    int nab;  // elements of A and B
+    int nc;   // elements of C
+};
+
+const HammerTable kTables[] = {
+    {"general",
+     "NAME A\nTYPE float\nDESC a\nUNITS none\nNELEM 32\n"
+     "NAME B\nTYPE float\nDESC b\nUNITS none\nNELEM 32\n"
+     "NAME C\nTYPE double\nDESC c\nUNITS none\nNELEM 8\n"
+     "NAME S\nTYPE struct[64]\nDESC s\nUNITS none\nNELEM 1\n"
+     "EOF\n",
+     32, 8},
+    {"inline",
+     "NAME A\nTYPE float\nDESC a\nUNITS none\nNELEM 6\n"
+     "NAME B\nTYPE float\nDESC b\nUNITS none\nNELEM 6\n"
+     "NAME C\nTYPE double\nDESC c\nUNITS none\nNELEM 1\n"
+     "NAME S\nTYPE struct[64]\nDESC s\nUNITS none\nNELEM 1\n"
+     "EOF\n",
+     6, 1},
+};
+
+void PrintTo(const HammerTable& t, std::ostream* os) { *os << t.name; }
 
 struct Board {
     std::atomic<int> go{0};
@@ -31,26 +54,29 @@ struct Board {
 };
 
 // Fills a writer's whole set with one value.
-void fill(LocalTable& lt, double v) {
+void fill(LocalTable& lt, const HammerTable& t, double v) {
     float* a = lt.translate<float>("A");
     float* b = lt.translate<float>("B");
     double* c = lt.translate<double>("C");
     double* s = static_cast<double*>(lt.translate_any("S"));
-    for (int i = 0; i < 32; ++i) a[i] = b[i] = static_cast<float>(v);
-    for (int i = 0; i < 8; ++i) c[i] = s[i] = v;
+    for (int i = 0; i < t.nab; ++i) a[i] = b[i] = static_cast<float>(v);
+    for (int i = 0; i < t.nc; ++i) c[i] = v;
+    for (int i = 0; i < 8; ++i) s[i] = v;
 }
 
 // 0 when the set holds one value everywhere (and stores it in `v`).
-int consistent(LocalTable& lt, double& v) {
+int consistent(LocalTable& lt, const HammerTable& t, double& v) {
     const float* a = lt.translate<float>("A");
     const float* b = lt.translate<float>("B");
     const double* c = lt.translate<double>("C");
     const double* s = static_cast<const double*>(lt.translate_any("S"));
     v = c[0];
-    for (int i = 0; i < 32; ++i)
+    for (int i = 0; i < t.nab; ++i)
         if (a[i] != static_cast<float>(v) || b[i] != static_cast<float>(v)) return 1;
+    for (int i = 0; i < t.nc; ++i)
+        if (c[i] != v) return 1;
     for (int i = 0; i < 8; ++i)
-        if (c[i] != v || s[i] != v) return 1;
+        if (s[i] != v) return 1;
     return 0;
 }
 
@@ -66,9 +92,15 @@ TableOptions patient() {
 
 }  // namespace
 
-TEST(SvarHammer, ReadersNeverSeeHalfAWritersSet) {
+class SvarHammerBoth : public ::testing::TestWithParam<HammerTable> {};
+
+INSTANTIATE_TEST_SUITE_P(Paths, SvarHammerBoth, ::testing::ValuesIn(kTables),
+                         [](const auto& info) { return std::string(info.param.name); });
+
+TEST_P(SvarHammerBoth, ReadersNeverSeeHalfAWritersSet) {
+    const HammerTable& ht = GetParam();
     const std::string name = unique_name("hammer");
-    Table table = Table::create(name, parse_svar_string(kTable, "hammer.svar"));
+    Table table = Table::create(name, parse_svar_string(ht.text, "hammer.svar"));
     auto* board = shared_anon<Board>();
     const std::vector<std::string> set_names = {"A", "B", "C", "S"};
     std::vector<pid_t> kids;
@@ -79,7 +111,7 @@ TEST(SvarHammer, ReadersNeverSeeHalfAWritersSet) {
             while (!board->go) std::this_thread::yield();
             const std::int64_t end = ipc::now_ns() + kRunNs;
             for (long i = 1; ipc::now_ns() < end; ++i) {
-                fill(lt, w * 4'000'000.0 + static_cast<double>(i));
+                fill(lt, ht, w * 4'000'000.0 + static_cast<double>(i));
                 if (!transferred(lt.copy_out_vars())) return 2;
                 board->writes++;
             }
@@ -95,7 +127,7 @@ TEST(SvarHammer, ReadersNeverSeeHalfAWritersSet) {
             while (ipc::now_ns() < end) {
                 if (!transferred(lt.copy_in_vars())) return 2;
                 double v;
-                if (consistent(lt, v) != 0) return 3;  // torn set
+                if (consistent(lt, ht, v) != 0) return 3;  // torn set
                 const int w = static_cast<int>(v / 4'000'000.0);
                 if (w < 0 || w > 2) return 4;
                 if (v < last[w]) return 5;  // older data after newer
@@ -113,9 +145,10 @@ TEST(SvarHammer, ReadersNeverSeeHalfAWritersSet) {
     table.destroy();
 }
 
-TEST(SvarHammer, SingleVariableTransfersAreWholeToo) {
+TEST_P(SvarHammerBoth, SingleVariableTransfersAreWholeToo) {
+    const HammerTable& ht = GetParam();
     const std::string name = unique_name("single");
-    Table table = Table::create(name, parse_svar_string(kTable, "hammer.svar"));
+    Table table = Table::create(name, parse_svar_string(ht.text, "hammer.svar"));
     auto* board = shared_anon<Board>();
     const pid_t writer = fork_child([&] {
         Table t = Table::attach(name, patient());
@@ -124,7 +157,7 @@ TEST(SvarHammer, SingleVariableTransfersAreWholeToo) {
         while (!board->go) std::this_thread::yield();
         const std::int64_t end = ipc::now_ns() + kRunNs / 2;
         for (int i = 1; ipc::now_ns() < end; ++i) {
-            for (int k = 0; k < 32; ++k) a[k] = static_cast<float>(i);
+            for (int k = 0; k < ht.nab; ++k) a[k] = static_cast<float>(i);
             if (lt.write(a) != Status::ok) return 2;
         }
         return 0;
@@ -137,7 +170,7 @@ TEST(SvarHammer, SingleVariableTransfersAreWholeToo) {
         const std::int64_t end = ipc::now_ns() + kRunNs / 2;
         while (ipc::now_ns() < end) {
             if (lt.read_ix(0) != Status::ok) return 2;
-            for (int k = 1; k < 32; ++k)
+            for (int k = 1; k < ht.nab; ++k)
                 if (a[k] != a[0]) return 3;
             board->checks++;
         }

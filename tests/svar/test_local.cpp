@@ -2,6 +2,9 @@
 // and the roll-back of a write-set interrupted by a dead lock holder.
 #include <gtest/gtest.h>
 #include <signal.h>
+#include <sys/mman.h>
+#include <sys/prctl.h>
+#include <unistd.h>
 
 #include <cstring>
 #include <thread>
@@ -106,6 +109,46 @@ TEST_F(SvarLocal, SingleVariableReadWriteAndIndexVariants) {
     EXPECT_EQ(b.read_ix(1000), Status::bad_argument);
 }
 
+// read(p)/write(p) take only a translated pointer: the first element of a
+// variable of this local table.
+TEST_F(SvarLocal, PointersThatAreNotVariablesAreRefused) {
+    LocalTable lt(table, {"Q_REF", "TAU", "POSE"});
+    const auto* qref = lt.translate<float>("Q_REF");
+    const auto* tau = lt.translate<double>("TAU");
+    const auto* pose = lt.translate<Pose>("POSE");
+    // Inside TAU (48 bytes) at a 16-byte boundary, where no variable starts.
+    const void* inside = reinterpret_cast<const std::byte*>(tau) + 16;
+    // Just past the last variable, and below the first.
+    const void* past = reinterpret_cast<const std::byte*>(pose) + 16;
+    const void* below = reinterpret_cast<const std::byte*>(qref) - 16;
+    for (const void* p : {inside, past, below}) {
+        EXPECT_EQ(lt.read(p), Status::bad_argument);
+        EXPECT_EQ(lt.write(p), Status::bad_argument);
+        EXPECT_FALSE(lt.index_of(p).has_value());
+    }
+    EXPECT_EQ(lt.write(nullptr), Status::bad_argument);
+    EXPECT_EQ(lt.index_of(tau), table.index_of("TAU"));
+    EXPECT_EQ(lt.write(tau), Status::ok);
+    EXPECT_EQ(lt.read(pose), Status::ok);
+}
+
+// Every size is copied whole and nothing around it is touched: the inline
+// copy of 8 to 64 bytes (overlapping 8- and 16-byte moves) and memcpy beyond.
+TEST(SvarCopyVar, CopiesEveryLengthExactly) {
+    alignas(16) std::byte src[160], dst[160];
+    for (std::size_t n = 1; n <= 130; ++n) {
+        for (std::size_t i = 0; i < sizeof src; ++i) {
+            src[i] = static_cast<std::byte>(i * 7 + n);
+            dst[i] = std::byte{0xEE};
+        }
+        detail::copy_var(dst + 8, src + 8, n);
+        for (std::size_t i = 0; i < sizeof dst; ++i) {
+            const bool inside = i >= 8 && i < 8 + n;
+            ASSERT_EQ(dst[i], inside ? src[i] : std::byte{0xEE}) << "n " << n << " byte " << i;
+        }
+    }
+}
+
 TEST_F(SvarLocal, PortSetsCopyWholeSets) {
     // A controller: reads Q_REF and Q_MEZ, writes TAU; a sensor writes Q_MEZ.
     LocalTable ctl(table, {"NDOF", "GAIN"}, {}, {"Q_REF", "Q_MEZ"}, {"TAU"});
@@ -180,10 +223,21 @@ TEST_F(SvarLocal, TimeoutTransfersNothingAndIsCounted) {
 }
 
 TEST_F(SvarLocal, ReentryFromTheLockHolderIsRefused) {
-    LocalTable lt(table, {"Q_REF"});
+    LocalTable lt(table, {"Q_REF", "TAU"});
+    const VarSet set = lt.make_set({"Q_REF", "TAU"});
+    float* q = lt.translate<float>("Q_REF");
     ASSERT_EQ(ipc::lock(table.lock_word()), ipc::LockStatus::acquired);
-    EXPECT_EQ(lt.read(lt.translate<float>("Q_REF")), Status::reentered);
+    q[0] = 42.0f;
+    EXPECT_EQ(lt.read(q), Status::reentered);
+    EXPECT_EQ(lt.write(q), Status::reentered);
+    EXPECT_EQ(lt.read_ix(table.index_of("TAU")), Status::reentered);
+    EXPECT_EQ(lt.copy_from_global(set), Status::reentered);
+    EXPECT_EQ(lt.copy_to_global(set), Status::reentered);
+    EXPECT_EQ(q[0], 42.0f);  // nothing read
     ipc::unlock(table.lock_word());
+    float g[6];
+    ASSERT_EQ(table.read(table.index_of("Q_REF"), g), Status::ok);
+    EXPECT_EQ(g[0], 0.0f);  // nothing written
 }
 
 // A writer that died between saving its undo record and finishing its
@@ -237,6 +291,84 @@ TEST_F(SvarLocal, DeadWriterMidSetIsRolledBack) {
     EXPECT_EQ(table.stats().recoveries, 1u);
     EXPECT_EQ(table.stats().rollbacks, 1u);
     EXPECT_EQ(lt.copy_from_global(set), Status::ok);  // back to normal
+}
+
+// A writer that dies inside the uncontended inline write path, after its undo
+// record is marked active and part of its set is written: the child's mapping
+// of the page holding V2 is made read-only, so its store into V2 faults. The
+// next user recovers the lock and rolls the set back to the last complete one.
+// The padding keeps V1, V2, the header and the undo area on different pages.
+TEST(SvarLocalDeath, WriterDyingInsideTheInlinePathIsRolledBack) {
+    const std::string name = unique_name("inline");
+    const char* text =
+        "NAME V1\nTYPE float\nDESC v1\nUNITS none\nNELEM 6\n"
+        "NAME PAD1\nTYPE struct[8192]\nDESC pad\nUNITS none\nNELEM 1\n"
+        "NAME V2\nTYPE double\nDESC v2\nUNITS none\nNELEM 6\n"
+        "NAME PAD2\nTYPE struct[8192]\nDESC pad\nUNITS none\nNELEM 1\n"
+        "EOF\n";
+    Table table = Table::create(name, parse_svar_string(text, "inline.svar"));
+    auto* base = reinterpret_cast<std::byte*>(&table.lock_word()) - 64;
+    const auto& hdr = *reinterpret_cast<const detail::TableHeader*>(base);
+    const auto* desc = reinterpret_cast<const detail::Descriptor*>(base + hdr.desc_offset);
+    const auto page = static_cast<std::uintptr_t>(sysconf(_SC_PAGESIZE));
+    const auto page_of = [&](std::uint64_t off) {
+        return (reinterpret_cast<std::uintptr_t>(base) + off) / page;
+    };
+    const std::uint64_t v1 = hdr.data_offset + desc[0].data_offset;
+    const std::uint64_t v2 = hdr.data_offset + desc[2].data_offset;
+    const std::uint64_t v2_end = v2 + desc[2].bytes - 1;
+    for (std::uint64_t other : {std::uint64_t{0}, std::uint64_t{64}, hdr.undo_index_offset,
+                                v1, hdr.undo_offset + desc[0].data_offset,
+                                hdr.undo_offset + desc[2].data_offset + desc[2].bytes - 1}) {
+        ASSERT_NE(page_of(other), page_of(v2));
+        ASSERT_NE(page_of(other), page_of(v2_end));
+    }
+    LocalTable reader(table, {"V1", "V2"});
+    const VarSet rset = reader.make_set({"V1", "V2"});
+    auto write_all = [&](float value) {  // a complete set, left in the table
+        LocalTable lt(table, {"V1", "V2"});
+        for (int i = 0; i < 6; ++i) {
+            lt.translate<float>("V1")[i] = value;
+            lt.translate<double>("V2")[i] = value;
+        }
+        return lt.copy_to_global(lt.make_set({"V1", "V2"}));
+    };
+    auto die_writing = [&](bool whole_set) {
+        return fork_child([&] {
+            prctl(PR_SET_DUMPABLE, 0);  // no core file for the fault below
+            LocalTable w(table, {"V1", "V2"});
+            const VarSet set = w.make_set({"V1", "V2"});
+            for (int i = 0; i < 6; ++i) {
+                w.translate<float>("V1")[i] = 2.0f;
+                w.translate<double>("V2")[i] = 2.0;
+            }
+            const std::uintptr_t first = page_of(v2) * page;
+            const std::uintptr_t len = (page_of(v2_end) + 1) * page - first;
+            if (mprotect(reinterpret_cast<void*>(first), len, PROT_READ) != 0) return 2;
+            if (whole_set)
+                (void)w.copy_to_global(set);  // V1 written, then the store into V2 faults
+            else
+                (void)w.write(w.translate<double>("V2"));
+            return 3;
+        });
+    };
+    // Each round starts from a new complete set, so an undo area left over
+    // from an earlier write would restore the wrong values.
+    for (const bool whole_set : {true, false}) {
+        SCOPED_TRACE(whole_set ? "copy_to_global" : "write");
+        const float complete = whole_set ? 1.0f : 3.0f;
+        ASSERT_EQ(write_all(complete), Status::ok);
+        const std::uint32_t rollbacks = table.stats().rollbacks;
+        ASSERT_EQ(wait_child(die_writing(whole_set)), 128 + SIGSEGV);
+        EXPECT_EQ(reader.copy_from_global(rset), Status::recovered);
+        EXPECT_EQ(table.stats().rollbacks, rollbacks + 1);
+        for (int i = 0; i < 6; ++i) {
+            EXPECT_EQ(reader.translate<float>("V1")[i], complete) << i;
+            EXPECT_EQ(reader.translate<double>("V2")[i], complete) << i;
+        }
+        EXPECT_EQ(reader.copy_from_global(rset), Status::ok);  // back to normal
+    }
+    table.destroy();
 }
 
 // A reader that died holding the lock: recovered, nothing to roll back.
