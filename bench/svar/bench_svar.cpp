@@ -6,6 +6,10 @@
 //                       plain atomic word (what a lock can cost at the least)
 //   AtomicLockMemcpy    the two together: the floor a locked transfer is
 //                       measured against
+//   AtomicLockCopyVar   the same floor with the copy routine the table uses
+//                       (detail::copy_var: inline moves for 8..64 bytes, memcpy
+//                       beyond) instead of memcpy: what is left of the distance
+//                       to the floor once the copy itself is the same
 //   PthreadMutexMemcpy  pthread mutex + memcpy (what most frameworks do)
 //   TableLockUnlock     the SVAR table lock (ipc::lock / ipc::unlock)
 //   SvarRead/Write      N single-variable transfers (svarRead / svarWrite):
@@ -39,6 +43,7 @@
 #include "chimera/ipc/segment.hpp"
 #include "chimera/svar.hpp"
 #include "chimera/tbuf.hpp"
+#include "layout.hpp"  // detail::copy_var, for the floor with the table's own copy
 
 namespace {
 
@@ -183,6 +188,24 @@ void BM_AtomicLockMemcpy(benchmark::State& state) {
         benchmark::DoNotOptimize(bytes);
         l.lock();
         for (int k = 0; k < count; ++k) std::memcpy(b.d(k), b.s(k), bytes);
+        l.unlock();
+        benchmark::DoNotOptimize(b.dst.data());
+        benchmark::ClobberMemory();
+    }
+    set_counters(state, bytes * count);
+}
+
+void BM_AtomicLockCopyVar(benchmark::State& state) {
+    const int count = static_cast<int>(state.range(1));
+    std::size_t bytes = static_cast<std::size_t>(state.range(0)) * sizeof(float);
+    Buffers b(bytes);
+    alignas(64) AtomicLock l;
+    for (auto _ : state) {
+        benchmark::DoNotOptimize(bytes);
+        l.lock();
+        for (int k = 0; k < count; ++k)
+            chimera::svar::detail::copy_var(reinterpret_cast<std::byte*>(b.d(k)),
+                                            reinterpret_cast<const std::byte*>(b.s(k)), bytes);
         l.unlock();
         benchmark::DoNotOptimize(b.dst.data());
         benchmark::ClobberMemory();
@@ -404,6 +427,7 @@ BENCHMARK(BM_AtomicLockUnlock);
 BENCHMARK(BM_TableLockUnlock);
 BENCHMARK(BM_Memcpy)->Apply(transfer_args);
 BENCHMARK(BM_AtomicLockMemcpy)->Apply(transfer_args);
+BENCHMARK(BM_AtomicLockCopyVar)->Apply(transfer_args);
 BENCHMARK(BM_PthreadMutexMemcpy)->Apply(transfer_args);
 BENCHMARK(BM_SvarRead)->Apply(transfer_args);
 BENCHMARK(BM_SvarWrite)->Apply(transfer_args);
