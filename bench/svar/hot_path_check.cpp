@@ -3,8 +3,8 @@
 //
 // Sets a table and a triple buffer up (allocations and system calls allowed),
 // then runs ITERATIONS rounds of every cycle-path operation between two marker
-// writes to stderr. Every malloc-family call made by this process is counted by
-// the interposed functions below; the count inside the loop must be 0 (exit 1
+// writes to stderr. Every malloc-family call made by this process is counted
+// (tests/support/alloc_counter, linked in); the count inside the loop must be 0 (exit 1
 // otherwise). Run it under `strace -f` to see the system calls: nothing may
 // appear between the two markers (bench/svar/check_hot_path.sh does both).
 #include <unistd.h>
@@ -16,63 +16,10 @@
 #include <fstream>
 #include <string>
 
+#include "alloc_counter.hpp"
 #include "chimera/ipc/segment.hpp"
 #include "chimera/svar.hpp"
 #include "chimera/tbuf.hpp"
-
-// --- allocation counter ------------------------------------------------------
-// glibc's own entry points, under the names it exports for exactly this use.
-extern "C" {
-void* __libc_malloc(std::size_t);
-void* __libc_calloc(std::size_t, std::size_t);
-void* __libc_realloc(void*, std::size_t);
-void* __libc_memalign(std::size_t, std::size_t);
-void __libc_free(void*);
-}
-
-namespace {
-std::atomic<long> g_allocations{0};
-std::atomic<bool> g_counting{false};
-inline void count() noexcept {
-    if (g_counting.load(std::memory_order_relaxed)) g_allocations.fetch_add(1, std::memory_order_relaxed);
-}
-}  // namespace
-
-extern "C" {
-void* malloc(std::size_t n) {
-    count();
-    return __libc_malloc(n);
-}
-void* calloc(std::size_t n, std::size_t m) {
-    count();
-    return __libc_calloc(n, m);
-}
-void* realloc(void* p, std::size_t n) {
-    count();
-    return __libc_realloc(p, n);
-}
-void* aligned_alloc(std::size_t a, std::size_t n) {
-    count();
-    return __libc_memalign(a, n);
-}
-void* memalign(std::size_t a, std::size_t n) {
-    count();
-    return __libc_memalign(a, n);
-}
-int posix_memalign(void** out, std::size_t a, std::size_t n) {
-    count();
-    void* p = __libc_memalign(a, n);
-    if (!p) return ENOMEM;
-    *out = p;
-    return 0;
-}
-void free(void* p) {
-    count();
-    __libc_free(p);
-}
-}
-
-// --- the check -------------------------------------------------------------------
 
 namespace {
 
@@ -131,21 +78,17 @@ int main(int argc, char** argv) {
     round(0);
 
     // The counter must see an allocation, or its 0 below would prove nothing.
-    g_counting.store(true);
-    delete new std::string(64, 'x');
-    g_counting.store(false);
-    if (g_allocations.exchange(0) < 2) {
+    if (test::allocations_in([] { delete new std::string(64, 'x'); }) < 1) {
         std::fprintf(stderr, "svar_hot_path_check: the allocation counter is not interposed\n");
         return 2;
     }
 
     marker("hot path begin\n");
-    g_counting.store(true);
-    for (long i = 1; i <= iterations; ++i) round(i);
-    g_counting.store(false);
+    const long allocations = test::allocations_in([&] {
+        for (long i = 1; i <= iterations; ++i) round(i);
+    });
     marker("hot path end\n");
 
-    const long allocations = g_allocations.load();
     std::printf("%ld rounds of read, write, read_ix, copy_in_vars, copy_out_vars (inline and "
                 "general paths), Table::read, "
                 "tbuf write+read: %ld allocations, %ld failed operations\n",
