@@ -118,7 +118,7 @@ enum class Control : int {
     /// out first, read() returns 0 with the buffer untouched, and what had
     /// arrived stays pending for the next read. For a task that blocks on its
     /// input (a synchronous task's sync()) and must still answer commands.
-    /// PIO only so far (-ENOTSUP elsewhere).
+    /// PIO, RCB and SIO reads (-ENOTSUP for MEM, which never blocks).
     WAIT_TIMEOUT = 2,
 };
 

@@ -103,8 +103,10 @@ public:
     long read(void* buf, std::size_t count) noexcept override {
         if (!(flags() & READ)) return -EBADF;
         if (count < static_cast<std::size_t>(nports())) return -EINVAL;
-        if (long rc = drain(0); rc < 0) return rc;
+        const timespec now{};
+        if (long rc = drain(&now); rc < 0) return rc;
         const unsigned wait = flags() & kWaitMask;
+        WaitBound bound(timeout_us_);
         for (;;) {
             int wanted = 0, fresh = 0;
             for (const FrameState& s : frames_)
@@ -117,7 +119,9 @@ public:
                                                 : true;
             if (wait == WAITNOALL && fresh != wanted) return 0;
             if (enough) break;
-            if (long rc = drain(-1); rc < 0) return rc;
+            const timespec* left = nullptr;
+            if (!bound.left(left)) return 0;  // what arrived stays fresh for the next read
+            if (long rc = drain(left, true); rc < 0) return rc;
         }
         long n = 0;
         for (int i = 0; i < nports(); ++i) {
@@ -171,6 +175,13 @@ public:
     }
 
 protected:
+    long class_control(Control cmd, long arg) noexcept override {
+        if (cmd != Control::WAIT_TIMEOUT) return -ENOTSUP;
+        if (arg < -1) return -EINVAL;
+        timeout_us_ = arg;
+        return 0;
+    }
+
     long class_status(Status cmd, long arg, void*) noexcept override {
         switch (cmd) {
         case Status::CAN_RX_FRAMES: return static_cast<long>(rx_frames_);
@@ -201,11 +212,12 @@ private:
         return -1;
     }
 
-    // Receives every queued frame; timeout_ms < 0 first blocks for one.
-    long drain(int timeout_ms) noexcept {
-        if (timeout_ms != 0) {
+    // Receives every queued frame; with `block`, first waits for one (for
+    // at most `timeout`, nullptr: without bound).
+    long drain(const timespec* timeout, bool block = false) noexcept {
+        if (block) {
             pollfd p{fd_, POLLIN, 0};
-            if (::poll(&p, 1, timeout_ms) < 0 && errno != EINTR) return -errno;
+            if (::ppoll(&p, 1, timeout, nullptr) < 0 && errno != EINTR) return -errno;
         }
         for (;;) {
             can_frame f;
@@ -248,6 +260,7 @@ private:
     }
 
     int fd_ = -1;
+    long timeout_us_ = -1;  // WAIT_TIMEOUT; -1: wait for as long as it takes
     std::vector<FrameState> frames_;
     std::vector<int> port_frame_;  // frame index of each opened port
     unsigned long rx_frames_ = 0;

@@ -94,16 +94,11 @@ public:
             return (wait == WAITALL && (changed_ & all) != all) || (wait == WAITONE && changed_ == 0);
         };
         if (waiting()) {
-            // CLOCK_MONOTONIC through the vDSO: no system call for the deadline.
-            timespec deadline{};
-            if (timeout_us_ >= 0) {
-                clock_gettime(CLOCK_MONOTONIC, &deadline);
-                add_us(deadline, timeout_us_);
-            }
+            WaitBound bound(timeout_us_);
             do {
-                timespec left{};
-                if (timeout_us_ >= 0 && !time_left(deadline, left)) return 0;  // edges stay pending
-                if (long rc = drain(timeout_us_ >= 0 ? &left : nullptr, false); rc < 0) return rc;
+                const timespec* left = nullptr;
+                if (!bound.left(left)) return 0;  // edges stay pending
+                if (long rc = drain(left, false); rc < 0) return rc;
             } while (waiting());
         }
         if (wait == WAITNOALL && (changed_ & all) != all) return 0;
@@ -159,25 +154,6 @@ private:
         }
     }
 
-    static void add_us(timespec& t, long us) noexcept {
-        t.tv_sec += us / 1000000;
-        t.tv_nsec += (us % 1000000) * 1000;
-        if (t.tv_nsec >= 1000000000) {
-            t.tv_nsec -= 1000000000;
-            ++t.tv_sec;
-        }
-    }
-    // The time from now to `deadline` in `left`; false when it has passed.
-    static bool time_left(const timespec& deadline, timespec& left) noexcept {
-        timespec now{};
-        clock_gettime(CLOCK_MONOTONIC, &now);
-        long long ns = (static_cast<long long>(deadline.tv_sec) - now.tv_sec) * 1000000000LL +
-                       (deadline.tv_nsec - now.tv_nsec);
-        if (ns <= 0) return false;
-        left.tv_sec = static_cast<time_t>(ns / 1000000000LL);
-        left.tv_nsec = static_cast<long>(ns % 1000000000LL);
-        return true;
-    }
 
     // Reads pending edge events into changed_ and the counters. `poll_only`:
     // do not wait at all; otherwise wait up to `timeout` (nullptr: until an

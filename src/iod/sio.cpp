@@ -128,6 +128,26 @@ public:
             if (ioctl(fd_, FIONREAD, &avail) != 0) return -errno;
             if (static_cast<std::size_t>(avail) < count) return 0;
         }
+        if (timeout_us_ >= 0 && (wait == WAITALL || wait == WAITONE)) {
+            // Bounded: wait until enough bytes are queued, so that on a
+            // timeout nothing has been taken and all stays pending.
+            const std::size_t enough = wait == WAITALL ? count : 1;
+            WaitBound bound(timeout_us_);
+            for (;;) {
+                int avail = 0;
+                if (ioctl(fd_, FIONREAD, &avail) != 0) return -errno;
+                if (static_cast<std::size_t>(avail) >= enough) break;
+                const timespec* left = nullptr;
+                if (!bound.left(left)) return 0;
+                pollfd pf{fd_, POLLIN, 0};
+                if (::ppoll(&pf, 1, left, nullptr) < 0 && errno != EINTR) return -errno;
+                // A line that delivers bytes one by one wakes poll each time: FIONREAD decides.
+                if (avail > 0 && wait == WAITALL) {
+                    const timespec pause{0, 200'000};
+                    ::nanosleep(&pause, nullptr);
+                }
+            }
+        }
         std::size_t got = 0;
         while (got < count) {
             const ssize_t r = ::read(fd_, p + got, count - got);
@@ -192,13 +212,19 @@ protected:
         }
     }
 
-    long class_control(Control cmd, long) noexcept override {
+    long class_control(Control cmd, long arg) noexcept override {
         if (cmd == Control::SIO_FLUSH) return tcflush(fd_, TCIOFLUSH) == 0 ? 0 : -errno;
+        if (cmd == Control::WAIT_TIMEOUT) {
+            if (arg < -1) return -EINVAL;
+            timeout_us_ = arg;
+            return 0;
+        }
         return -ENOTSUP;
     }
 
 private:
     int fd_ = -1;
+    long timeout_us_ = -1;  // WAIT_TIMEOUT for reads; -1: without bound
 };
 
 }  // namespace

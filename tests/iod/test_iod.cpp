@@ -15,6 +15,7 @@
 #include <unistd.h>
 
 #include <cerrno>
+#include <chrono>
 #include <cstdlib>
 #include <fstream>
 #include <functional>
@@ -295,6 +296,32 @@ TEST_F(IodSio, ReadWaitFlags) {
     EXPECT_EQ(dev_->read(buf, 8), 1) << "WAITONE blocks for the first byte only";
     writer2.join();
     EXPECT_EQ(buf[0], 'x');
+}
+
+TEST_F(IodSio, WaitTimeoutBoundsABlockingReadAndLeavesTheBytesPending) {
+    dev_ = iod::open(sdb_, "ser", 0, 0, iod::RW | iod::WAITALL);
+    EXPECT_EQ(dev_->control(iod::Control::WAIT_TIMEOUT, -2), -EINVAL);
+    ASSERT_EQ(dev_->control(iod::Control::WAIT_TIMEOUT, 30000), 0);
+    char buf[8] = {};
+    put("ab", 2);
+    const auto t0 = std::chrono::steady_clock::now();
+    EXPECT_EQ(dev_->read(buf, 4), 0) << "2 of 4 bytes when the time runs out: nothing";
+    EXPECT_GE(std::chrono::steady_clock::now() - t0, std::chrono::milliseconds(30));
+    EXPECT_EQ(dev_->status(iod::Status::SIO_NREAD), 2) << "and nothing was taken";
+    put("cd", 4);
+    EXPECT_EQ(dev_->read(buf, 4), 4);
+    EXPECT_EQ(std::string(buf, 4), "abcd");
+    // WAITONE: the first byte within the bound is enough.
+    ASSERT_EQ(dev_->control(iod::Control::SET_FLAGS, iod::RW | iod::WAITONE), 0);
+    EXPECT_EQ(dev_->read(buf, 4), 0);
+    std::thread writer([&] {
+        usleep(5000);
+        EXPECT_EQ(::write(master_, "z", 1), 1);
+    });
+    ASSERT_EQ(dev_->control(iod::Control::WAIT_TIMEOUT, 2000000), 0);
+    EXPECT_EQ(dev_->read(buf, 4), 1);
+    writer.join();
+    EXPECT_EQ(buf[0], 'z');
 }
 
 TEST_F(IodSio, WriteReachesThePeer) {

@@ -353,6 +353,24 @@ TEST_F(CanGuest, WaitOneBlocksUntilAFrame) {
     EXPECT_EQ(v[0], 7);
 }
 
+TEST_F(CanGuest, WaitTimeoutBoundsABlockingReadAndKeepsWhatArrived) {
+    // Both input frames (ports 0..3 and 6; the output frame between them is
+    // skipped by reads of a read-write instance).
+    auto in = iod::open(db_, "arm", 0, 6, iod::RW | iod::WORD | iod::WAITALL);
+    EXPECT_EQ(in->control(iod::Control::WAIT_TIMEOUT, -2), -EINVAL);
+    ASSERT_EQ(in->control(iod::Control::WAIT_TIMEOUT, 30000), 0);
+    std::uint16_t v[7] = {};
+    send(0x181, {9, 0});  // one of the two frames WAITALL waits for
+    const auto t0 = std::chrono::steady_clock::now();
+    EXPECT_EQ(in->read(v, 7), 0) << "a frame missing when the time runs out: nothing";
+    EXPECT_GE(std::chrono::steady_clock::now() - t0, std::chrono::milliseconds(30));
+    EXPECT_EQ(v[0], 0) << "the buffer is untouched";
+    send(0x182, {3, 0});
+    EXPECT_EQ(in->read(v, 7), 5) << "the first frame stayed fresh: 4 + 1 ports";
+    EXPECT_EQ(v[0], 9);
+    EXPECT_EQ(v[6], 3);
+}
+
 TEST_F(CanGuest, WritePacksPortsIntoTheFrame) {
     auto out = iod::open(db_, "arm", 4, 5, iod::WRITE | iod::LONG);
     const std::uint32_t v[2] = {0x11223344u, 0xAABBCCDDu};
