@@ -8,7 +8,8 @@ mount -t sysfs sysfs /sys
 mount -t devtmpfs devtmpfs /dev
 mkdir -p /dev/shm /dev/pts
 mount -t tmpfs tmpfs /dev/shm
-mount -t tmpfs tmpfs /tmp
+# /tmp stays the initramfs's own (writable, like all of it): the files
+# rtguest.sh --file copied in may live under /tmp (a build tree there).
 echo "=== chimera-rtguest begin: $(uname -r) $(uname -v), $(nproc) cpu(s)"
 
 fail=0
