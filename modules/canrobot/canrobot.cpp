@@ -396,13 +396,15 @@ private:
             const int node = d.node;
             const int joint = static_cast<int>(j) + 1;
             if (d.state == DriveState::fault || d.state == DriveState::fault_reaction_active) {
-                std::snprintf(failure_, sizeof failure_, "node %d (joint %d) on %s: drive fault, error code 0x%04X %s",
-                              node, joint, bus_.interface.c_str(), d.error, std::string(error_name(d.error)).c_str());
+                const std::string_view name = error_name(d.error);
+                std::snprintf(failure_, sizeof failure_, "node %d (joint %d) on %s: drive fault, error code 0x%04X %.*s",
+                              node, joint, bus_.interface.c_str(), d.error, static_cast<int>(name.size()), name.data());
                 return kErrDriveFault;
             }
             if (d.state != DriveState::operation_enabled) {
-                std::snprintf(failure_, sizeof failure_, "node %d (joint %d) on %s left operation enabled: now '%s'",
-                              node, joint, bus_.interface.c_str(), std::string(to_string(d.state)).c_str());
+                const std::string_view state = to_string(d.state);
+                std::snprintf(failure_, sizeof failure_, "node %d (joint %d) on %s left operation enabled: now '%.*s'",
+                              node, joint, bus_.interface.c_str(), static_cast<int>(state.size()), state.data());
                 return kErrDriveState;
             }
             if (d.missed > feedback_misses_) {
@@ -411,15 +413,16 @@ private:
                               node, joint, bus_.interface.c_str(), d.missed, feedback_misses_);
                 return kErrNoFeedback;
             }
-            const double silent = static_cast<double>(now - d.heartbeat_stamp) * 1e-9;
-            if (silent * 1e9 > static_cast<double>(heartbeat_timeout_ns_)) {
+            if (now - d.heartbeat_stamp > heartbeat_timeout_ns_) {
                 std::snprintf(failure_, sizeof failure_, "node %d (joint %d) on %s: no heartbeat for %.3f s (HEARTBEAT_TIMEOUT %.3f)",
-                              node, joint, bus_.interface.c_str(), silent, static_cast<double>(heartbeat_timeout_ns_) * 1e-9);
+                              node, joint, bus_.interface.c_str(), static_cast<double>(now - d.heartbeat_stamp) * 1e-9,
+                              static_cast<double>(heartbeat_timeout_ns_) * 1e-9);
                 return kErrHeartbeat;
             }
             if (d.nmt != NmtState::operational) {
-                std::snprintf(failure_, sizeof failure_, "node %d (joint %d) on %s reports NMT state %s",
-                              node, joint, bus_.interface.c_str(), std::string(to_string(d.nmt)).c_str());
+                const std::string_view nmt = to_string(d.nmt);
+                std::snprintf(failure_, sizeof failure_, "node %d (joint %d) on %s reports NMT state %.*s",
+                              node, joint, bus_.interface.c_str(), static_cast<int>(nmt.size()), nmt.data());
                 return kErrHeartbeat;
             }
         }
