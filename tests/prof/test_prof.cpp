@@ -1,6 +1,7 @@
 // Tests of the prof service: §6.7 arithmetic (exact, with a chosen clock),
 // the profiler against threads whose CPU use is controlled, reset and
 // warning semantics, seqlock consistency across processes, system calls.
+#include "syscall_counter.hpp"
 #include <gtest/gtest.h>
 #include <linux/perf_event.h>
 #include <pthread.h>
@@ -607,26 +608,8 @@ TEST(Profiler, MissesReportedFromASignalHandlerMidPublicationAreKept) {
 
 // Zero system calls per unpreempted cycle: counted by the kernel itself with a
 // per-thread perf counter on the raw_syscalls:sys_enter tracepoint.
-namespace {
-int open_syscall_counter() {
-    std::ifstream f("/sys/kernel/tracing/events/raw_syscalls/sys_enter/id");
-    if (!f) f.open("/sys/kernel/debug/tracing/events/raw_syscalls/sys_enter/id");
-    long id = -1;
-    if (!(f >> id)) return -1;
-    perf_event_attr a;
-    std::memset(&a, 0, sizeof a);
-    a.size = sizeof a;
-    a.type = PERF_TYPE_TRACEPOINT;
-    a.config = static_cast<std::uint64_t>(id);
-    a.disabled = 0;
-    return static_cast<int>(syscall(SYS_perf_event_open, &a, 0, -1, -1, PERF_FLAG_FD_CLOEXEC));
-}
-std::uint64_t read_counter(int fd) {
-    std::uint64_t v = 0;
-    if (read(fd, &v, sizeof v) != sizeof v) return ~0ull;
-    return v;
-}
-}  // namespace
+using chimera::test::open_syscall_counter;
+const auto read_counter = chimera::test::read_syscall_counter;
 
 TEST(Profiler, NoSystemCallUnlessTheCycleWasSwitchedOut) {
     auto seg = StatusSegment::create(unique_subsystem("sys"), 2, one_rtpu());

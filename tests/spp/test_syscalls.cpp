@@ -19,30 +19,15 @@
 #include <vector>
 
 #include "executive_fixture.hpp"
+#include "syscall_counter.hpp"
 
 using namespace spp_test;
 namespace spp = chimera::spp;
 
 namespace {
 
-int open_syscall_counter() {
-    std::ifstream f("/sys/kernel/tracing/events/raw_syscalls/sys_enter/id");
-    if (!f) f.open("/sys/kernel/debug/tracing/events/raw_syscalls/sys_enter/id");
-    long id = -1;
-    if (!(f >> id)) return -1;
-    perf_event_attr a;
-    std::memset(&a, 0, sizeof a);
-    a.size = sizeof a;
-    a.type = PERF_TYPE_TRACEPOINT;
-    a.config = static_cast<std::uint64_t>(id);
-    return static_cast<int>(syscall(SYS_perf_event_open, &a, 0, -1, -1, PERF_FLAG_FD_CLOEXEC));
-}
-
-std::uint64_t read_counter(int fd) {
-    std::uint64_t v = 0;
-    if (read(fd, &v, sizeof v) != sizeof v) return ~0ull;
-    return v;
-}
+using chimera::test::open_syscall_counter;
+const auto read_counter = chimera::test::read_syscall_counter;
 
 // Threads blocked in std::atomic<uint32_t>::wait on 16 consecutive words:
 // libstdc++ keeps 16 buckets of waiters keyed by address, and these put a
