@@ -323,31 +323,42 @@ private:
 
     void start_nodes(chimera::Task& t) {
         // A drive entering operational answers with its TPDO1 at once; its
-        // heartbeat (the liveness the cycle checks) comes within its period.
-        // NMT start goes again to a node that has not answered: a frame can
-        // be lost (a receiver that did not run for a while).
+        // heartbeat (the liveness the cycle checks) comes within its period,
+        // and must say operational: one sent just before the start took
+        // effect (pre-operational) may arrive after the TPDO1.
+        auto pending = [](const Node& d) { return !d.tpdo1_stamp || d.nmt != NmtState::operational; };
+        if (resend_until(pending, [&](std::size_t j) { send_nmt(NmtCommand::start, nodes_[j].node); },
+                         std::chrono::milliseconds(100)) < 0)
+            return;
+        std::string missing;
+        for (std::size_t j = 0; j < n_; ++j)
+            if (pending(nodes_[j]))
+                missing += (missing.empty() ? "" : ", ") + describe(j) +
+                           (nodes_[j].tpdo1_stamp ? " (no operational heartbeat)" : " (no TPDO1, no answer to NMT start)");
+        kill(t);  // confirms nothing with the nodes that never answered
+        rb::module_error(t, "no answer within ENABLE_TIMEOUT " + std::to_string(enable_timeout_) + " s from " + missing +
+                                ": is the drive powered, on the bus, with that node id?");
+    }
+
+    // The command/confirm loop of init, off, kill and error: a frame can be
+    // lost (a receiver that did not run for a while), so `send(joint)` goes
+    // to every drive `pending` still holds for, again every `every`, with the
+    // feedback read in between, until none is pending (-1) or ENABLE_TIMEOUT
+    // passes (the first joint still pending).
+    template <typename Pending, typename Send>
+    int resend_until(Pending pending, Send send, std::chrono::milliseconds every) {
         const auto deadline = Clock::now() + std::chrono::duration<double>(enable_timeout_);
         auto next_send = Clock::now();
         for (;;) {
-            if (Clock::now() >= next_send) {
-                for (const Node& d : nodes_)
-                    if (!d.tpdo1_stamp) send_nmt(NmtCommand::start, d.node);
-                next_send = Clock::now() + std::chrono::milliseconds(100);
-            }
             read_feedback();
-            // The heartbeat must say operational: one sent just before the
-            // start took effect (pre-operational) may arrive after the TPDO1.
-            std::string missing;
-            for (std::size_t j = 0; j < n_; ++j)
-                if (!nodes_[j].tpdo1_stamp || nodes_[j].nmt != NmtState::operational)
-                    missing += (missing.empty() ? "" : ", ") + describe(j) +
-                               (nodes_[j].tpdo1_stamp ? " (no operational heartbeat)"
-                                                      : " (no TPDO1, no answer to NMT start)");
-            if (missing.empty()) return;
-            if (Clock::now() > deadline) {
-                kill(t);  // confirms nothing with the nodes that never answered
-                rb::module_error(t, "no answer within ENABLE_TIMEOUT " + std::to_string(enable_timeout_) + " s from " +
-                                        missing + ": is the drive powered, on the bus, with that node id?");
+            int first = -1;
+            for (std::size_t j = 0; j < nodes_.size() && first < 0; ++j)
+                if (pending(nodes_[j])) first = static_cast<int>(j);
+            if (first < 0 || Clock::now() > deadline) return first;
+            if (Clock::now() >= next_send) {
+                for (std::size_t j = 0; j < nodes_.size(); ++j)
+                    if (pending(nodes_[j])) send(j);
+                next_send = Clock::now() + every;
             }
             std::this_thread::sleep_for(std::chrono::milliseconds(2));
         }
@@ -466,39 +477,23 @@ private:
     }
 
     // `controlword` (shutdown or quick stop: it acts on receipt, no SYNC
-    // needed) to every drive that answered at init, again every 20 ms to
-    // those still enabled, until none is — or ENABLE_TIMEOUT, false, with
-    // the drives that did not follow named in failure_.
-    bool switch_all_confirmed(std::uint16_t controlword) noexcept {
-        const auto deadline = Clock::now() + std::chrono::duration<double>(enable_timeout_);
-        auto next_send = Clock::now();
-        for (;;) {
-            read_feedback();
-            int left = 0, first = -1;
-            for (std::size_t j = 0; j < nodes_.size(); ++j)
-                if (nodes_[j].tpdo1_stamp && !silent(nodes_[j]) && nodes_[j].state == DriveState::operation_enabled) {
-                    ++left;
-                    if (first < 0) first = static_cast<int>(j);
-                }
-            if (left == 0) return none_silent();
-            if (Clock::now() > deadline) {
-                std::snprintf(failure_, sizeof failure_,
-                              "%d drive(s) still enabled after controlword 0x%04X for ENABLE_TIMEOUT %.3f s, "
-                              "first node %d (joint %d) on %s",
-                              left, controlword, enable_timeout_, nodes_[static_cast<std::size_t>(first)].node,
-                              first + 1, bus_.interface.c_str());
-                return false;
-            }
-            if (Clock::now() >= next_send) {
-                for (std::size_t j = 0; j < nodes_.size(); ++j) {
-                    if (nodes_[j].state != DriveState::operation_enabled) continue;
-                    nodes_[j].controlword = controlword;
-                    send_targets(j, controlword, position_mode_ ? kModeCsp : kModeCst, 0, nodes_[j].q, 0);
-                }
-                next_send = Clock::now() + std::chrono::milliseconds(20);
-            }
-            std::this_thread::sleep_for(std::chrono::milliseconds(2));
-        }
+    // needed) to every drive that answered at init and is still enabled,
+    // until none is — or ENABLE_TIMEOUT: false, with the first drive that did
+    // not follow named in failure_.
+    bool switch_all_confirmed(std::uint16_t controlword) {
+        const int first = resend_until(
+            [&](const Node& d) { return d.tpdo1_stamp && !silent(d) && d.state == DriveState::operation_enabled; },
+            [&](std::size_t j) {
+                nodes_[j].controlword = controlword;
+                send_targets(j, controlword, position_mode_ ? kModeCsp : kModeCst, 0, nodes_[j].q, 0);
+            },
+            std::chrono::milliseconds(20));
+        if (first < 0) return none_silent();
+        std::snprintf(failure_, sizeof failure_,
+                      "node %d (joint %d) on %s still enabled after controlword 0x%04X for ENABLE_TIMEOUT %.3f s",
+                      nodes_[static_cast<std::size_t>(first)].node, first + 1, bus_.interface.c_str(), controlword,
+                      enable_timeout_);
+        return false;
     }
 
     // A drive whose heartbeat stopped (HEARTBEAT_TIMEOUT) cannot confirm
@@ -519,36 +514,21 @@ private:
         return true;
     }
 
-    // NMT pre-operational to every drive that answered at init, again every
-    // 50 ms, until each one's heartbeat says so (or ENABLE_TIMEOUT: false,
-    // failure_ names the first that did not).
-    bool all_preoperational() noexcept {
-        const auto deadline = Clock::now() + std::chrono::duration<double>(enable_timeout_);
+    // NMT pre-operational to every drive that answered at init, until each
+    // one's heartbeat says so (or ENABLE_TIMEOUT: false, failure_ names the
+    // first that did not).
+    bool all_preoperational() {
         const std::int64_t since = realtime_ns();
-        auto next_send = Clock::now();
-        for (;;) {
-            read_feedback();
-            int first = -1;
-            for (std::size_t j = 0; j < nodes_.size() && first < 0; ++j)
-                if (nodes_[j].tpdo1_stamp && !silent(nodes_[j]) &&
-                    (nodes_[j].heartbeat_stamp < since || nodes_[j].nmt != NmtState::preoperational))
-                    first = static_cast<int>(j);
-            if (first < 0) return none_silent();
-            if (Clock::now() > deadline) {
-                std::snprintf(failure_, sizeof failure_,
-                              "node %d (joint %d) on %s did not confirm NMT pre-operational within %.3f s",
-                              nodes_[static_cast<std::size_t>(first)].node, first + 1, bus_.interface.c_str(),
-                              enable_timeout_);
-                return false;
-            }
-            if (Clock::now() >= next_send) {
-                for (const Node& d : nodes_)
-                    if (d.tpdo1_stamp && d.nmt != NmtState::preoperational)
-                        send_nmt(NmtCommand::enter_preoperational, d.node);
-                next_send = Clock::now() + std::chrono::milliseconds(50);
-            }
-            std::this_thread::sleep_for(std::chrono::milliseconds(2));
-        }
+        const int first = resend_until(
+            [&](const Node& d) {
+                return d.tpdo1_stamp && !silent(d) && (d.heartbeat_stamp < since || d.nmt != NmtState::preoperational);
+            },
+            [&](std::size_t j) { send_nmt(NmtCommand::enter_preoperational, nodes_[j].node); },
+            std::chrono::milliseconds(50));
+        if (first < 0) return none_silent();
+        std::snprintf(failure_, sizeof failure_, "node %d (joint %d) on %s did not confirm NMT pre-operational within %.3f s",
+                      nodes_[static_cast<std::size_t>(first)].node, first + 1, bus_.interface.c_str(), enable_timeout_);
+        return false;
     }
 
     rb::RobotModel model_;
