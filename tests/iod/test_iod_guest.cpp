@@ -3,6 +3,7 @@
 // SocketCAN. guest-init.sh creates the gpio-sim chip (bank0: 8 lines, bank1:
 // 4 lines) and vcan0 and names them in the environment. Outside the guest the
 // tests skip; inside it a missing interface is a failure.
+#include "guest_env.hpp"
 #include "chimera/iod.hpp"
 
 #include <gtest/gtest.h>
@@ -28,12 +29,7 @@ namespace iod = chimera::iod;
 
 namespace {
 
-std::string env(const char* name) {
-    const char* v = std::getenv(name);
-    return v ? v : "";
-}
-
-bool in_guest() { return env("CHIMERA_RTGUEST") == "1"; }
+using chimera::test::env;
 
 std::string what_of(const std::function<void()>& f) {
     try {
@@ -44,13 +40,7 @@ std::string what_of(const std::function<void()>& f) {
     return "(no error)";
 }
 
-#define REQUIRE_ENV(var)                                                     \
-    do {                                                                     \
-        if (env(var).empty()) {                                              \
-            if (in_guest()) FAIL() << var " is not set by guest-init.sh";    \
-            GTEST_SKIP() << "runs in the rtguest suite (" var " not set)";   \
-        }                                                                    \
-    } while (0)
+#define REQUIRE_ENV(var) CHIMERA_REQUIRE_GUEST_ENV(var)
 
 // --- PIO on gpio-sim --------------------------------------------------------
 class PioGuest : public ::testing::Test {
@@ -71,18 +61,9 @@ protected:
         for (int i = 0; i < 4; ++i) pull(chip1_, i, false);
     }
     // Drives a simulated input line (gpio-sim's pull attribute).
-    void pull(const std::string& chip, int line, bool up) {
-        std::ofstream f(sysfs_ + "/" + chip + "/sim_gpio" + std::to_string(line) + "/pull");
-        ASSERT_TRUE(f.good()) << "no gpio-sim attribute for " << chip << " line " << line;
-        f << (up ? "pull-up" : "pull-down");
-    }
+    void pull(const std::string& chip, int line, bool up) { chimera::test::gpiosim_pull(sysfs_ + "/" + chip, line, up); }
     // What an output line drives, as gpio-sim sees it.
-    int value(const std::string& chip, int line) {
-        std::ifstream f(sysfs_ + "/" + chip + "/sim_gpio" + std::to_string(line) + "/value");
-        int v = -1;
-        f >> v;
-        return v;
-    }
+    int value(const std::string& chip, int line) { return chimera::test::gpiosim_value(sysfs_ + "/" + chip, line); }
     std::string chip0_, chip1_, sysfs_;
     iod::Database db_ = iod::Database::from_string("EOF\n", "empty");
 };

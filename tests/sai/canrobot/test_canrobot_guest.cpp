@@ -6,6 +6,7 @@
 // no drive on it are each handled as the module's header promises. Outside the
 // guest only the host test runs: without AF_CAN, init fails with a clear error.
 // No timing is asserted (TCG emulation); bounds are on behaviour.
+#include "guest_env.hpp"
 #include "fig3_7.hpp"
 
 #include <chimera/ipc/segment.hpp>
@@ -49,11 +50,7 @@ using namespace std::chrono_literals;
 
 constexpr std::size_t kDof = 6;
 
-std::string env(const char* name) {
-    const char* v = std::getenv(name);
-    return v ? v : "";
-}
-bool in_guest() { return env("CHIMERA_RTGUEST") == "1"; }
+using chimera::test::env;
 
 bool kernel_has_af_can() {
     const int fd = ::socket(PF_CAN, SOCK_RAW, CAN_RAW);
@@ -62,13 +59,7 @@ bool kernel_has_af_can() {
     return true;
 }
 
-#define REQUIRE_VCAN()                                                                 \
-    do {                                                                               \
-        if (env("CHIMERA_VCAN").empty()) {                                             \
-            if (in_guest()) FAIL() << "CHIMERA_VCAN is not set by guest-init.sh";      \
-            GTEST_SKIP() << "runs in the rtguest suite (CHIMERA_VCAN not set)";        \
-        }                                                                              \
-    } while (0)
+#define REQUIRE_VCAN() CHIMERA_REQUIRE_GUEST_ENV("CHIMERA_VCAN")
 
 std::string read_file(const std::string& path) {
     std::ifstream f(path);

@@ -11,6 +11,7 @@
 // skip. The modules are linked into this program (the guest has no module
 // folders); the runtime finds them in the program. No timing is asserted (a
 // TCG guest is slow and irregular): every "eventually" waits up to 10 s.
+#include "guest_env.hpp"
 #include "alloc_counter.hpp"
 #include <chimera/iod.hpp>
 #include <chimera/ipc/segment.hpp>
@@ -51,12 +52,7 @@ namespace {
 std::mutex g_probe_mu;
 std::vector<int> g_probe_seen;
 
-int sim_value(const std::string& bank_dir, int line) {
-    std::ifstream f(bank_dir + "/sim_gpio" + std::to_string(line) + "/value");
-    int v = -1;
-    f >> v;
-    return v;
-}
+using chimera::test::gpiosim_value;
 
 class PinProbe : public chimera::Module {
 public:
@@ -64,7 +60,7 @@ public:
         if (!t.local().has("LINES")) return chimera::Result::OK;  // a probe for set() only
         std::vector<int> seen;
         const std::string dir = t.local().text("SYSFS").value_or("");
-        for (double line : t.local().numbers("LINES")) seen.push_back(sim_value(dir, static_cast<int>(line)));
+        for (double line : t.local().numbers("LINES")) seen.push_back(gpiosim_value(dir, static_cast<int>(line)));
         std::lock_guard<std::mutex> lock(g_probe_mu);
         g_probe_seen = seen;
         return chimera::Result::OK;
@@ -80,10 +76,7 @@ CHIMERA_MODULE(pinprobe, PinProbe)
 
 namespace {
 
-std::string env(const char* name) {
-    const char* v = std::getenv(name);
-    return v ? v : "";
-}
+using chimera::test::env;
 
 std::string what_of(const std::function<void()>& f) {
     try {
@@ -106,13 +99,7 @@ bool eventually(P pred, std::chrono::milliseconds t = 10000ms) {
     return pred();
 }
 
-#define REQUIRE_ENV(var)                                                       \
-    do {                                                                       \
-        if (env(var).empty()) {                                                \
-            if (env("CHIMERA_RTGUEST") == "1") FAIL() << var " is not set by guest-init.sh"; \
-            GTEST_SKIP() << "runs in the rtguest suite (" var " not set)";     \
-        }                                                                      \
-    } while (0)
+#define REQUIRE_ENV(var) CHIMERA_REQUIRE_GUEST_ENV(var)
 
 constexpr const char* kSvar =
     "NAME DI\nTYPE byte\nDESC inputs\nUNITS none\nNELEM 4\n"
@@ -172,14 +159,10 @@ protected:
     }
 
     // gpio-sim: drive a simulated input; what an output line shows.
-    void pull(const std::string& chip, int line, bool up) {
-        std::ofstream f(sysfs_ + "/" + chip + "/sim_gpio" + std::to_string(line) + "/pull");
-        ASSERT_TRUE(f.good()) << "no gpio-sim attribute for " << chip << " line " << line;
-        f << (up ? "pull-up" : "pull-down");
-    }
+    void pull(const std::string& chip, int line, bool up) { chimera::test::gpiosim_pull(sysfs_ + "/" + chip, line, up); }
     std::vector<int> lines(int first, int last) {
         std::vector<int> v;
-        for (int i = first; i <= last; ++i) v.push_back(sim_value(sysfs_ + "/" + chip0_, i));
+        for (int i = first; i <= last; ++i) v.push_back(gpiosim_value(sysfs_ + "/" + chip0_, i));
         return v;
     }
 
