@@ -110,12 +110,8 @@ TEST(Sem, WaitersAreServedHighestPriorityFirst) {
     EXPECT_EQ(order, (std::vector<int>{7, 7, 4, 2}));
 }
 
-TEST(Sem, GrantToADeadWaiterIsPassedOn) {
-    // Shared memory so a child process can wait on it.
-    void* mem = mmap(nullptr, Semaphore::memory_size(), PROT_READ | PROT_WRITE,
-                     MAP_SHARED | MAP_ANONYMOUS, -1, 0);
-    ASSERT_NE(mem, MAP_FAILED);
-    Semaphore s = Semaphore::over(mem, Kind::binary, 0);
+// A child process blocked in P on `mem` (shared memory), returned once it waits.
+pid_t child_waiting_in_p(void* mem, Semaphore& s) {
     const pid_t child = fork();
     if (child == 0) {
         Semaphore c = Semaphore::bind(mem);
@@ -123,6 +119,16 @@ TEST(Sem, GrantToADeadWaiterIsPassedOn) {
         _exit(0);
     }
     while (s.waiting() == 0) std::this_thread::yield();
+    return child;
+}
+
+TEST(Sem, GrantToADeadWaiterIsPassedOn) {
+    // Shared memory so a child process can wait on it.
+    void* mem = mmap(nullptr, Semaphore::memory_size(), PROT_READ | PROT_WRITE,
+                     MAP_SHARED | MAP_ANONYMOUS, -1, 0);
+    ASSERT_NE(mem, MAP_FAILED);
+    Semaphore s = Semaphore::over(mem, Kind::binary, 0);
+    const pid_t child = child_waiting_in_p(mem, s);
     // The child dies while waiting; V must not give the unit to it.
     kill(child, SIGKILL);
     waitpid(child, nullptr, 0);
@@ -138,13 +144,7 @@ TEST(Sem, AUnitGrantedToAKilledUnreapedWaiterIsTakenBack) {
                      MAP_SHARED | MAP_ANONYMOUS, -1, 0);
     ASSERT_NE(mem, MAP_FAILED);
     Semaphore s = Semaphore::over(mem, Kind::binary, 0);
-    const pid_t child = fork();
-    if (child == 0) {
-        Semaphore c = Semaphore::bind(mem);
-        c.p(-1, 10);
-        _exit(0);
-    }
-    while (s.waiting() == 0) std::this_thread::yield();
+    const pid_t child = child_waiting_in_p(mem, s);
     kill(child, SIGKILL);
     siginfo_t info{};
     ASSERT_EQ(waitid(P_PID, static_cast<id_t>(child), &info, WEXITED | WNOWAIT), 0);  // a zombie now
