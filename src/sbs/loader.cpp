@@ -1,6 +1,8 @@
 // Module loading by MODULE name (the symbolic translation of §4.5.2, Listing A-2).
 #include "internal.hpp"
 
+#include <algorithm>
+#include <cctype>
 #include <cstring>
 #include <dlfcn.h>
 #include <filesystem>
@@ -72,6 +74,13 @@ const ChimeraModuleAbi* check(const void* sym, const std::string& name, const st
 }  // namespace
 
 const ChimeraModuleAbi& load_module(const std::string& name, const std::vector<std::string>& extra_dirs) {
+    // The name becomes a file name and a symbol: a '/' or '..' in it would
+    // reach a library outside the module path.
+    const bool identifier = !name.empty() && std::all_of(name.begin(), name.end(), [](unsigned char c) {
+        return std::isalnum(c) != 0 || c == '_';
+    });
+    if (!identifier)
+        throw Error("module name '" + name + "' is not an identifier (letters, digits, _): refused");
     std::lock_guard<std::mutex> lock(g_mu);
     if (auto it = g_loaded.find(name); it != g_loaded.end()) return *it->second;
     const std::string symbol = module_symbol(name);

@@ -15,6 +15,7 @@
 #include <unistd.h>
 
 #include <filesystem>
+#include <fstream>
 #include <thread>
 
 using chimera::cli::ClientError;
@@ -202,15 +203,120 @@ TEST(SbsNetwork, TcpNeedsTheToken) {
 
 TEST(SbsNetwork, ListenOptionsAreChecked) {
     Workspace ws;
-    auto r = ws.sbs_run({"--serve", "--tcp", "0.0.0.0:0"});
-    EXPECT_EQ(r.status, 1);
-    EXPECT_NE(r.err.find("needs a token"), std::string::npos) << r.err;
-    r = ws.sbs_run({"--serve", "--tcp", "127.0.0.1:http"});
+    // TCP needs a token on every address: loopback is open to every local user.
+    for (const char* where : {"0.0.0.0:0", "127.0.0.1:0", "localhost:0"}) {
+        auto r = ws.sbs_run({"--serve", "--tcp", where});
+        EXPECT_EQ(r.status, 2) << where;
+        EXPECT_NE(r.err.find("--tcp needs --token"), std::string::npos) << r.err;
+    }
+    auto r = ws.sbs_run({"--serve", "--tcp", "127.0.0.1:http", "--token", "t"});
     EXPECT_EQ(r.status, 1);
     EXPECT_NE(r.err.find("not a port number"), std::string::npos) << r.err;
     r = ws.sbs_run({"--token", "x", "-c", "status"});
     EXPECT_EQ(r.status, 2);
     EXPECT_FALSE(std::filesystem::exists("/dev/shm/chimera." + ws.subsystem() + ".svar"));
+}
+
+TEST(SbsNetwork, TokenFileMustBeTheOwnersAlone) {
+    Workspace ws;
+    const std::string file = ws.write("token", "s3cret\n");
+    ::chmod(file.c_str(), 0644);
+    auto r = ws.sbs_run({"--serve", "--tcp", "127.0.0.1:0", "--token-file", file});
+    EXPECT_EQ(r.status, 2);
+    EXPECT_NE(r.err.find("readable or writable by others"), std::string::npos) << r.err;
+    ::chmod(file.c_str(), 0600);
+    Master m(ws, {"--serve", "--tcp", "127.0.0.1:0", "--token-file", file});
+    ASSERT_TRUE(m.stderr_has("TCP 127.0.0.1:")) << m.err_text();
+    ASSERT_TRUE(m.stderr_has("\n")) << m.err_text();
+    const int port = std::stoi(m.err_text().substr(m.err_text().find("TCP 127.0.0.1:") + 14));
+    auto c = NetworkClient::connect_tcp("127.0.0.1", static_cast<std::uint16_t>(port));
+    EXPECT_TRUE(c.request("token s3cret", 10000)["ok"].get<bool>());
+    c.request("finish", 10000);
+    EXPECT_EQ(m.wait(), 0) << m.err_text();
+}
+
+// The attack that was possible: an unprivileged local user reaches a root
+// master's TCP port and names a .rmod in a folder of its own, beside a
+// library whose constructor runs the moment dlopen() maps it.
+TEST(SbsNetwork, UnprivilegedUserCannotGetCodeLoadedByTheMaster) {
+    if (::geteuid() != 0) GTEST_SKIP() << "needs root: the master must run as root and the attacker as nobody";
+    Workspace ws;
+    const std::string marker = ws.write("marker-parent-check", "");
+    std::filesystem::remove(marker);
+    ::setenv("CHIMERA_PROBE_MARKER", marker.c_str(), 1);
+    Master m(ws, {"--serve", "--listen", "--tcp", "127.0.0.1:0", "--token", "s3cret"});
+    ::unsetenv("CHIMERA_PROBE_MARKER");
+    ASSERT_TRUE(m.stderr_has("TCP 127.0.0.1:")) << m.err_text();
+    ASSERT_TRUE(m.stderr_has("\n")) << m.err_text();
+    const int port = std::stoi(m.err_text().substr(m.err_text().find("TCP 127.0.0.1:") + 14));
+
+    // The attacker, as nobody: its own folder with probe.rmod and the library
+    // under every name the loader tries; then the master, without the token.
+    int report[2];
+    ASSERT_EQ(::pipe(report), 0);
+    const pid_t attacker = ::fork();
+    if (attacker == 0) {
+        ::close(report[0]);
+        std::string out;
+        if (::setgid(65534) != 0 || ::setuid(65534) != 0) ::_exit(3);
+        char tmpl[] = "/tmp/attacker_XXXXXX";
+        const std::string dir = ::mkdtemp(tmpl);
+        std::filesystem::copy_file(sbs_test::env("PROBE_SO"), dir + "/probe.so");
+        std::filesystem::copy_file(sbs_test::env("PROBE_SO"), dir + "/libprobe.so");
+        {
+            std::ofstream f(dir + "/probe.rmod");
+            f << "MODULE probe\\nDESC probe\\nINVAR none\\nOUTVAR none\\nTASKTYPE periodic\\nFREQ 10\\nEOF\\n";
+        }
+        out += dir + "\\n";
+        try {
+            auto c = NetworkClient::connect_tcp("127.0.0.1", static_cast<std::uint16_t>(port));
+            out += c.request("spawn " + dir + "/probe.rmod", 10000).dump() + "\\n";
+        } catch (const std::exception& e) {
+            out += std::string("tcp: ") + e.what() + "\\n";
+        }
+        try {
+            auto c = NetworkClient::connect_unix(ws.socket_path());
+            out += "unix: " + c.hello().dump() + "\\n";
+        } catch (const std::exception& e) {
+            out += std::string("unix: ") + e.what() + "\\n";
+        }
+        [[maybe_unused]] auto n = ::write(report[1], out.data(), out.size());
+        ::_exit(0);
+    }
+    ::close(report[1]);
+    std::string said;
+    char buf[4096];
+    for (ssize_t n; (n = ::read(report[0], buf, sizeof buf)) > 0;) said.append(buf, static_cast<std::size_t>(n));
+    ::close(report[0]);
+    ASSERT_EQ(sbs_test::wait_child(attacker, 10000), 0) << said;
+    const std::string dir = said.substr(0, said.find('\\n'));
+    EXPECT_NE(said.find("authenticate first"), std::string::npos) << said;
+    EXPECT_EQ(said.find("spawned"), std::string::npos) << said;
+    EXPECT_NE(said.find("unix: "), std::string::npos) << said;
+    EXPECT_EQ(said.find(R"("ok":true)"), std::string::npos) << "nobody was let in: " << said;
+
+    // Even a peer holding the token names nothing outside the module path.
+    auto c = NetworkClient::connect_tcp("127.0.0.1", static_cast<std::uint16_t>(port));
+    ASSERT_TRUE(c.request("token s3cret", 10000)["ok"].get<bool>());
+    for (const std::string& name : {dir + "/probe.rmod", dir + "/probe", std::string("../../../..") + dir + "/probe"}) {
+        for (const char* cmd : {"spawn ", "module "}) {
+            const auto r = c.request(cmd + name, 10000);
+            EXPECT_FALSE(r["ok"].get<bool>()) << cmd << name;
+            EXPECT_NE(r["error"].get<std::string>().find("over the network only"), std::string::npos) << r.dump();
+        }
+    }
+    // A file that is not a .rmod is never shown to the peer.
+    const auto passwd = c.request("spawn /etc/passwd", 10000);
+    EXPECT_FALSE(passwd["ok"].get<bool>());
+    EXPECT_EQ(passwd.dump().find("root:"), std::string::npos) << passwd.dump();
+    EXPECT_FALSE(std::filesystem::exists(marker)) << "the probe's constructor ran in the master";
+    // What is on the module path still spawns by name.
+    EXPECT_TRUE(c.request("spawn ramp", 10000)["ok"].get<bool>());
+    c.request("finish", 10000);
+    EXPECT_EQ(m.wait(), 0) << m.err_text();
+    EXPECT_FALSE(std::filesystem::exists(marker)) << "the probe's constructor ran in the master";
+    std::error_code ec;
+    std::filesystem::remove_all(dir, ec);
 }
 
 TEST(SbsNetwork, AttachToARunningMaster) {

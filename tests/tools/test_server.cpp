@@ -6,6 +6,8 @@
 #include "server.hpp"
 
 #include <gtest/gtest.h>
+#include <cstring>
+#include <poll.h>
 
 #include <sys/socket.h>
 #include <sys/stat.h>
@@ -307,17 +309,21 @@ TEST_F(Network, StaleSocketFileIsReplacedButALiveOneIsNot) {
     done.get();
 }
 
-TEST_F(Network, TcpNeedsATokenOffLoopback) {
-    ServerOptions o;
-    o.subsystem = "testsys";
-    o.tcp = true;
-    o.tcp_host = "0.0.0.0";
-    NetworkServer s(o, [this](std::string_view c) { return recorder(c); });
-    try {
-        s.start();
-        FAIL() << "non-loopback TCP without a token must be refused";
-    } catch (const ServerError& e) {
-        EXPECT_NE(std::string(e.what()).find("needs a token"), std::string::npos) << e.what();
+TEST_F(Network, TcpNeedsATokenEvenOnLoopback) {
+    // Every local user can connect to a loopback port: without a token, any
+    // of them would control a master that may run as root.
+    for (const char* host : {"0.0.0.0", "127.0.0.1", "::1"}) {
+        ServerOptions o;
+        o.subsystem = "testsys";
+        o.tcp = true;
+        o.tcp_host = host;
+        NetworkServer s(o, [this](std::string_view c) { return recorder(c); });
+        try {
+            s.start();
+            FAIL() << "TCP on " << host << " without a token must be refused";
+        } catch (const ServerError& e) {
+            EXPECT_NE(std::string(e.what()).find("needs a token"), std::string::npos) << e.what();
+        }
     }
     EXPECT_TRUE(is_loopback_host("127.0.0.1"));
     EXPECT_TRUE(is_loopback_host("127.8.9.1"));
@@ -344,23 +350,110 @@ TEST_F(Network, TcpTokenIsCheckedBeforeAnyCommand) {
         EXPECT_EQ(r["error"], "authenticate first: token TOKEN");
         EXPECT_THROW(c.read_line(2000), ClientError);
     }
-    ASSERT_EQ(done.wait_for(2s), std::future_status::ready);
-    EXPECT_EQ(done.get(), NetworkServer::SessionEnd::peer_lost);
-    done = hand_over_async(*s, &interrupt);
     {
         auto c = NetworkClient::connect_tcp("127.0.0.1", s->tcp_port());
         auto r = c.request("token s3cret-tokeX", 2000);
         EXPECT_EQ(r["error"], "wrong token");
         EXPECT_THROW(c.read_line(2000), ClientError);
     }
-    done.get();
-    done = hand_over_async(*s, &interrupt);
+    // Neither had control, so no session ended: the offer still stands.
+    EXPECT_EQ(done.wait_for(300ms), std::future_status::timeout);
+    EXPECT_EQ(s->sessions_ended(), 0u);
     auto c = NetworkClient::connect_tcp("localhost", s->tcp_port());
     EXPECT_TRUE(c.request("token s3cret-token", 2000)["ok"].get<bool>());
     EXPECT_EQ(c.request("echo in", 2000)["text"], "in");
     c.request("quit", 2000);
     EXPECT_EQ(done.get(), NetworkServer::SessionEnd::peer_quit);
     EXPECT_EQ(recorder.seen(), (std::vector<std::string>{"echo in", "quit"}));
+}
+
+TEST_F(Network, IdleUnauthenticatedPeerBlocksNobodyAndIsClosedAtItsDeadline) {
+    ServerOptions o;
+    o.tcp = true;
+    o.token = "tok";
+    o.auth_timeout = 400ms;
+    auto s = make(o);
+    std::atomic<bool> interrupt{false};
+    auto done = hand_over_async(*s, &interrupt);
+    auto idle = NetworkClient::connect_tcp("127.0.0.1", s->tcp_port());
+    EXPECT_EQ(idle.hello()["auth_timeout_ms"], 400);
+    // A later peer that authenticates gets control at once.
+    auto c = NetworkClient::connect_tcp("127.0.0.1", s->tcp_port());
+    ASSERT_TRUE(c.request("token tok", 2000)["ok"].get<bool>());
+    EXPECT_EQ(c.request("echo hi", 2000)["text"], "hi");
+    // The idle one is told and closed at its deadline, having run nothing.
+    auto line = idle.read_line(3000);
+    ASSERT_TRUE(line);
+    EXPECT_NE(json::parse(*line)["error"].get<std::string>().find("no token within 400 ms"), std::string::npos)
+        << *line;
+    EXPECT_THROW(idle.read_line(2000), ClientError);
+    c.request("quit", 2000);
+    EXPECT_EQ(done.get(), NetworkServer::SessionEnd::peer_quit);
+    EXPECT_EQ(recorder.seen(), (std::vector<std::string>{"echo hi", "quit"}));
+}
+
+TEST_F(Network, BadFirstLineClosesAnUnauthenticatedPeer) {
+    ServerOptions o;
+    o.tcp = true;
+    o.token = "tok";
+    auto s = make(o);
+    std::atomic<bool> interrupt{false};
+    auto done = hand_over_async(*s, &interrupt);
+    {
+        auto c = NetworkClient::connect_tcp("127.0.0.1", s->tcp_port());
+        auto r = c.request(std::string("token\x01tok"), 2000);
+        EXPECT_EQ(r["error"], "request contains control characters");
+        EXPECT_THROW(c.read_line(2000), ClientError);
+    }
+    {
+        auto c = NetworkClient::connect_tcp("127.0.0.1", s->tcp_port());
+        auto r = c.request("token " + std::string(5000, 'x'), 2000);
+        EXPECT_NE(r["error"].get<std::string>().find("longer than 4096"), std::string::npos);
+        EXPECT_THROW(c.read_line(2000), ClientError);
+    }
+    {
+        auto c = NetworkClient::connect_tcp("127.0.0.1", s->tcp_port());
+        EXPECT_EQ(c.request("{not json", 2000)["error"], "malformed JSON request");
+        EXPECT_THROW(c.read_line(2000), ClientError);
+    }
+    EXPECT_TRUE(recorder.seen().empty());
+    interrupt = true;
+    EXPECT_EQ(done.get(), NetworkServer::SessionEnd::interrupted);
+}
+
+TEST_F(Network, BurstOf300ConnectionsIsAccepted) {
+    // Non-blocking connects in a tight loop, as a burst of clients makes
+    // them: a short listen backlog refuses some with EAGAIN.
+    auto s = make();
+    std::atomic<bool> interrupt{false};
+    auto done = hand_over_async(*s, &interrupt);
+    sockaddr_un addr{};
+    addr.sun_family = AF_UNIX;
+    std::strncpy(addr.sun_path, path.c_str(), sizeof addr.sun_path - 1);
+    std::vector<int> fds;
+    int refused = 0;
+    for (int i = 0; i < 300; ++i) {
+        const int fd = ::socket(AF_UNIX, SOCK_STREAM | SOCK_NONBLOCK | SOCK_CLOEXEC, 0);
+        ASSERT_GE(fd, 0);
+        if (::connect(fd, reinterpret_cast<sockaddr*>(&addr), sizeof addr) != 0) {
+            ++refused;
+            ::close(fd);
+            continue;
+        }
+        fds.push_back(fd);
+    }
+    EXPECT_EQ(refused, 0);
+    // Every one is answered: one gets control, the rest a refusal line.
+    int answered = 0;
+    for (int fd : fds) {
+        pollfd p{fd, POLLIN, 0};
+        char c = 0;
+        if (::poll(&p, 1, 5000) == 1 && ::read(fd, &c, 1) == 1 && c == '{') ++answered;
+        ::close(fd);
+    }
+    EXPECT_EQ(answered, static_cast<int>(fds.size()));
+    interrupt = true;
+    done.get();
 }
 
 TEST_F(Network, StopDisconnectsTheControllingPeer) {

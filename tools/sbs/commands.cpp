@@ -244,8 +244,9 @@ std::vector<std::string> Interpreter::module_path() const {
     return dirs;
 }
 
-Reply Interpreter::execute(std::string_view command) {
+Reply Interpreter::execute(std::string_view command, Origin origin) {
     std::lock_guard lock(mutex_);
+    origin_ = origin;
     Words words;
     try {
         words = split_words(command);
@@ -357,11 +358,17 @@ sbs::TaskId Interpreter::task_of(const std::string& rmod) {
 std::optional<std::string> Interpreter::find_rmod_file(const std::string& name) const {
     std::vector<std::string> names = {name};
     if (fs::path(name).extension() != ".rmod") names.push_back(name + ".rmod");
-    for (const auto& n : names) {
-        std::error_code ec;
-        if (fs::is_regular_file(n, ec)) return n;
+    if (origin_ == Origin::network) {
+        if (name.find('/') != std::string::npos || name == "." || name == "..")
+            throw CommandError("over the network only .rmod files on the master's module path can be named, "
+                               "by name without a folder (" + name + " is a path)");
+    } else {
+        for (const auto& n : names) {
+            std::error_code ec;
+            if (fs::is_regular_file(n, ec)) return n;
+        }
+        if (name.find('/') != std::string::npos) return std::nullopt;
     }
-    if (name.find('/') != std::string::npos) return std::nullopt;
     for (const auto& d : module_path()) {
         for (const auto& n : names) {
             std::error_code ec;

@@ -33,6 +33,11 @@ const std::vector<CommandInfo>& command_table();
 /// may choose from, in display order.
 const std::vector<std::string>& status_field_names();
 
+/// Who sent a command. A network peer may name only .rmod files on the
+/// module path the master was started with (never a path, never the working
+/// folder), so it cannot get a library of its own choosing loaded.
+enum class Origin { local, network };
+
 class Interpreter {
 public:
     /// `module_dirs`: folders added with --module-path (already given to the
@@ -40,7 +45,7 @@ public:
     Interpreter(sbs::Subsystem& subsystem, std::vector<std::string> module_dirs);
 
     /// Runs ONE command (no `;`). Never throws: failures are replies.
-    Reply execute(std::string_view command);
+    Reply execute(std::string_view command, Origin origin = Origin::local);
 
     /// The default RMOD: the one the last command was directed to (§4.4.1).
     const std::string& default_rmod() const noexcept { return default_rmod_; }
@@ -89,6 +94,7 @@ private:
     std::map<std::string, RmodFile> rmods_;  // rmod name -> the file it was spawned from
     std::optional<svar::Table> table_;
     std::optional<prof::StatusReader> prof_;
+    Origin origin_ = Origin::local;  // of the command being executed
     std::mutex mutex_;  // one command at a time, whichever interface sent it
 };
 

@@ -21,6 +21,7 @@
 #include <editline/readline.h>
 
 #include <poll.h>
+#include <sys/stat.h>
 #include <unistd.h>
 
 #include <atomic>
@@ -29,6 +30,8 @@
 #include <cstdio>
 #include <cstdlib>
 #include <cstring>
+#include <chrono>
+#include <fstream>
 #include <functional>
 #include <iostream>
 #include <memory>
@@ -147,7 +150,24 @@ struct NetworkSetup {
     std::string unix_path;  // empty: the default
     std::string tcp;        // [host:]port
     std::string token;
+    double auth_timeout_s = 5.0;  // to send the token, then the connection is closed
 };
+
+/// The token from --token-file: its first line, so it never shows in `ps`.
+/// The file must not be readable by others, or anyone could read the token.
+std::string read_token_file(const std::string& path) {
+    struct stat st {};
+    if (::stat(path.c_str(), &st) != 0) throw std::runtime_error(path + ": " + std::strerror(errno));
+    if (!S_ISREG(st.st_mode)) throw std::runtime_error(path + ": not a regular file");
+    if ((st.st_mode & 0077) != 0)
+        throw std::runtime_error(path + ": readable or writable by others (chmod 600 it)");
+    std::ifstream in(path);
+    std::string token;
+    std::getline(in, token);
+    if (!token.empty() && token.back() == '\r') token.pop_back();
+    if (token.empty()) throw std::runtime_error(path + ": empty first line (expected the token)");
+    return token;
+}
 
 class Master {
 public:
@@ -177,6 +197,7 @@ public:
                     throw cli::ServerError("--tcp: '" + port + "' is not a port number (0-65535)");
                 o.tcp_port = static_cast<std::uint16_t>(p);
                 o.token = net_.token;
+                o.auth_timeout = std::chrono::milliseconds(static_cast<long>(net_.auth_timeout_s * 1000));
             }
             server_ = std::make_unique<cli::NetworkServer>(
                 o, [this](std::string_view line) { return execute_network(line); });
@@ -230,7 +251,7 @@ private:
             r.rmod = interp_.default_rmod();
             return r;
         }
-        return interp_.execute(commands[0]);
+        return interp_.execute(commands[0], cli::Origin::network);
     }
 
     sbs::Subsystem& sbs_;
@@ -357,15 +378,41 @@ int main(int argc, char** argv) {
                  "else /tmp/chimera-UID/NAME.sock)");
     app.add_option("--socket", net.unix_path, "the Unix socket path for --listen (implies --listen)");
     app.add_option("--tcp", net.tcp, "listen on TCP [host:]port as well (host: loopback unless given)");
-    app.add_option("--token", net.token, "token a TCP peer must send first (required off loopback)");
+    std::string token_file;
+    app.add_option("--token", net.token, "token a TCP peer must send first (required with --tcp)");
+    app.add_option("--token-file", token_file,
+                   "read the token from the first line of this file (mode 0600; keeps it out of ps)");
+    app.add_option("--auth-timeout", net.auth_timeout_s,
+                   "seconds a TCP peer has to send its token before it is disconnected (default 5)")
+        ->check(CLI::Range(0.1, 600.0));
     app.add_flag("--serve", serve,
                  "no prompt: the network has control from the start (after -c), until a peer sends finish");
     app.add_option("--module-path", module_dirs, "a folder with modules and .rmod files (repeatable)");
     app.add_flag("--no-attach", no_attach, "never attach to a running master; start the subsystem here");
     CLI11_PARSE(app, argc, argv);
     if (!net.unix_path.empty()) net.listen = true;
+    if (!token_file.empty()) {
+        if (!net.token.empty()) {
+            std::cerr << "sbs: give --token or --token-file, not both" << std::endl;
+            return 2;
+        }
+        try {
+            net.token = read_token_file(token_file);
+        } catch (const std::exception& e) {
+            std::cerr << "sbs: --token-file " << e.what() << std::endl;
+            return 2;
+        }
+    }
     if (!net.token.empty() && net.tcp.empty()) {
         std::cerr << "sbs: --token is for --tcp" << std::endl;
+        return 2;
+    }
+    if (!net.tcp.empty() && net.token.empty()) {
+        // Every local user can connect to a TCP port, loopback included, and
+        // control of the master is control of the machine it runs as.
+        std::cerr << "sbs: --tcp needs --token or --token-file (every local user can reach a TCP port, "
+                     "loopback included); the owner-only Unix socket (--listen) needs no token"
+                  << std::endl;
         return 2;
     }
 

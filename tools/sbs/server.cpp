@@ -89,7 +89,18 @@ struct NetworkServer::Peer {
     std::string buffer;
     bool discarding = false;   // inside an oversized line: drop until newline
     bool authenticated = false;
+    bool controlling = false;  // this peer's session holds control
+    SessionEnd end = SessionEnd::peer_lost;  // why, once handle_input() said to close
+    std::chrono::steady_clock::time_point deadline;  // to authenticate by
 };
+
+namespace {
+
+// Connections waiting for their token at once; more are refused so a flood
+// of idle connections cannot run the server out of file descriptors.
+constexpr std::size_t kMaxPending = 512;
+
+}  // namespace
 
 NetworkServer::NetworkServer(ServerOptions options, Executor executor)
     : options_(std::move(options)), executor_(std::move(executor)) {}
@@ -100,9 +111,12 @@ void NetworkServer::start() {
     if (options_.tcp && !options_.token.empty() && options_.token.find_first_of(" \t\r\n") != std::string::npos) {
         throw ServerError("the token must not contain white space");
     }
-    if (options_.tcp && options_.token.empty() && !is_loopback_host(options_.tcp_host)) {
-        throw ServerError("TCP on the non-loopback address " + options_.tcp_host +
-                          " needs a token (--token)");
+    if (options_.tcp && options_.token.empty()) {
+        // Loopback is no protection: every local user can connect to it, and
+        // control of a root master means loading code as root.
+        throw ServerError("TCP on " + options_.tcp_host +
+                          " needs a token (--token or --token-file): every local user can reach a TCP port, "
+                          "loopback included; the owner-only Unix socket (--listen) needs none");
     }
     wake_fd_ = ::eventfd(0, EFD_CLOEXEC | EFD_NONBLOCK);
     if (wake_fd_ < 0) throw ServerError("eventfd: " + errno_text(errno));
@@ -144,7 +158,7 @@ void NetworkServer::start() {
             throw ServerError("cannot bind " + options_.unix_path + ": " + errno_text(err));
         }
         ::chmod(options_.unix_path.c_str(), 0600);
-        if (::listen(unix_fd_, 8) != 0) {
+        if (::listen(unix_fd_, SOMAXCONN) != 0) {
             stop();
             throw ServerError("listen: " + errno_text(errno));
         }
@@ -173,7 +187,7 @@ void NetworkServer::start() {
             }
             const int one = 1;
             ::setsockopt(fd, SOL_SOCKET, SO_REUSEADDR, &one, sizeof one);
-            if (::bind(fd, ai->ai_addr, ai->ai_addrlen) == 0 && ::listen(fd, 8) == 0) {
+            if (::bind(fd, ai->ai_addr, ai->ai_addrlen) == 0 && ::listen(fd, SOMAXCONN) == 0) {
                 tcp_fd_ = fd;
                 break;
             }
@@ -324,20 +338,70 @@ NetworkServer::SessionEnd NetworkServer::wait_session(const std::atomic<bool>* i
 }
 
 void NetworkServer::accept_from(int listen_fd) {
-    const int fd = ::accept4(listen_fd, nullptr, nullptr, SOCK_CLOEXEC | SOCK_NONBLOCK);
-    if (fd < 0) return;
-    if (listen_fd == unix_fd_) {
-        // File permissions keep other users out; root gets past them, so the
-        // peer's credentials are checked as well.
-        ucred cred{};
-        socklen_t len = sizeof cred;
-        if (::getsockopt(fd, SOL_SOCKET, SO_PEERCRED, &cred, &len) != 0 ||
-            (cred.uid != ::getuid() && cred.uid != 0)) {
-            send_line(fd, error_line("hello", "permission denied"));
-            ::close(fd);
+    // Drain the queue: a burst of connections must not wait one poll round each.
+    for (;;) {
+        const int fd = ::accept4(listen_fd, nullptr, nullptr, SOCK_CLOEXEC | SOCK_NONBLOCK);
+        if (fd < 0) {
+            if (errno == EINTR || errno == ECONNABORTED) continue;
             return;
         }
+        if (listen_fd == unix_fd_) {
+            // File permissions keep other users out; root gets past them, so the
+            // peer's credentials are checked as well.
+            ucred cred{};
+            socklen_t len = sizeof cred;
+            if (::getsockopt(fd, SOL_SOCKET, SO_PEERCRED, &cred, &len) != 0 ||
+                (cred.uid != ::getuid() && cred.uid != 0)) {
+                send_line(fd, error_line("hello", "permission denied"));
+                ::close(fd);
+                continue;
+            }
+        }
+        const bool had_control = peer_ != nullptr;
+        admit(fd, !options_.token.empty());
+        // Once a peer got control, the rest wait for the next round, after its
+        // input: a peer that closed and at once reconnected must find its old
+        // session over, not be refused by it.
+        if (!had_control && peer_) return;
     }
+}
+
+void NetworkServer::admit(int fd, bool needs_token) {
+    if (needs_token && pending_.size() >= kMaxPending) {
+        send_line(fd, error_line("hello", "too many connections waiting to authenticate"));
+        ::close(fd);
+        return;
+    }
+    auto peer = std::make_unique<Peer>();
+    peer->fd = fd;
+    peer->authenticated = !needs_token;
+    peer->deadline = std::chrono::steady_clock::now() + options_.auth_timeout;
+    // A peer that must authenticate first gets control only once it has: it
+    // waits among the pending ones and blocks nobody meanwhile.
+    if (peer->authenticated && !take_control(*peer)) {
+        ::close(fd);
+        return;
+    }
+    nlohmann::json hello = {{"ok", true},
+                            {"cmd", "hello"},
+                            {"protocol", 1},
+                            {"subsystem", options_.subsystem},
+                            {"pid", ::getpid()},
+                            {"auth", needs_token ? "token" : "none"},
+                            {"max_request", options_.max_request}};
+    if (needs_token) hello["auth_timeout_ms"] = options_.auth_timeout.count();
+    if (!send_line(fd, hello.dump())) {
+        close_peer(*peer, SessionEnd::peer_lost);
+        return;
+    }
+    if (peer->controlling) {
+        peer_ = std::move(peer);  // the session runs in run() from here on
+    } else {
+        pending_.push_back(std::move(peer));
+    }
+}
+
+bool NetworkServer::take_control(Peer& peer) {
     std::unique_lock lock(mutex_);
     std::string refusal;
     if (session_active_) {
@@ -349,32 +413,35 @@ void NetworkServer::accept_from(int listen_fd) {
     }
     if (!refusal.empty()) {
         lock.unlock();
-        send_line(fd, error_line("hello", refusal));
-        ::close(fd);
-        return;
+        send_line(peer.fd, error_line("hello", refusal));
+        return false;
     }
     session_active_ = true;
-    lock.unlock();
-    nlohmann::json hello = {{"ok", true},
-                            {"cmd", "hello"},
-                            {"protocol", 1},
-                            {"subsystem", options_.subsystem},
-                            {"pid", ::getpid()},
-                            {"auth", options_.token.empty() ? "none" : "token"},
-                            {"max_request", options_.max_request}};
-    Peer* peer = new Peer;
-    peer->fd = fd;
-    peer->authenticated = options_.token.empty();
-    if (!send_line(fd, hello.dump())) {
-        ::close(fd);
-        delete peer;
-        end_session(SessionEnd::peer_lost);
-        return;
-    }
-    // The session runs in run() from here on.
-    peer_.reset(peer);
+    peer.controlling = true;
+    return true;
 }
 
+void NetworkServer::close_peer(Peer& peer, SessionEnd why) {
+    ::close(peer.fd);
+    peer.fd = -1;
+    if (peer.controlling) {
+        peer.controlling = false;
+        end_session(why);
+    }
+}
+
+void NetworkServer::expire_pending() {
+    const auto now = std::chrono::steady_clock::now();
+    for (auto& p : pending_) {
+        if (p->fd >= 0 && now >= p->deadline) {
+            send_line(p->fd, error_line("token", "no token within " +
+                                                     std::to_string(options_.auth_timeout.count()) +
+                                                     " ms: connection closed"));
+            close_peer(*p, SessionEnd::peer_lost);
+        }
+    }
+    std::erase_if(pending_, [](const auto& p) { return p->fd < 0; });
+}
 
 void NetworkServer::run() {
     // The server is an ordinary thread whatever the process was started with:
@@ -383,14 +450,16 @@ void NetworkServer::run() {
     sp.sched_priority = 0;
     ::pthread_setschedparam(::pthread_self(), SCHED_OTHER, &sp);
 
+    std::vector<pollfd> fds;
     while (!stopping_) {
-        pollfd fds[4];
-        nfds_t n = 0;
-        fds[n++] = {wake_fd_, POLLIN, 0};
-        if (unix_fd_ >= 0) fds[n++] = {unix_fd_, POLLIN, 0};
-        if (tcp_fd_ >= 0) fds[n++] = {tcp_fd_, POLLIN, 0};
-        if (peer_) fds[n++] = {peer_->fd, POLLIN, 0};
-        const int rc = ::poll(fds, n, 200);
+        fds.clear();
+        fds.push_back({wake_fd_, POLLIN, 0});
+        if (unix_fd_ >= 0) fds.push_back({unix_fd_, POLLIN, 0});
+        if (tcp_fd_ >= 0) fds.push_back({tcp_fd_, POLLIN, 0});
+        const std::size_t listeners = fds.size();
+        if (peer_) fds.push_back({peer_->fd, POLLIN, 0});
+        for (const auto& p : pending_) fds.push_back({p->fd, POLLIN, 0});
+        const int rc = ::poll(fds.data(), fds.size(), 200);
         if (rc < 0 && errno != EINTR) break;
         if (stopping_) break;
         std::uint64_t drained = 0;
@@ -403,42 +472,43 @@ void NetworkServer::run() {
         }
         if (peer_ && take_back) {
             send_line(peer_->fd, error_line("", "control taken back by the command line"));
-            ::close(peer_->fd);
+            close_peer(*peer_, SessionEnd::interrupted);
             peer_.reset();
-            end_session(SessionEnd::interrupted);
             continue;
         }
+        expire_pending();
         if (rc <= 0) continue;
-        // The controlling peer first: a peer that closed and at once
-        // reconnects must find its old session over, not be refused by it.
-        if (peer_ && fds[n - 1].fd == peer_->fd && fds[n - 1].revents != 0) {
-            if (!handle_input(*peer_)) {
-                ::close(peer_->fd);
-                peer_.reset();
+        // Peers first, then new connections (see accept_from).
+        for (std::size_t i = listeners; i < fds.size(); ++i) {
+            if (fds[i].revents == 0) continue;
+            if (peer_ && fds[i].fd == peer_->fd) {
+                if (!handle_input(*peer_)) {
+                    close_peer(*peer_, peer_->end);
+                    peer_.reset();
+                }
+                continue;
+            }
+            for (auto& p : pending_) {
+                if (p->fd != fds[i].fd) continue;
+                if (!handle_input(*p)) {
+                    close_peer(*p, p->end);
+                } else if (p->controlling) {
+                    peer_ = std::move(p);  // authenticated and given control
+                }
+                break;
             }
         }
-        for (nfds_t i = 1; i < n; ++i) {
-            if (fds[i].revents == 0) continue;
-            if (fds[i].fd == unix_fd_ || fds[i].fd == tcp_fd_) {
-                if (!peer_) {
-                    accept_from(fds[i].fd);
-                } else {
-                    // Busy: accept and refuse at once so the caller is not left hanging.
-                    const int fd = ::accept4(fds[i].fd, nullptr, nullptr, SOCK_CLOEXEC | SOCK_NONBLOCK);
-                    if (fd >= 0) {
-                        send_line(fd, error_line("hello", "another network peer has control of subsystem " +
-                                                              options_.subsystem));
-                        ::close(fd);
-                    }
-                }
-            }
+        std::erase_if(pending_, [](const auto& p) { return !p || p->fd < 0; });
+        for (std::size_t i = 1; i < listeners; ++i) {
+            if (fds[i].revents != 0) accept_from(fds[i].fd);
         }
     }
+    for (auto& p : pending_) close_peer(*p, SessionEnd::peer_lost);
+    pending_.clear();
     if (peer_) {
         send_line(peer_->fd, error_line("", "subsystem " + options_.subsystem + " is shutting down"));
-        ::close(peer_->fd);
+        close_peer(*peer_, SessionEnd::stopped);
         peer_.reset();
-        end_session(SessionEnd::stopped);
     }
 }
 
@@ -449,7 +519,7 @@ bool NetworkServer::handle_input(Peer& peer) {
         if (got == 0 || (got < 0 && errno != EAGAIN && errno != EWOULDBLOCK && errno != EINTR)) {
             // Lost connection (possibly in the middle of a request): the
             // unfinished line is dropped and control goes back (§4.4.2).
-            end_session(SessionEnd::peer_lost);
+            peer.end = SessionEnd::peer_lost;
             return false;
         }
         if (got < 0) {
@@ -465,10 +535,13 @@ bool NetworkServer::handle_input(Peer& peer) {
             } else if (peer.buffer.size() + part.size() > options_.max_request) {
                 peer.buffer.clear();
                 peer.discarding = nl == std::string_view::npos;
-                if (!send_line(peer.fd, error_line("", "request longer than " +
-                                                           std::to_string(options_.max_request) +
-                                                           " bytes"))) {
-                    end_session(SessionEnd::peer_lost);
+                const bool sent = send_line(peer.fd, error_line(peer.authenticated ? "" : "token",
+                                                                "request longer than " +
+                                                                    std::to_string(options_.max_request) +
+                                                                    " bytes"));
+                // An unauthenticated peer gets one try per connection.
+                if (!sent || !peer.authenticated) {
+                    peer.end = SessionEnd::peer_lost;
                     return false;
                 }
             } else {
@@ -490,11 +563,11 @@ bool NetworkServer::handle_line(Peer& peer, std::string_view line) {
     nlohmann::json id = nullptr;
     std::string command;
     auto reply_error = [&](std::string cmd, std::string message) {
-        if (!send_line(peer.fd, to_json_line(Reply::failure(std::move(cmd), std::move(message)), id))) {
-            end_session(SessionEnd::peer_lost);
-            return false;
-        }
-        return true;
+        const bool sent = send_line(peer.fd, to_json_line(Reply::failure(std::move(cmd), std::move(message)), id));
+        // Before the token, any bad line ends the connection: one try each.
+        if (sent && peer.authenticated) return true;
+        peer.end = SessionEnd::peer_lost;
+        return false;
     };
     std::size_t first = line.find_first_not_of(" \t");
     if (first == std::string_view::npos) return true;  // blank lines are keep-alives
@@ -513,26 +586,7 @@ bool NetworkServer::handle_line(Peer& peer, std::string_view line) {
     for (unsigned char c : command) {
         if (c < 0x20 && c != '\t') return reply_error("", "request contains control characters");
     }
-    if (!peer.authenticated) {
-        // The first request must carry the token; anything else ends the
-        // connection so a guesser gets one try per connection.
-        const std::string_view cmd(command);
-        const bool is_token = cmd.substr(0, 6) == "token ";
-        if (is_token && same_token(cmd.substr(6), options_.token)) {
-            peer.authenticated = true;
-            Reply ok;
-            ok.command = "token";
-            ok.text = "authenticated";
-            if (!send_line(peer.fd, to_json_line(ok, id))) {
-                end_session(SessionEnd::peer_lost);
-                return false;
-            }
-            return true;
-        }
-        reply_error("token", is_token ? "wrong token" : "authenticate first: token TOKEN");
-        end_session(SessionEnd::peer_lost);
-        return false;
-    }
+    if (!peer.authenticated) return authenticate(peer, command, id);
     Reply reply;
     try {
         reply = executor_(command);
@@ -543,15 +597,41 @@ bool NetworkServer::handle_line(Peer& peer, std::string_view line) {
         reply = Reply::failure(reply.command, "the network already has control");
     }
     if (!send_line(peer.fd, to_json_line(reply, id))) {
-        end_session(SessionEnd::peer_lost);
+        peer.end = SessionEnd::peer_lost;
         return false;
     }
     if (reply.action == Action::quit) {
-        end_session(SessionEnd::peer_quit);
+        peer.end = SessionEnd::peer_quit;
         return false;
     }
     if (reply.action == Action::finish) {
-        end_session(SessionEnd::finish);
+        peer.end = SessionEnd::finish;
+        return false;
+    }
+    return true;
+}
+
+bool NetworkServer::authenticate(Peer& peer, std::string_view command, const nlohmann::json& id) {
+    // The first request must carry the token; anything else ends the
+    // connection so a guesser gets one try per connection.
+    const bool is_token = command.substr(0, 6) == "token ";
+    if (!is_token || !same_token(command.substr(6), options_.token)) {
+        send_line(peer.fd, to_json_line(Reply::failure("token", is_token ? "wrong token"
+                                                                         : "authenticate first: token TOKEN"),
+                                        id));
+        peer.end = SessionEnd::peer_lost;
+        return false;
+    }
+    peer.authenticated = true;
+    if (!take_control(peer)) {
+        peer.end = SessionEnd::peer_lost;
+        return false;
+    }
+    Reply ok;
+    ok.command = "token";
+    ok.text = "authenticated";
+    if (!send_line(peer.fd, to_json_line(ok, id))) {
+        peer.end = SessionEnd::peer_lost;
         return false;
     }
     return true;

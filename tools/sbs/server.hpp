@@ -15,6 +15,7 @@
 #include "reply.hpp"
 
 #include <atomic>
+#include <chrono>
 #include <condition_variable>
 #include <cstdint>
 #include <functional>
@@ -24,6 +25,7 @@
 #include <string>
 #include <string_view>
 #include <thread>
+#include <vector>
 
 namespace chimera::cli {
 
@@ -40,7 +42,10 @@ struct ServerOptions {
     std::string tcp_host = "127.0.0.1";  ///< loopback unless an address is given
     std::uint16_t tcp_port = 0;     ///< 0: the kernel picks (see tcp_port())
     std::string token;              ///< required first line `token T` when non-empty;
-                                    ///< mandatory for a non-loopback TCP address
+                                    ///< mandatory whenever TCP is on: loopback is
+                                    ///< reachable by every local user
+    std::chrono::milliseconds auth_timeout{5000};  ///< a peer that has not sent the
+                                    ///< token by then is closed (it never had control)
     std::size_t max_request = 4096; ///< longest accepted request line, in bytes
     bool serve = false;             ///< the network has control from start(): no peer is
                                     ///< refused before serve_forever() is called
@@ -97,8 +102,13 @@ private:
     struct Peer;
     void run();
     void accept_from(int listen_fd);
-    bool handle_input(Peer& peer);   // false: the session is over
+    void admit(int fd, bool needs_token);
+    bool take_control(Peer& peer);   // false: refused, the peer is to be closed
+    void close_peer(Peer& peer, SessionEnd why);
+    void expire_pending();
+    bool handle_input(Peer& peer);   // false: the peer is to be closed
     bool handle_line(Peer& peer, std::string_view line);
+    bool authenticate(Peer& peer, std::string_view command, const nlohmann::json& id);
     bool send_line(int fd, const std::string& line);
     void end_session(SessionEnd why);
     void wake();
@@ -113,6 +123,9 @@ private:
     std::thread thread_;
     std::atomic<bool> stopping_{false};
     std::unique_ptr<Peer> peer_;    // the controlling peer; touched by the server thread only
+    // Connected peers that have not sent the token yet: they have no control
+    // and are closed at their deadline, so an idle connection blocks nobody.
+    std::vector<std::unique_ptr<Peer>> pending_;
 
     mutable std::mutex mutex_;
     std::condition_variable changed_;
