@@ -91,6 +91,11 @@ void RtpuScheduler::Impl::dispatcher_main() noexcept {
 }
 
 std::int64_t RtpuScheduler::Impl::dispatch_once(std::int64_t now) noexcept {
+    if (static_ranking.load(std::memory_order_acquire)) {
+        // Off the release path: the tasks release themselves.
+        rank_static();
+        return infinity;
+    }
     std::array<int, detail::kMaxTasks> released;
     std::size_t n_released = 0;
     std::int64_t next = infinity;
@@ -154,7 +159,37 @@ void RtpuScheduler::Impl::rank_and_apply(std::int64_t now) noexcept {
         e.current_prio = s.fifo_prio.load(std::memory_order_relaxed);
         e.new_prio = e.current_prio;
     }
-    detail::rank_priorities(std::span(entries.data(), n), options.fifo_low, options.fifo_high);
+    apply_ranking(std::span(entries.data(), n));
+}
+
+void RtpuScheduler::Impl::rank_static() noexcept {
+    std::array<detail::RankEntry, detail::kMaxTasks> entries;
+    std::size_t n = 0;
+    const bool dynamic = uses_deadline.load(std::memory_order_relaxed);
+    const int count = std::min(slot_count_seen.load(std::memory_order_acquire), detail::kMaxTasks);
+    for (int h = 0; h < count; ++h) {
+        TaskSlot& s = slots[static_cast<std::size_t>(h)];
+        if (s.state.load(std::memory_order_acquire) != SlotState::attached) continue;
+        if (s.pacing.load(std::memory_order_relaxed) != Pacing::dispatched) continue;
+        // The relative deadline stands for the time to the deadline: with
+        // harmonic periods and implicit deadlines, their order is the order
+        // of the absolute deadlines of any jobs pending together.
+        std::optional<std::int64_t> ticks;
+        if (dynamic) ticks = s.rel_deadline_ns.load(std::memory_order_relaxed) / options.tick_ns;
+        detail::RankEntry& e = entries[n++];
+        e.urgency = urgency(options.encoding, s.crit.load(std::memory_order_acquire), ticks,
+                            s.uprio.load(std::memory_order_relaxed));
+        e.since_ns = 0;
+        e.handle = h;
+        e.current_prio = s.fifo_prio.load(std::memory_order_relaxed);
+        e.new_prio = e.current_prio;
+    }
+    apply_ranking(std::span(entries.data(), n));
+}
+
+void RtpuScheduler::Impl::apply_ranking(std::span<detail::RankEntry> entries) noexcept {
+    const std::size_t n = entries.size();
+    detail::rank_priorities(entries, options.fifo_low, options.fifo_high);
     for (std::size_t i = 0; i < n; ++i) {
         const detail::RankEntry& e = entries[i];
         if (e.new_prio == e.current_prio) continue;

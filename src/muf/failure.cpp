@@ -67,6 +67,8 @@ struct ThreadState {
     volatile sig_atomic_t cycle_aborted = 0;
 
     std::int64_t armed_deadline = infinity;  // absolute, as armed
+    bool deadline_timer_set = false;         // the kernel timer holds armed_deadline
+    bool maxexec_timer_set = false;          // the CPU-time timer holds a budget
     bool budget_armed = false;
     std::int64_t budget_ns = infinity;
     std::int64_t budget_cpu_start = 0;  // SCHED_DEADLINE tasks: CPU time at the release
@@ -246,6 +248,8 @@ void bind_thread(RtpuScheduler::Impl* impl, TaskSlot* slot, TaskHandle h) noexce
     t.skip_next = 0;
     t.cycle_aborted = 0;
     t.armed_deadline = infinity;
+    t.deadline_timer_set = false;
+    t.maxexec_timer_set = false;
     t.budget_armed = false;
     t.raised_while_held = false;
 }
@@ -280,29 +284,52 @@ void delete_timers(TaskSlot& s) noexcept {
     s.timers_created = false;
 }
 
-void arm_timers(TaskSlot& s, std::int64_t deadline_abs, std::int64_t budget_ns) noexcept {
+// The DEADLINE timer is set to the deadline of the job to come, not armed at
+// each release and disarmed at each completion: cycle_complete() moves it on to
+// the next job's deadline, so a release that comes on time finds it set and
+// makes no system call. Between jobs it stands at a deadline that lies after
+// the next release; if it fires while no job runs (a skipped or late release,
+// a task turned off) still_applies() finds no job and the signal is ignored.
+void set_deadline_timer(TaskSlot& s, std::int64_t deadline_abs) noexcept {
     ThreadState& t = tl;
+    // Already set for this deadline, and it lies ahead: nothing to do. (One
+    // that has passed is set again, so the kernel fires it now, in the job.)
+    if (t.armed_deadline == deadline_abs && t.deadline_timer_set && deadline_abs > clock_ns()) return;
     t.armed_deadline = deadline_abs;
+    t.deadline_timer_set = deadline_abs != infinity;
     if (s.timers_created) {
         const itimerspec its{{0, 0}, to_ts(deadline_abs == infinity ? 0 : deadline_abs)};
         timer_settime(s.deadline_timer, TIMER_ABSTIME, &its, nullptr);
     }
+}
+
+void arm_timers(TaskSlot& s, std::int64_t deadline_abs, std::int64_t budget_ns) noexcept {
+    ThreadState& t = tl;
+    set_deadline_timer(s, deadline_abs);
     const bool finite = budget_ns > 0 && budget_ns != infinity;
     t.budget_ns = finite ? budget_ns : infinity;
     t.budget_armed = finite;
-    if (s.maxexec_timer_created) {
+    if (s.maxexec_timer_created && (finite || t.maxexec_timer_set)) {
         // Relative on the CPU clock: the budget counts from the CPU time now.
-        // Disarming (0) matters: a stale budget must not fire in the next job.
+        // A task without a budget never arms it, so it costs no system call;
+        // disarming (0) a budget set before matters: it must not fire later.
         const itimerspec its{{0, 0}, to_ts(finite ? budget_ns : 0)};
         timer_settime(s.maxexec_timer, 0, &its, nullptr);
+        t.maxexec_timer_set = finite;
     } else if (finite && s.deadline_reserved.load(std::memory_order_relaxed)) {
         t.budget_cpu_start = thread_cpu_ns();
     }
 }
 
+void job_complete_timers(TaskSlot& s, std::int64_t next_deadline_abs) noexcept {
+    set_deadline_timer(s, next_deadline_abs);
+}
+
 void disarm_deadline(TaskSlot& s) noexcept {
     ThreadState& t = tl;
     t.armed_deadline = infinity;
+    if (!t.deadline_timer_set) return;
+    t.deadline_timer_set = false;
     if (s.timers_created) {
         const itimerspec its{};
         timer_settime(s.deadline_timer, TIMER_ABSTIME, &its, nullptr);

@@ -102,6 +102,31 @@ std::optional<Backend> parse_backend(std::string_view text) noexcept {
 
 // ------------------------------------------------------------------ Impl
 
+namespace {
+
+// The MUF order of pending jobs never changes between releases when no
+// deadline takes part (RM), or when every deadline equals its period and the
+// periods divide one another: a shorter period's current deadline is then
+// never after a longer one's (the longer period's boundaries are among the
+// shorter's), so the order by relative deadline is the order by absolute
+// deadline. Ties of equal deadline go to the shorter period here, where the
+// dynamic dispatcher would take user priority first.
+bool ranking_is_static(const std::vector<TaskSpec>& specs, bool uses_deadline) {
+    if (!uses_deadline) return true;
+    for (const TaskSpec& t : specs) {
+        if (t.deadline > 0 && t.deadline != t.period) return false;
+        const auto p = static_cast<std::int64_t>(t.period);
+        for (const TaskSpec& u : specs) {
+            const auto q = static_cast<std::int64_t>(u.period);
+            if (p <= 0 || q <= 0) return false;
+            if (std::max(p, q) % std::min(p, q) != 0) return false;
+        }
+    }
+    return true;
+}
+
+}  // namespace
+
 RtpuScheduler::Impl::Impl(RtpuOptions o) : options(std::move(o)) {
     const std::string who = "rtpu '" + options.name + "': ";
     if (options.cpu < 0 || options.cpu >= get_nprocs())
@@ -116,6 +141,7 @@ RtpuScheduler::Impl::Impl(RtpuOptions o) : options(std::move(o)) {
         e.crit_bits + e.dyn_bits + e.user_bits > 64 || e.dyn_bits > 62)
         throw SchedError(who + "urgency encoding must have 1..64 bits in all (c, d, u > 0, d <= 62)");
     detail::install_failure_signals();
+    epoch_ns = options.epoch_ns > 0 ? options.epoch_ns : clock_ns();
     if (options.backend == Backend::other) return;
 
     std::promise<int> started;
@@ -205,8 +231,27 @@ void RtpuScheduler::Impl::reassign() {
         s.uprio.store(a.uprio[i]);
     }
     uses_deadline.store(a.uses_deadline);
+    const bool was_static = static_ranking.load();
+    const bool now_static = ranking_is_static(specs, a.uses_deadline);
+    static_ranking.store(now_static, std::memory_order_release);
     current_assignment = std::move(a);
     assignment_handles = std::move(handles);
+    if (now_static != was_static) {
+        // Tasks waiting for the dispatcher (or for their own timeout) must
+        // see the change: they wait the other way from their next release.
+        for (int h = 0; h < count; ++h) {
+            TaskSlot& s = slots[static_cast<std::size_t>(h)];
+            if (s.state.load() != SlotState::attached) continue;
+            s.release_word.fetch_add(1, std::memory_order_acq_rel);
+            ipc::futex_wake_all(s.release_word);
+        }
+    }
+}
+
+std::int64_t RtpuScheduler::Impl::aligned_release(std::int64_t period_ns) const noexcept {
+    const std::int64_t now = clock_ns();
+    if (now < epoch_ns) return epoch_ns;
+    return epoch_ns + ((now - epoch_ns) / period_ns + 1) * period_ns;
 }
 
 // ------------------------------------------------------------------ RtpuScheduler
@@ -396,7 +441,7 @@ void RtpuScheduler::attach_current_thread(TaskHandle h) {
     s.release_word.fetch_add(1);
     s.control_seen = s.release_word.load();
     const std::int64_t first =
-        s.params.first_release_ns > 0 ? s.params.first_release_ns : clock_ns() + s.period_ns.load();
+        s.params.first_release_ns > 0 ? s.params.first_release_ns : m.aligned_release(s.period_ns.load());
     s.next_release_ns.store(first);
     s.state.store(SlotState::attached, std::memory_order_release);
     m.notify();
@@ -429,13 +474,15 @@ Wake RtpuScheduler::wait_release(TaskHandle h, const std::atomic<std::uint32_t>*
         const Phase phase = s.phase.load(std::memory_order_acquire);
         if (phase == Phase::detached || s.state.load(std::memory_order_acquire) != SlotState::attached)
             return Wake::detached;
-        if (s.pacing.load(std::memory_order_relaxed) == Pacing::dispatched) {
+        if (s.pacing.load(std::memory_order_relaxed) == Pacing::dispatched &&
+            !impl_->static_ranking.load(std::memory_order_acquire)) {
             if (phase == Phase::job) break;  // released (perhaps while we were away)
             if (word && word->load(std::memory_order_acquire) != seen) return Wake::command;
             wait_words(s.release_word, rw, word, seen, infinity);
             continue;
         }
         // Self-paced: the thread keeps its own timeline.
+        if (phase == Phase::job) break;  // released by the dispatcher before a switch to static ranking
         const std::int64_t now = clock_ns();
         std::int64_t release = s.next_release_ns.load(std::memory_order_relaxed);
         if (now >= release) {
@@ -483,7 +530,13 @@ void RtpuScheduler::cycle_complete(TaskHandle h) noexcept {
     // The job ends before the timer is disarmed: a signal in between is stale.
     Phase job = Phase::job;
     s.phase.compare_exchange_strong(job, Phase::waiting, std::memory_order_acq_rel);
-    detail::disarm_deadline(s);
+    if (s.self_timed.load(std::memory_order_relaxed)) {
+        detail::disarm_deadline(s);
+    } else {
+        // Set for the job to come now, while there is nothing else to do.
+        const std::int64_t next = s.next_release_ns.load(std::memory_order_relaxed);
+        detail::job_complete_timers(s, next + s.rel_deadline_ns.load(std::memory_order_relaxed));
+    }
     if (detail::take_cycle_aborted())
         s.missed.fetch_add(1, std::memory_order_relaxed);
     else
@@ -533,5 +586,9 @@ Assignment RtpuScheduler::assignment() const {
 
 std::uint64_t RtpuScheduler::reschedules() const noexcept { return impl_->reschedules.load(); }
 std::uint64_t RtpuScheduler::priority_changes() const noexcept { return impl_->priority_changes.load(); }
+bool RtpuScheduler::static_ranking() const noexcept {
+    return impl_->options.backend == Backend::fifo && impl_->privileged &&
+           impl_->static_ranking.load(std::memory_order_acquire);
+}
 
 }  // namespace chimera::muf

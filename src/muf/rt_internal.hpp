@@ -111,6 +111,10 @@ struct RtpuScheduler::Impl {
     Assignment current_assignment;
     std::vector<int> assignment_handles;   // the handle of each task of current_assignment
     std::atomic<bool> uses_deadline{true};  // false for RM: no dynamic priority
+    // The MUF order cannot change between releases (RM, or harmonic periods
+    // with implicit deadlines): fixed priorities, tasks release themselves.
+    std::atomic<bool> static_ranking{false};
+    std::int64_t epoch_ns = 0;              // origin of the release timeline
 
     // Dispatcher wake-up word: bumped on criticality, deadline and set changes.
     std::atomic<std::uint32_t> event_word{0};
@@ -131,6 +135,14 @@ struct RtpuScheduler::Impl {
     /// One pass: releases due tasks, ranks, applies; returns the next release time.
     std::int64_t dispatch_once(std::int64_t now) noexcept;
     void rank_and_apply(std::int64_t now) noexcept;
+    /// Static ranking: every attached task its fixed priority (changing only
+    /// those that move).
+    void rank_static() noexcept;
+    /// Gives the entries priorities by rank and applies the changes.
+    void apply_ranking(std::span<detail::RankEntry> entries) noexcept;
+    /// The first release of a task attached now: the next instant of the
+    /// timeline epoch + k·period.
+    std::int64_t aligned_release(std::int64_t period_ns) const noexcept;
 };
 
 }  // namespace chimera::muf
@@ -179,6 +191,9 @@ void delete_timers(TaskSlot& s) noexcept;
 /// infinity: not armed). Async-signal-safe.
 void arm_timers(TaskSlot& s, std::int64_t deadline_abs, std::int64_t budget_ns) noexcept;
 void disarm_deadline(TaskSlot& s) noexcept;
+/// At a job's completion: the DEADLINE timer moves on to the next job's
+/// deadline (infinity: none), so an on-time release needs no system call.
+void job_complete_timers(TaskSlot& s, std::int64_t next_deadline_abs) noexcept;
 /// Raises a failure in the calling thread outside a signal handler (MINEXEC at a
 /// release); returns the handler's action. Counts it.
 FailureAction raise_failure_here(Failure kind) noexcept;

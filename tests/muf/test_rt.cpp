@@ -26,6 +26,7 @@
 #include "chimera/ipc/lock.hpp"
 #include "chimera/muf.hpp"
 #include "rt_internal.hpp"
+#include "syscall_counter.hpp"
 
 using namespace chimera::muf;
 using namespace std::chrono_literals;
@@ -127,6 +128,8 @@ private:
             set_dfhandler(probe_handler, handler_crit_, probe_);
         }
         state_.store(1);
+        sigset_t normal_mask;
+        pthread_sigmask(SIG_SETMASK, nullptr, &normal_mask);
         for (;;) {
             const Wake w = sch_.wait_release(h_);
             if (w == Wake::detached) break;
@@ -134,10 +137,14 @@ private:
                 skipped_.fetch_add(1);
                 continue;
             }
-            if (sigsetjmp(*sch_.cycle_mark(h_), 1) == 0) {
+            // As the runtime does (src/sbs/task.cpp): no mask saved, which
+            // would be a system call per cycle; restored after a jump instead.
+            if (sigsetjmp(*sch_.cycle_mark(h_), 0) == 0) {
                 sch_.arm_abort(h_);
                 started_.fetch_add(1);
                 cycle_();
+            } else {
+                pthread_sigmask(SIG_SETMASK, &normal_mask, nullptr);
             }
             sch_.cycle_complete(h_);
         }
@@ -766,4 +773,96 @@ TEST(MufFifo, WithoutPrivilegeWarnsRunsBestEffortAndStillDetectsFailures) {
     ASSERT_TRUE(WIFEXITED(status));
     EXPECT_EQ(WEXITSTATUS(status), 0)
         << "10 setresuid, 11 still privileged, 12 attach, 13 no DEADLINE, 14 policy text, 15 thread";
+}
+
+// --- Static ranking: one wake-up per release, no dispatcher on the release path
+
+TEST(MufStatic, HarmonicImplicitDeadlinesRankStaticallyAndTasksReleaseThemselves) {
+    RtpuScheduler sch(options(Backend::fifo));
+    if (!sch.privileged()) GTEST_SKIP() << "SCHED_FIFO refused on this machine";
+    std::atomic<int> n5{0}, n10{0}, n20{0};
+    Runner a(sch, task("p20", 20 * ms, 0), [&] { n20.fetch_add(1); });
+    Runner b(sch, task("p5", 5 * ms, 0), [&] { n5.fetch_add(1); });
+    Runner c(sch, task("p10", 10 * ms, 0), [&] { n10.fetch_add(1); });
+    ASSERT_TRUE(a.start() && b.start() && c.start());
+    EXPECT_TRUE(sch.static_ranking());
+    ASSERT_TRUE(eventually([&] { return n20.load() >= 3; }));
+    // Fixed priorities in deadline order: the shortest period highest.
+    const int p5 = fifo_priority_of(b.tid()), p10 = fifo_priority_of(c.tid()), p20 = fifo_priority_of(a.tid());
+    EXPECT_GT(p5, p10);
+    EXPECT_GT(p10, p20);
+    // Steady state: the tasks go on releasing themselves while the dispatcher
+    // neither runs nor changes a priority.
+    const std::uint64_t rescheds = sch.reschedules(), changes = sch.priority_changes();
+    const int before = n5.load();
+    ASSERT_TRUE(eventually([&] { return n5.load() >= before + 20; }));
+    EXPECT_EQ(sch.reschedules(), rescheds);
+    EXPECT_EQ(sch.priority_changes(), changes);
+    EXPECT_EQ(fifo_priority_of(b.tid()), p5);
+    EXPECT_EQ(sch.status(b.handle()).priority, p5);
+}
+
+TEST(MufStatic, NonHarmonicOrConstrainedDeadlinesStayWithTheDispatcher) {
+    {
+        RtpuScheduler sch(options(Backend::fifo));
+        if (!sch.privileged()) GTEST_SKIP() << "SCHED_FIFO refused on this machine";
+        Runner a(sch, task("p10", 10 * ms, 0), [] {});
+        Runner b(sch, task("p15", 15 * ms, 0), [] {});
+        ASSERT_TRUE(a.start() && b.start());
+        EXPECT_FALSE(sch.static_ranking());
+    }
+    {
+        RtpuScheduler sch(options(Backend::fifo));
+        Runner a(sch, task("p10", 10 * ms, 0), [] {});
+        Runner b(sch, task("p20d8", 20 * ms, 0, 8 * ms), [] {});
+        ASSERT_TRUE(a.start() && b.start());
+        EXPECT_FALSE(sch.static_ranking());
+        // RM ranks statically whatever the periods.
+    }
+    RtpuScheduler rm(options(Backend::fifo, Policy::rm));
+    Runner a(rm, task("p10", 10 * ms, 0), [] {});
+    Runner b(rm, task("p15", 15 * ms, 0), [] {});
+    ASSERT_TRUE(a.start() && b.start());
+    EXPECT_TRUE(rm.static_ranking());
+}
+
+// System calls of a task thread per cycle in steady state, counted by the
+// kernel (raw_syscalls tracepoint): the wait for the release, plus one
+// timer_settime that moves the DEADLINE timer on at completion, plus one for
+// the CPU budget of a task with a WCET. Needs tracefs (registered as
+// muf_rt_syscalls under tests/prof/in_tracefs_namespace.sh).
+TEST(MufStatic, SystemCallsPerCycle) {
+    if (chimera::test::open_syscall_counter() < 0) {
+        if (std::getenv("CHIMERA_REQUIRE_SYSCALL_COUNTER"))
+            FAIL() << "the raw_syscalls tracepoint cannot be opened (tracefs not mounted?)";
+        GTEST_SKIP() << "no raw_syscalls tracepoint: tracefs not mounted (see in_tracefs_namespace.sh)";
+    }
+    for (const std::int64_t wcet : {std::int64_t{0}, 2 * ms}) {
+        SCOPED_TRACE(wcet == 0 ? "no WCET" : "WCET 2 ms");
+        RtpuScheduler sch(options(Backend::fifo));
+        constexpr int kFrom = 20, kCycles = 100;
+        std::atomic<int> n{0};
+        int fd = -1;
+        std::uint64_t first = 0, last = 0;
+        RtTaskParams p = task("t", 2 * ms, wcet);
+        Runner r(sch, p, [&] {
+            const int k = n.fetch_add(1);
+            if (k == kFrom) {
+                fd = chimera::test::open_syscall_counter();
+                first = chimera::test::read_syscall_counter(fd);
+            } else if (k == kFrom + kCycles) {
+                last = chimera::test::read_syscall_counter(fd);
+            }
+        });
+        ASSERT_TRUE(r.start());
+        ASSERT_TRUE(eventually([&] { return n.load() > kFrom + kCycles; }));
+        r.stop();
+        ::close(fd);
+        ASSERT_GT(last, first);
+        // One read of the counter is inside the window.
+        const std::uint64_t calls = last - first - 1;
+        const std::uint64_t per_cycle = wcet == 0 ? 2 : 3;
+        EXPECT_LE(calls, per_cycle * kCycles) << calls << " system calls in " << kCycles << " cycles";
+        EXPECT_GE(calls, kCycles) << "the wait alone is one per cycle: the counter missed calls";
+    }
 }

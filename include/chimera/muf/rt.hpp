@@ -7,14 +7,25 @@
 //   attach_current_thread(h);              // once: pin, policy, timers, signals
 //   while (...) {
 //       if (wait_release(h, &word, seen) != Wake::release) continue;
-//       if (sigsetjmp(*cycle_mark(h), 1) == 0) { arm_abort(h); cycle(); }
+//       if (sigsetjmp(*cycle_mark(h), 0) == 0) { arm_abort(h); cycle(); }
+//       else pthread_sigmask(SIG_SETMASK, &mask_at_start, nullptr);
 //       cycle_complete(h);
 //   }
 //   detach_current_thread(h);
 //
 // Backends:
-//  - fifo: a dispatcher thread pinned to the RTPU at the top SCHED_FIFO priority
-//    of the band owns the release timeline. At every release (and whenever a
+//  - fifo, static ranking: when the MUF order of the tasks cannot change
+//    between releases — RM, or every period harmonic with the others and every
+//    deadline equal to its period, where the earlier deadline always belongs to
+//    the shorter period — each task gets a fixed SCHED_FIFO priority in urgency
+//    order (criticality, then deadline, then user priority) and sleeps to its
+//    own release on a futex with an absolute CLOCK_MONOTONIC timeout: the
+//    kernel wakes the task itself, one wake-up per release, with no thread in
+//    between (an hrtimer sleeper, which PREEMPT_RT expires in hard interrupt
+//    context for real-time tasks, unlike POSIX timers). The dispatcher thread
+//    then only re-ranks when the set or a criticality changes.
+//  - fifo, dynamic ranking (any other set): a dispatcher thread pinned to the
+//    RTPU at the top SCHED_FIFO priority of the band owns the release timeline. At every release (and whenever a
 //    task's criticality changes) it computes each task's urgency (Figure 6.2:
 //    criticality, then time to the current deadline, then user priority) and
 //    gives the task threads SCHED_FIFO priorities in urgency order, changing
@@ -93,6 +104,11 @@ struct RtpuOptions {
     std::int64_t tick_ns = 1000;   ///< dynamic-priority tick (urgency encoding)
     UrgencyEncoding encoding{6, 32, 6};
     bool quiet = false;            ///< no warning on stderr without privilege
+    /// CLOCK_MONOTONIC origin of the release timeline: a task without an
+    /// explicit first release is released at epoch + k·period, so tasks of
+    /// harmonic rates are released at the same instants whenever they were
+    /// turned on. 0: the moment the scheduler is made.
+    std::int64_t epoch_ns = 0;
 };
 
 /// One periodic task. Times in nanoseconds.
@@ -171,7 +187,10 @@ public:
     void cycle_complete(TaskHandle h) noexcept;
 
     /// The mark an aborted cycle jumps to; the runtime does
-    /// `if (sigsetjmp(*cycle_mark(h), 1) == 0) { arm_abort(h); cycle(); }`.
+    /// `if (sigsetjmp(*cycle_mark(h), 0) == 0) { arm_abort(h); cycle(); }`, and
+    /// after a jump puts back the signal mask the thread runs with (a jump out
+    /// of the failure handler leaves the timer signal blocked; saving the mask
+    /// in sigsetjmp instead would cost a system call every cycle).
     sigjmp_buf* cycle_mark(TaskHandle h) noexcept;
     void arm_abort(TaskHandle h) noexcept;
     /// Once cycle has returned: a handler can no longer jump to the mark (the
@@ -188,6 +207,9 @@ public:
     /// Dispatcher counters: urgency recomputations and priority changes made.
     std::uint64_t reschedules() const noexcept;
     std::uint64_t priority_changes() const noexcept;
+    /// True while the fifo backend ranks statically (see the top of this file):
+    /// tasks release themselves and the dispatcher is off the release path.
+    bool static_ranking() const noexcept;
 
     struct Impl;
 
