@@ -4,6 +4,7 @@
 #include <dirent.h>
 #include <pthread.h>
 #include <sched.h>
+#include <sys/mman.h>
 #include <sys/syscall.h>
 #include <sys/sysinfo.h>
 #include <unistd.h>
@@ -13,6 +14,7 @@
 #include <cstdlib>
 #include <cstring>
 #include <fstream>
+#include <mutex>
 #include <string>
 
 #include "rt_internal.hpp"
@@ -57,6 +59,48 @@ double read_long(const char* path, double fallback) noexcept {
 }
 
 }  // namespace
+
+namespace {
+
+bool built_with_sanitizer() noexcept {
+#if defined(__SANITIZE_ADDRESS__) || defined(__SANITIZE_THREAD__)
+    return true;
+#elif defined(__has_feature)
+#if __has_feature(address_sanitizer) || __has_feature(thread_sanitizer) || __has_feature(memory_sanitizer)
+    return true;
+#else
+    return false;
+#endif
+#else
+    return false;
+#endif
+}
+
+}  // namespace
+
+std::string lock_memory() {
+    static std::once_flag once;
+    static std::string note;
+    std::call_once(once, [] {
+        // A sanitizer's shadow memory is terabytes of reserved address space:
+        // locking it is impossible, and its runs are not about timing.
+        if (built_with_sanitizer()) {
+            note = "memory not locked (sanitizer build)";
+            return;
+        }
+        if (const char* off = std::getenv("CHIMERA_NO_MLOCK"); off != nullptr && *off != '\0' && *off != '0') {
+            note = "memory not locked (CHIMERA_NO_MLOCK is set)";
+            return;
+        }
+        // Every page mapped now and later is resident and locked: a cycle
+        // never page-faults, and thread stacks made later are faulted in when
+        // they are made, not when a cycle first grows into them.
+        if (mlockall(MCL_CURRENT | MCL_FUTURE) != 0)
+            note = std::string("memory not locked (mlockall: ") + std::strerror(errno) +
+                   "); a cycle may page-fault: raise RLIMIT_MEMLOCK (ulimit -l) or run with CAP_IPC_LOCK";
+    });
+    return note;
+}
 
 std::string raise_timer_thread(int cpu, int prio) {
     if (read_long("/sys/kernel/realtime", 0) != 1) return "";

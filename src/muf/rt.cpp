@@ -170,6 +170,10 @@ RtpuScheduler::Impl::Impl(RtpuOptions o) : options(std::move(o)) {
                          ": " + std::strerror(rc));
     }
     dispatcher_running = true;
+    // Privileged real-time tasks are coming: no page fault in their cycles.
+    static std::atomic<bool> memory_note_said{false};
+    if (const std::string note = detail::lock_memory(); !note.empty() && !memory_note_said.exchange(true))
+        std::fprintf(stderr, "chimera: %s\n", note.c_str());
     if (const std::string note = detail::raise_timer_thread(options.cpu, options.fifo_high);
         !note.empty() && !options.quiet)
         std::fprintf(stderr, "chimera: rtpu %s: %s\n", options.name.c_str(), note.c_str());

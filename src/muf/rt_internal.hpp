@@ -171,6 +171,10 @@ std::string describe_policy(pid_t tid);
 /// when it is below. Returns a one-line note of what was done ("" when nothing
 /// was needed: not PREEMPT_RT, or already high enough); throws nothing.
 std::string raise_timer_thread(int cpu, int prio);
+/// Locks the process's memory (mlockall MCL_CURRENT | MCL_FUTURE) once per
+/// process, unless CHIMERA_NO_MLOCK is set or the build has a sanitizer.
+/// Returns "" when locked, else one line saying why not (said once by the caller).
+std::string lock_memory();
 /// The kernel's SCHED_DEADLINE bandwidth limit per CPU (sched_rt_runtime/period), or 0.95.
 double deadline_bandwidth_per_cpu() noexcept;
 

@@ -18,6 +18,7 @@
 #include <algorithm>
 #include <atomic>
 #include <chrono>
+#include <fstream>
 #include <functional>
 #include <string>
 #include <thread>
@@ -865,4 +866,33 @@ TEST(MufStatic, SystemCallsPerCycle) {
         EXPECT_LE(calls, per_cycle * kCycles) << calls << " system calls in " << kCycles << " cycles";
         EXPECT_GE(calls, kCycles) << "the wait alone is one per cycle: the counter missed calls";
     }
+}
+
+// Memory locked once a scheduler has real-time privilege (docs/muf.md), and no
+// page fault in a task's steady-state cycles: counted by the kernel per thread.
+TEST(MufStatic, MemoryIsLockedAndCyclesDoNotPageFault) {
+    RtpuScheduler sch(options(Backend::fifo));
+    if (!sch.privileged()) GTEST_SKIP() << "SCHED_FIFO refused: the runtime locks memory only with privilege";
+    if (std::getenv("CHIMERA_NO_MLOCK") == nullptr) {
+        std::ifstream status("/proc/self/status");
+        std::string line;
+        long locked_kb = -1;
+        while (std::getline(status, line))
+            if (line.rfind("VmLck:", 0) == 0) locked_kb = std::stol(line.substr(6));
+        EXPECT_GT(locked_kb, 0) << "mlockall was not called";
+    }
+    constexpr int kFrom = 20, kCycles = 100;
+    std::atomic<int> n{0};
+    long faults_before = -1, faults_after = -1;
+    Runner r(sch, task("t", 2 * ms, 0), [&] {
+        const int k = n.fetch_add(1);
+        if (k != kFrom && k != kFrom + kCycles) return;
+        rusage u{};
+        getrusage(RUSAGE_THREAD, &u);
+        (k == kFrom ? faults_before : faults_after) = u.ru_minflt + u.ru_majflt;
+    });
+    ASSERT_TRUE(r.start());
+    ASSERT_TRUE(eventually([&] { return n.load() > kFrom + kCycles; }));
+    r.stop();
+    EXPECT_EQ(faults_after - faults_before, 0) << "page faults in " << kCycles << " steady-state cycles";
 }
