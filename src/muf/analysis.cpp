@@ -131,14 +131,26 @@ std::vector<int> data_flow_user_priorities(std::span<const TaskSpec> tasks,
     std::vector<bool> done(n, false);
     std::vector<int> prio(n, 0);
     for (std::size_t placed = 0; placed < n; ++placed) {
-        // Among the tasks whose producers are all placed, the first in rm_order;
-        // if none (a cycle), the first remaining in rm_order.
+        // Among the tasks whose producers are all placed, the first in rm_order.
+        // If none (a cycle), the chain goes on from where data has arrived: the
+        // task with most producers placed (PID, fed by the trajectory, before
+        // the robot that feeds it back), then the first in rm_order.
         std::size_t pick = n;
         for (std::size_t i : order)
             if (!done[i] && indegree[i] == 0) { pick = i; break; }
-        if (pick == n)
-            for (std::size_t i : order)
-                if (!done[i]) { pick = i; break; }
+        if (pick == n) {
+            int best_fed = -1;
+            for (std::size_t i : order) {
+                if (done[i]) continue;
+                int fed = 0;
+                for (const auto& f : flows)
+                    if (f.consumer == i && f.producer < n && f.producer != i && done[f.producer]) ++fed;
+                if (fed > best_fed) {
+                    best_fed = fed;
+                    pick = i;
+                }
+            }
+        }
         done[pick] = true;
         prio[pick] = static_cast<int>(n - placed);
         for (const auto& f : flows)

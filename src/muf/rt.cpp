@@ -2,6 +2,7 @@
 // backend's policy) and the task thread's real-time path (wait_release,
 // cycle_complete). See chimera/muf/rt.hpp; the dispatcher is dispatcher.cpp,
 // timing failures failure.cpp, scheduling classes policy.cpp.
+#include <algorithm>
 #include <linux/futex.h>
 #include <sys/syscall.h>
 #include <sys/sysinfo.h>
@@ -225,7 +226,7 @@ void RtpuScheduler::Impl::reassign() {
         specs.push_back(std::move(t));
         handles.push_back(h);
     }
-    Assignment a = assign(specs, options.policy);
+    Assignment a = assign(specs, options.policy, data_flows(handles));
     for (std::size_t i = 0; i < handles.size(); ++i) {
         TaskSlot& s = slots[static_cast<std::size_t>(handles[i])];
         const int old_base = s.base_crit.exchange(a.crit[i]);
@@ -250,6 +251,22 @@ void RtpuScheduler::Impl::reassign() {
             ipc::futex_wake_all(s.release_word);
         }
     }
+}
+
+std::vector<Flow> RtpuScheduler::Impl::data_flows(const std::vector<int>& handles) const {
+    std::vector<Flow> flows;
+    for (std::size_t i = 0; i < handles.size(); ++i) {
+        const RtTaskParams& producer = slots[static_cast<std::size_t>(handles[i])].params;
+        for (std::size_t j = 0; j < handles.size(); ++j) {
+            if (i == j) continue;
+            const RtTaskParams& consumer = slots[static_cast<std::size_t>(handles[j])].params;
+            const bool feeds = std::any_of(producer.outputs.begin(), producer.outputs.end(), [&](const auto& v) {
+                return std::find(consumer.inputs.begin(), consumer.inputs.end(), v) != consumer.inputs.end();
+            });
+            if (feeds) flows.push_back({i, j});
+        }
+    }
+    return flows;
 }
 
 std::int64_t RtpuScheduler::Impl::aligned_release(std::int64_t period_ns) const noexcept {

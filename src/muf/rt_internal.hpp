@@ -129,6 +129,8 @@ struct RtpuScheduler::Impl {
     detail::TaskSlot& checked_slot(TaskHandle h, const char* what);  // throws SchedError
     /// Recomputes the MUF assignment of the tasks added; under `mutex`.
     void reassign();
+    /// The data flows among the tasks of `handles` (indices into it), §6.2.4.
+    std::vector<Flow> data_flows(const std::vector<int>& handles) const;
     /// Wakes the dispatcher (async-signal-safe).
     void notify() noexcept;
     void dispatcher_main() noexcept;

@@ -78,6 +78,12 @@ public:
         const bool server = !periodic && wcet_ns_ > 0 && server_period_ns_ > 0 && task_.type != TaskType::background;
         muf::RtTaskParams p;
         p.name = task_.name;
+        // The data flow of the configuration orders tasks of equal criticality
+        // and deadline (§6.2.4): producers before their consumers.
+        for (const auto& o : task_.objects) {
+            for (auto& v : o.rmod.global_in_vars()) p.inputs.push_back(std::move(v));
+            for (auto& v : o.rmod.global_out_vars()) p.outputs.push_back(std::move(v));
+        }
         if (periodic) {
             p.period_ns = task_.period_ns.load();
             p.wcet_ns = wcet_ns_;

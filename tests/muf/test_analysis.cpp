@@ -143,6 +143,13 @@ TEST(MufAnalysis, DataFlowUserPriorities) {
     const std::vector<Flow> loop = {{0, 1}, {1, 0}};
     EXPECT_EQ(data_flow_user_priorities(cyc, loop), (std::vector<int>{1, 2}));
 
+    // Figure 3.7's loop at one rate, robot listed first: jtraj -> jpid <-> robot.
+    // The cycle is broken where the data has arrived: jpid (fed by jtraj)
+    // before the robot, so jtraj, jpid, robot.
+    std::vector<TaskSpec> fig = {task("robot", 2, 1), task("jpid", 2, 1), task("jtraj", 2, 1)};
+    const std::vector<Flow> loop37 = {{2, 1}, {1, 0}, {0, 1}};
+    EXPECT_EQ(data_flow_user_priorities(fig, loop37), (std::vector<int>{1, 2, 3}));
+
     // Explicit user priorities override.
     ts[0].uprio = 9;
     EXPECT_EQ(data_flow_user_priorities(ts, ab), (std::vector<int>{9, 2}));

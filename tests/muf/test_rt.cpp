@@ -16,6 +16,7 @@
 #include <unistd.h>
 
 #include <algorithm>
+#include <array>
 #include <atomic>
 #include <chrono>
 #include <fstream>
@@ -895,4 +896,48 @@ TEST(MufStatic, MemoryIsLockedAndCyclesDoNotPageFault) {
     ASSERT_TRUE(eventually([&] { return n.load() > kFrom + kCycles; }));
     r.stop();
     EXPECT_EQ(faults_after - faults_before, 0) << "page faults in " << kCycles << " steady-state cycles";
+}
+
+// §6.2.4 on real threads: three tasks of one rate on one RTPU, spawned robot
+// first, are ordered by their data flow — trajectory, then PID, then robot —
+// in every period, so a new reference reaches the robot in the period it is made.
+TEST(MufStatic, DataFlowOrdersTasksOfOneRateInEveryPeriod) {
+    RtpuScheduler sch(options(Backend::fifo));
+    if (!sch.privileged()) GTEST_SKIP() << "SCHED_FIFO refused: the order is set by FIFO priorities";
+    constexpr int kLog = 3 * 60;
+    std::array<std::atomic<int>, kLog> log{};
+    std::atomic<int> next{0};
+    auto runner = [&](const char* name, int id, std::vector<std::string> in, std::vector<std::string> out) {
+        RtTaskParams p = task(name, 5 * ms, 0);
+        p.inputs = std::move(in);
+        p.outputs = std::move(out);
+        return std::make_unique<Runner>(sch, p, [&log, &next, id] {
+            const int k = next.fetch_add(1);
+            if (k < kLog) log[static_cast<std::size_t>(k)].store(id);
+        });
+    };
+    auto robot = runner("robot", 3, {"T_REF"}, {"Q_MEZ"});
+    auto pid = runner("jpid", 2, {"Q_REF", "Q_MEZ"}, {"T_REF"});
+    auto traj = runner("jtraj", 1, {}, {"Q_REF"});
+    // All three released at the same instants: the epoch-aligned timeline.
+    ASSERT_TRUE(robot->start() && pid->start() && traj->start());
+    EXPECT_TRUE(sch.static_ranking());
+    const Assignment as = sch.assignment();
+    ASSERT_EQ(as.uprio.size(), 3u);
+    EXPECT_LT(as.uprio[0], as.uprio[1]);  // robot below jpid
+    EXPECT_LT(as.uprio[1], as.uprio[2]);  // jpid below jtraj
+    ASSERT_TRUE(eventually([&] { return next.load() >= kLog; }));
+    robot->stop();
+    pid->stop();
+    traj->stop();
+    // From the first period in which all three ran, each period is 1, 2, 3.
+    int first = 0;
+    while (first + 2 < kLog && !(log[static_cast<std::size_t>(first)].load() == 1)) ++first;
+    int periods = 0;
+    for (int k = first; k + 2 < kLog; k += 3, ++periods) {
+        EXPECT_EQ(log[static_cast<std::size_t>(k)].load(), 1) << "period " << periods;
+        EXPECT_EQ(log[static_cast<std::size_t>(k + 1)].load(), 2) << "period " << periods;
+        EXPECT_EQ(log[static_cast<std::size_t>(k + 2)].load(), 3) << "period " << periods;
+    }
+    EXPECT_GE(periods, 50);
 }

@@ -62,6 +62,7 @@
 #include <optional>
 #include <stdexcept>
 #include <string>
+#include <vector>
 
 #include "chimera/muf/analysis.hpp"
 
@@ -122,7 +123,13 @@ struct RtTaskParams {
     std::int64_t first_release_ns = 0;  ///< CLOCK_MONOTONIC; 0 = one period after attach
     bool maxexec_check = true;       ///< arm the MAXEXEC timer with the budget each cycle
     std::optional<int> crit;         ///< explicit criticality; else assign()
-    std::optional<int> uprio;
+    std::optional<int> uprio;        ///< explicit user priority; else from the data flow
+    /// State variables the task reads and writes. Flows between the tasks of
+    /// one RTPU (an output of one that is an input of another) give the user
+    /// priorities of §6.2.4 — a producer above its consumers — which break ties
+    /// of equal criticality and deadline, re-derived whenever the set changes;
+    /// so data crosses a chain of tasks of one rate within one period.
+    std::vector<std::string> inputs, outputs;
 };
 
 using TaskHandle = int;
