@@ -2,6 +2,7 @@
 // SCHED_OTHER and SCHED_DEADLINE (through the raw sched_setattr system call:
 // glibc 2.36 has no wrapper and no struct sched_attr).
 #include <dirent.h>
+#include <fcntl.h>
 #include <pthread.h>
 #include <sched.h>
 #include <sys/mman.h>
@@ -98,6 +99,29 @@ std::string lock_memory() {
         if (mlockall(MCL_CURRENT | MCL_FUTURE) != 0)
             note = std::string("memory not locked (mlockall: ") + std::strerror(errno) +
                    "); a cycle may page-fault: raise RLIMIT_MEMLOCK (ulimit -l) or run with CAP_IPC_LOCK";
+    });
+    return note;
+}
+
+std::string hold_cpu_wakeup_latency() {
+    static std::once_flag once;
+    static std::string note;
+    std::call_once(once, [] {
+        if (const char* off = std::getenv("CHIMERA_NO_CPU_LATENCY"); off != nullptr && *off != '\0' && *off != '0') {
+            note = "CPU idle states left alone (CHIMERA_NO_CPU_LATENCY is set)";
+            return;
+        }
+        // A PM QoS request, as cyclictest makes: while this file stays open
+        // with 0 in it, no CPU enters an idle state it cannot leave at once,
+        // which on a VM or a laptop-class CPU is tens of µs on every release.
+        // Held for the life of the process (the kernel drops it at exit).
+        const int fd = ::open("/dev/cpu_dma_latency", O_WRONLY | O_CLOEXEC);
+        const std::int32_t zero = 0;
+        if (fd < 0 || ::write(fd, &zero, sizeof zero) != static_cast<ssize_t>(sizeof zero)) {
+            note = std::string("CPU idle states not limited (/dev/cpu_dma_latency: ") + std::strerror(errno) +
+                   "): releases may be late by the CPUs' wake-up from idle";
+            if (fd >= 0) ::close(fd);
+        }
     });
     return note;
 }

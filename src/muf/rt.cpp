@@ -4,6 +4,7 @@
 // timing failures failure.cpp, scheduling classes policy.cpp.
 #include <algorithm>
 #include <linux/futex.h>
+#include <sys/prctl.h>
 #include <sys/syscall.h>
 #include <sys/sysinfo.h>
 #include <unistd.h>
@@ -174,6 +175,10 @@ RtpuScheduler::Impl::Impl(RtpuOptions o) : options(std::move(o)) {
     // Privileged real-time tasks are coming: no page fault in their cycles.
     static std::atomic<bool> memory_note_said{false};
     if (const std::string note = detail::lock_memory(); !note.empty() && !memory_note_said.exchange(true))
+        std::fprintf(stderr, "chimera: %s\n", note.c_str());
+    static std::atomic<bool> latency_note_said{false};
+    if (const std::string note = detail::hold_cpu_wakeup_latency();
+        !note.empty() && !latency_note_said.exchange(true))
         std::fprintf(stderr, "chimera: %s\n", note.c_str());
     if (const std::string note = detail::raise_timer_thread(options.cpu, options.fifo_high);
         !note.empty() && !options.quiet)
@@ -446,6 +451,10 @@ void RtpuScheduler::attach_current_thread(TaskHandle h) {
             note += " (no privilege)";
         }
     }
+    // A futex timeout is an hrtimer with the thread's timer slack (50 µs by
+    // default): the release would come up to that late. Real-time threads
+    // sleep to the nanosecond, as clock_nanosleep does for them.
+    prctl(PR_SET_TIMERSLACK, 1UL, 0UL, 0UL, 0UL);
     try {
         detail::create_timers(s, !reserved);
     } catch (...) {

@@ -177,6 +177,10 @@ std::string raise_timer_thread(int cpu, int prio);
 /// process, unless CHIMERA_NO_MLOCK is set or the build has a sanitizer.
 /// Returns "" when locked, else one line saying why not (said once by the caller).
 std::string lock_memory();
+/// Asks the kernel (PM QoS, /dev/cpu_dma_latency = 0, held open for the
+/// process's life) to keep the CPUs out of slow idle states, as cyclictest
+/// does; unless CHIMERA_NO_CPU_LATENCY is set. "" when held, else why not.
+std::string hold_cpu_wakeup_latency();
 /// The kernel's SCHED_DEADLINE bandwidth limit per CPU (sched_rt_runtime/period), or 0.95.
 double deadline_bandwidth_per_cpu() noexcept;
 
