@@ -13,6 +13,7 @@ packages=(
   libcli11-dev nlohmann-json3-dev                # option parsing, --json output
   linux-libc-dev                                 # SocketCAN, perf_event, futex headers
   rt-tests tmux util-linux                       # cyclictest (bench), terminal tests, taskset
+  strace                                         # the no-system-call check of the SVAR hot path (test)
 )
 missing=()
 for p in "${packages[@]}"; do
