@@ -4,6 +4,7 @@
 set -euo pipefail
 packages=(
   meson ninja-build pkg-config g++              # build
+  dpkg-dev                                       # dpkg-architecture: meson then installs into lib/<multiarch>, where Debian's loader and pkg-config look
   libgtest-dev libgmock-dev libbenchmark-dev     # tests and bench/
   libeigen3-dev liborocos-kdl-dev libkdl-parser-dev liburdfdom-dev  # robotics modules
   libgpiod-dev gpiod                             # PIO driver (optional)
@@ -13,6 +14,7 @@ packages=(
   libcli11-dev nlohmann-json3-dev                # option parsing, --json output
   linux-libc-dev                                 # SocketCAN, perf_event, futex headers
   rt-tests tmux util-linux                       # cyclictest (bench), terminal tests, taskset
+  help2man                                       # the programs' man pages, from their --help
   strace                                         # the no-system-call check of the SVAR hot path (test)
 )
 missing=()

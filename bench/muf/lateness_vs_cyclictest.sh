@@ -50,5 +50,10 @@ print("median of %d rounds (µs)     chimera  cyclictest  ratio" % len(a))
 for k in ("p50_us", "p99_us", "p999_us", "max_us"):
     x, y = statistics.median(r[k] for r in a), statistics.median(r[k] for r in b)
     print("%-26s %8.1f %10.1f %6.2f" % (k, x, y, x / y if y else float("nan")))
+for k in ("woken_p99_us", "woken_p999_us"):
+    x, y = statistics.median(r[k] for r in a), statistics.median(r[k.replace("woken_", "")] for r in b)
+    print("%-26s %8.1f %10.1f %6.2f" % (k + " (as cyclictest)", x, y, x / y if y else float("nan")))
 print("skipped releases (chimera):", [r["skipped"] for r in a])
+print("cyclictest steps over the periods it slept through without a sample; chimera's p*_us")
+print("count each of them with its lateness, woken_* count one sample per wake-up as cyclictest does")
 PY

@@ -8,6 +8,8 @@
 //            [--seconds N] [--quiet]
 //
 // A virtual bus for trying it: ip link add dev vcan0 type vcan && ip link set vcan0 up
+#include "tool_cli.hpp"
+
 #include <CLI/CLI.hpp>
 
 #include <pthread.h>
@@ -65,7 +67,8 @@ int main(int argc, char** argv) {
     app.add_option("--seconds", seconds, "stop after this many seconds (0: until SIGINT/SIGTERM)")
         ->check(CLI::NonNegativeNumber);
     app.add_flag("--quiet", quiet, "no status line every second");
-    CLI11_PARSE(app, argc, argv);
+    chimera::tools::add_version(app, "candrive");
+    if (const int status = chimera::tools::parse(app, argc, argv); status >= 0) return status;
 
     try {
         const chimera::RmodFile rmod = chimera::read_rmod(rmod_path);

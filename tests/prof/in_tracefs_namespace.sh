@@ -14,4 +14,8 @@ if ! command -v unshare >/dev/null || [ "$(id -u)" -ne 0 ]; then
     echo "tracefs not mounted and no way to mount it privately (needs root and unshare)"
     exit 77
 fi
-exec unshare -m -- sh -c 'mount -t tracefs nodev /sys/kernel/tracing || exit 77; exec "$@"' sh "$@"
+if ! reason=$(unshare -m true 2>&1); then
+    echo "tracefs not mounted, and this container forbids a private mount namespace (unshare -m: ${reason:-refused}): skipped"
+    exit 77
+fi
+exec unshare -m -- sh -c 'mount -t tracefs nodev /sys/kernel/tracing || { echo "cannot mount tracefs in a private namespace: skipped"; exit 77; }; exec "$@"' sh "$@"

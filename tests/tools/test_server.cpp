@@ -7,6 +7,7 @@
 
 #include <gtest/gtest.h>
 #include <cstring>
+#include <netdb.h>
 #include <poll.h>
 
 #include <sys/socket.h>
@@ -81,10 +82,47 @@ struct Network : ::testing::Test {
 };
 
 // Runs hand_over() on another thread, as the prompt's `network` command does.
-std::future<NetworkServer::SessionEnd> hand_over_async(NetworkServer& s, std::atomic<bool>* interrupt) {
-    auto f = std::async(std::launch::async, [&s, interrupt] { return s.hand_over(interrupt); });
-    std::this_thread::sleep_for(50ms);  // let the offer be made before peers connect
-    return f;
+// A hand_over() running in another thread. If the test ends before the
+// session did (a failed assertion, an exception), the server is stopped so the
+// test fails at once instead of waiting for its timeout.
+class HandOver {
+public:
+    HandOver(NetworkServer& s, std::atomic<bool>* interrupt)
+        : server_(&s), f_(std::async(std::launch::async, [&s, interrupt] { return s.hand_over(interrupt); })) {
+        std::this_thread::sleep_for(50ms);  // let the offer be made before peers connect
+    }
+    HandOver(HandOver&&) = default;
+    HandOver& operator=(HandOver&& other) {
+        finish();
+        server_ = other.server_;
+        f_ = std::move(other.f_);
+        return *this;
+    }
+    ~HandOver() { finish(); }
+    NetworkServer::SessionEnd get() { return f_.get(); }
+    std::future_status wait_for(std::chrono::milliseconds d) { return f_.wait_for(d); }
+
+private:
+    void finish() {
+        if (f_.valid() && f_.wait_for(0ms) != std::future_status::ready) server_->stop();
+    }
+    NetworkServer* server_;
+    std::future<NetworkServer::SessionEnd> f_;
+};
+
+HandOver hand_over_async(NetworkServer& s, std::atomic<bool>* interrupt) { return HandOver(s, interrupt); }
+
+// Names the cause when a host name the tests use does not resolve (a
+// container without "localhost" in /etc/hosts), instead of a connect failure.
+::testing::AssertionResult resolves(const char* host) {
+    addrinfo hints{};
+    hints.ai_socktype = SOCK_STREAM;
+    addrinfo* res = nullptr;
+    if (const int rc = ::getaddrinfo(host, "1", &hints, &res); rc != 0)
+        return ::testing::AssertionFailure() << "host name '" << host << "' does not resolve (" << ::gai_strerror(rc)
+                                             << "): add it to /etc/hosts";
+    ::freeaddrinfo(res);
+    return ::testing::AssertionSuccess();
 }
 
 }  // namespace
@@ -356,6 +394,7 @@ TEST_F(Network, TcpTokenIsCheckedBeforeAnyCommand) {
         EXPECT_EQ(r["error"], "wrong token");
         EXPECT_THROW(c.read_line(2000), ClientError);
     }
+    ASSERT_TRUE(resolves("localhost"));
     // Neither had control, so no session ended: the offer still stands.
     EXPECT_EQ(done.wait_for(300ms), std::future_status::timeout);
     EXPECT_EQ(s->sessions_ended(), 0u);

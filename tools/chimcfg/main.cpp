@@ -7,6 +7,8 @@
 //
 // The kind of file is taken from its extension: .svar (§5.5.2), .rmod (§3.8),
 // .sbs (§4.5.1).
+#include "tool_cli.hpp"
+
 #include <CLI/CLI.hpp>
 
 #include <charconv>
@@ -167,7 +169,8 @@ int main(int argc, char** argv) {
     std::string svar;
     auto* d = app.add_subcommand("dump", "print each variable of a .svar file");
     d->add_option("file", svar, "the .svar file")->required();
-    CLI11_PARSE(app, argc, argv);
+    chimera::tools::add_version(app, "chimcfg");
+    if (const int status = chimera::tools::parse(app, argc, argv); status >= 0) return status;
     if (c->parsed()) return check(files);
     return dump(svar);
 }

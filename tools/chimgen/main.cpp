@@ -8,6 +8,8 @@
 // the output folder (default: ./MODULE).
 #include "generator.hpp"
 
+#include "tool_cli.hpp"
+
 #include <CLI/CLI.hpp>
 
 #include <filesystem>
@@ -100,7 +102,8 @@ int main(int argc, char** argv) {
     app.add_option("-o,--output", out_dir, "output folder (default: ./NAME)");
     app.add_flag("--force", force, "overwrite existing files");
     app.add_flag("--print", print, "print the source on stdout and write nothing");
-    CLI11_PARSE(app, argc, argv);
+    chimera::tools::add_version(app, "chimgen");
+    if (const int status = chimera::tools::parse(app, argc, argv); status >= 0) return status;
 
     try {
         ModuleSpec spec;

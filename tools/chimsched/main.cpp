@@ -3,6 +3,8 @@
 //   chimsched analyze FILE [--policy rm|edf|muf] [--json]
 //   chimsched simulate FILE --policy rm|edf|muf --until T [--late finish|abort]
 //                          [--columns N] [--json]
+#include "tool_cli.hpp"
+
 #include <CLI/CLI.hpp>
 #include <nlohmann/json.hpp>
 
@@ -278,7 +280,8 @@ int main(int argc, char** argv) {
     sim->add_option("--columns", columns, "widest Gantt chart (0: one column per tick)");
     sim->add_flag("--json", as_json, "machine-readable output");
 
-    CLI11_PARSE(app, argc, argv);
+    chimera::tools::add_version(app, "chimsched");
+    if (const int status = chimera::tools::parse(app, argc, argv); status >= 0) return status;
 
     try {
         const muf::TaskSet set = muf::read_task_set(file);

@@ -10,6 +10,8 @@
 #include <sys/stat.h>
 #include <unistd.h>
 
+#include "tool_cli.hpp"
+
 #include <CLI/CLI.hpp>
 #include <algorithm>
 #include <chrono>
@@ -372,7 +374,8 @@ int main(int argc, char** argv) {
         ->check(CLI::Range(0.0, 1000.0));
     bool list = false;
     app.add_flag("--list-fields", list, "list the status fields and exit");
-    CLI11_PARSE(app, argc, argv);
+    chimera::tools::add_version(app, "chimtop");
+    if (const int status = chimera::tools::parse(app, argc, argv); status >= 0) return status;
 
     if (list) {
         for (const auto& f : chimtop::all_fields()) std::printf("%-7s %s\n", f.name, f.help);

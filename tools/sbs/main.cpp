@@ -17,6 +17,8 @@
 #include <chimera/ipc/segment.hpp>
 #include <chimera/sbs.hpp>
 
+#include "tool_cli.hpp"
+
 #include <CLI/CLI.hpp>
 #include <editline/readline.h>
 
@@ -389,7 +391,8 @@ int main(int argc, char** argv) {
                  "no prompt: the network has control from the start (after -c), until a peer sends finish");
     app.add_option("--module-path", module_dirs, "a folder with modules and .rmod files (repeatable)");
     app.add_flag("--no-attach", no_attach, "never attach to a running master; start the subsystem here");
-    CLI11_PARSE(app, argc, argv);
+    chimera::tools::add_version(app, "sbs");
+    if (const int status = chimera::tools::parse(app, argc, argv); status >= 0) return status;
     if (!net.unix_path.empty()) net.listen = true;
     if (!token_file.empty()) {
         if (!net.token.empty()) {

@@ -1,0 +1,51 @@
+#!/usr/bin/env bash
+# The README's controller recipe exactly as a user on Debian runs it (issue #16):
+#   meson install -C build            (the real prefix, /usr/local; no DESTDIR)
+#   c++ -std=c++20 controller.cpp $(pkg-config --cflags --libs chimera)
+#   ./controller                      (no PKG_CONFIG_PATH, no LD_LIBRARY_PATH)
+# so the library must land where Debian's pkg-config and loader look
+# (/usr/local/lib/<multiarch>, not /usr/local/lib64) and the loader cache must
+# be refreshed by the install. The machine is not touched: in a private mount
+# namespace, /usr/local is an empty tmpfs and /etc a copy (ldconfig writes
+# /etc/ld.so.cache), both gone when the test ends.
+#   test_system_install.sh BUILD_ROOT SOURCE_ROOT
+set -euo pipefail
+build=$(cd "${1:?usage: test_system_install.sh BUILD_ROOT SOURCE_ROOT}" && pwd)
+source=$(cd "${2:?usage: test_system_install.sh BUILD_ROOT SOURCE_ROOT}" && pwd)
+if [ "$(id -u)" -ne 0 ] || ! command -v unshare >/dev/null; then
+    echo "test_system_install: needs root and unshare (a private mount namespace) to install into /usr/local"
+    [ -n "${CI:-}" ] && exit 1
+    exit 77
+fi
+if ! unshare -m true 2>/dev/null; then
+    echo "test_system_install: this container forbids mount namespaces (unshare -m)"
+    [ -n "${CI:-}" ] && exit 1
+    exit 77
+fi
+prefix=$(meson introspect "$build" --buildoptions |
+         python3 -c 'import json,sys; print(next(o["value"] for o in json.load(sys.stdin) if o["name"] == "prefix"))')
+[ "$prefix" = /usr/local ] || { echo "test_system_install: the build's prefix is $prefix, not the default /usr/local"; exit 77; }
+work=$(mktemp -d /tmp/chimera-sysinstall.XXXXXX)
+trap 'rm -rf "$work"' EXIT
+cp -a /etc "$work/etc"
+exec unshare -m -- bash -euo pipefail -c '
+    build=$1 source=$2 work=$3
+    mount --make-rprivate /
+    mount -t tmpfs tmpfs /usr/local
+    mount --bind "$work/etc" /etc
+    echo "== meson install -C build (prefix /usr/local)"
+    meson install -C "$build" --no-rebuild --quiet
+    cd "$work"
+    echo "== c++ -std=c++20 controller.cpp \$(pkg-config --cflags --libs chimera), nothing set"
+    flags=$(env -i PATH=/usr/bin:/bin pkg-config --cflags --libs chimera) ||
+        { echo "pkg-config does not find chimera where it was installed:"; find /usr/local -name chimera.pc; exit 1; }
+    echo "pkg-config: $flags"
+    env -i PATH=/usr/bin:/bin c++ -std=c++20 -o controller "$source/tests/install/controller.cpp" $flags
+    echo "== ./controller, no environment"
+    env -i PATH=/usr/bin:/bin ./controller "$source/tests/install/data/controller.svar" "sysinstall$$" > out.txt ||
+        { echo "the controller does not run: $(env -i ldd ./controller | grep chimera)"; exit 1; }
+    diff -u "$source/tests/install/controller.expected" out.txt
+    echo "== the installed tools run from PATH"
+    env -i PATH=/usr/local/bin:/usr/bin:/bin chimcfg check "$source/tests/install/data/controller.svar"
+    echo "== system install test passed"
+' bash "$build" "$source" "$work"
