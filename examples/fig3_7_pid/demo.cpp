@@ -150,6 +150,21 @@ void print_status(const Subsystem& sbs, const char* when) {
     for (const auto& s : sbs.status_all()) std::printf("%s\n", chimera::sbs::format_status(s).c_str());
 }
 
+// What the columns say (§4.4.1), and what a healthy run looks like; printed
+// once, under the first status table.
+void print_status_legend() {
+    std::printf(
+        "  S      task type: P periodic, Y synchronous, S sporadic, D deferrable server, B background\n"
+        "  crit   MUF criticality (higher runs first; the critical set is guaranteed its deadlines)\n"
+        "  cycle  cycles run since the task was turned on;  miss  releases missed (late, skipped, aborted)\n"
+        "  refF   frequency asked for (Hz);  mezF  frequency measured (Hz)\n"
+        "  minC avgC maxC  CPU time per cycle in microseconds (u = us);  avgU%%  share of the CPU it used\n"
+        "  warn   warnings since on;  policy  the Linux scheduling the thread really has\n"
+        "  healthy: state ON, miss 0 (or a handful at turn-on on a busy machine), mezF within 1%% of refF,\n"
+        "  maxC far below the period (1/refF), policy SCHED_FIFO on the RTPU's CPU (SCHED_OTHER means\n"
+        "  no real-time privilege: run as root), tracking error a few hundredths of a degree\n");
+}
+
 // Runs for `seconds`, looking at the table every 10 ms; every 0.5 s a line
 // with the tracking error now and the worst of the last half second.
 void run_phase(Subsystem& sbs, Watch& watch, TaskId robot, const char* controller, double& clock_s,
@@ -205,6 +220,7 @@ int run(const Options& opt) {
     const double first = opt.seconds / 2, second = opt.seconds - first;
     run_phase(*sbs, watch, robot, "jpid", clock_s, first, opt.quiet);
     print_status(*sbs, "before the reconfiguration:");
+    print_status_legend();
 
     // The dynamic reconfiguration of §3.10: off one controller, on the other, one call.
     watch.look();
