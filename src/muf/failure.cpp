@@ -290,11 +290,13 @@ void delete_timers(TaskSlot& s) noexcept {
 // makes no system call. Between jobs it stands at a deadline that lies after
 // the next release; if it fires while no job runs (a skipped or late release,
 // a task turned off) still_applies() finds no job and the signal is ignored.
-void set_deadline_timer(TaskSlot& s, std::int64_t deadline_abs) noexcept {
+void set_deadline_timer(TaskSlot& s, std::int64_t deadline_abs, std::int64_t now) noexcept {
     ThreadState& t = tl;
     // Already set for this deadline, and it lies ahead: nothing to do. (One
     // that has passed is set again, so the kernel fires it now, in the job.)
-    if (t.armed_deadline == deadline_abs && t.deadline_timer_set && deadline_abs > clock_ns()) return;
+    if (t.armed_deadline == deadline_abs && t.deadline_timer_set &&
+        deadline_abs > (now > 0 ? now : clock_ns()))
+        return;
     t.armed_deadline = deadline_abs;
     t.deadline_timer_set = deadline_abs != infinity;
     if (s.timers_created) {
@@ -303,9 +305,9 @@ void set_deadline_timer(TaskSlot& s, std::int64_t deadline_abs) noexcept {
     }
 }
 
-void arm_timers(TaskSlot& s, std::int64_t deadline_abs, std::int64_t budget_ns) noexcept {
+void arm_timers(TaskSlot& s, std::int64_t deadline_abs, std::int64_t budget_ns, std::int64_t now) noexcept {
     ThreadState& t = tl;
-    set_deadline_timer(s, deadline_abs);
+    set_deadline_timer(s, deadline_abs, now);
     const bool finite = budget_ns > 0 && budget_ns != infinity;
     t.budget_ns = finite ? budget_ns : infinity;
     t.budget_armed = finite;
@@ -322,7 +324,7 @@ void arm_timers(TaskSlot& s, std::int64_t deadline_abs, std::int64_t budget_ns) 
 }
 
 void job_complete_timers(TaskSlot& s, std::int64_t next_deadline_abs) noexcept {
-    set_deadline_timer(s, next_deadline_abs);
+    set_deadline_timer(s, next_deadline_abs, 0);
 }
 
 void disarm_deadline(TaskSlot& s) noexcept {

@@ -499,6 +499,8 @@ Wake RtpuScheduler::wait_release(TaskHandle h, const std::atomic<std::uint32_t>*
     TaskSlot* sp = impl_->slot(h);
     if (!sp) return Wake::detached;
     TaskSlot& s = *sp;
+    bool slept = false;
+    std::int64_t now = 0;
     for (;;) {
         const std::uint32_t rw = s.release_word.load(std::memory_order_acquire);
         const Phase phase = s.phase.load(std::memory_order_acquire);
@@ -513,8 +515,18 @@ Wake RtpuScheduler::wait_release(TaskHandle h, const std::atomic<std::uint32_t>*
         }
         // Self-paced: the thread keeps its own timeline.
         if (phase == Phase::job) break;  // released by the dispatcher before a switch to static ranking
-        const std::int64_t now = clock_ns();
         std::int64_t release = s.next_release_ns.load(std::memory_order_relaxed);
+        if (!slept) {
+            // Straight to sleep without reading the clock: a release already
+            // past makes the futex return at once. The clock is read once per
+            // cycle, after the wake-up (where the vDSO cannot serve it, as
+            // under emulation, every read is a system call).
+            if (word && word->load(std::memory_order_acquire) != seen) return Wake::command;
+            wait_words(s.release_word, rw, word, seen, release);
+            slept = true;
+            continue;
+        }
+        now = clock_ns();
         if (now >= release) {
             const std::int64_t period = s.period_ns.load(std::memory_order_acquire);
             const std::int64_t late = (now - release) / period;
@@ -548,7 +560,7 @@ Wake RtpuScheduler::wait_release(TaskHandle h, const std::atomic<std::uint32_t>*
     const std::int64_t budget = !s.params.maxexec_check ? infinity
                                 : s.params.effective_ns > 0 ? s.params.effective_ns
                                                             : s.params.wcet_ns;
-    detail::arm_timers(s, deadline, budget);
+    detail::arm_timers(s, deadline, budget, now);
     return Wake::release;
 }
 

@@ -198,8 +198,9 @@ void bind_thread(RtpuScheduler::Impl* impl, TaskSlot* slot, TaskHandle h) noexce
 void create_timers(TaskSlot& s, bool cpu_timer);
 void delete_timers(TaskSlot& s) noexcept;
 /// At a release: arms DEADLINE at `deadline_abs` and MAXEXEC with `budget` (<= 0 or
-/// infinity: not armed). Async-signal-safe.
-void arm_timers(TaskSlot& s, std::int64_t deadline_abs, std::int64_t budget_ns) noexcept;
+/// infinity: not armed); `now`, when the caller has read the clock (0: read
+/// here). Async-signal-safe.
+void arm_timers(TaskSlot& s, std::int64_t deadline_abs, std::int64_t budget_ns, std::int64_t now = 0) noexcept;
 void disarm_deadline(TaskSlot& s) noexcept;
 /// At a job's completion: the DEADLINE timer moves on to the next job's
 /// deadline (infinity: none), so an on-time release needs no system call.

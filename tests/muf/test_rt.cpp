@@ -714,7 +714,9 @@ TEST(MufDeadline, AdmitsAFeasibleCriticalSetAndSignalsOverrunAsMaxexec) {
     EXPECT_EQ(sch.status(crit_task.handle()).priority, 0);
     EXPECT_NE(sch.policy_of(other.handle()).find("SCHED_FIFO"), std::string::npos)
         << sch.policy_of(other.handle());
-    EXPECT_GE(sch.status(other.handle()).cycles, 1u);
+    // Its first release is the next instant of its 100 ms timeline: under
+    // emulation (the PREEMPT_RT guest) that can come after the two overruns.
+    EXPECT_TRUE(eventually([&] { return sch.status(other.handle()).cycles >= 1; }));
     crit_task.stop();
     other.stop();
 }
@@ -839,6 +841,19 @@ TEST(MufStatic, SystemCallsPerCycle) {
             FAIL() << "the raw_syscalls tracepoint cannot be opened (tracefs not mounted?)";
         GTEST_SKIP() << "no raw_syscalls tracepoint: tracefs not mounted (see in_tracefs_namespace.sh)";
     }
+    // The release path reads the clock once per cycle. Where the vDSO cannot
+    // serve CLOCK_MONOTONIC (a clocksource it cannot read, as under qemu's
+    // emulation in the PREEMPT_RT guest), that read is a system call too.
+    std::uint64_t clock_calls = 0;
+    {
+        const int fd = chimera::test::open_syscall_counter();
+        const std::uint64_t before = chimera::test::read_syscall_counter(fd);
+        for (int i = 0; i < 10; ++i) (void)clock_ns();
+        clock_calls = chimera::test::read_syscall_counter(fd) - before - 1;
+        ::close(fd);
+    }
+    const std::uint64_t clock_read = clock_calls >= 10 ? 1 : 0;
+    if (clock_read) std::printf("CLOCK_MONOTONIC is a system call here (no vDSO clocksource): one more per cycle\n");
     for (const std::int64_t wcet : {std::int64_t{0}, 2 * ms}) {
         SCOPED_TRACE(wcet == 0 ? "no WCET" : "WCET 2 ms");
         RtpuScheduler sch(options(Backend::fifo));
@@ -863,7 +878,7 @@ TEST(MufStatic, SystemCallsPerCycle) {
         ASSERT_GT(last, first);
         // One read of the counter is inside the window.
         const std::uint64_t calls = last - first - 1;
-        const std::uint64_t per_cycle = wcet == 0 ? 2 : 3;
+        const std::uint64_t per_cycle = (wcet == 0 ? 2 : 3) + clock_read;
         EXPECT_LE(calls, per_cycle * kCycles) << calls << " system calls in " << kCycles << " cycles";
         EXPECT_GE(calls, kCycles) << "the wait alone is one per cycle: the counter missed calls";
     }

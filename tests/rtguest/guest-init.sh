@@ -19,6 +19,8 @@ for m in configfs can can-raw can-dev vcan gpio-sim; do
     insmod /lib/modules/$m.ko || setup_fail "insmod $m"
 done
 mount -t configfs none /sys/kernel/config || setup_fail "mount configfs"
+# The per-thread system-call counters of the real-time tests (raw_syscalls).
+mount -t tracefs nodev /sys/kernel/tracing || setup_fail "mount tracefs"
 
 ip link add dev vcan0 type vcan && ip link set vcan0 up || setup_fail "vcan0"
 ip link add dev vcan1 type vcan && ip link set vcan1 up || setup_fail "vcan1"
