@@ -93,7 +93,7 @@ void RtpuScheduler::Impl::dispatcher_main() noexcept {
 std::int64_t RtpuScheduler::Impl::dispatch_once(std::int64_t now) noexcept {
     if (static_ranking.load(std::memory_order_acquire)) {
         // Off the release path: the tasks release themselves.
-        rank_static();
+        rank_and_apply(now);
         return infinity;
     }
     std::array<int, detail::kMaxTasks> released;
@@ -140,46 +140,32 @@ void RtpuScheduler::Impl::rank_and_apply(std::int64_t now) noexcept {
     std::array<detail::RankEntry, detail::kMaxTasks> entries;
     std::size_t n = 0;
     const bool dynamic = uses_deadline.load(std::memory_order_relaxed);
+    const bool fixed = static_ranking.load(std::memory_order_acquire);
     const int count = std::min(slot_count_seen.load(std::memory_order_acquire), detail::kMaxTasks);
     for (int h = 0; h < count; ++h) {
         TaskSlot& s = slots[static_cast<std::size_t>(h)];
         if (s.state.load(std::memory_order_acquire) != SlotState::attached) continue;
         if (s.pacing.load(std::memory_order_relaxed) != Pacing::dispatched) continue;
-        // Only tasks with a pending job compete; a waiting task keeps its
-        // priority (it is blocked) until its release ranks it again.
-        if (s.phase.load(std::memory_order_acquire) != Phase::job) continue;
-        const std::int64_t deadline = s.job_deadline_ns.load(std::memory_order_acquire);
         std::optional<std::int64_t> ticks;
-        if (dynamic && deadline != infinity) ticks = (deadline - now) / options.tick_ns;
+        std::int64_t since = 0;
+        if (fixed) {
+            // Every task, waiting or not, its fixed place: the relative
+            // deadline stands for the time to the deadline (with harmonic
+            // periods and implicit deadlines their order is the order of the
+            // absolute deadlines of any jobs pending together).
+            if (dynamic) ticks = s.rel_deadline_ns.load(std::memory_order_relaxed) / options.tick_ns;
+        } else {
+            // Only tasks with a pending job compete; a waiting task keeps its
+            // priority (it is blocked) until its release ranks it again.
+            if (s.phase.load(std::memory_order_acquire) != Phase::job) continue;
+            const std::int64_t deadline = s.job_deadline_ns.load(std::memory_order_acquire);
+            if (dynamic && deadline != infinity) ticks = (deadline - now) / options.tick_ns;
+            since = s.job_release_ns.load(std::memory_order_relaxed);
+        }
         detail::RankEntry& e = entries[n++];
         e.urgency = urgency(options.encoding, s.crit.load(std::memory_order_acquire), ticks,
                             s.uprio.load(std::memory_order_relaxed));
-        e.since_ns = s.job_release_ns.load(std::memory_order_relaxed);
-        e.handle = h;
-        e.current_prio = s.fifo_prio.load(std::memory_order_relaxed);
-        e.new_prio = e.current_prio;
-    }
-    apply_ranking(std::span(entries.data(), n));
-}
-
-void RtpuScheduler::Impl::rank_static() noexcept {
-    std::array<detail::RankEntry, detail::kMaxTasks> entries;
-    std::size_t n = 0;
-    const bool dynamic = uses_deadline.load(std::memory_order_relaxed);
-    const int count = std::min(slot_count_seen.load(std::memory_order_acquire), detail::kMaxTasks);
-    for (int h = 0; h < count; ++h) {
-        TaskSlot& s = slots[static_cast<std::size_t>(h)];
-        if (s.state.load(std::memory_order_acquire) != SlotState::attached) continue;
-        if (s.pacing.load(std::memory_order_relaxed) != Pacing::dispatched) continue;
-        // The relative deadline stands for the time to the deadline: with
-        // harmonic periods and implicit deadlines, their order is the order
-        // of the absolute deadlines of any jobs pending together.
-        std::optional<std::int64_t> ticks;
-        if (dynamic) ticks = s.rel_deadline_ns.load(std::memory_order_relaxed) / options.tick_ns;
-        detail::RankEntry& e = entries[n++];
-        e.urgency = urgency(options.encoding, s.crit.load(std::memory_order_acquire), ticks,
-                            s.uprio.load(std::memory_order_relaxed));
-        e.since_ns = 0;
+        e.since_ns = since;
         e.handle = h;
         e.current_prio = s.fifo_prio.load(std::memory_order_relaxed);
         e.new_prio = e.current_prio;

@@ -136,10 +136,10 @@ struct RtpuScheduler::Impl {
     void dispatcher_main() noexcept;
     /// One pass: releases due tasks, ranks, applies; returns the next release time.
     std::int64_t dispatch_once(std::int64_t now) noexcept;
+    /// Ranks the tasks and applies their priorities, changing only those that
+    /// move: under static ranking every attached task by its fixed urgency,
+    /// otherwise the tasks with a pending job by their urgency at `now`.
     void rank_and_apply(std::int64_t now) noexcept;
-    /// Static ranking: every attached task its fixed priority (changing only
-    /// those that move).
-    void rank_static() noexcept;
     /// Gives the entries priorities by rank and applies the changes.
     void apply_ranking(std::span<detail::RankEntry> entries) noexcept;
     /// The first release of a task attached now: the next instant of the
