@@ -47,11 +47,17 @@ struct Line {
                                     ///< (for free-text fields such as DESC)
 };
 
+/// The largest configuration file read: a .svar, .rmod or .sbs is text a
+/// person writes; anything larger is refused before it is read.
+inline constexpr std::uintmax_t kMaxFileBytes = 4u << 20;
+
 /// Reads a file line by line. Usage: a parser calls expect()/accept() in the
 /// order the format fixes, and finishes with expect_end().
 class Reader {
 public:
     /// Reads the whole file; throws ParseError("FILE:0: cannot open ...").
+    /// Only a regular file of at most kMaxFileBytes (a FIFO, a device such
+    /// as /dev/zero or a directory is refused without reading it).
     static Reader from_file(const std::string& path);
     /// For tests and generated text; `name` is used as FILE in errors.
     static Reader from_string(std::string_view text, std::string name);

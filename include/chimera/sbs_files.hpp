@@ -114,6 +114,14 @@ private:
     std::vector<Entry> entries_;
 };
 
+/// The frequencies a task may run at, from a .rmod's FREQ/PERIOD or `freq`:
+/// a period of 1 µs (what a timer wake-up can still mean) to 10^6 s.
+inline constexpr double kMinFrequencyHz = 1e-6;
+inline constexpr double kMaxFrequencyHz = 1e6;
+/// Why `hz` is not a task frequency ("" when it is): one check for the
+/// .rmod reader (so chimcfg check), spawn and Subsystem::freq_set.
+std::string frequency_problem(double hz);
+
 /// A parsed .rmod file.
 struct RmodFile {
     std::string path;    ///< as opened

@@ -1,6 +1,8 @@
 // The configuration-file reader (see include/chimera/cfg.hpp for the format).
 #include "chimera/cfg.hpp"
 
+#include <sys/stat.h>
+
 #include <cerrno>
 #include <charconv>
 #include <cstdlib>
@@ -95,9 +97,22 @@ Reader::Reader(std::string file, std::vector<std::string> raw_lines)
     : file_(std::move(file)), raw_(std::move(raw_lines)) {}
 
 Reader Reader::from_file(const std::string& path) {
-    std::error_code ec;
-    if (std::filesystem::is_directory(path, ec))
-        throw ParseError(path, 0, "cannot read file: it is a directory");
+    // stat, not open: opening a FIFO would block until a writer comes.
+    struct stat st {};
+    if (::stat(path.c_str(), &st) != 0)
+        throw ParseError(path, 0, std::string("cannot open file: ") + std::strerror(errno));
+    if (S_ISDIR(st.st_mode)) throw ParseError(path, 0, "cannot read file: it is a directory");
+    if (!S_ISREG(st.st_mode)) {
+        const char* kind = S_ISFIFO(st.st_mode)  ? "a FIFO"
+                           : S_ISCHR(st.st_mode) ? "a character device"
+                           : S_ISBLK(st.st_mode) ? "a block device"
+                           : S_ISSOCK(st.st_mode) ? "a socket"
+                                                  : "not a regular file";
+        throw ParseError(path, 0, std::string("cannot read file: it is ") + kind + ", not a regular file");
+    }
+    if (static_cast<std::uintmax_t>(st.st_size) > kMaxFileBytes)
+        throw ParseError(path, 0, "cannot read file: " + std::to_string(st.st_size) + " bytes, more than the " +
+                                      std::to_string(kMaxFileBytes >> 20) + " MiB a configuration file may have");
     errno = 0;
     std::ifstream in(path);
     if (!in) {
@@ -106,7 +121,15 @@ Reader Reader::from_file(const std::string& path) {
     }
     std::vector<std::string> lines;
     std::string line;
-    while (std::getline(in, line)) lines.push_back(line);
+    std::uintmax_t bytes = 0;
+    while (std::getline(in, line)) {
+        bytes += line.size() + 1;
+        // The file may have grown since stat: the bound holds while reading.
+        if (bytes > kMaxFileBytes)
+            throw ParseError(path, 0, "cannot read file: more than the " + std::to_string(kMaxFileBytes >> 20) +
+                                          " MiB a configuration file may have");
+        lines.push_back(line);
+    }
     if (in.bad()) {
         const int e = errno;
         throw ParseError(path, 0, std::string("cannot read file: ") + (e ? std::strerror(e) : "reason unknown"));
@@ -178,6 +201,7 @@ void Reader::fill() {
     }
     const int last = static_cast<int>(raw_.size());
     eof_line_ = last;
+    if (last == 0) fail(1, "empty file: expected the file's content and EOF as the last line");
     fail(last, "truncated file: expected EOF as the last line, found end of file");
 }
 

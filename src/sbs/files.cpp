@@ -1,6 +1,7 @@
 // The .rmod and .sbs readers (see include/chimera/sbs_files.hpp for the formats).
 #include "chimera/sbs_files.hpp"
 
+#include <cstdio>
 #include <algorithm>
 #include <cctype>
 #include <cmath>
@@ -33,6 +34,12 @@ std::vector<std::string> port_list(const cfg::Reader& r, const cfg::Line& l, std
 }
 
 bool positive_finite(double v) { return std::isfinite(v) && v > 0.0; }
+
+std::string format_g(double v) {
+    char buf[32];
+    std::snprintf(buf, sizeof buf, "%g", v);
+    return buf;
+}
 
 }  // namespace
 
@@ -221,6 +228,8 @@ RmodFile parse_rmod(cfg::Reader& r, const std::string& path) {
         r.require_args(t, 1);
         double v = r.to_double(t, 0, t.keyword);
         if (!positive_finite(v)) r.fail(t, t.keyword + " must be a positive number");
+        if (const std::string why = frequency_problem(t.keyword == "FREQ" ? v : 1.0 / v); !why.empty())
+            r.fail(t, t.keyword + " " + t.args[0] + ": " + why);
         if (t.keyword == "FREQ") {
             f.freq = v;
             f.period = 1.0 / v;
@@ -281,6 +290,17 @@ RmodFile parse_rmod(cfg::Reader& r, const std::string& path) {
     }
     r.expect_end();
     return f;
+}
+
+std::string frequency_problem(double hz) {
+    if (!std::isfinite(hz) || !(hz > 0)) return "the frequency must be a positive number of Hz";
+    if (hz > kMaxFrequencyHz)
+        return format_g(hz) + " Hz is above the highest task frequency, " + format_g(kMaxFrequencyHz) +
+               " Hz (a period of 1 us)";
+    if (hz < kMinFrequencyHz)
+        return format_g(hz) + " Hz is below the lowest task frequency, " + format_g(kMinFrequencyHz) +
+               " Hz (a period of 10^6 s)";
+    return {};
 }
 
 RmodFile read_rmod(const std::string& path) {

@@ -461,7 +461,7 @@ double Subsystem::freq_get(TaskId id) const {
 
 void Subsystem::freq_set(TaskId id, double hz) {
     detail::TaskCore* t = core_->task(id);
-    if (!(hz > 0) || !std::isfinite(hz)) throw Error("freq_set " + t->name + ": frequency must be positive");
+    if (const std::string why = frequency_problem(hz); !why.empty()) throw Error("freq_set " + t->name + ": " + why);
     if (t->state.load() == State::NOT_CREATED) throw Refused("freq_set refused for task " + t->name + ": it is NOT-CREATED");
     const std::string res = t->request(detail::CmdKind::freq, {}, {}, hz);
     if (!res.empty()) throw Error("freq_set " + t->name + ": " + res);

@@ -1,6 +1,10 @@
 #include "chimera/cfg.hpp"
 
 #include <gtest/gtest.h>
+#include <cstdlib>
+#include <filesystem>
+#include <fstream>
+#include <sys/stat.h>
 
 using chimera::cfg::Line;
 using chimera::cfg::ParseError;
@@ -93,6 +97,32 @@ TEST(CfgReader, ArgumentCounts) {
 TEST(CfgReader, DuplicateDefineIsRefused) {
     auto r = Reader::from_string("DEFINE A 1\nDEFINE A 2\nEOF\n", "d");
     EXPECT_EQ(error_of([&] { r.peek(); }), "d:2: DEFINE A is already defined");
+}
+
+TEST(CfgReader, OnlyRegularFilesOfABoundedSizeAreRead) {
+    // A FIFO would block the reader until a writer came; /dev/zero would be
+    // read until memory ran out: both are refused before anything is read.
+    char dir[] = "/tmp/cfg_reader_XXXXXX";
+    ASSERT_NE(::mkdtemp(dir), nullptr);
+    const std::string fifo = std::string(dir) + "/fifo.svar";
+    ASSERT_EQ(::mkfifo(fifo.c_str(), 0600), 0);
+    EXPECT_EQ(error_of([&] { Reader::from_file(fifo); }), fifo + ": cannot read file: it is a FIFO, not a regular file");
+    EXPECT_EQ(error_of([] { Reader::from_file("/dev/zero"); }),
+              "/dev/zero: cannot read file: it is a character device, not a regular file");
+    const std::string big = std::string(dir) + "/big.svar";
+    {
+        std::ofstream f(big);
+        const std::string line(1023, '#');
+        for (int i = 0; i < 4097; ++i) f << line << '\n';
+    }
+    EXPECT_EQ(error_of([&] { Reader::from_file(big); }),
+              big + ": cannot read file: 4195328 bytes, more than the 4 MiB a configuration file may have");
+    // An empty file is named with a line, like every other error.
+    const std::string empty = std::string(dir) + "/empty.rmod";
+    { std::ofstream f(empty); }
+    EXPECT_EQ(error_of([&] { Reader::from_file(empty).peek(); }),
+              empty + ":1: empty file: expected the file's content and EOF as the last line");
+    std::filesystem::remove_all(dir);
 }
 
 TEST(CfgReader, UnreadableFile) {

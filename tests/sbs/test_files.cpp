@@ -110,6 +110,17 @@ TEST(RmodFile, Errors) {
               "qmdiff.rmod:1: MODULE name 'a-b' must be an identifier (letters, digits, _)");
     EXPECT_EQ(error_of([] { rmod("MODULE a\nDESC d\nTASKTYPE periodic\nFREQ 1\n"); }),
               "qmdiff.rmod:4: truncated file: expected EOF as the last line, found end of file");
+    // One frequency range for the file, spawn and `freq` (1e-6 .. 1e6 Hz).
+    EXPECT_EQ(error_of([] { rmod("MODULE a\nDESC d\nTASKTYPE periodic\nFREQ 99999999999999999999999\nEOF\n"); }),
+              "qmdiff.rmod:4: FREQ 99999999999999999999999: 1e+23 Hz is above the highest task frequency, 1e+06 Hz "
+              "(a period of 1 us)");
+    EXPECT_EQ(error_of([] { rmod("MODULE a\nDESC d\nTASKTYPE periodic\nPERIOD 1e-9\nEOF\n"); }),
+              "qmdiff.rmod:4: PERIOD 1e-9: 1e+09 Hz is above the highest task frequency, 1e+06 Hz (a period of 1 us)");
+    EXPECT_EQ(error_of([] { rmod("MODULE a\nDESC d\nTASKTYPE periodic\nPERIOD 1e7\nEOF\n"); }),
+              "qmdiff.rmod:4: PERIOD 1e7: 1e-07 Hz is below the lowest task frequency, 1e-06 Hz (a period of 10^6 s)");
+    EXPECT_EQ(error_of([] { rmod("MODULE a\nDESC d\nTASKTYPE periodic\nFREQ 1000000\nEOF\n"); }), "");
+    EXPECT_EQ(chimera::frequency_problem(1e308),
+              "1e+308 Hz is above the highest task frequency, 1e+06 Hz (a period of 1 us)");
 }
 
 TEST(SbsFile, FullFile) {

@@ -281,6 +281,8 @@ TEST(SbsCli, FreqHelpSyntaxAndQuit) {
     EXPECT_NE(r[4]["text"].get<std::string>().find("reconfig SIG RMOD"), std::string::npos);
     EXPECT_NE(r[5]["text"].get<std::string>().find("mezT"), std::string::npos);
     EXPECT_NE(failing(ws, "spawn ramp; freq -3").find("not a frequency"), std::string::npos);
+    // Positive but out of range: refused, not rounded to a period of 0 ("0 Hz").
+    EXPECT_NE(failing(ws, "spawn ramp; freq ramp 1e308").find("above the highest task frequency"), std::string::npos);
     EXPECT_NE(failing(ws, "help nothing").find("unknown command 'nothing'"), std::string::npos);
     EXPECT_NE(failing(ws, "display 'unterminated").find("unterminated"), std::string::npos);
     EXPECT_NE(failing(ws, "display all NOPE*").find("no variable matches NOPE*"), std::string::npos);
