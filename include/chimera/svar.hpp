@@ -61,6 +61,11 @@ namespace chimera::svar {
 /// Maximum length of a variable name (thesis §5.5.2: "a maximum of 15
 /// characters"); enforced by the parser.
 inline constexpr std::size_t kMaxNameLength = 15;
+/// The largest table: the data of all its variables together (NELEM × element
+/// size, summed) may not pass 256 MiB. A .svar asking for more is refused at
+/// the line that passes it, before anything is allocated, by chimcfg check as
+/// by every program that creates the table.
+inline constexpr std::size_t kMaxTableDataBytes = std::size_t{256} << 20;
 
 /// Layout version of the table segment; attach() refuses other versions.
 inline constexpr std::uint32_t kLayoutVersion = 1;

@@ -106,8 +106,14 @@ VarSpec parse_var(cfg::Reader& r) {
     const cfg::Line nelem = r.expect("NELEM");
     r.require_args(nelem, 1);
     const std::int64_t n = r.to_int(nelem, 0, "NELEM of " + v.name);
-    if (n < 1 || n > (1 << 28))
-        r.fail(nelem, "NELEM of " + v.name + " must be at least 1, found " + nelem.args[0]);
+    if (n < 1) r.fail(nelem, "NELEM of " + v.name + " must be at least 1, found " + nelem.args[0]);
+    // Checked before anything of that size is allocated (INIT below is NELEM
+    // doubles), and without overflow: elem_size ≤ the limit here.
+    if (v.elem_size > kMaxTableDataBytes ||
+        static_cast<std::uint64_t>(n) > kMaxTableDataBytes / v.elem_size)
+        r.fail(nelem, "NELEM " + nelem.args[0] + " of " + v.name + " (" + type_spelling(v.type, v.elem_size) +
+                          ") needs more than the " + std::to_string(kMaxTableDataBytes >> 20) +
+                          " MiB a table may hold");
     v.nelem = static_cast<std::size_t>(n);
 
     const bool is_struct = v.type == Type::struct_;
@@ -160,11 +166,16 @@ TableSpec parse(cfg::Reader r) {
     TableSpec spec;
     spec.file = r.file();
     std::map<std::string, int, std::less<>> seen;
+    std::size_t data_bytes = 0;  // each term is at most the limit: the sum cannot wrap
     while (r.peek() != nullptr) {
         VarSpec v = parse_var(r);
         if (auto it = seen.find(v.name); it != seen.end())
             r.fail(v.line, "duplicate variable " + v.name + " (first defined at line " +
                                std::to_string(it->second) + ")");
+        data_bytes += v.nelem * v.elem_size;
+        if (data_bytes > kMaxTableDataBytes)
+            r.fail(v.line, "variable " + v.name + " takes the table's data past the " +
+                               std::to_string(kMaxTableDataBytes >> 20) + " MiB a table may hold");
         seen.emplace(v.name, v.line);
         spec.vars.push_back(std::move(v));
     }

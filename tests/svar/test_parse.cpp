@@ -181,3 +181,24 @@ TEST(SvarParse, MissingFileNamesIt) {
     EXPECT_EQ(error_of([] { parse_svar_file("/nonexistent/x.svar"); }),
               "/nonexistent/x.svar: cannot open file: No such file or directory");
 }
+
+// A table's size is bounded (kMaxTableDataBytes, 256 MiB) and computed without
+// overflow: 64 variables of struct[1073741824] once summed to "0 bytes of
+// data" and were created; one NELEM 268435456 of double cost 2 GB and 7 s.
+TEST(SvarParse, TableSizeIsBoundedWithoutOverflow) {
+    std::string wraps;
+    for (int i = 0; i < 64; ++i)
+        wraps += "NAME S" + std::to_string(i) + "\nTYPE struct[1073741824]\nDESC d\nUNITS none\nNELEM 268435456\n";
+    EXPECT_EQ(parse_error(wraps + "EOF\n"),
+              "t.svar:5: NELEM 268435456 of S0 (struct[1073741824]) needs more than the 256 MiB a table may hold");
+    EXPECT_EQ(parse_error("NAME BIG\nTYPE double\nDESC d\nUNITS none\nNELEM 268435456\nEOF\n"),
+              "t.svar:5: NELEM 268435456 of BIG (double) needs more than the 256 MiB a table may hold");
+    // Each fits; together they do not: named at the variable that passes the limit.
+    std::string three;
+    for (int i = 0; i < 3; ++i)
+        three += "NAME V" + std::to_string(i) + "\nTYPE struct[1048576]\nDESC d\nUNITS none\nNELEM 100\n";
+    EXPECT_EQ(parse_error(three + "EOF\n"),
+              "t.svar:11: variable V2 takes the table's data past the 256 MiB a table may hold");
+    // At the limit exactly: accepted.
+    EXPECT_EQ(parse_error("NAME ALL\nTYPE struct[1048576]\nDESC d\nUNITS none\nNELEM 256\nEOF\n"), "");
+}
