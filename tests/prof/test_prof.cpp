@@ -2,6 +2,7 @@
 // the profiler against threads whose CPU use is controlled, reset and
 // warning semantics, seqlock consistency across processes, system calls.
 #include "syscall_counter.hpp"
+#include "segment_guard.hpp"
 #include <gtest/gtest.h>
 #include <linux/perf_event.h>
 #include <pthread.h>
@@ -659,6 +660,7 @@ TEST(Profiler, NoSystemCallUnlessTheCycleWasSwitchedOut) {
 // the writer runs cycles as fast as it can and the reader resets it.
 TEST(Consistency, MultiProcessSnapshotsUnderConcurrentUpdates) {
     const std::string sub = unique_subsystem("seq");
+    const chimera::test::SegmentGuard cleanup("chimera." + sub + ".");  // the killed-at-exit writer's attach
     auto seg = StatusSegment::create(sub, 1, one_rtpu());
     TaskSlot slot = seg.claim(id("w", 0));
     const pid_t child = fork();

@@ -1,4 +1,5 @@
 // Express mail: mailboxes, rings, interrupts, wakeups, alive status (§5.3.1).
+#include "segment_guard.hpp"
 #include <gtest/gtest.h>
 #include <signal.h>
 #include <sys/wait.h>
@@ -233,6 +234,7 @@ TEST(Mailbox, DeadRtpuIsNotAliveAndItsMailboxIsTakenOver) {
 
 TEST(Mailbox, TwoLiveRtpusWithTheSameBidAreRefused) {
     const std::string sys = test_sys("dupbid");
+    const chimera::test::SegmentGuard cleanup("chimera." + sys + ".");  // the killed claimant's mailbox too
     Mailbox r(sys, "r", 0, small());
     int ready[2];
     ASSERT_EQ(pipe(ready), 0);

@@ -1,5 +1,6 @@
 // Named objects across processes (fork + exec of xm_helper): the XM server
 // as name server, SHM, SEM, MSG, raw express mail between processes.
+#include "segment_guard.hpp"
 #include <gtest/gtest.h>
 #include <signal.h>
 #include <sys/wait.h>
@@ -173,6 +174,7 @@ TEST(Shm, CreateAttachAcrossProcessesAndLastUserFrees) {
 
 TEST(Shm, ObjectsLiveOnTheNamedRtpuAndItsServerResolvesThem) {
     const std::string sys = test_sys("remote");
+    const chimera::test::SegmentGuard cleanup("chimera." + sys + ".");  // killed users' segments too
     xm::Rtpu host(sys, "host", 0);
     Child r1({"serve", sys, "r1", "1"});
     ASSERT_EQ(r1.line(), "ready");
@@ -270,6 +272,7 @@ TEST(Msg, HpfAndMultiBlockAcrossProcesses) {
 
 TEST(Msg, WaitingReceiversInOtherProcessesServedByPriority) {
     const std::string sys = test_sys("msgw");
+    const chimera::test::SegmentGuard cleanup("chimera." + sys + ".");  // killed users' segments too
     xm::Rtpu host(sys, "host", 0);
     msg::Params p;
     p.policy = msg::Policy::fifo;
@@ -293,6 +296,7 @@ TEST(Msg, WaitingReceiversInOtherProcessesServedByPriority) {
 
 TEST(Mailbox, ExpressMailBetweenProcessesAndDeathDetected) {
     const std::string sys = test_sys("xmx");
+    const chimera::test::SegmentGuard cleanup("chimera." + sys + ".");  // killed users' segments too
     xm::Mailbox me(sys, "me", 0);
     Child echo({"xm-echo", sys, "echo", "1"});
     ASSERT_EQ(echo.line(), "ready");
