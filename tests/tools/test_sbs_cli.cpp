@@ -161,6 +161,34 @@ TEST(SbsCli, SetAndGetLocalParameters) {
     EXPECT_NE(failing(ws, "set STEP 2").find("no default RMOD"), std::string::npos);
 }
 
+// Issue #16.2: the view lists what the module declares (type, range, live,
+// default), and set refuses what the module would not take, naming the key.
+TEST(SbsCli, SetRefusesUndeclaredAndOutOfRange) {
+    Workspace ws;
+    const auto r = ok_json(ws, "spawn ramp; set");
+    const auto& keys = r[1]["data"]["keys"];
+    ASSERT_EQ(keys.size(), 5u) << r[1];
+    EXPECT_EQ(keys[0]["name"], "STEP");
+    EXPECT_EQ(keys[0]["type"], "number");
+    EXPECT_EQ(keys[0]["live"], true);
+    EXPECT_EQ(keys[0]["max"], 1e6);
+    EXPECT_EQ(keys[3]["name"], "INITFAIL");
+    EXPECT_EQ(keys[3]["live"], false);
+    EXPECT_EQ(r[1]["data"]["local"]["GAIN"], "2");  // not in ramp.rmod: the declared default
+    EXPECT_NE(r[1]["text"].get<std::string>().find("spawn-only"), std::string::npos) << r[1]["text"];
+
+    EXPECT_NE(failing(ws, "spawn ramp; set NOKEY 1").find("no LOCAL key NOKEY in module ramp (it takes STEP GAIN"),
+              std::string::npos);
+    EXPECT_NE(failing(ws, "spawn ramp; set STEP banana").find("LOCAL STEP: 'banana' is not a number"),
+              std::string::npos);
+    EXPECT_NE(failing(ws, "spawn ramp; set STEP 2e6").find("LOCAL STEP: 2e6 is out of range [-1e+06, 1e+06]"),
+              std::string::npos);
+    EXPECT_NE(failing(ws, "spawn ramp; set STEP 1 2").find("LOCAL STEP: takes one number, given 2 words"),
+              std::string::npos);
+    EXPECT_NE(failing(ws, "spawn ramp; set INITFAIL 1").find("LOCAL INITFAIL of module ramp is read only at spawn"),
+              std::string::npos);
+}
+
 TEST(SbsCli, ControlSignalsAndTheirRefusals) {
     Workspace ws;
     EXPECT_NE(failing(ws, "on").find("no default RMOD"), std::string::npos);

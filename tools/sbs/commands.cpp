@@ -429,6 +429,54 @@ std::vector<std::string> Interpreter::local_keys(const std::string& rmod) const 
     return keys;
 }
 
+// `set RMOD`: every LOCAL key the module declares, with the value it runs
+// with (through get()), its type, range, whether `set` can change it, and
+// help; then any LOCAL line of the .rmod the module does not declare.
+Reply Interpreter::local_view(sbs::TaskId id) {
+    nlohmann::json local = nlohmann::json::object(), keys = nlohmann::json::array();
+    std::string text = default_rmod_ + " LOCAL:";
+    const auto declared = sbs_.local_keys(id);
+    std::set<std::string> shown;
+    auto value_of = [&](const std::string& key) -> std::string {
+        try {
+            return sbs_.get(id, key);
+        } catch (const sbs::Error&) {
+            return "(unset)";
+        }
+    };
+    for (const LocalKey& d : declared) {
+        const std::string name = d.name;
+        std::vector<std::string> names;
+        if (!name.empty() && name.back() == '*') {
+            for (const auto& key : local_keys(default_rmod_))
+                if (key.compare(0, name.size() - 1, name, 0, name.size() - 1) == 0 && !shown.count(key)) names.push_back(key);
+        } else {
+            names.push_back(name);
+        }
+        for (const auto& key : names) {
+            const std::string v = value_of(key);
+            text += "\n  " + pad(key, 12) + " " + pad(v, 24) + " " + describe(d).substr(name.size() + 1);
+            local[key] = v;
+            shown.insert(key);
+        }
+        keys.push_back({{"name", name}, {"type", std::string(to_string(d.type))},
+                        {"min", std::isinf(d.min) ? nlohmann::json(nullptr) : nlohmann::json(d.min)},
+                        {"max", std::isinf(d.max) ? nlohmann::json(nullptr) : nlohmann::json(d.max)},
+                        {"live", d.live}, {"help", d.help}, {"default", d.fallback}});
+    }
+    for (const auto& key : local_keys(default_rmod_)) {
+        if (shown.count(key)) continue;
+        const std::string v = value_of(key);
+        text += "\n  " + pad(key, 12) + " " + pad(v, 24) + " (not declared by the module)";
+        local[key] = v;
+    }
+    if (local.empty()) text += " (none)";
+    Reply r;
+    r.text = text;
+    r.data = {{"rmod", default_rmod_}, {"local", local}, {"keys", keys}};
+    return r;
+}
+
 Reply Interpreter::cmd_set(const Words& w) {
     // set [RMOD] [KEY [VALUE...]]: a first word naming a task is the RMOD.
     std::size_t k = 1;
@@ -439,21 +487,7 @@ Reply Interpreter::cmd_set(const Words& w) {
     }
     const sbs::TaskId id = task_of(rmod);
     Reply r;
-    if (k == w.size()) {
-        // View: every LOCAL key with its current value (through get()).
-        nlohmann::json local = nlohmann::json::object();
-        std::string text = default_rmod_ + " LOCAL:";
-        const auto keys = local_keys(default_rmod_);
-        if (keys.empty()) text += " (none)";
-        for (const auto& key : keys) {
-            const std::string v = sbs_.get(id, key);
-            text += "\n  " + pad(key, 12) + " " + v;
-            local[key] = v;
-        }
-        r.text = text;
-        r.data = {{"rmod", default_rmod_}, {"local", local}};
-        return r;
-    }
+    if (k == w.size()) return local_view(id);
     const std::string& key = w[k];
     if (k + 1 == w.size()) {
         const std::string v = sbs_.get(id, key);

@@ -86,6 +86,7 @@ private:
     std::optional<std::string> find_rmod_file(const std::string& name) const;
     svar::Table* table();
     std::vector<std::string> local_keys(const std::string& rmod) const;
+    Reply local_view(sbs::TaskId id);
 
     sbs::Subsystem& sbs_;
     std::vector<std::string> extra_dirs_;
