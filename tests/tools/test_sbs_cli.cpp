@@ -189,6 +189,41 @@ TEST(SbsCli, SetRefusesUndeclaredAndOutOfRange) {
               std::string::npos);
 }
 
+// Issue #16.3: setvar (halcmd setp for a state variable), show svar (show
+// sig: producers and consumers), show rtpu (show thread).
+TEST(SbsCli, SetvarShowSvarShowRtpu) {
+    Workspace ws;
+    const auto r = ok_json(ws, "setvar LIMITS[1] 7; display all LIMITS; setvar LIMITS 2; display all LIMITS; "
+                               "spawn ramp; spawn follow; show svar; show rtpu; setvar X 5 --force");
+    EXPECT_EQ(r[0]["data"]["values"], nlohmann::json::array({0.5, 7.0, 2.5}));
+    EXPECT_EQ(r[1]["data"]["vars"][0]["values"], nlohmann::json::array({0.5, 7.0, 2.5}));  // in the table
+    EXPECT_EQ(r[3]["data"]["vars"][0]["values"], nlohmann::json::array({2.0, 2.0, 2.0}));
+    const auto& vars = r[6]["data"]["vars"];
+    ASSERT_EQ(vars.size(), 3u);
+    EXPECT_EQ(vars[0]["name"], "X");
+    EXPECT_EQ(vars[0]["producers"], nlohmann::json::array({"ramp"}));
+    EXPECT_EQ(vars[0]["consumers"], nlohmann::json::array({"follow"}));
+    EXPECT_EQ(vars[1]["producers"], nlohmann::json::array({"follow"}));
+    EXPECT_EQ(vars[2]["producers"], nlohmann::json::array());
+    const auto& rtpus = r[7]["data"]["rtpus"];
+    ASSERT_EQ(rtpus.size(), 1u);
+    EXPECT_EQ(rtpus[0]["name"], "cpu0");
+    EXPECT_EQ(rtpus[0]["cpu"], 0);
+    EXPECT_EQ(rtpus[0]["backend"], "other");
+    EXPECT_EQ(rtpus[0]["scheduler"], "MUF");
+    EXPECT_EQ(rtpus[0]["tasks"], nlohmann::json::array({"follow", "ramp"}));
+    EXPECT_EQ(r[8]["data"]["forced"], true);
+
+    EXPECT_NE(failing(ws, "setvar LIMITS[2] 4").find("LIMITS[2]: 4 is outside the .svar range [0, 3]"), std::string::npos);
+    EXPECT_NE(failing(ws, "setvar LIMITS[3] 1").find("index 3 is out of range"), std::string::npos);
+    EXPECT_NE(failing(ws, "setvar LIMITS 1 2").find("give one value for all, every value, or VAR[INDEX]"),
+              std::string::npos);
+    EXPECT_NE(failing(ws, "setvar NOPE 1").find("no variable NOPE"), std::string::npos);
+    EXPECT_NE(failing(ws, "setvar X pi").find("'pi' is not a number"), std::string::npos);
+    EXPECT_NE(failing(ws, "spawn ramp; setvar X 5").find("X is produced by ramp"), std::string::npos);
+    EXPECT_NE(failing(ws, "show thread").find("usage: show rtpu|svar"), std::string::npos);
+}
+
 TEST(SbsCli, ControlSignalsAndTheirRefusals) {
     Workspace ws;
     EXPECT_NE(failing(ws, "on").find("no default RMOD"), std::string::npos);

@@ -161,6 +161,37 @@ std::vector<double> numbers_of(const svar::VarInfo& v, const std::vector<unsigne
     return out;
 }
 
+// Stores `x` as element k of `buf` in the variable's type (integers rounded).
+void store_number(const svar::VarInfo& v, std::vector<unsigned char>& buf, std::size_t k, double x) {
+    unsigned char* p = buf.data() + k * v.elem_size();
+    auto put = [p](auto value) { std::memcpy(p, &value, sizeof value); };
+    switch (v.type()) {
+        case svar::Type::byte_: put(static_cast<std::uint8_t>(std::llround(x))); break;
+        case svar::Type::char_: put(static_cast<std::int8_t>(std::llround(x))); break;
+        case svar::Type::word: put(static_cast<std::uint16_t>(std::llround(x))); break;
+        case svar::Type::short_: put(static_cast<std::int16_t>(std::llround(x))); break;
+        case svar::Type::unsigned_: put(static_cast<std::uint32_t>(std::llround(x))); break;
+        case svar::Type::int_: put(static_cast<std::int32_t>(std::llround(x))); break;
+        case svar::Type::float_: put(static_cast<float>(x)); break;
+        case svar::Type::double_: put(x); break;
+        case svar::Type::struct_: break;
+    }
+}
+
+// The numeric limits of an element of the variable's type ([lo, hi]).
+std::pair<double, double> type_limits(svar::Type t) {
+    switch (t) {
+        case svar::Type::byte_: return {0, 255};
+        case svar::Type::char_: return {-128, 127};
+        case svar::Type::word: return {0, 65535};
+        case svar::Type::short_: return {-32768, 32767};
+        case svar::Type::unsigned_: return {0, 4294967295.0};
+        case svar::Type::int_: return {-2147483648.0, 2147483647.0};
+        case svar::Type::float_: return {-3.4028234663852886e38, 3.4028234663852886e38};
+        default: return {-HUGE_VAL, HUGE_VAL};
+    }
+}
+
 std::string type_text(const svar::VarInfo& v) {
     std::string t = svar::type_spelling(v.type(), v.elem_size());
     if (v.nelem() > 1) t += "[" + std::to_string(v.nelem()) + "]";
@@ -202,6 +233,8 @@ const std::vector<CommandInfo>& command_table() {
         {"quit", "quit", "leave this interface (at the prompt: finish the subsystem and exit)"},
         {"reconfig", "reconfig SIG RMOD [, SIG RMOD ...]", "apply an ordered list of signals (on off kill clear); stops at the first failure"},
         {"set", "set [RMOD] [KEY [VALUE...]]", "show the LOCAL configuration of a task, one key, or change a key"},
+        {"setvar", "setvar VAR[IDX] VALUE... [--force]", "write a state variable of the running table (halcmd setp): range-checked against the .svar MIN/MAX; refused while a task produces it unless --force"},
+        {"show", "show rtpu|svar [NAME...]", "show the RTPUs (CPU, policy, scheduler, tasks, planned utilisation) or the variables with producers and consumers (halcmd show thread / show sig)"},
         {"sleep", "sleep SECONDS", "pause (lets the tasks run between the commands of a script; at most 60 s)"},
         {"spawn", "spawn RMOD [RTPU]", "create a task from RMOD.rmod on an RTPU (default: the MASTER RTPU)"},
         {"status", "status [RMOD|all] | status set [FIELD...|default|all]", "show the status of the tasks; `status set` picks the fields"},
@@ -296,6 +329,8 @@ Reply Interpreter::run(const Words& w) {
     if (c == "reconfig") return cmd_reconfig(w);
     if (c == "freq") return cmd_freq(w);
     if (c == "help") return cmd_help(w);
+    if (c == "show") return cmd_show(w);
+    if (c == "setvar") return cmd_setvar(w);
     Reply r;
     if (c == "sleep") {
         double seconds = -1;
@@ -398,6 +433,7 @@ Reply Interpreter::cmd_spawn(const Words& w) {
     rmods_[name] = std::move(file);
     default_rmod_ = name;
     const auto s = sbs_.status(id);
+    rtpu_of_[name] = s.rtpu;
     Reply r;
     r.text = "spawned " + name + " (module " + s.module + ") on RTPU " + s.rtpu + "\n" + state_line(s);
     r.data = {{"rmod", name}, {"file", *path}, {"module", s.module}, {"rtpu", s.rtpu},
@@ -679,6 +715,142 @@ Reply Interpreter::cmd_display(const Words& w) {
     return r;
 }
 
+// ----------------------------------------------------------------- show, setvar
+
+// The live tasks that write (out-var, out-const) and read (in-var, in-const)
+// the global variable `name`.
+Interpreter::Users Interpreter::users_of(const std::string& name) const {
+    Users u;
+    for (const auto& [task, f] : rmods_) {
+        auto has = [&](const std::vector<std::string>& v) { return std::find(v.begin(), v.end(), name) != v.end(); };
+        if (has(f.global_out_vars()) || has(f.global_out_consts())) u.producers.push_back(task);
+        if (has(f.global_in_vars()) || has(f.global_in_consts())) u.consumers.push_back(task);
+    }
+    return u;
+}
+
+Reply Interpreter::cmd_show(const Words& w) {
+    if (w.size() < 2 || (w[1] != "rtpu" && w[1] != "svar")) throw CommandError("usage: show rtpu|svar [NAME...]");
+    const std::vector<std::string> names(w.begin() + 2, w.end());
+    auto wanted = [&](const std::string& n) {
+        return names.empty() || std::any_of(names.begin(), names.end(), [&](const std::string& p) { return glob_match(p, n); });
+    };
+    Reply r;
+    if (w[1] == "rtpu") {
+        static constexpr const char* kSched[] = {"RM", "EDF", "MUF"};
+        static constexpr const char* kBackend[] = {"fifo", "deadline", "other"};
+        std::string text = "RTPU         CPU  SCHED BACKEND  USAGE      U(plan)  TASKS";
+        nlohmann::json rtpus = nlohmann::json::array();
+        for (const auto& spec : sbs_.file().rtpus) {
+            if (!wanted(spec.name)) continue;
+            std::vector<std::string> tasks;
+            double planned = 0;  // sum of WCET x frequency: the analysis's C/T (0 for a task without WCET)
+            for (const auto& [task, rtpu] : rtpu_of_) {
+                if (rtpu != spec.name || !rmods_.count(task)) continue;
+                tasks.push_back(task);
+                const RmodFile& f = rmods_.at(task);
+                planned += f.wcet * f.freq;
+            }
+            const std::string sched = kSched[static_cast<int>(spec.scheduler)];
+            const std::string backend = kBackend[static_cast<int>(spec.backend)];
+            const std::string usage = spec.usage == Usage::exclusive ? "exclusive" : "shared";
+            text += "\n" + pad(spec.name, 12) + " " + pad(std::to_string(spec.cpu), 4) + " " + pad(sched, 5) + " " +
+                    pad(backend, 8) + " " + pad(usage, 10) + " " + pad(fmt("%.1f%%", planned * 100), 8) + " " +
+                    (tasks.empty() ? std::string("-") : join(tasks));
+            rtpus.push_back({{"name", spec.name}, {"cpu", spec.cpu}, {"scheduler", sched}, {"backend", backend},
+                             {"usage", usage}, {"minfreq", spec.minfreq}, {"maxfreq", spec.maxfreq},
+                             {"master", spec.name == sbs_.file().master}, {"tasks", tasks},
+                             {"planned_utilisation", planned}});
+        }
+        text += "\n(U(plan): sum of WCET x FREQ of the tasks' .rmod files; measured CPU times are in `status`)";
+        r.text = text;
+        r.data = {{"rtpus", rtpus}};
+        return r;
+    }
+    svar::Table& t = *table();
+    std::string text = pad("VARIABLE", 16) + " " + pad("TYPE", 12) + " " + pad("PRODUCERS", 16) + " CONSUMERS";
+    nlohmann::json vars = nlohmann::json::array();
+    for (std::size_t i = 0; i < t.size(); ++i) {
+        const auto info = t.var(i);
+        const std::string name(info.name());
+        if (!wanted(name)) continue;
+        const Users u = users_of(name);
+        text += "\n" + pad(name, 16) + " " + pad(type_text(info), 12) + " " +
+                pad(u.producers.empty() ? std::string("(.svar INIT)") : join(u.producers), 16) + " " +
+                (u.consumers.empty() ? std::string("-") : join(u.consumers));
+        vars.push_back({{"name", name}, {"type", type_text(info)}, {"units", std::string(info.units())},
+                        {"producers", u.producers}, {"consumers", u.consumers}});
+    }
+    r.text = text;
+    r.data = {{"vars", vars}};
+    return r;
+}
+
+Reply Interpreter::cmd_setvar(const Words& w) {
+    std::vector<std::string> args(w.begin() + 1, w.end());
+    const auto force_at = std::find(args.begin(), args.end(), "--force");
+    const bool force = force_at != args.end();
+    if (force) args.erase(force_at);
+    if (args.size() < 2) throw CommandError("usage: setvar VAR[IDX] VALUE... [--force]");
+    std::string name = args[0];
+    std::optional<std::size_t> index;
+    if (const auto open = name.find('['); open != std::string::npos) {
+        char* end = nullptr;
+        const unsigned long k = std::strtoul(name.c_str() + open + 1, &end, 10);
+        if (end == name.c_str() + open + 1 || std::string_view(end) != "]")
+            throw CommandError("setvar: '" + name + "' is not VAR or VAR[INDEX]");
+        index = k;
+        name.erase(open);
+    }
+    svar::Table& t = *table();
+    const auto ix = t.find(name);
+    if (!ix) throw CommandError("setvar: no variable " + name + " in table " + t.name());
+    const auto info = t.var(*ix);
+    if (info.type() == svar::Type::struct_) throw CommandError("setvar: " + name + " is a struct; it cannot be written from here");
+    const std::size_t first = index.value_or(0);
+    const std::size_t count = args.size() - 1;
+    if (index && *index >= info.nelem())
+        throw CommandError("setvar: " + name + " has " + std::to_string(info.nelem()) + " elements; index " +
+                           std::to_string(*index) + " is out of range");
+    if (first + count > info.nelem())
+        throw CommandError("setvar: " + name + " has " + std::to_string(info.nelem()) + " elements; " +
+                           std::to_string(count) + " values from index " + std::to_string(first) + " do not fit");
+    if (!index && count != info.nelem() && count != 1)
+        throw CommandError("setvar: " + name + " has " + std::to_string(info.nelem()) +
+                           " elements: give one value for all, every value, or VAR[INDEX]");
+    const Users u = users_of(name);
+    if (!u.producers.empty() && !force)
+        throw CommandError("setvar: " + name + " is produced by " + join(u.producers) +
+                           ": its next cycle overwrites it (add --force to write it anyway)");
+    std::vector<unsigned char> buf(info.bytes());
+    if (!svar::transferred(t.read(*ix, buf.data()))) throw CommandError("setvar: reading " + name + " failed");
+    const std::size_t n = (!index && count == 1) ? info.nelem() : count;
+    const auto [lo, hi] = type_limits(info.type());
+    for (std::size_t j = 0; j < n; ++j) {
+        const std::string& text = args[1 + (count == 1 ? 0 : j)];
+        const std::size_t k = first + j;
+        char* end = nullptr;
+        const double x = std::strtod(text.c_str(), &end);
+        if (end == text.c_str() || *end != '\0' || !std::isfinite(x))
+            throw CommandError("setvar: " + name + "[" + std::to_string(k) + "]: '" + text + "' is not a number");
+        if (x < lo || x > hi)
+            throw CommandError("setvar: " + name + "[" + std::to_string(k) + "]: " + text + " does not fit type " +
+                               type_text(info));
+        if (info.has_range() && (x < info.min(k) || x > info.max(k)))
+            throw CommandError("setvar: " + name + "[" + std::to_string(k) + "]: " + text + " is outside the .svar range [" +
+                               fmt("%g", info.min(k)) + ", " + fmt("%g", info.max(k)) + "]");
+        store_number(info, buf, k, x);
+    }
+    if (!svar::transferred(t.write(*ix, buf.data()))) throw CommandError("setvar: writing " + name + " failed");
+    const auto now = numbers_of(info, buf);
+    std::string values;
+    for (double x : now) values += (values.empty() ? "" : " ") + fmt("%.6g", x);
+    Reply r;
+    r.text = name + " = " + values + (u.producers.empty() ? "" : "  (forced; produced by " + join(u.producers) + ")");
+    r.data = {{"name", name}, {"values", now}, {"forced", !u.producers.empty()}, {"producers", u.producers}};
+    return r;
+}
+
 Reply Interpreter::cmd_module(const Words& w) {
     if (w.size() > 2) throw CommandError("usage: module [NAME]");
     const auto dirs = module_path();
@@ -948,6 +1120,13 @@ std::vector<std::string> Interpreter::complete(std::string_view line) {
                 } else if (index == 2 && c == "spawn") {
                     for (const auto& r : sbs_.file().rtpus) cand.insert(r.name);
                 }
+            } else if (c == "show") {
+                if (index == 1) cand.insert({"rtpu", "svar"});
+                else if (words[1] == "svar") variables();
+                else if (words[1] == "rtpu") for (const auto& r : sbs_.file().rtpus) cand.insert(r.name);
+            } else if (c == "setvar") {
+                if (index == 1) variables();
+                else cand.insert("--force");
             } else if (c == "reconfig") {
                 // Alternating SIG RMOD; a comma starts a new item.
                 std::size_t pos = 0;
