@@ -221,6 +221,7 @@ void scan_dirs(const std::vector<std::string>& dirs, std::map<std::string, std::
 const std::vector<CommandInfo>& command_table() {
     static const std::vector<CommandInfo> table = {
         {"clear", "clear [RMOD]", "send the clear-error signal to a task in ERROR"},
+        {"complete", "complete LINE", "the TAB completions of LINE (what an attached prompt asks the master)"},
         {"display", "display [RMOD|all] [VAR...]", "show SVAR values (what the task reads and writes; VAR may use * ?)"},
         {"finish", "finish", "turn every task off, kill them and end the subsystem"},
         {"freq", "freq [RMOD] [HZ]", "show or change the frequency of a task"},
@@ -280,6 +281,17 @@ std::vector<std::string> Interpreter::module_path() const {
 Reply Interpreter::execute(std::string_view command, Origin origin) {
     std::lock_guard lock(mutex_);
     origin_ = origin;
+    // `complete LINE`: the TAB candidates for LINE, raw (a trailing blank
+    // matters: it starts a new word), for a prompt attached over the network.
+    if (command == "complete" || command.substr(0, 9) == "complete ") {
+        Reply r;
+        r.command = "complete";
+        r.rmod = default_rmod_;
+        const auto candidates = complete_locked(command.size() > 9 ? command.substr(9) : std::string_view());
+        r.text = join(candidates);
+        r.data = {{"candidates", candidates}};
+        return r;
+    }
     Words words;
     try {
         words = split_words(command);
@@ -1052,6 +1064,10 @@ Reply Interpreter::cmd_help(const Words& w) {
 
 std::vector<std::string> Interpreter::complete(std::string_view line) {
     std::lock_guard lock(mutex_);
+    return complete_locked(line);
+}
+
+std::vector<std::string> Interpreter::complete_locked(std::string_view line) {
     // Words so far; the last one is being typed (empty after a space).
     std::vector<std::string> words;
     {

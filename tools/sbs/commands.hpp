@@ -55,6 +55,8 @@ public:
     /// Completion candidates for the last (partial) word of `line`, already
     /// filtered by that word as a prefix and sorted.
     std::vector<std::string> complete(std::string_view line);
+    /// The same, with mutex_ held.
+    std::vector<std::string> complete_locked(std::string_view line);
 
     /// Every folder searched for modules and .rmod files, in search order:
     /// CHIMERA_MODULE_PATH, --module-path, the .sbs's folder, the installed folder.
