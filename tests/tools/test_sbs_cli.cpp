@@ -224,6 +224,30 @@ TEST(SbsCli, SetvarShowSvarShowRtpu) {
     EXPECT_NE(failing(ws, "show thread").find("usage: show rtpu|svar"), std::string::npos);
 }
 
+// Issue #16.3: spawn a+b (§3.8.1): one task, the objects' methods in the
+// order given; X passes from ramp to the follower inside the task and is never
+// written to the global table.
+TEST(SbsCli, SpawnCombinedTask) {
+    Workspace ws;
+    ws.write("follow200.rmod",
+             "MODULE ramp\nDESC follower at the ramp's rate\nINVAR X\nOUTVAR Y\nTASKTYPE periodic\nFREQ 200\n"
+             "LOCAL\nGAIN 2\nEOF\n");
+    const auto r = ok_json(ws, "spawn ramp+follow200; on; sleep 0.3; off; show svar; display all X Y; status");
+    EXPECT_EQ(r[0]["data"]["rmod"], "ramp+follow200");
+    EXPECT_EQ(r[0]["data"]["files"].size(), 2u);
+    EXPECT_EQ(r[1]["data"]["state"], "ON");
+    const auto& vars = r[4]["data"]["vars"];
+    EXPECT_EQ(vars[0]["name"], "X");
+    EXPECT_EQ(vars[0]["producers"], nlohmann::json::array());  // internal to the task
+    EXPECT_EQ(vars[1]["producers"], nlohmann::json::array({"ramp+follow200"}));
+    const auto& values = r[5]["data"]["vars"];
+    EXPECT_EQ(values[0]["values"][0], 0.0);  // X never left the task
+    EXPECT_GT(values[1]["values"][0].get<double>(), 0.0);  // Y = 2 * X, written every cycle
+    EXPECT_EQ(r[6]["data"]["tasks"][0]["rmod"], "ramp+follow200");
+    EXPECT_NE(failing(ws, "spawn ramp+follow").find("follow"), std::string::npos);  // 200 Hz + 100 Hz
+    EXPECT_NE(failing(ws, "spawn ramp+nosuch").find("no file nosuch"), std::string::npos);
+}
+
 TEST(SbsCli, ControlSignalsAndTheirRefusals) {
     Workspace ws;
     EXPECT_NE(failing(ws, "on").find("no default RMOD"), std::string::npos);
@@ -272,7 +296,7 @@ TEST(SbsCli, WarningShownOnce) {
 
 TEST(SbsCli, SpawnErrors) {
     Workspace ws;
-    EXPECT_NE(failing(ws, "spawn").find("usage: spawn RMOD [RTPU]"), std::string::npos);
+    EXPECT_NE(failing(ws, "spawn").find("usage: spawn RMOD[+RMOD...] [RTPU]"), std::string::npos);
     EXPECT_NE(failing(ws, "spawn nosuch").find("no file nosuch[.rmod]"), std::string::npos);
     EXPECT_NE(failing(ws, "spawn ramp cpu9").find("no RTPU cpu9"), std::string::npos);
     EXPECT_NE(failing(ws, "spawn ramp; spawn ramp").find("already exists"), std::string::npos);

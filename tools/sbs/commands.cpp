@@ -237,7 +237,7 @@ const std::vector<CommandInfo>& command_table() {
         {"setvar", "setvar VAR[IDX] VALUE... [--force]", "write a state variable of the running table (halcmd setp): range-checked against the .svar MIN/MAX; refused while a task produces it unless --force"},
         {"show", "show rtpu|svar [NAME...]", "show the RTPUs (CPU, policy, scheduler, tasks, planned utilisation) or the variables with producers and consumers (halcmd show thread / show sig)"},
         {"sleep", "sleep SECONDS", "pause (lets the tasks run between the commands of a script; at most 60 s)"},
-        {"spawn", "spawn RMOD [RTPU]", "create a task from RMOD.rmod on an RTPU (default: the MASTER RTPU)"},
+        {"spawn", "spawn RMOD[+RMOD...] [RTPU]", "create a task from RMOD.rmod on an RTPU (default: the MASTER RTPU); a+b+c: one combined task (§3.8.1), methods in that order"},
         {"status", "status [RMOD|all] | status set [FIELD...|default|all]", "show the status of the tasks; `status set` picks the fields"},
     };
     return table;
@@ -426,29 +426,90 @@ std::optional<std::string> Interpreter::find_rmod_file(const std::string& name) 
     return std::nullopt;
 }
 
+namespace {
+
+// What the interpreter records for a combined task a+b+c: one RmodFile whose
+// port lists are the global names the task exchanges with the table (a port
+// one object produces and another consumes stays inside the task), and whose
+// LOCAL holds every object's keys (the first object's value wins).
+RmodFile combined_view(const std::string& name, const std::vector<RmodFile>& parts) {
+    RmodFile out;
+    out.name = name;
+    out.path = parts.front().path;
+    out.type = parts.front().type;
+    out.freq = parts.front().freq;
+    out.period = parts.front().period;
+    std::vector<std::string> modules;
+    std::set<std::string> produced, consumed;
+    for (const auto& f : parts) {
+        modules.push_back(f.module);
+        for (const auto& v : f.global_out_vars()) produced.insert(v);
+        for (const auto& v : f.global_out_consts()) produced.insert(v);
+        for (const auto& v : f.global_in_vars()) consumed.insert(v);
+        for (const auto& v : f.global_in_consts()) consumed.insert(v);
+        out.wcet += f.wcet;
+        for (const auto& e : f.local.entries())
+            if (!out.local.has(e.key)) out.local.set(e.key, e.values, e.line);
+    }
+    out.module = join(modules, "+");
+    auto outside = [](const std::vector<std::string>& v, const std::set<std::string>& inside) {
+        std::vector<std::string> kept;
+        for (const auto& x : v)
+            if (!inside.count(x) && std::find(kept.begin(), kept.end(), x) == kept.end()) kept.push_back(x);
+        return kept;
+    };
+    for (const auto& f : parts) {
+        for (const auto& v : outside(f.global_out_vars(), consumed)) out.out_vars.push_back(v);
+        for (const auto& v : outside(f.global_out_consts(), consumed)) out.out_consts.push_back(v);
+        for (const auto& v : outside(f.global_in_vars(), produced)) out.in_vars.push_back(v);
+        for (const auto& v : outside(f.global_in_consts(), produced)) out.in_consts.push_back(v);
+    }
+    return out;
+}
+
+}  // namespace
+
+// spawn RMOD [RTPU] | spawn A+B+C [RTPU]: one task, or a combined task
+// (§3.8.1: the objects' methods run in the order given, in one thread).
 Reply Interpreter::cmd_spawn(const Words& w) {
-    if (w.size() < 2 || w.size() > 3) throw CommandError("usage: spawn RMOD [RTPU]");
-    const auto path = find_rmod_file(w[1]);
-    if (!path)
-        throw CommandError("spawn: no file " + w[1] + (fs::path(w[1]).extension() == ".rmod" ? "" : "[.rmod]") +
-                           " here or on the module path (" + join(module_path(), ":") + ")");
+    if (w.size() < 2 || w.size() > 3) throw CommandError("usage: spawn RMOD[+RMOD...] [RTPU]");
+    std::vector<std::string> names_given;
+    for (std::size_t at = 0;;) {
+        const auto plus = w[1].find('+', at);
+        names_given.push_back(w[1].substr(at, plus == std::string::npos ? std::string::npos : plus - at));
+        if (plus == std::string::npos) break;
+        at = plus + 1;
+    }
+    std::vector<std::string> paths;
+    for (const auto& n : names_given) {
+        const auto path = n.empty() ? std::nullopt : find_rmod_file(n);
+        if (!path)
+            throw CommandError("spawn: no file " + n + (fs::path(n).extension() == ".rmod" ? "" : "[.rmod]") +
+                               " here or on the module path (" + join(module_path(), ":") + ")");
+        paths.push_back(*path);
+    }
     const std::string rtpu = w.size() == 3 ? w[2] : std::string();
     if (!rtpu.empty() && !sbs_.file().find_rtpu(rtpu)) {
         std::vector<std::string> names;
         for (const auto& r : sbs_.file().rtpus) names.push_back(r.name);
         throw CommandError("spawn: no RTPU " + rtpu + " in " + sbs_.file().path + " (RTPUs: " + join(names) + ")");
     }
-    RmodFile file = read_rmod(*path);
-    const std::string name = file.name;
+    std::vector<RmodFile> files;
+    std::vector<std::string> stems;
+    for (const auto& p : paths) {
+        files.push_back(read_rmod(p));
+        stems.push_back(files.back().name);
+    }
+    const std::string name = join(stems, "+");
     if (is_task(name)) throw CommandError("spawn: task " + name + " already exists (kill it first)");
-    const sbs::TaskId id = sbs_.spawn(*path, rtpu);
-    rmods_[name] = std::move(file);
+    const sbs::TaskId id = paths.size() == 1 ? sbs_.spawn(paths[0], rtpu) : sbs_.spawn_combined(paths, rtpu);
+    rmods_[name] = files.size() == 1 ? std::move(files[0]) : combined_view(name, files);
     default_rmod_ = name;
     const auto s = sbs_.status(id);
     rtpu_of_[name] = s.rtpu;
     Reply r;
     r.text = "spawned " + name + " (module " + s.module + ") on RTPU " + s.rtpu + "\n" + state_line(s);
-    r.data = {{"rmod", name}, {"file", *path}, {"module", s.module}, {"rtpu", s.rtpu},
+    r.data = {{"rmod", name}, {"file", join(paths, "+")}, {"files", paths}, {"module", s.module}, {"rtpu", s.rtpu},
               {"state", std::string(to_string(s.state))}};
     return r;
 }
