@@ -247,7 +247,9 @@ TaskId Subsystem::spawn_combined(const std::vector<std::string>& rmod_paths, std
     }
 
     // §3.5: a task's in-consts must already have been written by the task
-    // producing them, so producers are spawned first.
+    // producing them, so producers are spawned first. A constant the .svar
+    // gives an INIT (NDOF 6) has its value from the configuration: no
+    // producing task is needed (issue #16.3: no dummy robot for a chain).
     std::vector<std::string> produced_here;
     for (const auto& f : rmods)
         for (const auto& v : f.global_out_consts()) produced_here.push_back(v);
@@ -260,9 +262,11 @@ TaskId Subsystem::spawn_combined(const std::vector<std::string>& rmod_paths, std
                 if (!t || t->state.load() == State::NOT_CREATED) continue;
                 if (std::find(t->out_consts.begin(), t->out_consts.end(), v) != t->out_consts.end()) found = true;
             }
+            if (const auto ix = c.table.find(v); !found && ix && c.table.var(*ix).has_init()) found = true;
             if (!found)
                 throw VerifyError("spawn " + f.name + ": in-const " + v + " of module " + f.module +
-                                  " is produced by no task (spawn the task whose OUTCONST is " + v + " first)");
+                                  " is produced by no task and has no INIT in the .svar (spawn the task whose "
+                                  "OUTCONST is " + v + " first, or give it an INIT)");
         }
     }
 
