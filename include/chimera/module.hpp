@@ -76,8 +76,11 @@
 
 #include <cstddef>
 #include <cstdint>
+#include <limits>
+#include <span>
 #include <string>
 #include <string_view>
+#include <vector>
 
 #include <chimera/svar.hpp>
 
@@ -196,6 +199,61 @@ private:
     std::size_t object_;
 };
 
+/// LOCAL keys a module accepts (issue #16.2). A module declares every key it
+/// reads from its .rmod's LOCAL section by overriding Module::local_keys():
+///
+///     static constexpr chimera::LocalKey kKeys[] = {
+///         {"KP", chimera::LocalType::numbers, 0, 1e6, true, "proportional gain per joint"},
+///         {"FILE", chimera::LocalType::word, 0, 0, false, "CSV file written"},
+///     };
+///     std::span<const chimera::LocalKey> local_keys() const noexcept override { return kKeys; }
+///
+/// The declaration is what `sbs` trusts: at run time (`set`, Subsystem::set)
+///   - a key the module does not declare is refused ("no LOCAL key NOKEY; it takes KP KI ...");
+///   - a value of the wrong type or outside [min, max] is refused, naming the key;
+///   - a key declared with live == false is refused as "only at spawn": the
+///     module reads it in init() only, so accepting it would change LOCAL and
+///     not what the module runs with;
+///   - a module that declares nothing accepts no `set` at all.
+/// Only after these checks is the LOCAL entry replaced and Module::set() called,
+/// which may still refuse (then LOCAL keeps its old value). `get` and `module
+/// NAME` list the declarations; `get KEY` of a declared key absent from LOCAL
+/// answers the declared `fallback` (the default the module runs with).
+/// A name ending in `*` declares a family of keys by prefix (POINT* for POINT1,
+/// POINT2, ...); "*" alone accepts any key (test modules). The .rmod's LOCAL
+/// lines themselves are unchanged: existing .rmod files stay valid.
+enum class LocalType : std::uint8_t {
+    number,   ///< exactly one number
+    numbers,  ///< one or more numbers (a vector, e.g. one per joint)
+    integer,  ///< exactly one integral number
+    word,     ///< exactly one word (a file name, a mode)
+    text,     ///< any words
+};
+std::string_view to_string(LocalType t) noexcept;  ///< "number", "numbers", ...
+
+/// An open end of a LocalKey range: {"Q0", LocalType::numbers, -unbounded, unbounded, ...}.
+inline constexpr double unbounded = std::numeric_limits<double>::infinity();
+
+struct LocalKey {
+    const char* name;  ///< the key, or a prefix ending in '*'
+    LocalType type;
+    double min = -unbounded;  ///< numeric types: every value >= min
+    double max = unbounded;   ///< ... and <= max
+    bool live = false;        ///< true: takes effect without a respawn (at once, or at the next
+                              ///< on()); false: read at spawn only, so `set` refuses it
+    const char* help = "";    ///< one line for `module NAME` and `help`
+    const char* fallback = "";  ///< the value used when LOCAL lacks the key ("" : required or none)
+};
+
+/// The declaration in `keys` matching `key` (exact, else the longest `*` prefix); nullptr when none.
+const LocalKey* find_local_key(std::span<const LocalKey> keys, std::string_view key) noexcept;
+/// Why `values` cannot be given to `key` at run time ("" when it can): unknown
+/// key, spawn-only key, wrong type or count, out of range. `module` names the module.
+std::string check_local_set(std::span<const LocalKey> keys, std::string_view module, std::string_view key,
+                            const std::vector<std::string>& values);
+/// One line describing a declaration: "KP numbers [0, 1e+06] live — proportional gain".
+std::string describe(const LocalKey& k);
+
 /// Base class of every control module. Every method has a default, so a module
 /// overrides only what it needs. Defaults: OK for init, reinit, on, cycle, off,
 /// kill, set, get, sync; error() returns ERROR (suspend, operator needed);
@@ -228,6 +286,9 @@ public:
     /// False when cycle() must never be abandoned half-way (it owns resources
     /// whose destructors must run).
     virtual bool abortable() const noexcept { return true; }
+    /// The LOCAL keys this module accepts (see LocalKey); default: none, so
+    /// `set` is refused. The span must stay valid for the module's life.
+    virtual std::span<const LocalKey> local_keys() const noexcept { return {}; }
 };
 
 /// The C-ABI table exported by CHIMERA_MODULE (the thesis's _sbsFunc_t).
@@ -240,7 +301,7 @@ struct ChimeraModuleAbi {
     void (*destroy)(Module*);
 };
 inline constexpr std::uint32_t CHIMERA_MODULE_MAGIC = 0x43484d4dU;  // "CHMM"
-inline constexpr std::uint32_t CHIMERA_MODULE_ABI_VERSION = 2;  // 2: timing_failure, abortable
+inline constexpr std::uint32_t CHIMERA_MODULE_ABI_VERSION = 3;  // 2: timing_failure, abortable; 3: local_keys
 
 /// Symbol name looked up for MODULE `name`: "chimera_module_<name>".
 std::string module_symbol(std::string_view name);

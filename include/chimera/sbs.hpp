@@ -230,8 +230,14 @@ public:
 
     /// sbsGet / sbsSet: the LOCAL configuration of the task, through the
     /// module's get()/set() (applied between method calls).
+    /// set() first checks the modules' declared LOCAL keys (module.hpp,
+    /// LocalKey) and throws Refused naming the key and the reason: unknown,
+    /// read only at spawn, wrong type or count, out of range. get() of a
+    /// declared key absent from LOCAL answers its declared default.
     std::string get(TaskId task, std::string_view key);
     void set(TaskId task, std::string_view key, std::string_view value);
+    /// The LOCAL keys the task's modules declare (all objects of a combined task, in order).
+    std::vector<LocalKey> local_keys(TaskId task) const;
 
     /// Wakes an aperiodic (sporadic, deferrable, background) task: one cycle
     /// per event. Callable from any thread, real-time safe.

@@ -190,6 +190,7 @@ public:
     std::string_view desc() const noexcept;
     std::string_view units() const noexcept;
     bool has_range() const noexcept;
+    bool has_init() const noexcept;  ///< the .svar gave an INIT line
     /// INIT / MIN / MAX element k as a double (0 for struct; min/max 0 when
     /// !has_range()).
     double init(std::size_t k) const noexcept;

@@ -106,8 +106,28 @@ std::int64_t realtime_ns() noexcept {  // the clock of the kernel's receive stam
     return ts.tv_sec * 1'000'000'000LL + ts.tv_nsec;
 }
 
+// The LOCAL keys this module reads (module.hpp, LocalKey): what `set` may change.
+constexpr chimera::LocalKey kCanRobotLocalKeys[] = {
+    {"ROBOT", chimera::LocalType::text, -chimera::unbounded, chimera::unbounded, false, "puma560 | planar2 | urdf FILE ROOT-LINK TIP-LINK", "puma560"},
+    {"MODE", chimera::LocalType::word, -chimera::unbounded, chimera::unbounded, false, "torque | position", "torque"},
+    {"INTERFACE", chimera::LocalType::word, -chimera::unbounded, chimera::unbounded, false, "SocketCAN interface (vcan0, can0)", ""},
+    {"NODES", chimera::LocalType::numbers, 1.0, 127.0, false, "CANopen node id per joint", ""},
+    {"COUNTS_PER_REV", chimera::LocalType::numbers, 0.0, chimera::unbounded, false, "encoder counts per revolution per joint", "1048576"},
+    {"RATED_TORQUE", chimera::LocalType::numbers, 0.0, chimera::unbounded, false, "drive rated torque per joint (N m)", ""},
+    {"TLIMIT", chimera::LocalType::numbers, 0.0, chimera::unbounded, false, "torque limit per joint (N m)", ""},
+    {"HEARTBEAT_TIMEOUT", chimera::LocalType::number, 0.0, chimera::unbounded, false, "seconds without a drive heartbeat before failing", "0.5"},
+    {"FEEDBACK_MISSES", chimera::LocalType::integer, 0.0, 1000000.0, false, "cycles without feedback before failing", "10"},
+    {"ENABLE_TIMEOUT", chimera::LocalType::number, 0.0, chimera::unbounded, false, "seconds to enable the drives in on()", "1"},
+    {"ON_TOLERANCE", chimera::LocalType::number, 0.0, chimera::unbounded, false, "largest Q_REF - Q_MEZ accepted by on() (rad)", "0.05"},
+    {"STABILITY", chimera::LocalType::word, -chimera::unbounded, chimera::unbounded, false, "hold | none while the configuration is illegal", "hold"},
+    {"Q0", chimera::LocalType::numbers, -chimera::unbounded, chimera::unbounded, false, "drive simulator: initial joint positions", "0"},
+    {"DRIVE_*", chimera::LocalType::numbers, -chimera::unbounded, chimera::unbounded, false, "drive simulator settings (DRIVE_KP, DRIVE_HEARTBEAT, ...)", ""},
+};
+
 class CanRobot : public chimera::Module {
 public:
+    std::span<const chimera::LocalKey> local_keys() const noexcept override { return kCanRobotLocalKeys; }
+
     chimera::Result init(chimera::Task& t) override {
         model_ = rb::robot_from_local(t);
         n_ = model_.ndof();

@@ -20,8 +20,19 @@ namespace rb = chimera::robotics;
 
 namespace {
 
+// The LOCAL keys this module reads (module.hpp, LocalKey): what `set` may change.
+constexpr chimera::LocalKey kPidAccLocalKeys[] = {
+    {"KP", chimera::LocalType::numbers, 0.0, chimera::unbounded, false, "proportional gain per joint (1/s^2)", ""},
+    {"KI", chimera::LocalType::numbers, 0.0, chimera::unbounded, false, "integral gain per joint", "0"},
+    {"KD", chimera::LocalType::numbers, 0.0, chimera::unbounded, false, "derivative gain per joint (1/s)", "0"},
+    {"ILIMIT", chimera::LocalType::numbers, 0.0, chimera::unbounded, false, "integrator clamp per joint", "0"},
+    {"ULIMIT", chimera::LocalType::numbers, 0.0, chimera::unbounded, false, "acceleration clamp per joint", "1e9"},
+};
+
 class PidAcc : public chimera::Module {
 public:
+    std::span<const chimera::LocalKey> local_keys() const noexcept override { return kPidAccLocalKeys; }
+
     chimera::Result init(chimera::Task& t) override {
         n_ = rb::read_ndof(t);
         try {

@@ -13,8 +13,15 @@ namespace rb = chimera::robotics;
 
 namespace {
 
+// The LOCAL keys this module reads (module.hpp, LocalKey): what `set` may change.
+constexpr chimera::LocalKey kDiffLocalKeys[] = {
+    {"FILTER", chimera::LocalType::number, 0.0, 1.0, false, "low-pass factor of the derivative (0: none)", "0"},
+};
+
 class Diff : public chimera::Module {
 public:
+    std::span<const chimera::LocalKey> local_keys() const noexcept override { return kDiffLocalKeys; }
+
     chimera::Result init(chimera::Task& t) override {
         n_ = rb::has_in_const(t, "NDOF") ? rb::read_ndof(t) : rb::port_nelem(t, "Z");
         z_ = rb::vec_port(t, "Z", n_);

@@ -29,8 +29,19 @@ using chimera::Result;
 
 namespace {
 
+// The LOCAL keys this module reads (module.hpp, LocalKey): what `set` may change.
+constexpr chimera::LocalKey kDinLocalKeys[] = {
+    {"DATABASE", chimera::LocalType::word, -chimera::unbounded, chimera::unbounded, false, "the device database file", ""},
+    {"DEVICE", chimera::LocalType::word, -chimera::unbounded, chimera::unbounded, false, "the device's name in the database", ""},
+    {"PORTS", chimera::LocalType::numbers, 0.0, 1000000.0, false, "the device's ports this task reads", ""},
+    {"INVERT", chimera::LocalType::numbers, 0.0, 1.0, true, "1 inverts a port (one per port, or one for all)", "0"},
+    {"SYNC_TIMEOUT", chimera::LocalType::number, 0.0, chimera::unbounded, true, "synchronous task: seconds to wait for an edge", ""},
+};
+
 class Din : public chimera::Module {
 public:
+    std::span<const chimera::LocalKey> local_keys() const noexcept override { return kDinLocalKeys; }
+
     Result init(chimera::Task& t) override {
         // Everything that can be wrong is found here, before the ports are
         // opened; the cycle only reads, maps and counts.

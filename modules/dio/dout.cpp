@@ -27,8 +27,20 @@ using chimera::Result;
 
 namespace {
 
+// The LOCAL keys this module reads (module.hpp, LocalKey): what `set` may change.
+constexpr chimera::LocalKey kDoutLocalKeys[] = {
+    {"DATABASE", chimera::LocalType::word, -chimera::unbounded, chimera::unbounded, false, "the device database file", ""},
+    {"DEVICE", chimera::LocalType::word, -chimera::unbounded, chimera::unbounded, false, "the device's name in the database", ""},
+    {"PORTS", chimera::LocalType::numbers, 0.0, 1000000.0, false, "the device's ports this task drives", ""},
+    {"INVERT", chimera::LocalType::numbers, 0.0, 1.0, true, "1 inverts a port (one per port, or one for all)", "0"},
+    {"SAFE", chimera::LocalType::numbers, 0.0, 1.0, true, "the value of each port from init, after off and kill, and on an error", ""},
+    {"ILLEGAL", chimera::LocalType::numbers, 0.0, 1.0, true, "the value of each port while the configuration is illegal", ""},
+};
+
 class Dout : public chimera::Module {
 public:
+    std::span<const chimera::LocalKey> local_keys() const noexcept override { return kDoutLocalKeys; }
+
     Result init(chimera::Task& t) override {
         // Everything that can be wrong is found here, before the ports are
         // opened; the cycle only maps and writes.

@@ -17,8 +17,15 @@ namespace rb = chimera::robotics;
 
 namespace {
 
+// The LOCAL keys this module reads (module.hpp, LocalKey): what `set` may change.
+constexpr chimera::LocalKey kGravCompLocalKeys[] = {
+    {"SCALE", chimera::LocalType::number, 0.0, 10.0, true, "fraction of the gravity torque fed forward", "1"},
+};
+
 class GravComp : public chimera::Module {
 public:
+    std::span<const chimera::LocalKey> local_keys() const noexcept override { return kGravCompLocalKeys; }
+
     chimera::Result init(chimera::Task& t) override {
         const rb::RobotModel model = rb::read_model(t);
         n_ = model.ndof();

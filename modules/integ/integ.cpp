@@ -17,8 +17,16 @@ namespace rb = chimera::robotics;
 
 namespace {
 
+// The LOCAL keys this module reads (module.hpp, LocalKey): what `set` may change.
+constexpr chimera::LocalKey kIntegLocalKeys[] = {
+    {"MIN", chimera::LocalType::numbers, -chimera::unbounded, chimera::unbounded, false, "lower clamp per joint", "-1e300"},
+    {"MAX", chimera::LocalType::numbers, -chimera::unbounded, chimera::unbounded, false, "upper clamp per joint", "1e300"},
+};
+
 class Integ : public chimera::Module {
 public:
+    std::span<const chimera::LocalKey> local_keys() const noexcept override { return kIntegLocalKeys; }
+
     chimera::Result init(chimera::Task& t) override {
         n_ = rb::has_in_const(t, "NDOF") ? rb::read_ndof(t) : rb::port_nelem(t, "Z");
         zdot_ = rb::vec_port(t, "Z^", n_);

@@ -18,8 +18,15 @@ namespace rb = chimera::robotics;
 
 namespace {
 
+// The LOCAL keys this module reads (module.hpp, LocalKey): what `set` may change.
+constexpr chimera::LocalKey kJoinLocalKeys[] = {
+    {"WEIGHTS", chimera::LocalType::numbers, -chimera::unbounded, chimera::unbounded, false, "weight of each input", "1"},
+};
+
 class Join : public chimera::Module {
 public:
+    std::span<const chimera::LocalKey> local_keys() const noexcept override { return kJoinLocalKeys; }
+
     static constexpr std::size_t max_inputs = 8;
 
     chimera::Result init(chimera::Task& t) override {

@@ -22,8 +22,18 @@ namespace rb = chimera::robotics;
 
 namespace {
 
+// The LOCAL keys this module reads (module.hpp, LocalKey): what `set` may change.
+constexpr chimera::LocalKey kDlsIkLocalKeys[] = {
+    {"LAMBDA", chimera::LocalType::number, 0.0, chimera::unbounded, false, "damping of the least-squares inverse", "0.05"},
+    {"GAIN", chimera::LocalType::number, 0.0, chimera::unbounded, false, "Cartesian error gain (1/s)", "20"},
+    {"VMAX", chimera::LocalType::number, 0.0, chimera::unbounded, false, "joint speed limit (rad/s)", "2"},
+    {"WEIGHTS", chimera::LocalType::numbers, 0.0, chimera::unbounded, false, "weight of each Cartesian axis (6)", "1"},
+};
+
 class DlsIk : public chimera::Module {
 public:
+    std::span<const chimera::LocalKey> local_keys() const noexcept override { return kDlsIkLocalKeys; }
+
     chimera::Result init(chimera::Task& t) override {
         const rb::RobotModel model = rb::read_model(t);
         n_ = model.ndof();

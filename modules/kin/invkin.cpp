@@ -23,8 +23,18 @@ namespace rb = chimera::robotics;
 
 namespace {
 
+// The LOCAL keys this module reads (module.hpp, LocalKey): what `set` may change.
+constexpr chimera::LocalKey kInvKinLocalKeys[] = {
+    {"ITER", chimera::LocalType::integer, 1.0, 10000.0, false, "Newton iterations per cycle", "20"},
+    {"TOL", chimera::LocalType::number, 0.0, chimera::unbounded, false, "convergence tolerance", "1e-9"},
+    {"MAXSTEP", chimera::LocalType::number, 0.0, chimera::unbounded, false, "largest joint step per iteration (rad)", "0.05"},
+    {"WEIGHTS", chimera::LocalType::numbers, 0.0, chimera::unbounded, false, "weight of each Cartesian axis (6)", "1"},
+};
+
 class InvKin : public chimera::Module {
 public:
+    std::span<const chimera::LocalKey> local_keys() const noexcept override { return kInvKinLocalKeys; }
+
     chimera::Result init(chimera::Task& t) override {
         const rb::RobotModel model = rb::read_model(t);
         n_ = model.ndof();

@@ -36,8 +36,17 @@ double now_seconds() noexcept {
     return static_cast<double>(ts.tv_sec) + 1e-9 * static_cast<double>(ts.tv_nsec);
 }
 
+// The LOCAL keys this module reads (module.hpp, LocalKey): what `set` may change.
+constexpr chimera::LocalKey kLoggerLocalKeys[] = {
+    {"FILE", chimera::LocalType::word, -chimera::unbounded, chimera::unbounded, false, "CSV file written (opened at spawn)", ""},
+    {"DECIMATE", chimera::LocalType::integer, 1.0, 1000000000.0, false, "log every Nth cycle", "1"},
+    {"BUFFER", chimera::LocalType::integer, 1.0, 1000000000.0, false, "rows buffered between the cycle and the writer", "8192"},
+};
+
 class Logger : public chimera::Module {
 public:
+    std::span<const chimera::LocalKey> local_keys() const noexcept override { return kLoggerLocalKeys; }
+
     chimera::Result init(chimera::Task& t) override {
         path_ = rb::local_word(t, "FILE", "");
         if (path_.empty()) rb::module_error(t, "LOCAL FILE (the CSV file to write) is required");

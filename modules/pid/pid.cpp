@@ -16,8 +16,19 @@ namespace rb = chimera::robotics;
 
 namespace {
 
+// The LOCAL keys this module reads (module.hpp, LocalKey): what `set` may change.
+constexpr chimera::LocalKey kPidModuleLocalKeys[] = {
+    {"KP", chimera::LocalType::numbers, 0.0, chimera::unbounded, true, "proportional gain, one per joint (or one for all)", ""},
+    {"KI", chimera::LocalType::numbers, 0.0, chimera::unbounded, true, "integral gain per joint", ""},
+    {"KD", chimera::LocalType::numbers, 0.0, chimera::unbounded, true, "derivative gain per joint", ""},
+    {"ILIMIT", chimera::LocalType::numbers, 0.0, chimera::unbounded, true, "integrator clamp per joint", ""},
+    {"ULIMIT", chimera::LocalType::numbers, 0.0, chimera::unbounded, true, "output clamp per joint", ""},
+};
+
 class PidModule : public chimera::Module {
 public:
+    std::span<const chimera::LocalKey> local_keys() const noexcept override { return kPidModuleLocalKeys; }
+
     chimera::Result init(chimera::Task& t) override {
         n_ = rb::read_ndof(t);
         try {

@@ -25,8 +25,23 @@ namespace rb = chimera::robotics;
 
 namespace {
 
+// The LOCAL keys this module reads (module.hpp, LocalKey): what `set` may change.
+constexpr chimera::LocalKey kRobotSimLocalKeys[] = {
+    {"ROBOT", chimera::LocalType::text, -chimera::unbounded, chimera::unbounded, false, "puma560 | planar2 | urdf FILE ROOT-LINK TIP-LINK", "puma560"},
+    {"MODE", chimera::LocalType::word, -chimera::unbounded, chimera::unbounded, false, "torque | position (joint servo inside the simulator)", "torque"},
+    {"SUBSTEPS", chimera::LocalType::integer, 1.0, 10000.0, false, "integration steps per cycle", "10"},
+    {"Q0", chimera::LocalType::numbers, -chimera::unbounded, chimera::unbounded, false, "initial joint positions (rad)", "0"},
+    {"SERVO_KP", chimera::LocalType::numbers, 0.0, chimera::unbounded, false, "position mode: servo proportional gain", "400"},
+    {"SERVO_KI", chimera::LocalType::numbers, 0.0, chimera::unbounded, false, "position mode: servo integral gain", "0"},
+    {"SERVO_KD", chimera::LocalType::numbers, 0.0, chimera::unbounded, false, "position mode: servo derivative gain", "40"},
+    {"TLIMIT", chimera::LocalType::numbers, 0.0, chimera::unbounded, false, "torque limit per joint (N m)", "1e9"},
+    {"STABILITY", chimera::LocalType::word, -chimera::unbounded, chimera::unbounded, false, "hold | none: what the robot does while the configuration is illegal", "hold"},
+};
+
 class RobotSim : public chimera::Module {
 public:
+    std::span<const chimera::LocalKey> local_keys() const noexcept override { return kRobotSimLocalKeys; }
+
     chimera::Result init(chimera::Task& t) override {
         model_ = rb::robot_from_local(t);
         n_ = model_.ndof();

@@ -30,8 +30,19 @@ namespace rb = chimera::robotics;
 
 namespace {
 
+// The LOCAL keys this module reads (module.hpp, LocalKey): what `set` may change.
+constexpr chimera::LocalKey kTeleopLocalKeys[] = {
+    {"TBUF", chimera::LocalType::word, -chimera::unbounded, chimera::unbounded, false, "the triple buffer the operator's device writes", ""},
+    {"MAXSPEED", chimera::LocalType::numbers, 0.0, chimera::unbounded, false, "joint speed limit (rad/s)", "1"},
+    {"MIN", chimera::LocalType::numbers, -chimera::unbounded, chimera::unbounded, false, "lower joint limit (rad)", "-1e300"},
+    {"MAX", chimera::LocalType::numbers, -chimera::unbounded, chimera::unbounded, false, "upper joint limit (rad)", "1e300"},
+    {"TIMEOUT", chimera::LocalType::number, 0.0, chimera::unbounded, false, "seconds without input before holding", "0.5"},
+};
+
 class Teleop : public chimera::Module {
 public:
+    std::span<const chimera::LocalKey> local_keys() const noexcept override { return kTeleopLocalKeys; }
+
     chimera::Result init(chimera::Task& t) override {
         n_ = rb::read_ndof(t);
         q_ref_ = rb::vec_port(t, "Q_REF", n_);

@@ -31,8 +31,19 @@ namespace rb = chimera::robotics;
 
 namespace {
 
+// The LOCAL keys this module reads (module.hpp, LocalKey): what `set` may change.
+constexpr chimera::LocalKey kTrajGenLocalKeys[] = {
+    {"PROFILE", chimera::LocalType::word, -chimera::unbounded, chimera::unbounded, false, "quintic | cubic | linear", "quintic"},
+    {"BLEND", chimera::LocalType::number, 0.0, chimera::unbounded, false, "blend time between segments (s)", "0.2"},
+    {"CYCLIC", chimera::LocalType::word, -chimera::unbounded, chimera::unbounded, false, "yes | no: start over after the last point", "yes"},
+    {"START", chimera::LocalType::word, -chimera::unbounded, chimera::unbounded, false, "current | first point", "current"},
+    {"POINT*", chimera::LocalType::numbers, -chimera::unbounded, chimera::unbounded, false, "POINTn DURATION q1 ... qN: a via point", ""},
+};
+
 class TrajGen : public chimera::Module {
 public:
+    std::span<const chimera::LocalKey> local_keys() const noexcept override { return kTrajGenLocalKeys; }
+
     chimera::Result init(chimera::Task& t) override {
         n_ = rb::has_in_const(t, "NDOF") ? rb::read_ndof(t) : rb::port_nelem(t, "Z");
         z_ = rb::vec_port(t, "Z", n_);

@@ -105,6 +105,16 @@ std::optional<std::string> LocalConfig::text(std::string_view key) const {
     return join(e->values, " ");
 }
 
+namespace {
+// Where a LOCAL entry came from: FILE:LINE, or FILE and "set at run time" for a
+// value given by sbsSet (line 0), never a misleading FILE:0.
+std::string where_of(const std::string& file, const LocalConfig::Entry& e) {
+    const std::string f = file.empty() ? std::string("LOCAL") : file;
+    return e.line > 0 ? f + ":" + std::to_string(e.line) + ": LOCAL " + e.key
+                      : f + ": LOCAL " + e.key + " (set at run time)";
+}
+}  // namespace
+
 std::vector<double> LocalConfig::numbers(std::string_view key) const {
     const Entry* e = find(key);
     const std::string where = file.empty() ? std::string("LOCAL") : file;
@@ -113,9 +123,7 @@ std::vector<double> LocalConfig::numbers(std::string_view key) const {
     out.reserve(e->values.size());
     for (const auto& v : e->values) {
         auto d = cfg::parse_double(v);
-        if (!d)
-            throw std::invalid_argument(where + ":" + std::to_string(e->line) + ": LOCAL " + e->key +
-                                        ": expected a number, found '" + v + "'");
+        if (!d) throw std::invalid_argument(where_of(file, *e) + ": expected a number, found '" + v + "'");
         out.push_back(*d);
     }
     return out;
@@ -126,9 +134,7 @@ double LocalConfig::number(std::string_view key, double fallback) const {
     if (!e) return fallback;
     auto v = numbers(key);
     if (v.size() != 1)
-        throw std::invalid_argument((file.empty() ? std::string("LOCAL") : file) + ":" + std::to_string(e->line) +
-                                    ": LOCAL " + e->key + ": expected one number, found " +
-                                    std::to_string(v.size()));
+        throw std::invalid_argument(where_of(file, *e) + ": expected one number, found " + std::to_string(v.size()));
     return v[0];
 }
 

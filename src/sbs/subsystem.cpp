@@ -247,7 +247,9 @@ TaskId Subsystem::spawn_combined(const std::vector<std::string>& rmod_paths, std
     }
 
     // §3.5: a task's in-consts must already have been written by the task
-    // producing them, so producers are spawned first.
+    // producing them, so producers are spawned first. A constant the .svar
+    // gives an INIT (NDOF 6) has its value from the configuration: no
+    // producing task is needed (issue #16.3: no dummy robot for a chain).
     std::vector<std::string> produced_here;
     for (const auto& f : rmods)
         for (const auto& v : f.global_out_consts()) produced_here.push_back(v);
@@ -260,9 +262,11 @@ TaskId Subsystem::spawn_combined(const std::vector<std::string>& rmod_paths, std
                 if (!t || t->state.load() == State::NOT_CREATED) continue;
                 if (std::find(t->out_consts.begin(), t->out_consts.end(), v) != t->out_consts.end()) found = true;
             }
+            if (const auto ix = c.table.find(v); !found && ix && c.table.var(*ix).has_init()) found = true;
             if (!found)
                 throw VerifyError("spawn " + f.name + ": in-const " + v + " of module " + f.module +
-                                  " is produced by no task (spawn the task whose OUTCONST is " + v + " first)");
+                                  " is produced by no task and has no INIT in the .svar (spawn the task whose "
+                                  "OUTCONST is " + v + " first, or give it an INIT)");
         }
     }
 
@@ -467,19 +471,77 @@ void Subsystem::freq_set(TaskId id, double hz) {
     if (!res.empty()) throw Error("freq_set " + t->name + ": " + res);
 }
 
+namespace {
+
+// The declaration of `key` among the objects of a task (the first object
+// declaring it), or nullptr.
+const LocalKey* declared_key(const detail::TaskCore& t, std::string_view key) {
+    for (const auto& ob : t.objects)
+        if (ob.module != nullptr)
+            if (const LocalKey* k = find_local_key(ob.module->local_keys(), key)) return k;
+    return nullptr;
+}
+
+// Why `set key value` must be refused for task `t` ("" when the objects'
+// declarations allow it): every object declaring the key must accept the
+// value; when none declares it, the first object's refusal is the answer.
+std::string set_refusal(const detail::TaskCore& t, std::string_view key, std::string_view value) {
+    std::vector<std::string> values;
+    for (std::size_t i = 0; i < value.size();) {
+        while (i < value.size() && (value[i] == ' ' || value[i] == '\t')) ++i;
+        std::size_t j = i;
+        while (j < value.size() && value[j] != ' ' && value[j] != '\t') ++j;
+        if (j > i) values.emplace_back(value.substr(i, j - i));
+        i = j;
+    }
+    std::string first;
+    bool declared = false;
+    for (const auto& ob : t.objects) {
+        if (ob.module == nullptr) continue;
+        const auto keys = ob.module->local_keys();
+        const std::string why = check_local_set(keys, ob.rmod.module, key, values);
+        if (find_local_key(keys, key) != nullptr) {
+            if (!why.empty()) return why;
+            declared = true;
+        } else if (first.empty()) {
+            first = why;
+        }
+    }
+    return declared ? std::string() : first;
+}
+
+}  // namespace
+
 std::string Subsystem::get(TaskId id, std::string_view key) {
     detail::TaskCore* t = core_->task(id);
     if (t->state.load() == State::NOT_CREATED) throw Refused("get refused for task " + t->name + ": it is NOT-CREATED");
     std::string reply;
     const std::string res = t->request(detail::CmdKind::get, {}, std::string(key), 0, &reply);
-    if (!res.empty()) throw Error("get " + t->name + ": " + res);
+    if (!res.empty()) {
+        // A declared key absent from LOCAL: the module runs with its default.
+        const LocalKey* k = declared_key(*t, key);
+        if (k != nullptr && k->fallback != nullptr && *k->fallback != '\0') return k->fallback;
+        throw Error("get " + t->name + ": " + res);
+    }
     return reply;
+}
+
+std::vector<LocalKey> Subsystem::local_keys(TaskId id) const {
+    const detail::TaskCore* t = core_->task(id);
+    std::vector<LocalKey> keys;
+    if (t->state.load() == State::NOT_CREATED) return keys;
+    for (const auto& ob : t->objects)
+        if (ob.module != nullptr)
+            for (const LocalKey& k : ob.module->local_keys()) keys.push_back(k);
+    return keys;
 }
 
 void Subsystem::set(TaskId id, std::string_view key, std::string_view value) {
     detail::TaskCore* t = core_->task(id);
     if (t->state.load() == State::NOT_CREATED) throw Refused("set refused for task " + t->name + ": it is NOT-CREATED");
     if (key.empty()) throw Error("set " + t->name + ": empty key");
+    if (const std::string why = set_refusal(*t, key, value); !why.empty())
+        throw Refused("set " + t->name + " " + std::string(key) + " refused: " + why);
     const std::string res = t->request(detail::CmdKind::set, std::string(value), std::string(key));
     if (!res.empty()) throw Error("set " + t->name + ": " + res);
 }

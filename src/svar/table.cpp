@@ -83,6 +83,7 @@ std::string_view VarInfo::units() const noexcept {
     return {table_->seg_.at_bytes<const char>(d_->units_offset), d_->units_len};
 }
 bool VarInfo::has_range() const noexcept { return (d_->flags & detail::kHasRange) != 0; }
+bool VarInfo::has_init() const noexcept { return (d_->flags & detail::kHasInit) != 0; }
 
 double VarInfo::init(std::size_t k) const noexcept {
     if (!d_->init_offset || k >= d_->nelem) return 0.0;

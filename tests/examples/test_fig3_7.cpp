@@ -269,6 +269,55 @@ TEST(Fig37Spawn, UnknownModuleIsNamed) {
     std::filesystem::remove_all(dir);
 }
 
+// Issue #16.2: `set` takes only the LOCAL keys a module declares, with values
+// of the declared type and range, and only keys the module applies without a
+// respawn; every refusal names the key and why, and LOCAL keeps what the
+// module runs with.
+TEST(Fig37Set, RefusesWhatTheModuleWouldIgnore) {
+    auto sbs = Subsystem::init(fig3_7::load_sbs(nullptr, unique_name("set")));
+    fig3_7::add_module_dirs(*sbs);
+    const TaskId robot = sbs->spawn(fig3_7::rmod("puma_torque"), "robot");
+    const TaskId jpid = sbs->spawn(fig3_7::rmod("jpid"), "ctrl");
+    const auto modules_src = std::filesystem::path(fig3_7::rmod("jpid")).parent_path().parent_path();
+    const TaskId qlog = sbs->spawn((modules_src / "logger" / "qlog.rmod").string(), "ctrl");
+    const auto refusal = [&](TaskId id, const char* key, const char* value) {
+        try {
+            sbs->set(id, key, value);
+        } catch (const chimera::sbs::Refused& e) {
+            return std::string(e.what());
+        }
+        ADD_FAILURE() << "set " << key << " " << value << " was accepted";
+        return std::string();
+    };
+    const auto has = [](const std::string& s, const char* part) { return s.find(part) != std::string::npos; };
+
+    const std::string nokey = refusal(jpid, "NOKEY", "1");
+    EXPECT_TRUE(has(nokey, "no LOCAL key NOKEY in module pid (it takes KP KI KD ILIMIT ULIMIT)")) << nokey;
+    const std::string banana = refusal(jpid, "KP", "banana");
+    EXPECT_TRUE(has(banana, "LOCAL KP: 'banana' is not a number")) << banana;
+    EXPECT_FALSE(has(banana, ":0:")) << banana;
+    const std::string negative = refusal(jpid, "KD", "-5");
+    EXPECT_TRUE(has(negative, "LOCAL KD: -5 is out of range [0, inf]")) << negative;
+    EXPECT_EQ(sbs->get(jpid, "KP"), "400 800 400 40 40 20");  // unchanged by the refusals
+
+    // A live key takes effect (pid rebuilds its gains in set()).
+    sbs->set(jpid, "KP", "300 600 300 30 30 15");
+    EXPECT_EQ(sbs->get(jpid, "KP"), "300 600 300 30 30 15");
+
+    // Keys read only in init(): refused, not silently stored.
+    const std::string file = refusal(qlog, "FILE", "q.csv");
+    EXPECT_TRUE(has(file, "LOCAL FILE of module logger is read only at spawn")) << file;
+    EXPECT_EQ(sbs->get(qlog, "FILE"), "/tmp/chimera_qlog.csv");
+    const std::string substeps = refusal(robot, "SUBSTEPS", "5");
+    EXPECT_TRUE(has(substeps, "SUBSTEPS")) << substeps;
+    EXPECT_EQ(sbs->get(robot, "SUBSTEPS"), "10");
+
+    // A declared key absent from the .rmod: get answers the default it runs with.
+    EXPECT_EQ(sbs->get(robot, "STABILITY"), "hold");
+    EXPECT_EQ(sbs->get(qlog, "DECIMATE"), "1");
+    sbs->finish();
+}
+
 TEST(Fig37Demo, RunsAndPrintsTheStatus) {
     const std::string cmd = std::string(FIG3_7_DEMO) + " --seconds 1 2>&1";
     FILE* p = ::popen(cmd.c_str(), "r");

@@ -51,6 +51,7 @@ const char* kSvar =
     "NAME C\nTYPE double\nDESC c\nUNITS none\nNELEM 1\n"
     "NAME XU\nTYPE double\nDESC combined internal\nUNITS none\nNELEM 1\n"
     "NAME K1\nTYPE double\nDESC constant\nUNITS none\nNELEM 1\n"
+    "NAME K2\nTYPE double\nDESC constant from the configuration\nUNITS none\nNELEM 1\nINIT 6\n"
     "EOF\n";
 
 class Sbs : public ::testing::Test {
@@ -206,8 +207,18 @@ TEST_F(Sbs, InitFailureCallsKillAndLeavesTaskNotCreated) {
 TEST_F(Sbs, InConstWithoutProducerIsRefusedAtSpawn) {
     auto& s = init();
     const std::string msg = what_of([&] { s.spawn(rmod("cons", "SVARALIAS CIN=K1\nINCONST CIN\n")); });
-    EXPECT_TRUE(has(msg, "in-const K1 of module probe is produced by no task")) << msg;
+    EXPECT_TRUE(has(msg, "in-const K1 of module probe is produced by no task and has no INIT in the .svar")) << msg;
     EXPECT_TRUE(methods("cons").empty());
+}
+
+// Issue #16.3: a constant the .svar gives an INIT needs no producing task; the
+// task reads the configured value as its in-const.
+TEST_F(Sbs, InConstFromTheSvarInitNeedsNoProducer) {
+    auto& s = init();
+    const auto id = s.spawn(rmod("cons2", "SVARALIAS CIN=K2\nINCONST CIN\n"));
+    EXPECT_EQ(s.status(id).state, State::OFF);
+    const std::string init_record = last("cons2", "init");  // in-consts are read before init
+    EXPECT_TRUE(has(init_record, "CIN=6")) << init_record;
 }
 
 TEST_F(Sbs, ReinitWhenAnOutConstProducerIsReplacedByADifferentValue) {

@@ -161,6 +161,93 @@ TEST(SbsCli, SetAndGetLocalParameters) {
     EXPECT_NE(failing(ws, "set STEP 2").find("no default RMOD"), std::string::npos);
 }
 
+// Issue #16.2: the view lists what the module declares (type, range, live,
+// default), and set refuses what the module would not take, naming the key.
+TEST(SbsCli, SetRefusesUndeclaredAndOutOfRange) {
+    Workspace ws;
+    const auto r = ok_json(ws, "spawn ramp; set");
+    const auto& keys = r[1]["data"]["keys"];
+    ASSERT_EQ(keys.size(), 5u) << r[1];
+    EXPECT_EQ(keys[0]["name"], "STEP");
+    EXPECT_EQ(keys[0]["type"], "number");
+    EXPECT_EQ(keys[0]["live"], true);
+    EXPECT_EQ(keys[0]["max"], 1e6);
+    EXPECT_EQ(keys[3]["name"], "INITFAIL");
+    EXPECT_EQ(keys[3]["live"], false);
+    EXPECT_EQ(r[1]["data"]["local"]["GAIN"], "2");  // not in ramp.rmod: the declared default
+    EXPECT_NE(r[1]["text"].get<std::string>().find("spawn-only"), std::string::npos) << r[1]["text"];
+
+    EXPECT_NE(failing(ws, "spawn ramp; set NOKEY 1").find("no LOCAL key NOKEY in module ramp (it takes STEP GAIN"),
+              std::string::npos);
+    EXPECT_NE(failing(ws, "spawn ramp; set STEP banana").find("LOCAL STEP: 'banana' is not a number"),
+              std::string::npos);
+    EXPECT_NE(failing(ws, "spawn ramp; set STEP 2e6").find("LOCAL STEP: 2e6 is out of range [-1e+06, 1e+06]"),
+              std::string::npos);
+    EXPECT_NE(failing(ws, "spawn ramp; set STEP 1 2").find("LOCAL STEP: takes one number, given 2 words"),
+              std::string::npos);
+    EXPECT_NE(failing(ws, "spawn ramp; set INITFAIL 1").find("LOCAL INITFAIL of module ramp is read only at spawn"),
+              std::string::npos);
+}
+
+// Issue #16.3: setvar (halcmd setp for a state variable), show svar (show
+// sig: producers and consumers), show rtpu (show thread).
+TEST(SbsCli, SetvarShowSvarShowRtpu) {
+    Workspace ws;
+    const auto r = ok_json(ws, "setvar LIMITS[1] 7; display all LIMITS; setvar LIMITS 2; display all LIMITS; "
+                               "spawn ramp; spawn follow; show svar; show rtpu; setvar X 5 --force");
+    EXPECT_EQ(r[0]["data"]["values"], nlohmann::json::array({0.5, 7.0, 2.5}));
+    EXPECT_EQ(r[1]["data"]["vars"][0]["values"], nlohmann::json::array({0.5, 7.0, 2.5}));  // in the table
+    EXPECT_EQ(r[3]["data"]["vars"][0]["values"], nlohmann::json::array({2.0, 2.0, 2.0}));
+    const auto& vars = r[6]["data"]["vars"];
+    ASSERT_EQ(vars.size(), 3u);
+    EXPECT_EQ(vars[0]["name"], "X");
+    EXPECT_EQ(vars[0]["producers"], nlohmann::json::array({"ramp"}));
+    EXPECT_EQ(vars[0]["consumers"], nlohmann::json::array({"follow"}));
+    EXPECT_EQ(vars[1]["producers"], nlohmann::json::array({"follow"}));
+    EXPECT_EQ(vars[2]["producers"], nlohmann::json::array());
+    const auto& rtpus = r[7]["data"]["rtpus"];
+    ASSERT_EQ(rtpus.size(), 1u);
+    EXPECT_EQ(rtpus[0]["name"], "cpu0");
+    EXPECT_EQ(rtpus[0]["cpu"], 0);
+    EXPECT_EQ(rtpus[0]["backend"], "other");
+    EXPECT_EQ(rtpus[0]["scheduler"], "MUF");
+    EXPECT_EQ(rtpus[0]["tasks"], nlohmann::json::array({"follow", "ramp"}));
+    EXPECT_EQ(r[8]["data"]["forced"], true);
+
+    EXPECT_NE(failing(ws, "setvar LIMITS[2] 4").find("LIMITS[2]: 4 is outside the .svar range [0, 3]"), std::string::npos);
+    EXPECT_NE(failing(ws, "setvar LIMITS[3] 1").find("index 3 is out of range"), std::string::npos);
+    EXPECT_NE(failing(ws, "setvar LIMITS 1 2").find("give one value for all, every value, or VAR[INDEX]"),
+              std::string::npos);
+    EXPECT_NE(failing(ws, "setvar NOPE 1").find("no variable NOPE"), std::string::npos);
+    EXPECT_NE(failing(ws, "setvar X pi").find("'pi' is not a number"), std::string::npos);
+    EXPECT_NE(failing(ws, "spawn ramp; setvar X 5").find("X is produced by ramp"), std::string::npos);
+    EXPECT_NE(failing(ws, "show thread").find("usage: show rtpu|svar"), std::string::npos);
+}
+
+// Issue #16.3: spawn a+b (§3.8.1): one task, the objects' methods in the
+// order given; X passes from ramp to the follower inside the task and is never
+// written to the global table.
+TEST(SbsCli, SpawnCombinedTask) {
+    Workspace ws;
+    ws.write("follow200.rmod",
+             "MODULE ramp\nDESC follower at the ramp's rate\nINVAR X\nOUTVAR Y\nTASKTYPE periodic\nFREQ 200\n"
+             "LOCAL\nGAIN 2\nEOF\n");
+    const auto r = ok_json(ws, "spawn ramp+follow200; on; sleep 0.3; off; show svar; display all X Y; status");
+    EXPECT_EQ(r[0]["data"]["rmod"], "ramp+follow200");
+    EXPECT_EQ(r[0]["data"]["files"].size(), 2u);
+    EXPECT_EQ(r[1]["data"]["state"], "ON");
+    const auto& vars = r[4]["data"]["vars"];
+    EXPECT_EQ(vars[0]["name"], "X");
+    EXPECT_EQ(vars[0]["producers"], nlohmann::json::array());  // internal to the task
+    EXPECT_EQ(vars[1]["producers"], nlohmann::json::array({"ramp+follow200"}));
+    const auto& values = r[5]["data"]["vars"];
+    EXPECT_EQ(values[0]["values"][0], 0.0);  // X never left the task
+    EXPECT_GT(values[1]["values"][0].get<double>(), 0.0);  // Y = 2 * X, written every cycle
+    EXPECT_EQ(r[6]["data"]["tasks"][0]["rmod"], "ramp+follow200");
+    EXPECT_NE(failing(ws, "spawn ramp+follow").find("follow"), std::string::npos);  // 200 Hz + 100 Hz
+    EXPECT_NE(failing(ws, "spawn ramp+nosuch").find("no file nosuch"), std::string::npos);
+}
+
 TEST(SbsCli, ControlSignalsAndTheirRefusals) {
     Workspace ws;
     EXPECT_NE(failing(ws, "on").find("no default RMOD"), std::string::npos);
@@ -209,7 +296,7 @@ TEST(SbsCli, WarningShownOnce) {
 
 TEST(SbsCli, SpawnErrors) {
     Workspace ws;
-    EXPECT_NE(failing(ws, "spawn").find("usage: spawn RMOD [RTPU]"), std::string::npos);
+    EXPECT_NE(failing(ws, "spawn").find("usage: spawn RMOD[+RMOD...] [RTPU]"), std::string::npos);
     EXPECT_NE(failing(ws, "spawn nosuch").find("no file nosuch[.rmod]"), std::string::npos);
     EXPECT_NE(failing(ws, "spawn ramp cpu9").find("no RTPU cpu9"), std::string::npos);
     EXPECT_NE(failing(ws, "spawn ramp; spawn ramp").find("already exists"), std::string::npos);

@@ -170,3 +170,48 @@ TEST(SbsPty, EndOfInputFinishes) {
     EXPECT_EQ(*status, 0);
     EXPECT_FALSE(std::filesystem::exists("/dev/shm/chimera." + ws.subsystem() + ".svar"));
 }
+
+// Issue #16.5: `sbs X.sbs` attached to a running master edits lines as the
+// master's prompt does — TAB completion (asked of the master), history (up
+// arrow, and the history file), Ctrl-C dropping the line.
+TEST(SbsPty, AttachedPromptEditsCompletesAndRemembers) {
+    Workspace ws;
+    Terminal master([&] {
+        auto a = ws.sbs_args({"--serve", "-c", "spawn ramp"});
+        a.insert(a.begin(), sbs_test::env("SBS_EXE"));
+        return a;
+    }());
+    ASSERT_TRUE(sbs_test::wait_for_file(ws.socket_path()));
+    const std::string name = ws.subsystem();
+    {
+        Terminal t([&] {
+            auto a = ws.sbs_args({});
+            a.insert(a.begin(), sbs_test::env("SBS_EXE"));
+            return a;
+        }());
+        ASSERT_TRUE(t.expect("SBS " + name + "<> ")) << t.last();
+        // TAB completes the command, then the master's live task.
+        t.type("o\tn\t r\t\r");
+        ASSERT_TRUE(t.expect("ramp: ON")) << t.last();
+        ASSERT_TRUE(t.expect("SBS " + name + "<ramp> ")) << t.last();
+        // Up arrow brings back "on ramp": sent again, the master refuses it.
+        t.type("\x1b[A\r");
+        ASSERT_TRUE(t.expect("already ON")) << t.last();
+        ASSERT_TRUE(t.expect("SBS " + name + "<ramp> ")) << t.last();
+        // Ctrl-C drops a half-typed line and the prompt stays.
+        t.type("displ");
+        t.type("\x03");
+        ASSERT_TRUE(t.expect("SBS " + name + "<")) << t.last();
+        t.type("show sv\t\r");
+        ASSERT_TRUE(t.expect("(.svar INIT)")) << t.last();  // LIMITS: no producer
+        ASSERT_TRUE(t.expect("SBS " + name + "<"));
+        t.type("quit\r");
+        EXPECT_EQ(t.wait_exit(), 0);
+    }
+    std::ifstream hist(ws.dir() + "/.chimera_sbs_history");
+    const std::string h((std::istreambuf_iterator<char>(hist)), {});
+    EXPECT_TRUE(h.find("show svar") != std::string::npos || h.find("show\\040svar") != std::string::npos) << h;
+    const auto fin = ws.sbs_run({"-c", "finish"});
+    EXPECT_EQ(fin.status, 0) << fin.err;
+    EXPECT_EQ(master.wait_exit(), 0);
+}

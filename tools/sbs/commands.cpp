@@ -161,6 +161,37 @@ std::vector<double> numbers_of(const svar::VarInfo& v, const std::vector<unsigne
     return out;
 }
 
+// Stores `x` as element k of `buf` in the variable's type (integers rounded).
+void store_number(const svar::VarInfo& v, std::vector<unsigned char>& buf, std::size_t k, double x) {
+    unsigned char* p = buf.data() + k * v.elem_size();
+    auto put = [p](auto value) { std::memcpy(p, &value, sizeof value); };
+    switch (v.type()) {
+        case svar::Type::byte_: put(static_cast<std::uint8_t>(std::llround(x))); break;
+        case svar::Type::char_: put(static_cast<std::int8_t>(std::llround(x))); break;
+        case svar::Type::word: put(static_cast<std::uint16_t>(std::llround(x))); break;
+        case svar::Type::short_: put(static_cast<std::int16_t>(std::llround(x))); break;
+        case svar::Type::unsigned_: put(static_cast<std::uint32_t>(std::llround(x))); break;
+        case svar::Type::int_: put(static_cast<std::int32_t>(std::llround(x))); break;
+        case svar::Type::float_: put(static_cast<float>(x)); break;
+        case svar::Type::double_: put(x); break;
+        case svar::Type::struct_: break;
+    }
+}
+
+// The numeric limits of an element of the variable's type ([lo, hi]).
+std::pair<double, double> type_limits(svar::Type t) {
+    switch (t) {
+        case svar::Type::byte_: return {0, 255};
+        case svar::Type::char_: return {-128, 127};
+        case svar::Type::word: return {0, 65535};
+        case svar::Type::short_: return {-32768, 32767};
+        case svar::Type::unsigned_: return {0, 4294967295.0};
+        case svar::Type::int_: return {-2147483648.0, 2147483647.0};
+        case svar::Type::float_: return {-3.4028234663852886e38, 3.4028234663852886e38};
+        default: return {-HUGE_VAL, HUGE_VAL};
+    }
+}
+
 std::string type_text(const svar::VarInfo& v) {
     std::string t = svar::type_spelling(v.type(), v.elem_size());
     if (v.nelem() > 1) t += "[" + std::to_string(v.nelem()) + "]";
@@ -190,6 +221,7 @@ void scan_dirs(const std::vector<std::string>& dirs, std::map<std::string, std::
 const std::vector<CommandInfo>& command_table() {
     static const std::vector<CommandInfo> table = {
         {"clear", "clear [RMOD]", "send the clear-error signal to a task in ERROR"},
+        {"complete", "complete LINE", "the TAB completions of LINE (what an attached prompt asks the master)"},
         {"display", "display [RMOD|all] [VAR...]", "show SVAR values (what the task reads and writes; VAR may use * ?)"},
         {"finish", "finish", "turn every task off, kill them and end the subsystem"},
         {"freq", "freq [RMOD] [HZ]", "show or change the frequency of a task"},
@@ -202,8 +234,10 @@ const std::vector<CommandInfo>& command_table() {
         {"quit", "quit", "leave this interface (at the prompt: finish the subsystem and exit)"},
         {"reconfig", "reconfig SIG RMOD [, SIG RMOD ...]", "apply an ordered list of signals (on off kill clear); stops at the first failure"},
         {"set", "set [RMOD] [KEY [VALUE...]]", "show the LOCAL configuration of a task, one key, or change a key"},
+        {"setvar", "setvar VAR[IDX] VALUE... [--force]", "write a state variable of the running table (halcmd setp): range-checked against the .svar MIN/MAX; refused while a task produces it unless --force"},
+        {"show", "show rtpu|svar [NAME...]", "show the RTPUs (CPU, policy, scheduler, tasks, planned utilisation) or the variables with producers and consumers (halcmd show thread / show sig)"},
         {"sleep", "sleep SECONDS", "pause (lets the tasks run between the commands of a script; at most 60 s)"},
-        {"spawn", "spawn RMOD [RTPU]", "create a task from RMOD.rmod on an RTPU (default: the MASTER RTPU)"},
+        {"spawn", "spawn RMOD[+RMOD...] [RTPU]", "create a task from RMOD.rmod on an RTPU (default: the MASTER RTPU); a+b+c: one combined task (§3.8.1), methods in that order"},
         {"status", "status [RMOD|all] | status set [FIELD...|default|all]", "show the status of the tasks; `status set` picks the fields"},
     };
     return table;
@@ -247,6 +281,17 @@ std::vector<std::string> Interpreter::module_path() const {
 Reply Interpreter::execute(std::string_view command, Origin origin) {
     std::lock_guard lock(mutex_);
     origin_ = origin;
+    // `complete LINE`: the TAB candidates for LINE, raw (a trailing blank
+    // matters: it starts a new word), for a prompt attached over the network.
+    if (command == "complete" || command.substr(0, 9) == "complete ") {
+        Reply r;
+        r.command = "complete";
+        r.rmod = default_rmod_;
+        const auto candidates = complete_locked(command.size() > 9 ? command.substr(9) : std::string_view());
+        r.text = join(candidates);
+        r.data = {{"candidates", candidates}};
+        return r;
+    }
     Words words;
     try {
         words = split_words(command);
@@ -296,6 +341,8 @@ Reply Interpreter::run(const Words& w) {
     if (c == "reconfig") return cmd_reconfig(w);
     if (c == "freq") return cmd_freq(w);
     if (c == "help") return cmd_help(w);
+    if (c == "show") return cmd_show(w);
+    if (c == "setvar") return cmd_setvar(w);
     Reply r;
     if (c == "sleep") {
         double seconds = -1;
@@ -379,28 +426,90 @@ std::optional<std::string> Interpreter::find_rmod_file(const std::string& name) 
     return std::nullopt;
 }
 
+namespace {
+
+// What the interpreter records for a combined task a+b+c: one RmodFile whose
+// port lists are the global names the task exchanges with the table (a port
+// one object produces and another consumes stays inside the task), and whose
+// LOCAL holds every object's keys (the first object's value wins).
+RmodFile combined_view(const std::string& name, const std::vector<RmodFile>& parts) {
+    RmodFile out;
+    out.name = name;
+    out.path = parts.front().path;
+    out.type = parts.front().type;
+    out.freq = parts.front().freq;
+    out.period = parts.front().period;
+    std::vector<std::string> modules;
+    std::set<std::string> produced, consumed;
+    for (const auto& f : parts) {
+        modules.push_back(f.module);
+        for (const auto& v : f.global_out_vars()) produced.insert(v);
+        for (const auto& v : f.global_out_consts()) produced.insert(v);
+        for (const auto& v : f.global_in_vars()) consumed.insert(v);
+        for (const auto& v : f.global_in_consts()) consumed.insert(v);
+        out.wcet += f.wcet;
+        for (const auto& e : f.local.entries())
+            if (!out.local.has(e.key)) out.local.set(e.key, e.values, e.line);
+    }
+    out.module = join(modules, "+");
+    auto outside = [](const std::vector<std::string>& v, const std::set<std::string>& inside) {
+        std::vector<std::string> kept;
+        for (const auto& x : v)
+            if (!inside.count(x) && std::find(kept.begin(), kept.end(), x) == kept.end()) kept.push_back(x);
+        return kept;
+    };
+    for (const auto& f : parts) {
+        for (const auto& v : outside(f.global_out_vars(), consumed)) out.out_vars.push_back(v);
+        for (const auto& v : outside(f.global_out_consts(), consumed)) out.out_consts.push_back(v);
+        for (const auto& v : outside(f.global_in_vars(), produced)) out.in_vars.push_back(v);
+        for (const auto& v : outside(f.global_in_consts(), produced)) out.in_consts.push_back(v);
+    }
+    return out;
+}
+
+}  // namespace
+
+// spawn RMOD [RTPU] | spawn A+B+C [RTPU]: one task, or a combined task
+// (§3.8.1: the objects' methods run in the order given, in one thread).
 Reply Interpreter::cmd_spawn(const Words& w) {
-    if (w.size() < 2 || w.size() > 3) throw CommandError("usage: spawn RMOD [RTPU]");
-    const auto path = find_rmod_file(w[1]);
-    if (!path)
-        throw CommandError("spawn: no file " + w[1] + (fs::path(w[1]).extension() == ".rmod" ? "" : "[.rmod]") +
-                           " here or on the module path (" + join(module_path(), ":") + ")");
+    if (w.size() < 2 || w.size() > 3) throw CommandError("usage: spawn RMOD[+RMOD...] [RTPU]");
+    std::vector<std::string> names_given;
+    for (std::size_t at = 0;;) {
+        const auto plus = w[1].find('+', at);
+        names_given.push_back(w[1].substr(at, plus == std::string::npos ? std::string::npos : plus - at));
+        if (plus == std::string::npos) break;
+        at = plus + 1;
+    }
+    std::vector<std::string> paths;
+    for (const auto& n : names_given) {
+        const auto path = n.empty() ? std::nullopt : find_rmod_file(n);
+        if (!path)
+            throw CommandError("spawn: no file " + n + (fs::path(n).extension() == ".rmod" ? "" : "[.rmod]") +
+                               " here or on the module path (" + join(module_path(), ":") + ")");
+        paths.push_back(*path);
+    }
     const std::string rtpu = w.size() == 3 ? w[2] : std::string();
     if (!rtpu.empty() && !sbs_.file().find_rtpu(rtpu)) {
         std::vector<std::string> names;
         for (const auto& r : sbs_.file().rtpus) names.push_back(r.name);
         throw CommandError("spawn: no RTPU " + rtpu + " in " + sbs_.file().path + " (RTPUs: " + join(names) + ")");
     }
-    RmodFile file = read_rmod(*path);
-    const std::string name = file.name;
+    std::vector<RmodFile> files;
+    std::vector<std::string> stems;
+    for (const auto& p : paths) {
+        files.push_back(read_rmod(p));
+        stems.push_back(files.back().name);
+    }
+    const std::string name = join(stems, "+");
     if (is_task(name)) throw CommandError("spawn: task " + name + " already exists (kill it first)");
-    const sbs::TaskId id = sbs_.spawn(*path, rtpu);
-    rmods_[name] = std::move(file);
+    const sbs::TaskId id = paths.size() == 1 ? sbs_.spawn(paths[0], rtpu) : sbs_.spawn_combined(paths, rtpu);
+    rmods_[name] = files.size() == 1 ? std::move(files[0]) : combined_view(name, files);
     default_rmod_ = name;
     const auto s = sbs_.status(id);
+    rtpu_of_[name] = s.rtpu;
     Reply r;
     r.text = "spawned " + name + " (module " + s.module + ") on RTPU " + s.rtpu + "\n" + state_line(s);
-    r.data = {{"rmod", name}, {"file", *path}, {"module", s.module}, {"rtpu", s.rtpu},
+    r.data = {{"rmod", name}, {"file", join(paths, "+")}, {"files", paths}, {"module", s.module}, {"rtpu", s.rtpu},
               {"state", std::string(to_string(s.state))}};
     return r;
 }
@@ -429,6 +538,54 @@ std::vector<std::string> Interpreter::local_keys(const std::string& rmod) const 
     return keys;
 }
 
+// `set RMOD`: every LOCAL key the module declares, with the value it runs
+// with (through get()), its type, range, whether `set` can change it, and
+// help; then any LOCAL line of the .rmod the module does not declare.
+Reply Interpreter::local_view(sbs::TaskId id) {
+    nlohmann::json local = nlohmann::json::object(), keys = nlohmann::json::array();
+    std::string text = default_rmod_ + " LOCAL:";
+    const auto declared = sbs_.local_keys(id);
+    std::set<std::string> shown;
+    auto value_of = [&](const std::string& key) -> std::string {
+        try {
+            return sbs_.get(id, key);
+        } catch (const sbs::Error&) {
+            return "(unset)";
+        }
+    };
+    for (const LocalKey& d : declared) {
+        const std::string name = d.name;
+        std::vector<std::string> names;
+        if (!name.empty() && name.back() == '*') {
+            for (const auto& key : local_keys(default_rmod_))
+                if (key.compare(0, name.size() - 1, name, 0, name.size() - 1) == 0 && !shown.count(key)) names.push_back(key);
+        } else {
+            names.push_back(name);
+        }
+        for (const auto& key : names) {
+            const std::string v = value_of(key);
+            text += "\n  " + pad(key, 12) + " " + pad(v, 24) + " " + describe(d).substr(name.size() + 1);
+            local[key] = v;
+            shown.insert(key);
+        }
+        keys.push_back({{"name", name}, {"type", std::string(to_string(d.type))},
+                        {"min", std::isinf(d.min) ? nlohmann::json(nullptr) : nlohmann::json(d.min)},
+                        {"max", std::isinf(d.max) ? nlohmann::json(nullptr) : nlohmann::json(d.max)},
+                        {"live", d.live}, {"help", d.help}, {"default", d.fallback}});
+    }
+    for (const auto& key : local_keys(default_rmod_)) {
+        if (shown.count(key)) continue;
+        const std::string v = value_of(key);
+        text += "\n  " + pad(key, 12) + " " + pad(v, 24) + " (not declared by the module)";
+        local[key] = v;
+    }
+    if (local.empty()) text += " (none)";
+    Reply r;
+    r.text = text;
+    r.data = {{"rmod", default_rmod_}, {"local", local}, {"keys", keys}};
+    return r;
+}
+
 Reply Interpreter::cmd_set(const Words& w) {
     // set [RMOD] [KEY [VALUE...]]: a first word naming a task is the RMOD.
     std::size_t k = 1;
@@ -439,21 +596,7 @@ Reply Interpreter::cmd_set(const Words& w) {
     }
     const sbs::TaskId id = task_of(rmod);
     Reply r;
-    if (k == w.size()) {
-        // View: every LOCAL key with its current value (through get()).
-        nlohmann::json local = nlohmann::json::object();
-        std::string text = default_rmod_ + " LOCAL:";
-        const auto keys = local_keys(default_rmod_);
-        if (keys.empty()) text += " (none)";
-        for (const auto& key : keys) {
-            const std::string v = sbs_.get(id, key);
-            text += "\n  " + pad(key, 12) + " " + v;
-            local[key] = v;
-        }
-        r.text = text;
-        r.data = {{"rmod", default_rmod_}, {"local", local}};
-        return r;
-    }
+    if (k == w.size()) return local_view(id);
     const std::string& key = w[k];
     if (k + 1 == w.size()) {
         const std::string v = sbs_.get(id, key);
@@ -642,6 +785,142 @@ Reply Interpreter::cmd_display(const Words& w) {
     if (items.empty()) text += "\n  (no variables)";
     r.text = text;
     r.data = {{"rmod", who}, {"vars", vars}};
+    return r;
+}
+
+// ----------------------------------------------------------------- show, setvar
+
+// The live tasks that write (out-var, out-const) and read (in-var, in-const)
+// the global variable `name`.
+Interpreter::Users Interpreter::users_of(const std::string& name) const {
+    Users u;
+    for (const auto& [task, f] : rmods_) {
+        auto has = [&](const std::vector<std::string>& v) { return std::find(v.begin(), v.end(), name) != v.end(); };
+        if (has(f.global_out_vars()) || has(f.global_out_consts())) u.producers.push_back(task);
+        if (has(f.global_in_vars()) || has(f.global_in_consts())) u.consumers.push_back(task);
+    }
+    return u;
+}
+
+Reply Interpreter::cmd_show(const Words& w) {
+    if (w.size() < 2 || (w[1] != "rtpu" && w[1] != "svar")) throw CommandError("usage: show rtpu|svar [NAME...]");
+    const std::vector<std::string> names(w.begin() + 2, w.end());
+    auto wanted = [&](const std::string& n) {
+        return names.empty() || std::any_of(names.begin(), names.end(), [&](const std::string& p) { return glob_match(p, n); });
+    };
+    Reply r;
+    if (w[1] == "rtpu") {
+        static constexpr const char* kSched[] = {"RM", "EDF", "MUF"};
+        static constexpr const char* kBackend[] = {"fifo", "deadline", "other"};
+        std::string text = "RTPU         CPU  SCHED BACKEND  USAGE      U(plan)  TASKS";
+        nlohmann::json rtpus = nlohmann::json::array();
+        for (const auto& spec : sbs_.file().rtpus) {
+            if (!wanted(spec.name)) continue;
+            std::vector<std::string> tasks;
+            double planned = 0;  // sum of WCET x frequency: the analysis's C/T (0 for a task without WCET)
+            for (const auto& [task, rtpu] : rtpu_of_) {
+                if (rtpu != spec.name || !rmods_.count(task)) continue;
+                tasks.push_back(task);
+                const RmodFile& f = rmods_.at(task);
+                planned += f.wcet * f.freq;
+            }
+            const std::string sched = kSched[static_cast<int>(spec.scheduler)];
+            const std::string backend = kBackend[static_cast<int>(spec.backend)];
+            const std::string usage = spec.usage == Usage::exclusive ? "exclusive" : "shared";
+            text += "\n" + pad(spec.name, 12) + " " + pad(std::to_string(spec.cpu), 4) + " " + pad(sched, 5) + " " +
+                    pad(backend, 8) + " " + pad(usage, 10) + " " + pad(fmt("%.1f%%", planned * 100), 8) + " " +
+                    (tasks.empty() ? std::string("-") : join(tasks));
+            rtpus.push_back({{"name", spec.name}, {"cpu", spec.cpu}, {"scheduler", sched}, {"backend", backend},
+                             {"usage", usage}, {"minfreq", spec.minfreq}, {"maxfreq", spec.maxfreq},
+                             {"master", spec.name == sbs_.file().master}, {"tasks", tasks},
+                             {"planned_utilisation", planned}});
+        }
+        text += "\n(U(plan): sum of WCET x FREQ of the tasks' .rmod files; measured CPU times are in `status`)";
+        r.text = text;
+        r.data = {{"rtpus", rtpus}};
+        return r;
+    }
+    svar::Table& t = *table();
+    std::string text = pad("VARIABLE", 16) + " " + pad("TYPE", 12) + " " + pad("PRODUCERS", 16) + " CONSUMERS";
+    nlohmann::json vars = nlohmann::json::array();
+    for (std::size_t i = 0; i < t.size(); ++i) {
+        const auto info = t.var(i);
+        const std::string name(info.name());
+        if (!wanted(name)) continue;
+        const Users u = users_of(name);
+        text += "\n" + pad(name, 16) + " " + pad(type_text(info), 12) + " " +
+                pad(u.producers.empty() ? std::string("(.svar INIT)") : join(u.producers), 16) + " " +
+                (u.consumers.empty() ? std::string("-") : join(u.consumers));
+        vars.push_back({{"name", name}, {"type", type_text(info)}, {"units", std::string(info.units())},
+                        {"producers", u.producers}, {"consumers", u.consumers}});
+    }
+    r.text = text;
+    r.data = {{"vars", vars}};
+    return r;
+}
+
+Reply Interpreter::cmd_setvar(const Words& w) {
+    std::vector<std::string> args(w.begin() + 1, w.end());
+    const auto force_at = std::find(args.begin(), args.end(), "--force");
+    const bool force = force_at != args.end();
+    if (force) args.erase(force_at);
+    if (args.size() < 2) throw CommandError("usage: setvar VAR[IDX] VALUE... [--force]");
+    std::string name = args[0];
+    std::optional<std::size_t> index;
+    if (const auto open = name.find('['); open != std::string::npos) {
+        char* end = nullptr;
+        const unsigned long k = std::strtoul(name.c_str() + open + 1, &end, 10);
+        if (end == name.c_str() + open + 1 || std::string_view(end) != "]")
+            throw CommandError("setvar: '" + name + "' is not VAR or VAR[INDEX]");
+        index = k;
+        name.erase(open);
+    }
+    svar::Table& t = *table();
+    const auto ix = t.find(name);
+    if (!ix) throw CommandError("setvar: no variable " + name + " in table " + t.name());
+    const auto info = t.var(*ix);
+    if (info.type() == svar::Type::struct_) throw CommandError("setvar: " + name + " is a struct; it cannot be written from here");
+    const std::size_t first = index.value_or(0);
+    const std::size_t count = args.size() - 1;
+    if (index && *index >= info.nelem())
+        throw CommandError("setvar: " + name + " has " + std::to_string(info.nelem()) + " elements; index " +
+                           std::to_string(*index) + " is out of range");
+    if (first + count > info.nelem())
+        throw CommandError("setvar: " + name + " has " + std::to_string(info.nelem()) + " elements; " +
+                           std::to_string(count) + " values from index " + std::to_string(first) + " do not fit");
+    if (!index && count != info.nelem() && count != 1)
+        throw CommandError("setvar: " + name + " has " + std::to_string(info.nelem()) +
+                           " elements: give one value for all, every value, or VAR[INDEX]");
+    const Users u = users_of(name);
+    if (!u.producers.empty() && !force)
+        throw CommandError("setvar: " + name + " is produced by " + join(u.producers) +
+                           ": its next cycle overwrites it (add --force to write it anyway)");
+    std::vector<unsigned char> buf(info.bytes());
+    if (!svar::transferred(t.read(*ix, buf.data()))) throw CommandError("setvar: reading " + name + " failed");
+    const std::size_t n = (!index && count == 1) ? info.nelem() : count;
+    const auto [lo, hi] = type_limits(info.type());
+    for (std::size_t j = 0; j < n; ++j) {
+        const std::string& text = args[1 + (count == 1 ? 0 : j)];
+        const std::size_t k = first + j;
+        char* end = nullptr;
+        const double x = std::strtod(text.c_str(), &end);
+        if (end == text.c_str() || *end != '\0' || !std::isfinite(x))
+            throw CommandError("setvar: " + name + "[" + std::to_string(k) + "]: '" + text + "' is not a number");
+        if (x < lo || x > hi)
+            throw CommandError("setvar: " + name + "[" + std::to_string(k) + "]: " + text + " does not fit type " +
+                               type_text(info));
+        if (info.has_range() && (x < info.min(k) || x > info.max(k)))
+            throw CommandError("setvar: " + name + "[" + std::to_string(k) + "]: " + text + " is outside the .svar range [" +
+                               fmt("%g", info.min(k)) + ", " + fmt("%g", info.max(k)) + "]");
+        store_number(info, buf, k, x);
+    }
+    if (!svar::transferred(t.write(*ix, buf.data()))) throw CommandError("setvar: writing " + name + " failed");
+    const auto now = numbers_of(info, buf);
+    std::string values;
+    for (double x : now) values += (values.empty() ? "" : " ") + fmt("%.6g", x);
+    Reply r;
+    r.text = name + " = " + values + (u.producers.empty() ? "" : "  (forced; produced by " + join(u.producers) + ")");
+    r.data = {{"name", name}, {"values", now}, {"forced", !u.producers.empty()}, {"producers", u.producers}};
     return r;
 }
 
@@ -846,6 +1125,10 @@ Reply Interpreter::cmd_help(const Words& w) {
 
 std::vector<std::string> Interpreter::complete(std::string_view line) {
     std::lock_guard lock(mutex_);
+    return complete_locked(line);
+}
+
+std::vector<std::string> Interpreter::complete_locked(std::string_view line) {
     // Words so far; the last one is being typed (empty after a space).
     std::vector<std::string> words;
     {
@@ -914,6 +1197,13 @@ std::vector<std::string> Interpreter::complete(std::string_view line) {
                 } else if (index == 2 && c == "spawn") {
                     for (const auto& r : sbs_.file().rtpus) cand.insert(r.name);
                 }
+            } else if (c == "show") {
+                if (index == 1) cand.insert({"rtpu", "svar"});
+                else if (words[1] == "svar") variables();
+                else if (words[1] == "rtpu") for (const auto& r : sbs_.file().rtpus) cand.insert(r.name);
+            } else if (c == "setvar") {
+                if (index == 1) variables();
+                else cand.insert("--force");
             } else if (c == "reconfig") {
                 // Alternating SIG RMOD; a comma starts a new item.
                 std::size_t pos = 0;

@@ -55,6 +55,8 @@ public:
     /// Completion candidates for the last (partial) word of `line`, already
     /// filtered by that word as a prefix and sorted.
     std::vector<std::string> complete(std::string_view line);
+    /// The same, with mutex_ held.
+    std::vector<std::string> complete_locked(std::string_view line);
 
     /// Every folder searched for modules and .rmod files, in search order:
     /// CHIMERA_MODULE_PATH, --module-path, the .sbs's folder, the installed folder.
@@ -86,12 +88,20 @@ private:
     std::optional<std::string> find_rmod_file(const std::string& name) const;
     svar::Table* table();
     std::vector<std::string> local_keys(const std::string& rmod) const;
+    Reply local_view(sbs::TaskId id);
+    Reply cmd_show(const Words& w);
+    Reply cmd_setvar(const Words& w);
+    struct Users {
+        std::vector<std::string> producers, consumers;  // live tasks writing / reading a variable
+    };
+    Users users_of(const std::string& name) const;
 
     sbs::Subsystem& sbs_;
     std::vector<std::string> extra_dirs_;
     std::string default_rmod_;
     std::vector<std::string> fields_;
     std::map<std::string, RmodFile> rmods_;  // rmod name -> the file it was spawned from
+    std::map<std::string, std::string> rtpu_of_;  // rmod name -> its RTPU (rmods_ says which are live)
     std::optional<svar::Table> table_;
     std::optional<prof::StatusReader> prof_;
     Origin origin_ = Origin::local;  // of the command being executed

@@ -37,6 +37,7 @@
 #include <functional>
 #include <iostream>
 #include <memory>
+#include <optional>
 #include <string>
 
 using namespace chimera;
@@ -120,7 +121,9 @@ Reply run_line(const Executor& exec, std::string_view line, bool json, bool erro
 
 // ----------------------------------------------------------------- line editing
 
-cli::Interpreter* g_interp = nullptr;
+// The TAB candidates for the line so far: the local interpreter's, or the
+// master's through `complete LINE` when attached.
+std::function<std::vector<std::string>(std::string_view)> g_completer;
 std::vector<std::string> g_matches;
 std::size_t g_match_index = 0;
 
@@ -132,8 +135,12 @@ char* next_match(const char*, int state) {
 
 char** complete_line(const char* text, int, int) {
     rl_attempted_completion_over = 1;  // never fall back to file names
-    if (g_interp == nullptr) return nullptr;
-    g_matches = g_interp->complete(std::string(rl_line_buffer, static_cast<std::size_t>(rl_point)));
+    if (!g_completer) return nullptr;
+    try {
+        g_matches = g_completer(std::string_view(rl_line_buffer, static_cast<std::size_t>(rl_point)));
+    } catch (const std::exception&) {
+        g_matches.clear();  // completion offers nothing rather than failing the prompt
+    }
     // The candidates are for the whole last word; libedit passes that word as `text`.
     std::vector<std::string> keep;
     for (auto& m : g_matches)
@@ -146,6 +153,49 @@ std::string history_file() {
     const char* home = std::getenv("HOME");
     return home != nullptr && *home != '\0' ? std::string(home) + "/.chimera_sbs_history" : std::string();
 }
+
+/// libedit at a terminal, for the master's prompt and an attached one alike:
+/// completion from `completer`, history in ~/.chimera_sbs_history.
+class LineEditor {
+public:
+    explicit LineEditor(std::function<std::vector<std::string>(std::string_view)> completer)
+        : hist_(history_file()) {
+        g_completer = std::move(completer);
+        rl_readline_name = const_cast<char*>("sbs");
+        rl_getc_function = prompt_getc;
+        rl_attempted_completion_function = complete_line;
+        rl_completion_append_character = ' ';
+        using_history();
+        if (!hist_.empty()) read_history(hist_.c_str());
+    }
+    ~LineEditor() {
+        if (!hist_.empty()) write_history(hist_.c_str());
+        g_completer = nullptr;
+    }
+    LineEditor(const LineEditor&) = delete;
+    LineEditor& operator=(const LineEditor&) = delete;
+
+    /// One edited line; "" after Ctrl-C (the line is dropped); nullopt at end of input.
+    std::optional<std::string> read(const std::string& prompt) {
+        g_interrupted = false;
+        char* raw = readline(prompt.c_str());
+        if (g_interrupted.exchange(false)) {
+            std::free(raw);
+            return std::string();
+        }
+        if (raw == nullptr) {
+            std::cout << std::endl;
+            return std::nullopt;
+        }
+        std::string line = raw;
+        std::free(raw);
+        if (line.find_first_not_of(" \t") != std::string::npos) add_history(line.c_str());
+        return line;
+    }
+
+private:
+    std::string hist_;
+};
 
 struct NetworkSetup {
     bool listen = false;
@@ -267,15 +317,9 @@ private:
 /// Returns the exit status.
 int interactive(sbs::Subsystem& subsystem, cli::Interpreter& interp, Master& master) {
     const bool tty = ::isatty(STDIN_FILENO) != 0;
-    const std::string hist = history_file();
+    std::optional<LineEditor> editor;
     if (tty) {
-        g_interp = &interp;
-        rl_readline_name = const_cast<char*>("sbs");
-        rl_getc_function = prompt_getc;
-        rl_attempted_completion_function = complete_line;
-        rl_completion_append_character = ' ';
-        using_history();
-        if (!hist.empty()) read_history(hist.c_str());
+        editor.emplace([&interp](std::string_view l) { return interp.complete(l); });
         std::cout << "Chimera subsystem " << subsystem.name() << " (" << subsystem.file().path
                   << "): type help for the commands, quit to finish" << std::endl;
     }
@@ -283,19 +327,10 @@ int interactive(sbs::Subsystem& subsystem, cli::Interpreter& interp, Master& mas
     for (;;) {
         std::string line;
         if (tty) {
-            g_interrupted = false;
-            char* raw = readline(interp.prompt().c_str());
-            if (g_interrupted.exchange(false)) {  // Ctrl-C: the line was dropped, a fresh prompt
-                std::free(raw);
-                continue;
-            }
-            if (raw == nullptr) {
-                std::cout << std::endl;
-                break;  // end of input
-            }
-            line = raw;
-            std::free(raw);
-            if (line.find_first_not_of(" \t") != std::string::npos) add_history(line.c_str());
+            auto got = editor->read(interp.prompt());
+            if (!got) break;  // end of input
+            line = std::move(*got);
+            if (line.empty()) continue;  // Ctrl-C or an empty line: a fresh prompt
         } else {
             if (!std::getline(std::cin, line)) break;
         }
@@ -311,7 +346,6 @@ int interactive(sbs::Subsystem& subsystem, cli::Interpreter& interp, Master& mas
             }
         }
     }
-    if (tty && !hist.empty()) write_history(hist.c_str());
     return tty ? 0 : status;
 }
 
@@ -354,11 +388,31 @@ int attached(cli::NetworkClient& client, const std::string& script, bool json) {
     std::string line;
     std::string rmod;
     const bool tty = ::isatty(STDIN_FILENO) != 0;
+    std::optional<LineEditor> editor;
+    if (tty) {
+        // Ctrl-C drops the line being typed, as at the master's prompt (SIGTERM still ends sbs).
+        struct sigaction sa {};
+        sa.sa_handler = on_interrupt;
+        sigemptyset(&sa.sa_mask);
+        sigaction(SIGINT, &sa, nullptr);
+    }
+    if (tty)
+        editor.emplace([&client](std::string_view l) {
+            const auto j = client.request("complete " + std::string(l), 5000);
+            return j.value("data", nlohmann::json::object()).value("candidates", std::vector<std::string>());
+        });
     for (;;) {
-        if (tty) std::cout << "SBS " << hello.value("subsystem", std::string()) << "<" << rmod << "> " << std::flush;
-        if (!std::getline(std::cin, line)) break;
+        const std::string prompt = "SBS " + hello.value("subsystem", std::string()) + "<" + rmod + "> ";
+        if (tty) {
+            auto got = editor->read(prompt);
+            if (!got) break;
+            line = std::move(*got);
+            if (line.empty()) continue;
+        } else if (!std::getline(std::cin, line)) {
+            break;
+        }
         const Reply r = run_line(exec, line, json, false);
-        rmod = r.rmod;
+        if (r.ok) rmod = r.rmod;  // an error reply carries no RMOD: the prompt keeps its own
         if (r.action == Action::quit || r.command == "finish") break;
     }
     return 0;

@@ -54,8 +54,14 @@ std::vector<int> g_probe_seen;
 
 using chimera::test::gpiosim_value;
 
+constexpr chimera::LocalKey kPinProbeLocalKeys[] = {
+    {"ILLEGAL", chimera::LocalType::integer, 0, 1, true, "1 sets the illegal-configuration flag", "0"},
+};
+
 class PinProbe : public chimera::Module {
 public:
+    std::span<const chimera::LocalKey> local_keys() const noexcept override { return kPinProbeLocalKeys; }
+
     chimera::Result kill(chimera::Task& t) override {
         if (!t.local().has("LINES")) return chimera::Result::OK;  // a probe for set() only
         std::vector<int> seen;
@@ -249,7 +255,7 @@ TEST_F(DioGuest, OutputsFollowTheSvarAndShowSafeWheneverTheTaskIsNotCycling) {
     sbs_->set(out, "SAFE", "1 1 1 1");
     EXPECT_EQ(lines(4, 7), (Levels{1, 1, 0, 0}));
     const std::string ports = what_of([&] { sbs_->set(out, "PORTS", "0 3"); });
-    EXPECT_TRUE(has(ports, "LOCAL PORTS cannot change while the ports are open")) << ports;
+    EXPECT_TRUE(has(ports, "LOCAL PORTS of module dout is read only at spawn")) << ports;
     EXPECT_EQ(lines(4, 7), (Levels{1, 1, 0, 0}));
 
     sbs_->control(out, Control::kill);

@@ -46,8 +46,15 @@ void burn_cpu_ns(double ns) {
     } while (static_cast<double>(b.tv_sec - a.tv_sec) * 1e9 + static_cast<double>(b.tv_nsec - a.tv_nsec) < ns);
 }
 
+// The LOCAL keys this module reads (module.hpp, LocalKey): what `set` may change.
+constexpr chimera::LocalKey kProbeLocalKeys[] = {
+    {"*", chimera::LocalType::text, -chimera::unbounded, chimera::unbounded, true, "the test probe takes any key", ""},
+};
+
 class Probe : public chimera::Module {
 public:
+    std::span<const chimera::LocalKey> local_keys() const noexcept override { return kProbeLocalKeys; }
+
     Result init(Task& t) override {
         const auto& f = t.rmod_file();
         if (!f.in_vars.empty()) in_ = t.translate<double>(f.in_vars[0]);

@@ -15,8 +15,19 @@ namespace {
 using chimera::Result;
 using chimera::Task;
 
+// The LOCAL keys this module reads (module.hpp, LocalKey): what `set` may change.
+constexpr chimera::LocalKey kRampLocalKeys[] = {
+    {"STEP", chimera::LocalType::number, -1000000.0, 1000000.0, true, "increment per cycle without an input", "1"},
+    {"GAIN", chimera::LocalType::number, -1000000.0, 1000000.0, true, "output = GAIN * input", "2"},
+    {"WARN", chimera::LocalType::text, -chimera::unbounded, chimera::unbounded, true, "a warning raised in on()", ""},
+    {"INITFAIL", chimera::LocalType::number, -chimera::unbounded, chimera::unbounded, false, "non-zero: init fails", "0"},
+    {"FAIL", chimera::LocalType::number, -chimera::unbounded, chimera::unbounded, true, "non-zero: the cycle fails", "0"},
+};
+
 class Ramp : public chimera::Module {
 public:
+    std::span<const chimera::LocalKey> local_keys() const noexcept override { return kRampLocalKeys; }
+
     Result init(Task& t) override {
         const auto& f = t.rmod_file();
         if (!f.in_vars.empty()) in_ = t.translate<double>(f.in_vars[0]);
