@@ -235,6 +235,20 @@ TEST(SbsNetwork, TokenFileMustBeTheOwnersAlone) {
     EXPECT_EQ(m.wait(), 0) << m.err_text();
 }
 
+namespace {
+
+// The attacker's folder: probe.rmod beside the probe library under every
+// name the loader tries (its constructor runs the moment dlopen() maps it).
+std::string plant_probe(const std::string& dir) {
+    std::filesystem::copy_file(sbs_test::env("PROBE_SO"), dir + "/probe.so");
+    std::filesystem::copy_file(sbs_test::env("PROBE_SO"), dir + "/libprobe.so");
+    std::ofstream f(dir + "/probe.rmod");
+    f << "MODULE probe\nDESC probe\nINVAR none\nOUTVAR none\nTASKTYPE periodic\nFREQ 10\nEOF\n";
+    return dir + "/probe.rmod";
+}
+
+}  // namespace
+
 // The attack that was possible: an unprivileged local user reaches a root
 // master's TCP port and names a .rmod in a folder of its own, beside a
 // library whose constructor runs the moment dlopen() maps it.
@@ -250,8 +264,8 @@ TEST(SbsNetwork, UnprivilegedUserCannotGetCodeLoadedByTheMaster) {
     ASSERT_TRUE(m.stderr_has("\n")) << m.err_text();
     const int port = std::stoi(m.err_text().substr(m.err_text().find("TCP 127.0.0.1:") + 14));
 
-    // The attacker, as nobody: its own folder with probe.rmod and the library
-    // under every name the loader tries; then the master, without the token.
+    // The attacker, as nobody: its own folder with the probe; then the
+    // master, without the token, over TCP and over the owner's Unix socket.
     int report[2];
     ASSERT_EQ(::pipe(report), 0);
     const pid_t attacker = ::fork();
@@ -260,25 +274,21 @@ TEST(SbsNetwork, UnprivilegedUserCannotGetCodeLoadedByTheMaster) {
         std::string out;
         if (::setgid(65534) != 0 || ::setuid(65534) != 0) ::_exit(3);
         char tmpl[] = "/tmp/attacker_XXXXXX";
-        const std::string dir = ::mkdtemp(tmpl);
-        std::filesystem::copy_file(sbs_test::env("PROBE_SO"), dir + "/probe.so");
-        std::filesystem::copy_file(sbs_test::env("PROBE_SO"), dir + "/libprobe.so");
-        {
-            std::ofstream f(dir + "/probe.rmod");
-            f << "MODULE probe\\nDESC probe\\nINVAR none\\nOUTVAR none\\nTASKTYPE periodic\\nFREQ 10\\nEOF\\n";
-        }
-        out += dir + "\\n";
+        if (::mkdtemp(tmpl) == nullptr) ::_exit(4);
+        const std::string dir = tmpl;
+        out += dir + "\n";
         try {
+            const std::string rmod = plant_probe(dir);
             auto c = NetworkClient::connect_tcp("127.0.0.1", static_cast<std::uint16_t>(port));
-            out += c.request("spawn " + dir + "/probe.rmod", 10000).dump() + "\\n";
+            out += c.request("spawn " + rmod, 10000).dump() + "\n";
         } catch (const std::exception& e) {
-            out += std::string("tcp: ") + e.what() + "\\n";
+            out += std::string("tcp: ") + e.what() + "\n";
         }
         try {
             auto c = NetworkClient::connect_unix(ws.socket_path());
-            out += "unix: " + c.hello().dump() + "\\n";
+            out += "unix: " + c.hello().dump() + "\n";
         } catch (const std::exception& e) {
-            out += std::string("unix: ") + e.what() + "\\n";
+            out += std::string("unix: ") + e.what() + "\n";
         }
         [[maybe_unused]] auto n = ::write(report[1], out.data(), out.size());
         ::_exit(0);
@@ -289,7 +299,8 @@ TEST(SbsNetwork, UnprivilegedUserCannotGetCodeLoadedByTheMaster) {
     for (ssize_t n; (n = ::read(report[0], buf, sizeof buf)) > 0;) said.append(buf, static_cast<std::size_t>(n));
     ::close(report[0]);
     ASSERT_EQ(sbs_test::wait_child(attacker, 10000), 0) << said;
-    const std::string dir = said.substr(0, said.find('\\n'));
+    const std::string dir = said.substr(0, said.find('\n'));
+    ASSERT_TRUE(std::filesystem::is_regular_file(dir + "/probe.rmod")) << said;
     EXPECT_NE(said.find("authenticate first"), std::string::npos) << said;
     EXPECT_EQ(said.find("spawned"), std::string::npos) << said;
     EXPECT_NE(said.find("unix: "), std::string::npos) << said;
@@ -298,23 +309,42 @@ TEST(SbsNetwork, UnprivilegedUserCannotGetCodeLoadedByTheMaster) {
     // Even a peer holding the token names nothing outside the module path.
     auto c = NetworkClient::connect_tcp("127.0.0.1", static_cast<std::uint16_t>(port));
     ASSERT_TRUE(c.request("token s3cret", 10000)["ok"].get<bool>());
-    for (const std::string& name : {dir + "/probe.rmod", dir + "/probe", std::string("../../../..") + dir + "/probe"}) {
+    for (const std::string& name : {dir + "/probe.rmod", dir + "/probe", std::string("../../../..") + dir + "/probe",
+                                    "ramp+" + dir + "/probe"}) {
         for (const char* cmd : {"spawn ", "module "}) {
             const auto r = c.request(cmd + name, 10000);
             EXPECT_FALSE(r["ok"].get<bool>()) << cmd << name;
-            EXPECT_NE(r["error"].get<std::string>().find("over the network only"), std::string::npos) << r.dump();
+            EXPECT_NE(r.value("error", "").find("over the network only"), std::string::npos) << r.dump();
         }
     }
-    // A file that is not a .rmod is never shown to the peer.
+    // A file that is not a .rmod is never read for the peer, so never shown:
+    // neither one named by path nor one on the module path (the probe
+    // library is on it: it was built there).
     const auto passwd = c.request("spawn /etc/passwd", 10000);
     EXPECT_FALSE(passwd["ok"].get<bool>());
     EXPECT_EQ(passwd.dump().find("root:"), std::string::npos) << passwd.dump();
+    const std::string library = std::filesystem::path(sbs_test::env("PROBE_SO")).filename();
+    for (const char* cmd : {"spawn ", "module "}) {
+        const auto r = c.request(cmd + library, 10000);
+        EXPECT_FALSE(r["ok"].get<bool>()) << r.dump();
+        EXPECT_EQ(r.dump().find("ELF"), std::string::npos) << r.dump();
+        EXPECT_EQ(r.dump().find("found"), std::string::npos) << r.dump();
+    }
     EXPECT_FALSE(std::filesystem::exists(marker)) << "the probe's constructor ran in the master";
     // What is on the module path still spawns by name.
     EXPECT_TRUE(c.request("spawn ramp", 10000)["ok"].get<bool>());
     c.request("finish", 10000);
     EXPECT_EQ(m.wait(), 0) << m.err_text();
     EXPECT_FALSE(std::filesystem::exists(marker)) << "the probe's constructor ran in the master";
+
+    // The control: the owner's own command line may name that folder, and
+    // then the probe's constructor does run — so the marker above would have
+    // shown a load through the network.
+    ::setenv("CHIMERA_PROBE_MARKER", marker.c_str(), 1);
+    const auto local = ws.sbs_run({"--no-attach", "-c", "spawn " + dir + "/probe.rmod; quit"});
+    ::unsetenv("CHIMERA_PROBE_MARKER");
+    EXPECT_TRUE(std::filesystem::exists(marker)) << "the probe never runs, so the test above proves nothing: "
+                                                 << local.out << local.err;
     std::error_code ec;
     std::filesystem::remove_all(dir, ec);
 }

@@ -409,6 +409,9 @@ std::optional<std::string> Interpreter::find_rmod_file(const std::string& name) 
         if (name.find('/') != std::string::npos || name == "." || name == "..")
             throw CommandError("over the network only .rmod files on the master's module path can be named, "
                                "by name without a folder (" + name + " is a path)");
+        // Only .rmod files are read for a peer: another file's first line
+        // would come back in the parse error.
+        names.erase(names.begin(), names.end() - 1);
     } else {
         for (const auto& n : names) {
             std::error_code ec;
