@@ -129,6 +129,37 @@ HandOver hand_over_async(NetworkServer& s, std::atomic<bool>* interrupt) { retur
 
 }  // namespace
 
+TEST(ParseRequest, EachLineIsACommandAKeepAliveOrMalformedWithTheReason) {
+    using chimera::cli::parse_request;
+    using Kind = chimera::cli::Request::Kind;
+    EXPECT_EQ(parse_request("").kind, Kind::keep_alive);
+    EXPECT_EQ(parse_request(" \t ").kind, Kind::keep_alive);
+    const auto plain = parse_request("status all");
+    EXPECT_EQ(plain.kind, Kind::command);
+    EXPECT_EQ(plain.command, "status all");
+    EXPECT_TRUE(plain.id.is_null());
+    const auto structured = parse_request(R"({"cmd":"on ramp","id":7})");
+    EXPECT_EQ(structured.kind, Kind::command);
+    EXPECT_EQ(structured.command, "on ramp");
+    EXPECT_EQ(structured.id, 7);
+    const auto tab = parse_request("echo\ta");
+    EXPECT_EQ(tab.kind, Kind::command);
+    struct Bad {
+        std::string line, error;
+    };
+    for (const Bad& b : {Bad{"{not json", "malformed JSON request"}, Bad{"{}x", "malformed JSON request"},
+                         Bad{R"({"id":3})", "JSON request needs a string member \"cmd\""},
+                         Bad{R"({"cmd":5})", "JSON request needs a string member \"cmd\""},
+                         Bad{std::string("token\x01x"), "request contains control characters"},
+                         Bad{R"({"cmd":"a\u001bb"})", "request contains control characters"}}) {
+        const auto r = parse_request(b.line);
+        EXPECT_EQ(r.kind, Kind::malformed) << b.line;
+        EXPECT_EQ(r.error, b.error) << b.line;
+        EXPECT_TRUE(r.command.empty()) << b.line;
+    }
+    EXPECT_EQ(parse_request(R"({"id":3})").id, 3);  // echoed even in the error reply
+}
+
 TEST_F(Network, UnixSocketIsOwnerOnly) {
     auto s = make();
     struct stat st {};

@@ -559,32 +559,44 @@ bool NetworkServer::handle_input(Peer& peer) {
     }
 }
 
+Request parse_request(std::string_view line) {
+    Request r;
+    const std::size_t first = line.find_first_not_of(" \t");
+    if (first == std::string_view::npos) return r;  // blank lines are keep-alives
+    auto malformed = [&r](std::string why) {
+        r.kind = Request::Kind::malformed;
+        r.command.clear();
+        r.error = std::move(why);
+        return r;
+    };
+    if (line[first] == '{') {
+        // The structured form: {"cmd": "status", "id": 7}.
+        const auto j = nlohmann::json::parse(line, nullptr, false);
+        if (j.is_discarded() || !j.is_object()) return malformed("malformed JSON request");
+        if (j.contains("id")) r.id = j["id"];
+        if (!j.contains("cmd") || !j["cmd"].is_string()) return malformed("JSON request needs a string member \"cmd\"");
+        r.command = j["cmd"].get<std::string>();
+    } else {
+        r.command.assign(line);
+    }
+    for (unsigned char c : r.command) {
+        if (c < 0x20 && c != '\t') return malformed("request contains control characters");
+    }
+    r.kind = Request::Kind::command;
+    return r;
+}
+
 bool NetworkServer::handle_line(Peer& peer, std::string_view line) {
-    nlohmann::json id = nullptr;
-    std::string command;
-    auto reply_error = [&](std::string cmd, std::string message) {
-        const bool sent = send_line(peer.fd, to_json_line(Reply::failure(std::move(cmd), std::move(message)), id));
+    const Request request = parse_request(line);
+    const nlohmann::json& id = request.id;
+    const std::string& command = request.command;
+    if (request.kind == Request::Kind::keep_alive) return true;
+    if (request.kind == Request::Kind::malformed) {
+        const bool sent = send_line(peer.fd, to_json_line(Reply::failure("", request.error), id));
         // Before the token, any bad line ends the connection: one try each.
         if (sent && peer.authenticated) return true;
         peer.end = SessionEnd::peer_lost;
         return false;
-    };
-    std::size_t first = line.find_first_not_of(" \t");
-    if (first == std::string_view::npos) return true;  // blank lines are keep-alives
-    if (line[first] == '{') {
-        // The structured form: {"cmd": "status", "id": 7}.
-        const auto j = nlohmann::json::parse(line, nullptr, false);
-        if (j.is_discarded() || !j.is_object()) return reply_error("", "malformed JSON request");
-        if (j.contains("id")) id = j["id"];
-        if (!j.contains("cmd") || !j["cmd"].is_string()) {
-            return reply_error("", "JSON request needs a string member \"cmd\"");
-        }
-        command = j["cmd"].get<std::string>();
-    } else {
-        command.assign(line);
-    }
-    for (unsigned char c : command) {
-        if (c < 0x20 && c != '\t') return reply_error("", "request contains control characters");
     }
     if (!peer.authenticated) return authenticate(peer, command, id);
     Reply reply;

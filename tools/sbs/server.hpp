@@ -55,6 +55,18 @@ struct ServerOptions {
 /// else /tmp/chimera-<uid>/<name>.sock. The directory is created mode 0700.
 std::string default_socket_path(std::string_view subsystem);
 
+/// One request line as a peer sent it (without its newline), parsed: a pure
+/// function of the line, so a fuzzer can call it. A plain line is the command;
+/// `{"cmd": "...", "id": ...}` is the structured form (the id is echoed).
+struct Request {
+    enum class Kind { keep_alive, command, malformed };
+    Kind kind = Kind::keep_alive;  ///< keep_alive: a blank line, answered by nothing
+    std::string command;           ///< Kind::command: free of control characters but tab
+    std::string error;             ///< Kind::malformed: why, for the error reply
+    nlohmann::json id;             ///< the structured form's "id" (null otherwise)
+};
+Request parse_request(std::string_view line);
+
 /// True when `host` is a numeric loopback address (127.0.0.0/8, ::1) or "localhost".
 bool is_loopback_host(std::string_view host);
 
