@@ -221,7 +221,8 @@ private:
 /// answers the declared `fallback` (the default the module runs with).
 /// A name ending in `*` declares a family of keys by prefix (POINT* for POINT1,
 /// POINT2, ...); "*" alone accepts any key (test modules). The .rmod's LOCAL
-/// lines themselves are unchanged: existing .rmod files stay valid.
+/// lines keep their form; spawn (and chimcfg check) hold them to the same
+/// declarations before init() (check_local_section).
 enum class LocalType : std::uint8_t {
     number,   ///< exactly one number
     numbers,  ///< one or more numbers (a vector, e.g. one per joint)
@@ -251,6 +252,13 @@ const LocalKey* find_local_key(std::span<const LocalKey> keys, std::string_view 
 /// key, spawn-only key, wrong type or count, out of range. `module` names the module.
 std::string check_local_set(std::span<const LocalKey> keys, std::string_view module, std::string_view key,
                             const std::vector<std::string>& values);
+/// The LOCAL section of a .rmod against what its module declares, as spawn
+/// runs it before init() and `chimcfg check` with the module found on the
+/// module path: a key the module does not declare (a typo would be ignored),
+/// a value of the wrong type or count, a number that is not finite (inf, nan,
+/// 1e309) or outside [min, max]. Throws cfg::ParseError "FILE:LINE: LOCAL KEY:
+/// reason" for the first problem. A module that declares nothing takes any LOCAL.
+void check_local_section(std::span<const LocalKey> keys, std::string_view module, const LocalConfig& local);
 /// One line describing a declaration: "KP numbers [0, 1e+06] live — proportional gain".
 std::string describe(const LocalKey& k);
 

@@ -104,6 +104,19 @@ public:
     using Error::Error;
 };
 
+/// No module of that name on the module path (it may be elsewhere: see module_local_keys).
+class ModuleNotFound : public Error {
+public:
+    using Error::Error;
+};
+
+/// The LOCAL keys that MODULE `rmod.module` declares, the module loaded as
+/// spawn loads it (CHIMERA_MODULE_PATH, `module_dirs`, the .rmod's folder, the
+/// install folder) — so its constructors run. For `chimcfg check`, which then
+/// runs check_local_section() as spawn does. Throws ModuleNotFound, or Error
+/// for a module found but not loadable.
+std::vector<LocalKey> module_local_keys(const RmodFile& rmod, const std::vector<std::string>& module_dirs);
+
 /// One item of sbsReconfig.
 struct ReconfigItem {
     ReconfigItem() = default;

@@ -34,8 +34,8 @@ constexpr chimera::LocalKey kDinLocalKeys[] = {
     {"DATABASE", chimera::LocalType::word, -chimera::unbounded, chimera::unbounded, false, "the device database file", ""},
     {"DEVICE", chimera::LocalType::word, -chimera::unbounded, chimera::unbounded, false, "the device's name in the database", ""},
     {"PORTS", chimera::LocalType::numbers, 0.0, 1000000.0, false, "the device's ports this task reads", ""},
-    {"INVERT", chimera::LocalType::numbers, 0.0, 1.0, true, "1 inverts a port (one per port, or one for all)", "0"},
-    {"SYNC_TIMEOUT", chimera::LocalType::number, 0.0, chimera::unbounded, true, "synchronous task: seconds to wait for an edge", ""},
+    {"INVERT", chimera::LocalType::text, -chimera::unbounded, chimera::unbounded, true, "bit mask of the inverted lines, per port or one for all (decimal or 0x hex)", "0"},
+    {"SYNC_TIMEOUT", chimera::LocalType::number, 0.0, 1.0, true, "synchronous task: seconds to wait for an edge", ""},
 };
 
 class Din : public chimera::Module {

@@ -32,9 +32,9 @@ constexpr chimera::LocalKey kDoutLocalKeys[] = {
     {"DATABASE", chimera::LocalType::word, -chimera::unbounded, chimera::unbounded, false, "the device database file", ""},
     {"DEVICE", chimera::LocalType::word, -chimera::unbounded, chimera::unbounded, false, "the device's name in the database", ""},
     {"PORTS", chimera::LocalType::numbers, 0.0, 1000000.0, false, "the device's ports this task drives", ""},
-    {"INVERT", chimera::LocalType::numbers, 0.0, 1.0, true, "1 inverts a port (one per port, or one for all)", "0"},
-    {"SAFE", chimera::LocalType::numbers, 0.0, 1.0, true, "the value of each port from init, after off and kill, and on an error", ""},
-    {"ILLEGAL", chimera::LocalType::numbers, 0.0, 1.0, true, "the value of each port while the configuration is illegal", ""},
+    {"INVERT", chimera::LocalType::text, -chimera::unbounded, chimera::unbounded, true, "bit mask of the inverted lines, per port or one for all (decimal or 0x hex)", "0"},
+    {"SAFE", chimera::LocalType::text, -chimera::unbounded, chimera::unbounded, true, "the value of each port from init, after off and kill, and on an error, per port or one for all (decimal or 0x hex)", ""},
+    {"ILLEGAL", chimera::LocalType::word, -chimera::unbounded, chimera::unbounded, true, "hold: the last commands stay while the configuration is illegal; safe: SAFE then", "hold"},
 };
 
 class Dout : public chimera::Module {

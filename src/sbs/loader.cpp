@@ -73,6 +73,15 @@ const ChimeraModuleAbi* check(const void* sym, const std::string& name, const st
 
 }  // namespace
 
+std::vector<std::string> module_search_dirs(const RmodFile& rmod, std::vector<std::string> dirs) {
+    const std::string folder = std::filesystem::path(rmod.path).parent_path().string();
+    dirs.push_back(folder.empty() ? std::string(".") : folder);
+#ifdef CHIMERA_MODULE_DIR
+    dirs.push_back(CHIMERA_MODULE_DIR);
+#endif
+    return dirs;
+}
+
 const ChimeraModuleAbi& load_module(const std::string& name, const std::vector<std::string>& extra_dirs) {
     // The name becomes a file name and a symbol: a '/' or '..' in it would
     // reach a library outside the module path.
@@ -131,10 +140,26 @@ const ChimeraModuleAbi& load_module(const std::string& name, const std::vector<s
             return *abi;
         }
     }
-    throw Error("module " + name + " not found: not linked into the program, and no " + name + ".so or lib" + name +
+    throw ModuleNotFound("module " + name + " not found: not linked into the program, and no " + name + ".so or lib" + name +
                 ".so with " + symbol + " on the module path (CHIMERA_MODULE_PATH, add_module_path(), the .rmod's "
                 "folder, the install folder); tried:" +
                 (tried.empty() ? std::string(" nothing (empty path)") : tried));
 }
 
 }  // namespace chimera::sbs::detail
+
+namespace chimera::sbs {
+
+std::vector<LocalKey> module_local_keys(const RmodFile& rmod, const std::vector<std::string>& module_dirs) {
+    const ChimeraModuleAbi& abi = detail::load_module(rmod.module, detail::module_search_dirs(rmod, module_dirs));
+    Module* m = abi.create();
+    if (m == nullptr) throw Error("module " + rmod.module + ": create() returned no object");
+    // The declarations are the module's static data: they outlive the
+    // instance (a loaded module is never unloaded).
+    const auto keys = m->local_keys();
+    std::vector<LocalKey> out(keys.begin(), keys.end());
+    abi.destroy(m);
+    return out;
+}
+
+}  // namespace chimera::sbs

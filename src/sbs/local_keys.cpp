@@ -96,4 +96,20 @@ std::string check_local_set(std::span<const LocalKey> keys, std::string_view mod
     return "";
 }
 
+void check_local_section(std::span<const LocalKey> keys, std::string_view module, const LocalConfig& local) {
+    if (keys.empty()) return;
+    for (const auto& e : local.entries()) {
+        const LocalKey* k = find_local_key(keys, e.key);
+        std::string why;
+        if (k == nullptr) {
+            std::string names;
+            for (const auto& d : keys) names += (names.empty() ? "" : ", ") + std::string(d.name);
+            why = "not a key of " + std::string(module) + " (" + names + ")";
+        } else {
+            why = value_problem(*k, e.values);
+        }
+        if (!why.empty()) throw cfg::ParseError(local.file, e.line, "LOCAL " + e.key + ": " + why);
+    }
+}
+
 }  // namespace chimera

@@ -240,13 +240,7 @@ TaskCore::TaskCore(SubsystemCore& s, int task_id, const RtpuSpec& r, std::vector
     objects.reserve(rmods.size());
     try {
         for (auto& f : rmods) {
-            std::vector<std::string> d = dirs;
-            const std::string folder = std::filesystem::path(f.path).parent_path().string();
-            d.push_back(folder.empty() ? std::string(".") : folder);
-#ifdef CHIMERA_MODULE_DIR
-            d.push_back(CHIMERA_MODULE_DIR);
-#endif
-            const ChimeraModuleAbi& abi = load_module(f.module, d);
+            const ChimeraModuleAbi& abi = load_module(f.module, module_search_dirs(f, dirs));
             Object o;
             o.abi = &abi;
             o.rmod = std::move(f);
@@ -254,7 +248,14 @@ TaskCore::TaskCore(SubsystemCore& s, int task_id, const RtpuSpec& r, std::vector
             if (!o.module) throw Error("module " + o.rmod.module + ": create() returned no object");
             objects.push_back(std::move(o));
             objects.back().view = std::make_unique<Task>(this, objects.size() - 1);
+            // What chimcfg check refuses never starts: the same check, before init().
+            check_local_section(objects.back().module->local_keys(), objects.back().rmod.module,
+                                objects.back().rmod.local);
         }
+    } catch (const cfg::ParseError& e) {
+        for (auto& o : objects) o.abi->destroy(o.module);
+        objects.clear();
+        throw Error(std::string("spawn: ") + e.what());
     } catch (...) {
         for (auto& o : objects) o.abi->destroy(o.module);
         objects.clear();

@@ -189,6 +189,37 @@ TEST(SbsCli, SetRefusesUndeclaredAndOutOfRange) {
               std::string::npos);
 }
 
+// Issue #15.4, one validator: `chimcfg check` and spawn run the same checks
+// of a .rmod's LOCAL section against its module's declarations, so each file
+// chimcfg refuses fails to spawn with the same FILE:LINE message, and the file
+// it accepts spawns.
+TEST(SbsCli, ChimcfgRefusesWhatSpawnRefusesAtTheSameLine) {
+    Workspace ws;
+    auto ramp_with = [&](const std::string& name, const std::string& local) {
+        return ws.write(name + ".rmod", "MODULE ramp\nDESC ramp\nINVAR none\nOUTVAR X\nTASKTYPE periodic\nFREQ 200\n"
+                                        "LOCAL\n" + local + "\nEOF\n");
+    };
+    struct Case {
+        std::string name, local, error;
+    };
+    for (const Case& c : {Case{"inf", "STEP inf", ":8: LOCAL STEP: 'inf' is not a number"},
+                          Case{"nan", "GAIN nan", ":8: LOCAL GAIN: 'nan' is not a number"},
+                          Case{"huge", "STEP 1e309", ":8: LOCAL STEP: '1e309' is not a number"},
+                          Case{"range", "STEP 2e6", ":8: LOCAL STEP: 2e6 is out of range [-1e+06, 1e+06]"},
+                          Case{"typo", "STPE 1", ":8: LOCAL STPE: not a key of ramp (STEP, GAIN, WARN, INITFAIL, FAIL)"}}) {
+        const std::string path = ramp_with(c.name, c.local);
+        const auto check = sbs_test::run(sbs_test::env("CHIMCFG_EXE"), {"check", path});
+        EXPECT_EQ(check.status, 1) << c.name << ": " << check.out;
+        EXPECT_EQ(check.err, path + c.error + "\n") << c.name;
+        EXPECT_NE(failing(ws, "spawn " + path).find("spawn: " + path + c.error), std::string::npos) << c.name;
+    }
+    const std::string good = ramp_with("good", "STEP 2e5\nGAIN -3");
+    const auto check = sbs_test::run(sbs_test::env("CHIMCFG_EXE"), {"check", good});
+    EXPECT_EQ(check.status, 0) << check.err;
+    EXPECT_NE(check.out.find("LOCAL checked against module ramp"), std::string::npos) << check.out;
+    EXPECT_EQ(ok_json(ws, "spawn " + good + "; set STEP")[1]["data"]["value"], "2e5");
+}
+
 // Issue #16.3: setvar (halcmd setp for a state variable), show svar (show
 // sig: producers and consumers), show rtpu (show thread).
 TEST(SbsCli, SetvarShowSvarShowRtpu) {

@@ -2,6 +2,14 @@
 //
 //   chimcfg check FILE...   one summary line per good file (exit 0), or the
 //                           FILE:LINE: errors of the bad ones (exit 1)
+//
+// check runs the checks spawn and sbs run, through the same functions (the
+// readers of src/cfg, src/svar, src/sbs and check_local_section()), so what it
+// accepts starts and what it refuses never starts. For a .rmod that includes
+// the LOCAL values against the keys its module declares: the module is loaded
+// as spawn loads it (CHIMERA_MODULE_PATH, --module-path, the .rmod's folder,
+// the install folder), so its constructors run; --no-modules checks the file
+// alone, and the summary says when LOCAL was not checked.
 //   chimcfg dump FILE.svar  each variable: name, type, nelem, units, init,
 //                           min, max, description
 //
@@ -19,6 +27,8 @@
 #include <vector>
 
 #include "chimera/cfg.hpp"
+#include "chimera/module.hpp"
+#include "chimera/sbs.hpp"
 #include "chimera/sbs_files.hpp"
 #include "chimera/svar.hpp"
 
@@ -55,8 +65,29 @@ std::string list_summary(const char* what, const std::vector<std::string>& names
     return s;
 }
 
-std::string summary_rmod(const std::string& path) {
+/// Where to find modules, or none: --no-modules.
+struct ModuleLookup {
+    bool load = true;
+    std::vector<std::string> dirs;  // --module-path
+};
+
+// The LOCAL section against the module's declarations, as spawn checks it.
+std::string local_check(const chimera::RmodFile& r, const ModuleLookup& modules) {
+    if (!modules.load) return "LOCAL not checked (--no-modules)";
+    try {
+        const auto keys = chimera::sbs::module_local_keys(r, modules.dirs);
+        chimera::check_local_section(keys, r.module, r.local);
+        return keys.empty() ? "LOCAL free (module " + r.module + " declares no keys)"
+                            : "LOCAL checked against module " + r.module;
+    } catch (const chimera::sbs::ModuleNotFound&) {
+        return "LOCAL not checked (module " + r.module +
+               " not on the module path: --module-path DIR or CHIMERA_MODULE_PATH)";
+    }
+}
+
+std::string summary_rmod(const std::string& path, const ModuleLookup& modules) {
     const chimera::RmodFile r = chimera::read_rmod(path);
+    const std::string local = local_check(r, modules);
     std::string s = path + ": ok, rmod " + r.name + ", module " + r.module + ", " +
                     std::string(chimera::to_string(r.type));
     if (r.freq > 0) {
@@ -67,7 +98,7 @@ std::string summary_rmod(const std::string& path) {
     s += "; " + list_summary("in-consts", r.global_in_consts()) + "; " +
          list_summary("out-consts", r.global_out_consts()) + "; " +
          list_summary("in-vars", r.global_in_vars()) + "; " +
-         list_summary("out-vars", r.global_out_vars());
+         list_summary("out-vars", r.global_out_vars()) + "; " + local;
     return s;
 }
 
@@ -80,7 +111,7 @@ std::string summary_sbs(const std::string& path) {
            plural(spec.vars.size(), "variable") + ")";
 }
 
-int check(const std::vector<std::string>& files) {
+int check(const std::vector<std::string>& files, const ModuleLookup& modules) {
     int bad = 0;
     for (const std::string& path : files) {
         try {
@@ -89,7 +120,7 @@ int check(const std::vector<std::string>& files) {
             if (ext == ".svar")
                 line = summary_svar(path);
             else if (ext == ".rmod")
-                line = summary_rmod(path);
+                line = summary_rmod(path, modules);
             else if (ext == ".sbs")
                 line = summary_sbs(path);
             else
@@ -166,11 +197,19 @@ int main(int argc, char** argv) {
     std::vector<std::string> files;
     auto* c = app.add_subcommand("check", "validate files; one summary line each, or FILE:LINE: errors");
     c->add_option("files", files, "files to check (.svar, .rmod, .sbs)")->required();
+    ModuleLookup modules;
+    c->add_option("--module-path", modules.dirs,
+                  "a folder with modules, searched as sbs --module-path (repeatable)")
+        ->allow_extra_args(false);  // one folder each: the files follow
+    bool no_modules = false;
+    c->add_flag("--no-modules", no_modules,
+                "do not load the module a .rmod names (its LOCAL values then go unchecked)");
     std::string svar;
     auto* d = app.add_subcommand("dump", "print each variable of a .svar file");
     d->add_option("file", svar, "the .svar file")->required();
     chimera::tools::add_version(app, "chimcfg");
     if (const int status = chimera::tools::parse(app, argc, argv); status >= 0) return status;
-    if (c->parsed()) return check(files);
+    modules.load = !no_modules;
+    if (c->parsed()) return check(files, modules);
     return dump(svar);
 }

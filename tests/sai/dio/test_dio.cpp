@@ -366,11 +366,12 @@ protected:
         sbs_ = Subsystem::init((dir_ / "t.sbs").string());
         return *sbs_;
     }
-    // Spawns and expects init to fail: the message, with the task checked to be
-    // NOT-CREATED and gone from the status.
-    std::string spawn_error(const std::string& path) {
+    // Spawns and expects it to fail (in init, or before: the LOCAL keys are
+    // checked against the declarations first): the message, with the task
+    // checked to be NOT-CREATED and gone from the status.
+    std::string spawn_error(const std::string& path, const char* stage = "init failed") {
         const std::string msg = what_of([&] { sbs_->spawn(path); });
-        EXPECT_TRUE(has(msg, "init failed")) << msg;
+        EXPECT_TRUE(has(msg, stage)) << msg;
         const std::string stem = fs::path(path).stem().string();
         if (auto id = sbs_->find(stem)) {
             EXPECT_EQ(sbs_->status(*id).state, chimera::State::NOT_CREATED) << msg;
@@ -408,7 +409,9 @@ TEST_F(DioSpawn, WrongValuePortIsRefusedAtInit) {
 TEST_F(DioSpawn, ConfigErrorsReachTheMasterWithTheRmod) {
     init();
     const std::string typo = dout("typo", kDout + "SAVE 1\n");
-    EXPECT_TRUE(has(spawn_error(typo), typo + ":12: LOCAL SAVE: not a key of dout")) << "a misspelt key is not ignored";
+    EXPECT_TRUE(has(spawn_error(typo, "spawn: "), typo + ":12: LOCAL SAVE: not a key of dout (DATABASE, DEVICE, PORTS, "
+                                                       "INVERT, SAFE, ILLEGAL)"))
+        << "a misspelt key is not ignored";
 }
 
 // With the configuration right, init gets as far as the chip; nothing is left
