@@ -496,14 +496,17 @@ TEST_F(Network, BadFirstLineClosesAnUnauthenticatedPeer) {
 namespace {
 
 // 300 non-blocking connects in a tight loop, as a burst of clients makes
-// them (a short listen backlog refused some with EAGAIN), then how many of
-// them the server answered ('{' of its greeting or refusal) within 5 s.
-int answered_of_a_burst(const sockaddr* addr, socklen_t len, int& refused) {
+// them (a short listen backlog refused some with EAGAIN), while the server
+// offers control: none is refused, and each is answered ('{' of its greeting
+// or refusal) within 5 s.
+void expect_a_burst_answered(NetworkServer& s, const sockaddr* addr, socklen_t len) {
+    std::atomic<bool> interrupt{false};
+    auto done = hand_over_async(s, &interrupt);
     std::vector<int> fds;
-    refused = 0;
+    int refused = 0;
     for (int i = 0; i < 300; ++i) {
         const int fd = ::socket(addr->sa_family, SOCK_STREAM | SOCK_NONBLOCK | SOCK_CLOEXEC, 0);
-        if (fd < 0) return -1;
+        ASSERT_GE(fd, 0);
         if (::connect(fd, addr, len) != 0 && errno != EINPROGRESS) {
             ++refused;
             ::close(fd);
@@ -521,24 +524,21 @@ int answered_of_a_burst(const sockaddr* addr, socklen_t len, int& refused) {
             ++answered;
         ::close(fd);
     }
-    return answered;
+    EXPECT_EQ(refused, 0);
+    EXPECT_EQ(answered, 300);
+    interrupt = true;
+    done.get();
 }
 
 }  // namespace
 
 TEST_F(Network, BurstOf300ConnectionsIsAccepted) {
+    // One gets control, the rest a refusal line.
     auto s = make();
-    std::atomic<bool> interrupt{false};
-    auto done = hand_over_async(*s, &interrupt);
     sockaddr_un addr{};
     addr.sun_family = AF_UNIX;
     std::strncpy(addr.sun_path, path.c_str(), sizeof addr.sun_path - 1);
-    int refused = 0;
-    // Every one is answered: one gets control, the rest a refusal line.
-    EXPECT_EQ(answered_of_a_burst(reinterpret_cast<sockaddr*>(&addr), sizeof addr, refused), 300);
-    EXPECT_EQ(refused, 0);
-    interrupt = true;
-    done.get();
+    expect_a_burst_answered(*s, reinterpret_cast<sockaddr*>(&addr), sizeof addr);
 }
 
 TEST_F(Network, BurstOf300TcpConnectionsIsGreeted) {
@@ -548,17 +548,11 @@ TEST_F(Network, BurstOf300TcpConnectionsIsGreeted) {
     o.tcp = true;
     o.token = "tok";
     auto s = make(o);
-    std::atomic<bool> interrupt{false};
-    auto done = hand_over_async(*s, &interrupt);
     sockaddr_in addr{};
     addr.sin_family = AF_INET;
     addr.sin_port = htons(s->tcp_port());
     addr.sin_addr.s_addr = htonl(INADDR_LOOPBACK);
-    int refused = 0;
-    EXPECT_EQ(answered_of_a_burst(reinterpret_cast<sockaddr*>(&addr), sizeof addr, refused), 300);
-    EXPECT_EQ(refused, 0);
-    interrupt = true;
-    done.get();
+    expect_a_burst_answered(*s, reinterpret_cast<sockaddr*>(&addr), sizeof addr);
 }
 
 TEST_F(Network, StopDisconnectsTheControllingPeer) {
