@@ -80,7 +80,7 @@ Segment& Segment::operator=(Segment&& o) noexcept {
 Segment::~Segment() { detach(); }
 
 std::uint32_t Segment::users() const noexcept {
-    return segment_.valid() ? segment_.header().attach_count.load() : 0;
+    return segment_.users();
 }
 
 bool Segment::detach() noexcept {
