@@ -366,3 +366,95 @@ TEST(Tbuf, KillLoopWriterAndReaderStayConsistent) {
     EXPECT_TRUE(owner.destroy()) << "killed users kept the segment";
     EXPECT_TRUE(cleanup.present().empty()) << "leaked segment " << name;
 }
+
+// --- memory another process writes is bounded before use (issue #15.3) ------------
+
+// Each field of a live buffer that a process reads from shared memory,
+// corrupted by "another process" (a second mapping): attach refuses a bad
+// geometry naming the segment; a damaged state word makes read() and write()
+// refuse with the segment named, and nothing is read or written outside.
+TEST(Tbuf, CorruptFieldsAreRefusedNamingTheSegment) {
+    const std::string name = unique_name("tbbad");
+    Tbuf w = Tbuf::create(name, 24);
+    Tbuf r = Tbuf::attach(name);
+    ipc::Segment raw = ipc::Segment::attach(name, {ipc::ObjectType::tbuf, kLayoutVersion});
+    auto& h = *static_cast<detail::Header*>(raw.base());
+    std::byte item[24] = {};
+    ASSERT_EQ(w.write(item, 1), 0u);
+
+    // Geometry: checked on attach (the live handles keep what they checked).
+    const struct {
+        std::uint64_t detail::Header::*field;
+        std::uint64_t bad;
+        const char* named;
+    } geometry[] = {
+        {&detail::Header::item_size, std::uint64_t{1} << 40, "item size"},
+        {&detail::Header::item_size, 1000, "slot stride"},
+        {&detail::Header::slot_stride, 1 << 20, "slot stride"},
+        {&detail::Header::stamp_offset, 4000, "stamp offset"},
+        {&detail::Header::slots_offset, 1 << 30, "slots offset"},
+    };
+    for (const auto& g : geometry) {
+        const std::uint64_t good = h.*g.field;
+        h.*g.field = g.bad;
+        try {
+            Tbuf::attach(name);
+            ADD_FAILURE() << g.named << ": attached";
+        } catch (const ipc::SegmentError& e) {
+            const std::string what = e.what();
+            EXPECT_NE(what.find("segment " + name), std::string::npos) << what;
+            EXPECT_NE(what.find(g.named), std::string::npos) << what;
+        }
+        EXPECT_TRUE(validate(raw.base(), raw.size()));
+        EXPECT_NE(w.write(item, 2), kCorrupt) << "a live writer keeps the geometry it checked";
+        h.*g.field = good;
+        ASSERT_FALSE(validate(raw.base(), raw.size()));
+        ReadResult res = r.read(item);
+        ASSERT_EQ(res.status, ReadStatus::fresh);
+        w.write(item, 3);
+        r.read(item);
+    }
+
+    // The state word: two roles on one slot, a slot number 3, stray bits.
+    const std::uint32_t good = h.state.load();
+    for (std::uint32_t bad : {detail::make_state(0, 0, 2, true), detail::make_state(3, 1, 2, false),
+                              detail::make_state(2, 1, 0, false) | (1u << 9)}) {
+        h.state.store(bad);
+        ReadResult res = r.read(item);
+        EXPECT_EQ(res.status, ReadStatus::corrupt);
+        EXPECT_NE(r.fault_message().find("segment " + name + ": state word"), std::string::npos)
+            << r.fault_message();
+        EXPECT_EQ(r.read_view(res), nullptr);
+        EXPECT_THROW(Tbuf::attach(name), ipc::SegmentError);  // attach checks the word too
+        h.state.store(good);
+    }
+    // A writer whose first write meets a damaged word refuses and names it.
+    {
+        Tbuf fresh_writer = Tbuf::attach(name);
+        h.state.store(detail::make_state(1, 1, 1, false));
+        EXPECT_EQ(fresh_writer.write(item, 9), kCorrupt);
+        EXPECT_EQ(fresh_writer.write_slot(), nullptr);
+        EXPECT_NE(fresh_writer.fault_message().find("segment " + name), std::string::npos);
+        h.state.store(good);
+    }
+    raw.detach();
+    r.detach();
+    EXPECT_TRUE(w.destroy());
+}
+
+// A second handle writing while the first still holds the writer's slot:
+// the first one's next publish is refused (its slot moved), not published
+// into a slot the reader may hold.
+TEST(Tbuf, AWriterWhoseSlotAnotherWriterMovedRefuses) {
+    const std::string name = unique_name("tbtwo");
+    Tbuf a = Tbuf::create(name, 8);
+    Tbuf b = Tbuf::attach(name);
+    std::uint64_t x = 1;
+    EXPECT_EQ(a.write(&x, 1), 0u);
+    EXPECT_EQ(b.write(&x, 2), 1u);  // b takes the role: it starts from the state word
+    EXPECT_EQ(a.write(&x, 3), kCorrupt);
+    EXPECT_NE(a.fault_message().find("another writer"), std::string::npos) << a.fault_message();
+    EXPECT_EQ(a.write(&x, 4), 2u);  // after refusing it starts from the state word again
+    b.detach();
+    EXPECT_TRUE(a.destroy());
+}
