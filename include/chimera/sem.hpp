@@ -8,9 +8,13 @@
 // Binary semaphores hold 0 or 1 (a V on 1 stays 1); counting ones any value
 // >= 0.
 //
-// Robustness: a waiter killed while waiting is dropped from the waitlist; a
-// unit granted to a waiter that died before taking it is passed on (or given
-// back to the value) by the next user, who recovers the lock.
+// Robustness (issue #15.2): no unit stays with a waiter that died. V hands
+// its unit over and wakes the waiter; when the wake-up reaches nobody and the
+// thread is gone (killed, reaped or not), V takes the unit back and passes it
+// on before returning. A waiter killed after its wake-up reached it is found
+// by the waiters still blocked, which look every kWaitSlice (20 ms) and pass
+// its unit on, and by any P that finds no unit; a holder of the lock that
+// died is repaired by the next user.
 #pragma once
 
 #include <cstddef>
@@ -96,6 +100,7 @@ private:
     /// V's body, lock held; returns the waiter to wake after unlocking.
     xm::layout::Waiter* release_unit() noexcept;
     bool reclaim_granted() noexcept;
+    void pass_on_dead_grants(const xm::layout::Waiter* self) noexcept;
     layout::SemHeader* h_ = nullptr;
     ipc::Segment segment_;
     std::string name_;

@@ -49,6 +49,8 @@ enum class Status : int {
     bad_argument,    ///< task or mailbox number out of range, ...
     lock_timeout,    ///< the object's lock could not be taken in time
     too_many_waiters,///< every waiter slot of the object is in use
+    corrupt,         ///< a value read from the shared segment is out of bounds: refused,
+                     ///< nothing copied (the object's fault_message() names the segment)
 };
 const char* to_string(Status s) noexcept;
 

@@ -28,6 +28,7 @@ const char* to_string(Status s) noexcept {
         case Status::bad_argument: return "bad argument";
         case Status::lock_timeout: return "lock timed out";
         case Status::too_many_waiters: return "too many waiters";
+        case Status::corrupt: return "shared memory corrupt (refused)";
     }
     return "unknown status";
 }

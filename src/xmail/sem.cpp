@@ -134,7 +134,7 @@ Status Semaphore::lock() noexcept {
 }
 
 xm::layout::Waiter* Semaphore::release_unit() noexcept {
-    Waiter* w = waiter_pick(h_->waiters, layout::kMaxWaiters, &h_->reclaimed_waiters);
+    Waiter* w = waiter_pick(h_->waiters, layout::kMaxWaiters);
     if (w) {
         waiter_signal(*w);  // the unit goes straight to the waiter: value unchanged
         return w;
@@ -148,9 +148,7 @@ void Semaphore::repair() noexcept {
     for (std::uint32_t i = 0; i < layout::kMaxWaiters; ++i) {
         Waiter& w = h_->waiters[i];
         if (w.state == kFree) continue;
-        const std::uint64_t id = static_cast<std::uint64_t>(static_cast<std::uint32_t>(w.pid)) << 32 |
-                                 static_cast<std::uint32_t>(w.tid);
-        if (ipc::owner_alive(id)) {
+        if (thread_alive(w.pid, w.tid)) {
             if (w.state == kSignaled) w.word.store(1, std::memory_order_release);
             continue;
         }
@@ -164,10 +162,8 @@ void Semaphore::repair() noexcept {
     if (h_->kind == static_cast<std::uint32_t>(Kind::binary) && h_->value > 1) h_->value = 1;
 }
 
-// Units granted to waiters that died before taking them — killed after the
-// grant, or zombies the grant's cheap check let through — are passed on
-// (lock held). Looked at only when P finds no unit, and only while a grant is
-// outstanding. Returns true when a unit came back.
+// Units granted to waiters that died before taking them are passed on (lock
+// held). Returns true when a unit came back or moved on.
 bool Semaphore::reclaim_granted() noexcept {
     bool back = false;
     for (std::uint32_t i = 0; i < layout::kMaxWaiters; ++i) {
@@ -179,6 +175,16 @@ bool Semaphore::reclaim_granted() noexcept {
         back = true;
     }
     return back;
+}
+
+// A sleeper's look at every slice: a unit granted to a waiter that died
+// since (after its wake-up reached it) would otherwise strand the waiters
+// still blocked here, which sleep on their own words.
+void Semaphore::pass_on_dead_grants(const Waiter* self) noexcept {
+    if (!signalled_dead(h_->waiters, layout::kMaxWaiters, self)) return;
+    if (lock() != Status::ok) return;
+    reclaim_granted();
+    ipc::unlock(h_->mutex);
 }
 
 Status Semaphore::p(std::int64_t timeout_ns, std::int32_t priority) noexcept {
@@ -211,16 +217,30 @@ Status Semaphore::p(std::int64_t timeout_ns, std::int32_t priority) noexcept {
             fail = Status::too_many_waiters;
         ipc::unlock(h_->mutex);
         if (fail != Status::ok) return fail;
-        waiter_sleep(*me, deadline);
+        waiter_sleep(*me, deadline, [&] { pass_on_dead_grants(me); });
     }
 }
 
 Status Semaphore::v() noexcept {
     if (!h_) return Status::bad_argument;
     if (const Status s = lock(); s != Status::ok) return s;
-    Waiter* wake = release_unit();
+    Waiter* w = release_unit();
+    WaiterId id = w ? id_of(*w) : WaiterId{};
     ipc::unlock(h_->mutex);
-    if (wake) waiter_wake(*wake);
+    // No unit stays with a waiter that died (killed, reaped or not): when the
+    // wake-up reaches nobody and the thread is gone, take the unit back and
+    // pass it on, before V returns.
+    while (w && !waiter_wake_checked(*w, id)) {
+        if (lock() != Status::ok) return Status::ok;  // the sleepers' slices pass it on
+        Waiter* dead = w;
+        w = nullptr;
+        if (still_signalled(*dead, id)) {
+            waiter_free(*dead);
+            ++h_->reclaimed_waiters;
+            if ((w = release_unit())) id = id_of(*w);
+        }
+        ipc::unlock(h_->mutex);
+    }
     return Status::ok;
 }
 
