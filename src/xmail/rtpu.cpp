@@ -110,8 +110,15 @@ void Rtpu::on_message(std::function<void(std::uint32_t, const void*, std::size_t
 
 void Rtpu::serve() {
     std::vector<std::byte> buffer(mailbox_.config().bufsize);
+    std::int64_t next_peer_check = 0;
     while (!stop_.load()) {
         const std::uint32_t pending = mailbox_.wait_interrupts(100'000'000);
+        // Messages our tasks wrote to an RTPU that died unread are counted
+        // within 100 ms, whether or not anyone writes to it again.
+        if (const std::int64_t now = ipc::now_ns(); now >= next_peer_check) {
+            mailbox_.check_peers();
+            next_peer_check = now + 100'000'000;
+        }
         if (pending & (1u << kMboxReset)) mailbox_.reset_buffers();
         // Interrupts are not stacked: always look at every ring.
         ReadInfo info;
