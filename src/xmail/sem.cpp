@@ -246,6 +246,7 @@ Status Semaphore::v() noexcept {
 
 std::int32_t Semaphore::value() noexcept {
     if (!h_ || lock() != Status::ok) return -1;
+    reclaim_granted();  // a unit granted to a waiter that died is available
     const std::int32_t v = h_->value;
     ipc::unlock(h_->mutex);
     return v;

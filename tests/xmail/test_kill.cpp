@@ -5,7 +5,9 @@
 // (which must then be in its in-flight log slot) and one a killed sender may
 // or may not have committed.
 #include <gtest/gtest.h>
+#include <sched.h>
 #include <signal.h>
+#include <sys/mman.h>
 #include <sys/wait.h>
 #include <unistd.h>
 
@@ -20,6 +22,7 @@
 
 #include "chimera/ipc/clock.hpp"
 #include "chimera/msg.hpp"
+#include "chimera/sem.hpp"
 #include "chimera/shm.hpp"
 #include "chimera/xmail.hpp"
 #include "common.hpp"
@@ -131,4 +134,140 @@ TEST(Kill, RandomKillsNeverHangLoseOrDuplicate) {
                 s.reclaimed_waiters);
     EXPECT_GT(kills, 50);
     EXPECT_GT(total, 1000u);
+}
+
+// --- SEM: kill -9 loop (issue #15.2) -----------------------------------------------
+
+namespace {
+
+constexpr int kSemWaiters = 3;
+
+struct SemBoard {
+    alignas(64) unsigned char sem[sem::Semaphore::memory_size()];
+    std::atomic<int> result[kSemWaiters];  // 0 waiting, 1 got a unit, 2 P failed
+};
+
+}  // namespace
+
+namespace {
+
+void set_cpu(int cpu) {
+    cpu_set_t set;
+    CPU_ZERO(&set);
+    CPU_SET(cpu, &set);
+    sched_setaffinity(0, sizeof set, &set);
+}
+
+// The test process on CPU 0 under SCHED_FIFO, for the duration: a waiter
+// pinned there cannot run while the test runs, so "woken but killed before it
+// took its unit" is an exact point, not a race.
+class FifoOnCpu0 {
+public:
+    FifoOnCpu0() {
+        sched_getaffinity(0, sizeof saved_, &saved_);
+        set_cpu(0);
+        sched_param p{};
+        p.sched_priority = 10;
+        ok_ = sched_setscheduler(0, SCHED_FIFO, &p) == 0;
+    }
+    ~FifoOnCpu0() {
+        sched_param p{};
+        sched_setscheduler(0, SCHED_OTHER, &p);
+        sched_setaffinity(0, sizeof saved_, &saved_);
+    }
+    bool ok() const { return ok_; }
+
+private:
+    cpu_set_t saved_{};
+    bool ok_ = false;
+};
+
+}  // namespace
+
+// 200 rounds: three processes block in P on a counting semaphore (P with a
+// 2 s timeout or P(-1)); one of them is killed with SIGKILL and left
+// unreaped (a zombie, which passes tgkill), then two V's give the two live
+// waiters their units. Even rounds kill it before the V's: a V that picks it
+// must take the unit back and pass it on. Odd rounds give it the highest
+// priority and kill it right after the first V has woken it (it is pinned to
+// the test's CPU and cannot run before the kill): the live waiter still
+// blocked must get that unit from it. Every live waiter must get its unit,
+// none may time out or stay blocked, no unit may be lost (V's = units taken +
+// value) and none may stay with the dead waiter. (Handing the unit to the
+// zombie left live waiters blocked: 27 timed out in 200 rounds, 68 of 200
+// P(-1) rounds blocked one > 2.5 s.)
+TEST(Kill, SemLoopHandsNoUnitToADeadWaiterAndStrandsNoLiveOne) {
+    auto* board = static_cast<SemBoard*>(mmap(nullptr, sizeof(SemBoard), PROT_READ | PROT_WRITE,
+                                              MAP_SHARED | MAP_ANONYMOUS, -1, 0));
+    ASSERT_NE(board, MAP_FAILED);
+    const FifoOnCpu0 fifo;
+    ASSERT_TRUE(fifo.ok()) << "needs SCHED_FIFO (root or CAP_SYS_NICE)";
+    std::mt19937 rng(static_cast<unsigned>(getpid()));
+    constexpr int kRounds = 200;
+    int lost = 0, stuck = 0, held_by_dead = 0, failed_p = 0, granted_to_dead = 0;
+    for (int round = 0; round < kRounds; ++round) {
+        sem::Semaphore s = sem::Semaphore::over(board->sem, sem::Kind::counting, 0, "kill:sem");
+        const bool after_wakeup = round % 2 == 1;
+        const std::int64_t timeout = round % 4 < 2 ? 2'000'000'000 : -1;
+        const int victim = static_cast<int>(rng() % kSemWaiters);
+        pid_t pids[kSemWaiters];
+        for (int w = 0; w < kSemWaiters; ++w) {
+            board->result[w].store(0);
+            const std::int32_t prio = w == victim && after_wakeup ? 5 : static_cast<std::int32_t>(rng() % 3);
+            pids[w] = fork();
+            if (pids[w] == 0) {
+                sched_param p{};
+                sched_setscheduler(0, SCHED_OTHER, &p);
+                set_cpu(w == victim ? 0 : 1);
+                sem::Semaphore mine = sem::Semaphore::bind(board->sem);
+                board->result[w].store(mine.p(timeout, prio) == Status::ok ? 1 : 2);
+                _exit(0);
+            }
+        }
+        while (s.waiting() < kSemWaiters) std::this_thread::sleep_for(std::chrono::microseconds(100));
+        siginfo_t info{};
+        if (!after_wakeup) {
+            kill(pids[victim], SIGKILL);
+            waitid(P_PID, static_cast<id_t>(pids[victim]), &info, WEXITED | WNOWAIT);  // a zombie now
+        }
+        ASSERT_EQ(s.v(), Status::ok);
+        if (after_wakeup) kill(pids[victim], SIGKILL);  // woken, never ran
+        ASSERT_EQ(s.v(), Status::ok);
+        auto& h = *reinterpret_cast<sem::layout::SemHeader*>(board->sem);
+        // A V returns with no unit left at a waiter it found dead.
+        if (!after_wakeup)
+            for (const auto& w : h.waiters) granted_to_dead += w.state == 2 && w.pid == pids[victim];
+        waitid(P_PID, static_cast<id_t>(pids[victim]), &info, WEXITED | WNOWAIT);  // dead, not reaped
+        // Every live waiter gets a unit (they would time out after 2 s; P(-1) never).
+        const std::int64_t until = ipc::now_ns() + 2'500'000'000;
+        auto pending = [&] {
+            int n = 0;
+            for (int w = 0; w < kSemWaiters; ++w) n += w != victim && board->result[w].load() == 0;
+            return n;
+        };
+        while (pending() > 0 && ipc::now_ns() < until) std::this_thread::sleep_for(std::chrono::microseconds(200));
+        stuck += pending();
+        int got = 0;
+        for (int w = 0; w < kSemWaiters; ++w) {
+            got += board->result[w].load() == 1;
+            failed_p += w != victim && board->result[w].load() == 2;
+        }
+        lost += 2 - got - s.value();
+        for (const auto& w : h.waiters) held_by_dead += w.state == 2 && w.pid == pids[victim];
+        for (int w = 0; w < kSemWaiters; ++w) {
+            if (w != victim && board->result[w].load() == 0) kill(pids[w], SIGKILL);
+            waitpid(pids[w], nullptr, 0);
+        }
+    }
+    std::printf("sem kill loop: %d rounds, %d waiters killed unreaped (%d before V, %d after their "
+                "wake-up); units a V left with a dead waiter %d, lost units %d, stuck waiters %d, "
+                "failed P %d, units held by dead waiters at the end %d\n",
+                kRounds, kRounds, kRounds / 2, kRounds / 2, granted_to_dead, lost, stuck, failed_p,
+                held_by_dead);
+    EXPECT_EQ(granted_to_dead, 0);
+    EXPECT_EQ(lost, 0);
+    EXPECT_EQ(stuck, 0);
+    EXPECT_EQ(failed_p, 0);
+    EXPECT_EQ(held_by_dead, 0);
+    munmap(board, sizeof(SemBoard));
 }
