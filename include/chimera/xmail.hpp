@@ -35,7 +35,10 @@
 // every 100 ms), it counts the records still in its ring there: in the
 // Peer (undelivered(): they are the last ones written to it), in
 // Mailbox::undelivered(), and in its own mailbox header (`undelivered`),
-// where status tools see it.
+// where status tools see it. And when an RTPU takes over the mailbox of a
+// dead predecessor of its name, it counts what that one left unread in its
+// own header (`predecessor_unread`): the loss is on record even when the
+// senders died too.
 #pragma once
 
 #include <atomic>
@@ -116,7 +119,8 @@ struct MailboxHeader {
     std::atomic<std::uint32_t> pending;  ///< bit n: mailbox interrupt n pending
     std::atomic<std::uint32_t> resets;   ///< reset interrupts handled
     std::atomic<std::uint64_t> undelivered; ///< messages this RTPU sent that died unread with their receivers
-    std::uint8_t reserved1[32];
+    std::atomic<std::uint64_t> predecessor_unread; ///< messages a dead predecessor of this RTPU left unread (taken over)
+    std::uint8_t reserved1[24];
 };
 static_assert(sizeof(MailboxHeader) == 256);
 
@@ -404,6 +408,8 @@ private:
     void serve();
     void handle_message(std::uint32_t from, const std::byte* data, std::size_t length);
     void handle_request(const void* request);
+    void reap_objects() noexcept;
+    void sweep_orphans() noexcept;
     ObjectRef request(std::string_view full_name, std::uint32_t op, ipc::ObjectType type,
                       const ObjectParams& params);
 

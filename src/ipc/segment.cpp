@@ -355,6 +355,26 @@ std::uint32_t Segment::users() const noexcept {
     return n;
 }
 
+bool Segment::destroy_if_unused(const std::string& name) noexcept {
+    const int fd = shm_open(name.c_str(), O_RDWR, 0);
+    if (fd < 0) return false;
+    bool removed = false;
+    struct stat st {};
+    if (set_user_lock(fd, F_WRLCK, false) && fstat(fd, &st) == 0 &&
+        static_cast<std::size_t>(st.st_size) >= sizeof(SegmentHeader)) {
+        void* p = mmap(nullptr, sizeof(SegmentHeader), PROT_READ | PROT_WRITE, MAP_SHARED, fd, 0);
+        if (p != MAP_FAILED) {
+            auto* h = static_cast<SegmentHeader*>(p);
+            // Still being built by a live creator holds its lock; a dead one's is garbage too.
+            h->state.store(static_cast<std::uint32_t>(SegmentState::destroyed), std::memory_order_seq_cst);
+            munmap(p, sizeof(SegmentHeader));
+            removed = names_file(name, fd) && shm_unlink(name.c_str()) == 0;
+        }
+    }
+    close(fd);
+    return removed;
+}
+
 bool Segment::in_use(const std::string& name) noexcept {
     const int fd = shm_open(name.c_str(), O_RDONLY, 0);
     if (fd < 0) return false;

@@ -163,6 +163,23 @@ void copy_name(char (&dst)[32], std::string_view src) noexcept {
     std::memcpy(dst, src.data(), std::min(src.size(), sizeof dst - 1));
 }
 
+// Messages left unread in every ring of a mailbox image (a ring that cannot
+// be walked counts one: something was lost there).
+std::uint64_t unread_messages(void* image, std::size_t size) noexcept {
+    MailboxGeometry g;
+    if (geometry_fault(image, size, g)) return 0;
+    std::uint64_t total = 0;
+    for (std::uint32_t b = 0; b < g.nrtpu; ++b) {
+        RingHeader* r = ring_at(image, g, b);
+        std::uint64_t count = 0;
+        if (count_records(ring_buffer(r), g.bufsize, r->out.load(std::memory_order_acquire),
+                          r->in.load(std::memory_order_acquire), b, count))
+            count = std::max<std::uint64_t>(count, 1);
+        total += count;
+    }
+    return total;
+}
+
 }  // namespace
 
 ipc::Fault validate_mailbox(const void* image, std::size_t size) noexcept {
@@ -205,7 +222,9 @@ Mailbox::Mailbox(std::string sys, std::string rtpu, std::uint32_t bid, MailboxCo
     config_.bufsize = ring_bytes(config_);
     const std::string name = segment_name(sys_, rtpu_);
 
-    // A mailbox left behind by a process that died is ours to take over.
+    // A mailbox left behind by a process that died is ours to take over;
+    // the messages it left unread are counted (see predecessor_unread).
+    std::uint64_t inherited = 0;
     if (ipc::Segment::exists(name)) {
         std::int32_t pid = 0;
         try {
@@ -216,6 +235,7 @@ Mailbox::Mailbox(std::string sys, std::string rtpu, std::uint32_t bid, MailboxCo
             pid = h->owner_pid.load();
             if (h->alive.load() != 0 && process_alive(pid))
                 throw Error(where + ": RTPU already running (pid " + std::to_string(pid) + ")");
+            inherited = unread_messages(old.base(), old.size());
         } catch (const ipc::SegmentError&) {
             // A stale segment of another layout or half-built: replace it.
         }
@@ -242,6 +262,7 @@ Mailbox::Mailbox(std::string sys, std::string rtpu, std::uint32_t bid, MailboxCo
     header_->off_mbox = g.off_mbox;
     header_->off_rings = g.off_rings;
     header_->ring_stride = g.ring_stride;
+    header_->predecessor_unread.store(inherited, std::memory_order_relaxed);
     header_->owner_pid.store(getpid());
     header_->alive.store(1);
     segment_.publish();
@@ -260,7 +281,8 @@ Mailbox::~Mailbox() {
         std::lock_guard lock(peers_mutex_);
         // The mailbox of an RTPU that died is nobody's: its last user frees it
         // (a restarted RTPU of that name has a new segment, which stays).
-        auto release = [](Peer& p) {
+        auto release = [this](Peer& p) {
+            if (!p.loss_counted_ && !alive(p)) dead(p);
             if (p.loss_counted_) p.segment_.detach_destroy_if_last();
         };
         for (auto& [name, p] : peers_) release(*p);

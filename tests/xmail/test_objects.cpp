@@ -41,46 +41,6 @@ bool contains(const std::string& s, const std::string& part) {
 }
 
 // A helper process whose stdout we read line by line.
-struct Child {
-    pid_t pid = -1;
-    int fd = -1;
-    std::string buffered;
-    explicit Child(const std::vector<std::string>& args) {
-        int p[2];
-        if (pipe(p) != 0) return;
-        pid = spawn_helper(args, p[1]);
-        close(p[1]);
-        fd = p[0];
-    }
-    std::string line() {
-        for (;;) {
-            const auto nl = buffered.find('\n');
-            if (nl != std::string::npos) {
-                std::string l = buffered.substr(0, nl);
-                buffered.erase(0, nl + 1);
-                return l;
-            }
-            char buf[256];
-            const ssize_t n = read(fd, buf, sizeof buf);
-            if (n <= 0) return "<eof>";
-            buffered.append(buf, static_cast<std::size_t>(n));
-        }
-    }
-    int wait() {
-        int st = 0;
-        waitpid(pid, &st, 0);
-        pid = -1;
-        return WIFEXITED(st) ? WEXITSTATUS(st) : 128 + WTERMSIG(st);
-    }
-    ~Child() {
-        if (pid > 0) {
-            kill(pid, SIGKILL);
-            waitpid(pid, nullptr, 0);
-        }
-        if (fd >= 0) close(fd);
-    }
-};
-
 template <typename F>
 bool eventually(F&& f, int ms = 5000) {
     for (int i = 0; i < ms; ++i) {

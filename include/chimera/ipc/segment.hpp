@@ -179,6 +179,10 @@ public:
     std::uint32_t users() const noexcept;
     /// True when some live process maps the segment `name` (one fcntl probe).
     static bool in_use(const std::string& name) noexcept;
+    /// Removes `name` when no live process maps it (its users all detached or
+    /// died), as the last user's detach_destroy_if_last() would: an attach
+    /// racing with it fails with "is being destroyed". True when removed.
+    static bool destroy_if_unused(const std::string& name) noexcept;
     /// Removes a name; false when it did not exist.
     static bool unlink(const std::string& name) noexcept;
     /// True when a segment of this name exists.
