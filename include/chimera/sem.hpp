@@ -53,6 +53,13 @@ static_assert(sizeof(SemHeader) == 256 + 32 * kMaxWaiters);
 
 }  // namespace layout
 
+/// Checks a semaphore's image of `size` bytes (segment header, kind, value
+/// in range for the kind, waiter states, the name ending in its field): the
+/// first bound broken, or none. A pure function over the bytes. (Nothing in
+/// a semaphore is an offset; attach and bind check all but the value and
+/// the waiters, which P and V keep in range themselves.)
+ipc::Fault validate(const void* image, std::size_t size) noexcept;
+
 class Semaphore {
 public:
     Semaphore() = default;
@@ -95,6 +102,7 @@ public:
     const std::string& name() const noexcept { return name_; }
 
 private:
+    static Semaphore map(const xm::ObjectRef& ref, std::string_view full_name);
     Status lock() noexcept;
     void repair() noexcept;
     /// V's body, lock held; returns the waiter to wake after unlocking.

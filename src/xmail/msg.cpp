@@ -127,9 +127,17 @@ struct Queue::Ops {
     }
 
     // Where header `off` goes in headused: after `prev` (0: at the head).
-    // O(1) for FIFO/LIFO, insertion sort for HPF; every link on the way checked.
     ipc::Fault place(std::uint32_t off, std::uint32_t& prev) const noexcept {
-        const MsgHead* h = head(off);
+        return place(head(off)->priority, head(off)->seq, prev);
+    }
+    // Where a message of this priority and sequence number goes in headused
+    // (found before anything is changed). O(1) for FIFO/LIFO, insertion sort
+    // for HPF; every link on the way checked.
+    ipc::Fault place(std::int32_t priority, std::uint32_t seq, std::uint32_t& prev) const noexcept {
+        MsgHead probe{};
+        probe.priority = priority;
+        probe.seq = seq;
+        const MsgHead* h = &probe;
         prev = 0;
         if (q->headused == 0) return {};
         if (ipc::Fault f = head_link("headused", q->headused, false)) return f;
@@ -480,12 +488,17 @@ Status Queue::send(const void* data, std::size_t size, std::uint32_t type, std::
         waiter_sleep(*me, deadline, [&] { pass_on_dead(me); });
     }
 
-    // Check the header and the blocks it will take before changing anything.
+    // Check the header and the blocks it will take, and where it will go if
+    // nobody waits for it, before changing anything.
     const std::uint32_t off = q->headfree;
     if (ipc::Fault f = ops.head_link("headfree", off, false)) return refuse(f);
     if (ipc::Fault f = ops.head_link("headfree link", ops.head(off)->link)) return refuse(f);
     for (std::uint32_t i = 0, boff = q->blkfree; i < need; ++i, boff = ops.block(boff)->link)
         if (ipc::Fault f = ops.block_link(i == 0 ? "blkfree" : "blkfree link", boff)) return refuse(f);
+    std::uint32_t prev = 0;
+    Waiter* wake = waiter_pick(q->recv_waiters, layout::kMaxWaiters);
+    if (!wake)
+        if (ipc::Fault f = ops.place(priority, q->next_seq, prev)) return refuse(f);
 
     // Take the header off headfree and the blocks off blkfree, copying as we go.
     MsgHead* h = ops.head(off);
@@ -517,14 +530,6 @@ Status Queue::send(const void* data, std::size_t size, std::uint32_t type, std::
         done += chunk;
     }
     h->seq = q->next_seq++;
-    // Where it goes if nobody waits: found (every link checked) before the commit.
-    std::uint32_t prev = 0;
-    Waiter* wake = waiter_pick(q->recv_waiters, layout::kMaxWaiters);
-    if (!wake)
-        if (ipc::Fault f = ops.place(off, prev)) {
-            h->state = layout::kHeadWriting;  // not committed: repair() frees it
-            return refuse(f);
-        }
     std::atomic_thread_fence(std::memory_order_release);
     h->state = layout::kHeadQueued;  // commit point: from here the message exists
     ++q->sends;
@@ -602,10 +607,13 @@ Status Queue::receive(void* buffer, std::size_t capacity, Info* info, std::int64
         if (const Status s = lock(); s != Status::ok) return s;
         if (me) {
             const std::uint32_t handed = me->state == kSignaled ? me->handed : 0;
+            // A handed message is checked before anything changes.
+            if (handed > g_.blknum) return refuse({"receive waiter's handed message", -1, handed, g_.blknum});
+            if (handed != 0)
+                if (ipc::Fault f = ops.chain(ops.head_off(handed - 1))) return refuse(f);
             waiter_free(*me);
             me = nullptr;
             if (handed != 0) {
-                if (handed > g_.blknum) return refuse({"receive waiter's handed message", -1, handed, g_.blknum});
                 off = ops.head_off(handed - 1);
                 --q->nhanded;
                 if (ops.head(off)->size > capacity) {
@@ -652,13 +660,8 @@ Status Queue::receive(void* buffer, std::size_t capacity, Info* info, std::int64
         waiter_sleep(*me, deadline, [&] { pass_on_dead(me); });
     }
 
-    // A handed message's blocks are checked here (a queued one's above).
+    // Copy the message out of its blocks (checked above), then free header and blocks.
     MsgHead* h = ops.head(off);
-    if (ipc::Fault f = ops.chain(off)) {
-        h->state = layout::kHeadReading;  // out of every list: repair() queues it again
-        return refuse(f);
-    }
-    // Copy the message out of its blocks, then free header and blocks.
     h->state = layout::kHeadReading;
     set_me(h);
     auto* dst = static_cast<std::byte*>(buffer);

@@ -32,7 +32,33 @@ void init_body(SemHeader* h, Kind kind, std::int32_t initial, std::string_view l
     h->value = initial;
 }
 
+// The fixed part: what attach and bind refuse.
+ipc::Fault fixed_fault(const void* image, std::size_t size) noexcept {
+    if (ipc::Fault f = ipc::header_fault(image, size, kSemKind)) return f;
+    const auto& h = *static_cast<const SemHeader*>(image);
+    using ipc::fault_if;
+    if (ipc::Fault f = fault_if(h.kind > static_cast<std::uint32_t>(Kind::counting), "kind", h.kind,
+                                static_cast<std::uint32_t>(Kind::counting)))
+        return f;
+    return fault_if(strnlen(h.name, sizeof h.name) == sizeof h.name, "name length", sizeof h.name,
+                    sizeof h.name - 1);
+}
+
 }  // namespace
+
+ipc::Fault validate(const void* image, std::size_t size) noexcept {
+    if (ipc::Fault f = fixed_fault(image, size)) return f;
+    const auto& h = *static_cast<const SemHeader*>(image);
+    const std::int64_t most = h.kind == static_cast<std::uint32_t>(Kind::binary) ? 1 : INT32_MAX;
+    if (h.value < 0 || h.value > most)
+        return {"value", -1, static_cast<std::uint64_t>(static_cast<std::int64_t>(h.value)),
+                static_cast<std::uint64_t>(most), "0 to"};
+    for (std::uint32_t i = 0; i < layout::kMaxWaiters; ++i)
+        if (ipc::Fault f = ipc::fault_if(h.waiters[i].state > kSignaled, "waiter state", h.waiters[i].state,
+                                         kSignaled, "at most", i))
+            return f;
+    return {};
+}
 
 ipc::Segment create_segment_body(const std::string& segment, const std::string& full_name,
                                  const xm::ObjectParams& params) {
@@ -66,26 +92,22 @@ Semaphore Semaphore::create(xm::Rtpu& self, std::string_view full_name, Kind kin
     xm::ObjectParams op;
     op.a = static_cast<std::uint32_t>(kind);
     op.b = static_cast<std::uint64_t>(initial);
-    const xm::ObjectRef ref = self.create_object(full_name, ipc::ObjectType::xmail_sem, op);
-    Semaphore s;
-    try {
-        s.segment_ = ipc::Segment::attach(ref.segment, kSemKind);
-    } catch (const ipc::SegmentError& e) {
-        throw xm::Error("semaphore '" + std::string(full_name) + "': " + e.what());
-    }
-    s.h_ = static_cast<SemHeader*>(s.segment_.base());
-    s.name_ = std::string(full_name);
-    return s;
+    return map(self.create_object(full_name, ipc::ObjectType::xmail_sem, op), full_name);
 }
 
 Semaphore Semaphore::attach(xm::Rtpu& self, std::string_view full_name) {
-    const xm::ObjectRef ref = self.attach_object(full_name, ipc::ObjectType::xmail_sem);
+    return map(self.attach_object(full_name, ipc::ObjectType::xmail_sem), full_name);
+}
+
+Semaphore Semaphore::map(const xm::ObjectRef& ref, std::string_view full_name) {
     Semaphore s;
     try {
         s.segment_ = ipc::Segment::attach(ref.segment, kSemKind);
     } catch (const ipc::SegmentError& e) {
         throw xm::Error("semaphore '" + std::string(full_name) + "': " + e.what());
     }
+    if (const ipc::Fault f = fixed_fault(s.segment_.base(), s.segment_.size()))
+        throw xm::Error("semaphore '" + std::string(full_name) + "': corrupt: " + ipc::describe(ref.segment, f));
     s.h_ = static_cast<SemHeader*>(s.segment_.base());
     s.name_ = std::string(full_name);
     return s;
@@ -111,9 +133,11 @@ Semaphore Semaphore::bind(void* memory) {
     } catch (const ipc::SegmentError& e) {
         throw xm::Error(e.what());
     }
+    if (const ipc::Fault f = fixed_fault(memory, sizeof(SemHeader)))
+        throw xm::Error("semaphore: corrupt: " + ipc::describe("<memory>", f));
     Semaphore s;
     s.h_ = h;
-    s.name_ = h->name;
+    s.name_ = std::string(h->name, strnlen(h->name, sizeof h->name));
     return s;
 }
 
