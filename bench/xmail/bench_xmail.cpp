@@ -14,6 +14,14 @@
 //                      receives: one round trip = 2 sends, 2 woken receives
 //   MqPingPong         the same with two POSIX message queues (baseline)
 //   PipePingPong       the same with two pipes (baseline)
+//   MsgBusyPingPong    MSG round trip with both sides polling (receive with
+//                      timeout 0 in a loop, no wake-up): the peer is iceoryx2's
+//                      busy-waiting publish/subscribe ping-pong (measured apart,
+//                      bench/results/xmail.md)
+//
+// Placement (second argument of the round trips): 0 = the two processes on
+// two cores (CPUs 0 and 1), 1 = both on CPU 1 (every hand-off is a context
+// switch), 2 = not pinned.
 //
 // Cross-process objects are laid over a MAP_SHARED mapping inherited by a
 // forked child (the name server is a set-up path, not measured); the futex
@@ -24,6 +32,7 @@
 #include <benchmark/benchmark.h>
 #include <fcntl.h>
 #include <mqueue.h>
+#include <sched.h>
 #include <semaphore.h>
 #include <signal.h>
 #include <sys/mman.h>
@@ -39,6 +48,7 @@
 #include <string>
 #include <vector>
 
+#include "chimera/ipc/clock.hpp"
 #include "chimera/msg.hpp"
 #include "chimera/sem.hpp"
 #include "chimera/xmail.hpp"
@@ -84,6 +94,34 @@ void reap(benchmark::State& state, pid_t child) {
 }
 
 constexpr std::int64_t kPartnerTimeout = 5'000'000'000;  // a partner never hangs
+
+// Placement of a round trip (see the top): the caller's CPU, and its
+// partner's (applied in the child after fork()). Restores the caller's
+// affinity when the benchmark ends.
+class Placement {
+public:
+    explicit Placement(const benchmark::State& state) : kind_(static_cast<int>(state.range(1))) {
+        sched_getaffinity(0, sizeof saved_, &saved_);
+        if (kind_ != 2) pin(kind_ == 0 ? 0 : 1);
+    }
+    ~Placement() { sched_setaffinity(0, sizeof saved_, &saved_); }
+    Placement(const Placement&) = delete;
+    Placement& operator=(const Placement&) = delete;
+    /// In the forked partner.
+    void partner() const {
+        if (kind_ != 2) pin(1);
+    }
+
+private:
+    static void pin(int cpu) {
+        cpu_set_t set;
+        CPU_ZERO(&set);
+        CPU_SET(cpu, &set);
+        if (sched_setaffinity(0, sizeof set, &set) != 0) die("sched_setaffinity");
+    }
+    int kind_;
+    cpu_set_t saved_{};
+};
 
 // ------------------------------------------------------------- one process
 
@@ -188,9 +226,11 @@ void SemPingPong(benchmark::State& state) {
     auto* sh = new (m.ptr) Shared{};
     sem::Semaphore ping = sem::Semaphore::over(sh->ping, sem::Kind::binary, 0, "bench:ping");
     sem::Semaphore pong = sem::Semaphore::over(sh->pong, sem::Kind::binary, 0, "bench:pong");
+    const Placement place(state);
     const pid_t child = fork();
     if (child < 0) die("fork");
     if (child == 0) {
+        place.partner();
         for (;;) {
             if (ping.p(kPartnerTimeout) != Status::ok) _exit(1);
             if (sh->stop.load()) _exit(0);
@@ -217,9 +257,11 @@ void MsgPingPong(benchmark::State& state) {
     msg::Queue request = msg::Queue::over(m.ptr, qsize, p, "bench:request");
     msg::Queue reply = msg::Queue::over(static_cast<std::byte*>(m.ptr) + qsize, qsize, p, "bench:reply");
     std::vector<char> out(size, 'x'), in(1024);
+    const Placement place(state);
     const pid_t child = fork();
     if (child < 0) die("fork");
     if (child == 0) {
+        place.partner();
         for (;;) {
             msg::Info info;
             if (request.receive(in.data(), in.size(), &info, kPartnerTimeout) != Status::ok) _exit(1);
@@ -246,9 +288,11 @@ void MqPingPong(benchmark::State& state) {
     const mqd_t request = open_mq(base + ".request");
     const mqd_t reply = open_mq(base + ".reply");
     std::vector<char> out(size, 'x'), in(1024);
+    const Placement place(state);
     const pid_t child = fork();
     if (child < 0) die("fork");
     if (child == 0) {
+        place.partner();
         for (;;) {
             unsigned prio = 0;
             const ssize_t n = mq_receive(request, in.data(), in.size(), &prio);
@@ -271,6 +315,49 @@ void MqPingPong(benchmark::State& state) {
     state.SetBytesProcessed(static_cast<std::int64_t>(state.iterations() * size * 2));
 }
 
+// Both sides poll (receive with timeout 0) instead of sleeping: no system
+// call, no wake-up; only meaningful with the two processes on two cores.
+void MsgBusyPingPong(benchmark::State& state) {
+    const auto size = static_cast<std::size_t>(state.range(0));
+    const msg::Params p = queue_params();
+    const std::size_t qsize = (msg::Queue::memory_size(p) + 63) & ~std::size_t{63};
+    SharedMemory m(2 * qsize);
+    msg::Queue request = msg::Queue::over(m.ptr, qsize, p, "bench:request");
+    msg::Queue reply = msg::Queue::over(static_cast<std::byte*>(m.ptr) + qsize, qsize, p, "bench:reply");
+    std::vector<char> out(size, 'x'), in(1024);
+    const Placement place(state);
+    const auto poll = [&](msg::Queue& q, msg::Info& info) {
+        const std::int64_t deadline = chimera::ipc::now_ns() + kPartnerTimeout;
+        for (;;) {
+            const Status st = q.receive(in.data(), in.size(), &info, 0);
+            if (st != Status::would_block) return st;
+            if (chimera::ipc::now_ns() > deadline) return Status::timed_out;
+        }
+    };
+    const pid_t child = fork();
+    if (child < 0) die("fork");
+    if (child == 0) {
+        place.partner();
+        for (;;) {
+            msg::Info info;
+            if (poll(request, info) != Status::ok) _exit(1);
+            if (info.type == 1) _exit(0);  // stop
+            if (reply.send(in.data(), info.size, 0, 0, 0) != Status::ok) _exit(1);
+        }
+    }
+    for (auto _ : state) {
+        request.send(out.data(), size, 0, 0, 0);
+        msg::Info info;
+        if (poll(reply, info) != Status::ok) {
+            state.SkipWithError("msgReceive polled in vain");
+            break;
+        }
+    }
+    request.send(out.data(), 0, 1, 0, kPartnerTimeout);
+    reap(state, child);
+    state.SetBytesProcessed(static_cast<std::int64_t>(state.iterations() * size * 2));
+}
+
 bool read_all(int fd, char* p, std::size_t n) {
     while (n > 0) {
         const ssize_t r = read(fd, p, n);
@@ -286,9 +373,11 @@ void PipePingPong(benchmark::State& state) {
     int request[2], reply[2];
     if (pipe(request) != 0 || pipe(reply) != 0) die("pipe");
     std::vector<char> out(size, 'x'), in(size);
+    const Placement place(state);
     const pid_t child = fork();
     if (child < 0) die("fork");
     if (child == 0) {
+        place.partner();
         close(request[1]);
         close(reply[0]);
         // The parent closing its end is the stop.
@@ -314,9 +403,20 @@ void PipePingPong(benchmark::State& state) {
 void Sizes(benchmark::internal::Benchmark* b) {
     for (int size : {24, 144, 1024}) b->Arg(size);
 }
-// Round trips also with a 1-byte token: the pipe/mqueue equivalent of SemPingPong.
+// Round trips also with a 1-byte token (the pipe/mqueue equivalent of
+// SemPingPong), in each placement.
 void RoundTripSizes(benchmark::internal::Benchmark* b) {
-    for (int size : {1, 24, 144, 1024}) b->Arg(size);
+    b->ArgNames({"bytes", "place"});
+    for (int place : {0, 1, 2})
+        for (int size : {1, 24, 144, 1024}) b->Args({size, place});
+}
+void PlacementOnly(benchmark::internal::Benchmark* b) {
+    b->ArgNames({"bytes", "place"});
+    for (int place : {0, 1, 2}) b->Args({1, place});
+}
+void BusySizes(benchmark::internal::Benchmark* b) {
+    b->ArgNames({"bytes", "place"});
+    for (int size : {24, 144, 1024}) b->Args({size, 0});
 }
 
 BENCHMARK(XmWriteRead)->Apply(Sizes);
@@ -325,10 +425,11 @@ BENCHMARK(MqSendReceive)->Apply(Sizes);
 BENCHMARK(PipeWriteRead)->Apply(Sizes);
 BENCHMARK(SemPV);
 BENCHMARK(PosixSemPV);
-BENCHMARK(SemPingPong)->UseRealTime();
+BENCHMARK(SemPingPong)->Apply(PlacementOnly)->UseRealTime();
 BENCHMARK(MsgPingPong)->Apply(RoundTripSizes)->UseRealTime();
 BENCHMARK(MqPingPong)->Apply(RoundTripSizes)->UseRealTime();
 BENCHMARK(PipePingPong)->Apply(RoundTripSizes)->UseRealTime();
+BENCHMARK(MsgBusyPingPong)->Apply(BusySizes)->UseRealTime();
 
 }  // namespace
 

@@ -29,6 +29,20 @@
 // died are dropped and a message handed to one goes back into the queue; a
 // live waiter keeps a handed message only if the hand-off was complete (slot
 // signalled and header HANDED), otherwise the message is queued again.
+// A receiver that dies after a message was handed to it loses nothing: when
+// the sender's wake-up reaches nobody and the thread is gone, the sender
+// takes the message back and hands it on (or queues it) before send()
+// returns; a receiver killed after its wake-up reached it is found by the
+// receivers still blocked, which look every 20 ms, and by any receive that
+// finds the queue empty. The same holds for the turn of a waiting sender.
+//
+// Untrusted memory (issue #15.3): the geometry is checked on attach and kept
+// in the handle; every link, index and size read from the segment is checked
+// before it is followed or used (inside the headers or blocks, no list longer
+// than blknum, a message no larger than its blocks or the caller's buffer).
+// A bad one is refused with Status::corrupt before anything is changed, and
+// fault_message() names the segment and the field. The queue is left as it
+// is: a corrupt queue is not repaired behind its users' backs.
 #pragma once
 
 #include <cstddef>
@@ -107,7 +121,27 @@ struct QueueHeader {
 };
 static_assert(sizeof(QueueHeader) == 320 + 2 * 32 * kMaxWaiters);
 
+/// Where everything is in a queue, computed from its parameters (blknum,
+/// blksize, policy), never read from the segment after it was checked.
+struct Geometry {
+    std::uint32_t blknum = 0, blksize = 0, policy = 0;
+    std::uint32_t stride = 0;      ///< msgBHead + blksize
+    std::uint32_t off_heads = 0, off_blocks = 0;
+    std::uint64_t total = 0;       ///< bytes
+};
+
 }  // namespace layout
+
+/// Checks the fixed part of a queue's image of `size` bytes (segment header,
+/// parameters, the offsets they imply), as attach() and bind() do: the first
+/// bound broken, or none. A pure function over the bytes.
+ipc::Fault validate_geometry(const void* image, std::size_t size) noexcept;
+/// validate_geometry() and the structure of a queue at rest (no operation in
+/// progress): every list link and block chain inside the queue, no list
+/// longer than blknum, each message's size within its blocks, every waiter's
+/// handed message in range, the counts matching the lists. For fuzzers and
+/// check(); the operations check each link as they follow it.
+ipc::Fault validate(const void* image, std::size_t size) noexcept;
 
 /// Counters of a queue.
 struct Stats {
@@ -164,18 +198,31 @@ public:
 
     bool valid() const noexcept { return q_ != nullptr; }
     const std::string& name() const noexcept { return name_; }
-    std::uint32_t blknum() const noexcept { return q_->blknum; }
-    std::uint32_t blksize() const noexcept { return q_->blksize; }
-    Policy policy() const noexcept { return static_cast<Policy>(q_->flags); }
+    std::uint32_t blknum() const noexcept { return g_.blknum; }
+    std::uint32_t blksize() const noexcept { return g_.blksize; }
+    Policy policy() const noexcept { return static_cast<Policy>(g_.policy); }
     layout::QueueHeader* header() const noexcept { return q_; }
+    /// What the last operation refused (Status::corrupt) found, naming the
+    /// segment; "" if none.
+    std::string fault_message() const;
+
+    struct Ops;  ///< internal (msg.cpp): the queue as this handle checked it
 
 private:
     Status lock() noexcept;
     void repair() noexcept;
+    static Queue bound(layout::QueueHeader* q, std::size_t size, std::string where);
+    static Queue attach_ref(const xm::ObjectRef& ref, std::string_view full_name);
+    Status refuse(const ipc::Fault& fault) noexcept;
+    Status unlock_and_wake(xm::layout::Waiter* w) noexcept;
+    void pass_on_dead(const xm::layout::Waiter* self) noexcept;
 
     layout::QueueHeader* q_ = nullptr;
+    layout::Geometry g_;    // checked on attach: never re-read from the segment
     ipc::Segment segment_;  // invalid for a queue over caller memory
     std::string name_;
+    std::string where_;     // the segment's name (or the caller memory's label), for faults
+    ipc::Fault fault_;
 };
 
 }  // namespace chimera::msg

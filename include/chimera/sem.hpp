@@ -8,9 +8,13 @@
 // Binary semaphores hold 0 or 1 (a V on 1 stays 1); counting ones any value
 // >= 0.
 //
-// Robustness: a waiter killed while waiting is dropped from the waitlist; a
-// unit granted to a waiter that died before taking it is passed on (or given
-// back to the value) by the next user, who recovers the lock.
+// Robustness (issue #15.2): no unit stays with a waiter that died. V hands
+// its unit over and wakes the waiter; when the wake-up reaches nobody and the
+// thread is gone (killed, reaped or not), V takes the unit back and passes it
+// on before returning. A waiter killed after its wake-up reached it is found
+// by the waiters still blocked, which look every kWaitSlice (20 ms) and pass
+// its unit on, and by any P that finds no unit; a holder of the lock that
+// died is repaired by the next user.
 #pragma once
 
 #include <cstddef>
@@ -48,6 +52,13 @@ struct SemHeader {
 static_assert(sizeof(SemHeader) == 256 + 32 * kMaxWaiters);
 
 }  // namespace layout
+
+/// Checks a semaphore's image of `size` bytes (segment header, kind, value
+/// in range for the kind, waiter states, the name ending in its field): the
+/// first bound broken, or none. A pure function over the bytes. (Nothing in
+/// a semaphore is an offset; attach and bind check all but the value and
+/// the waiters, which P and V keep in range themselves.)
+ipc::Fault validate(const void* image, std::size_t size) noexcept;
 
 class Semaphore {
 public:
@@ -91,11 +102,13 @@ public:
     const std::string& name() const noexcept { return name_; }
 
 private:
+    static Semaphore map(const xm::ObjectRef& ref, std::string_view full_name);
     Status lock() noexcept;
     void repair() noexcept;
     /// V's body, lock held; returns the waiter to wake after unlocking.
     xm::layout::Waiter* release_unit() noexcept;
     bool reclaim_granted() noexcept;
+    void pass_on_dead_grants(const xm::layout::Waiter* self) noexcept;
     layout::SemHeader* h_ = nullptr;
     ipc::Segment segment_;
     std::string name_;

@@ -34,6 +34,11 @@ static_assert(sizeof(ShmHeader) == 192);
 
 }  // namespace layout
 
+/// Checks a shared segment's image of `size` bytes as attach() does (segment
+/// header, the usable area inside the segment, the name ending in its field):
+/// the first bound broken, or none. A pure function over the bytes.
+ipc::Fault validate(const void* image, std::size_t size) noexcept;
+
 /// One mapping of a shared segment. Move-only; destruction detaches.
 class Segment {
 public:

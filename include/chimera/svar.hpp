@@ -178,6 +178,14 @@ struct Descriptor;
 
 class Table;
 
+/// Checks a table's image of `size` bytes as attach() does: the segment
+/// header, every offset and length of the header and of each variable's
+/// descriptor inside the segment (data, INIT/MIN/MAX values, DESC/UNITS
+/// strings, source name), sizes that match their types without overflow,
+/// names that end inside their field, and an active undo record's count and
+/// indices. The first bound broken, or none. A pure function over the bytes.
+ipc::Fault validate_table(const void* image, std::size_t size) noexcept;
+
 /// Read-only view of one variable's descriptor in the global table.
 class VarInfo {
 public:
@@ -290,8 +298,16 @@ private:
     ipc::Segment seg_;
     ipc::LockOptions lock_options_{};
     detail::TableHeader* hdr_ = nullptr;
+    // The fixed part of the table, checked on attach (validate_table()) and
+    // kept here: what another process writes into the segment later cannot
+    // move a copy outside it (issue #15.3).
+    std::unique_ptr<detail::Descriptor[]> own_desc_;
     const detail::Descriptor* desc_ = nullptr;
+    std::uint32_t nvars_ = 0;
     std::byte* data_ = nullptr;
+    std::byte* undo_ = nullptr;
+    std::uint32_t* undo_list_ = nullptr;
+    std::string_view source_;
 };
 
 // ---------------------------------------------------------------------------

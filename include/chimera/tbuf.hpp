@@ -2,27 +2,52 @@
 //
 // A one-way, non-blocking channel for periodic data between two tasks that run
 // at unrelated rates (typically in different subsystems): one writer, one
-// reader. Three slots: the writer fills its private slot and swaps it with the
-// shared "middle" slot in one atomic exchange; the reader, when the middle
-// slot holds something new, swaps its private slot with it in one atomic
-// exchange. Neither side ever waits for the other, the reader always gets the
-// newest complete item, and an item is never written while it is being read.
+// reader. Three slots: the writer fills its private "back" slot and swaps it
+// with the shared "middle" slot; the reader, when the middle slot holds
+// something new, swaps its private "front" slot with it. Neither side ever
+// waits for the other (lock-free: the writer's swap succeeds at the latest at
+// its second try, the reader's whenever the writer is not publishing at that
+// very instant), the reader always gets the newest complete item, and an item
+// is never written while it is being read.
 //
-// Every item carries a time-stamp (CLOCK_MONOTONIC ns, taken in write() or
-// supplied by the caller, e.g. the cycle's release time, which is cheaper)
-// and a counter-stamp (0 for the first item, +1 per write). The reader learns
-// whether an item is new or the one it already had, and how many it missed.
+// Which slot each side holds, and whether the middle one is unread, is ONE
+// atomic word (the state), changed by one compare-and-swap per publish and per
+// fresh read (as the Rust triple_buffer crate keeps its indices in one word).
+// So a writer or reader killed at any instruction leaves a consistent buffer:
+// before its swap nothing the other side sees has changed, after it the swap is
+// complete; the next process to take the role goes on from the state word
+// (issue #15.2: with the indices in two words, a writer killed between them
+// left both sides sharing a slot for good). The counter-stamp of the next item
+// is derived from the newest published item, not kept apart, so a writer that
+// dies between stamping and publishing leaves no gap in the counters either.
+//
+// Every item carries a time-stamp (CLOCK_MONOTONIC ns, read in write() through
+// the vDSO, or supplied by the caller, e.g. the cycle's release time, which
+// saves the clock read) and a counter-stamp (0 for the first item, +1 per
+// publish). The reader learns whether an item is new or the one it already had,
+// and how many it missed.
 //
 // The buffer lives either in its own shared-memory segment, found by name
 // (create/attach), or in a block of memory the caller supplies (create_in/
 // attach_in: another segment, a device's memory window). Both start with the
 // common segment header, whose byte-order code is checked on attach: a buffer
 // written by a machine of the other byte order is refused with a clear error
-// (the synchronisation word is an atomic of this machine; item contents are
-// the application's business, as in the thesis).
+// (the state word is an atomic of this machine; item contents are the
+// application's business, as in the thesis).
+//
+// Untrusted memory (issue #15.3): the geometry (item size, slot places) is
+// checked once on attach (validate()) and then kept in the handle, so nothing
+// another process writes later can move a copy outside the buffer; the state
+// word is checked on every operation (three distinct slot numbers), and a bad
+// one is refused: write() returns kCorrupt, read() ReadStatus::corrupt, and
+// fault_message() names the segment.
 //
 // Roles: one thread writes, one thread reads (each may be in any process, and
-// a side may detach and another process take its role over later).
+// a side may detach, or be killed, and another process take its role over).
+// A handle that has written keeps the writer's slot number: hand the role
+// over by detaching (or dying), never by writing through two live handles in
+// turn; a handle that finds another one has published since refuses
+// (kCorrupt, "another writer") instead of going on.
 #pragma once
 
 #include <atomic>
@@ -32,17 +57,20 @@
 #include <string>
 
 #include "chimera/ipc/clock.hpp"
+#include "chimera/ipc/copy.hpp"
+#include "chimera/ipc/fault.hpp"
 #include "chimera/ipc/segment.hpp"
 
 namespace chimera::tbuf {
 
-inline constexpr std::uint32_t kLayoutVersion = 1;
+inline constexpr std::uint32_t kLayoutVersion = 2;
 
 /// What a read found.
 enum class ReadStatus : std::uint8_t {
-    fresh,   ///< an item the reader had not seen
-    reused,  ///< no new item since the last read: the same item again
-    empty,   ///< nothing has been written yet
+    fresh,    ///< an item the reader had not seen
+    reused,   ///< no new item since the last read: the same item again
+    empty,    ///< nothing has been written yet
+    corrupt,  ///< the shared state word is damaged: nothing read (see fault_message())
 };
 
 struct ReadResult {
@@ -52,50 +80,78 @@ struct ReadResult {
     std::uint64_t missed = 0;   ///< items written but never read since the last fresh read
 };
 
+/// What write() and publish() return when the shared state word is damaged.
+inline constexpr std::uint64_t kCorrupt = ~std::uint64_t{0};
+
 namespace detail {
 
-inline constexpr std::uint32_t kFresh = 4;  // set in `middle` when it holds an unread item
-inline constexpr std::uint32_t kIndex = 3;
+// The state word: bits 0-1 the writer's (back) slot, 2-3 the middle slot,
+// 4-5 the reader's (front) slot, bit 6 set while the middle slot is unread.
+inline constexpr std::uint32_t kFresh = 1u << 6;
+constexpr std::uint32_t back_of(std::uint32_t s) noexcept { return s & 3u; }
+constexpr std::uint32_t middle_of(std::uint32_t s) noexcept { return (s >> 2) & 3u; }
+constexpr std::uint32_t front_of(std::uint32_t s) noexcept { return (s >> 4) & 3u; }
+constexpr std::uint32_t make_state(std::uint32_t back, std::uint32_t middle, std::uint32_t front,
+                                   bool fresh) noexcept {
+    return back | middle << 2 | front << 4 | (fresh ? kFresh : 0u);
+}
+/// Bit n set when n (fresh bit clear) names three distinct slots.
+inline constexpr std::uint64_t kPermutations = [] {
+    std::uint64_t bits = 0;
+    for (std::uint32_t n = 0; n < 64; ++n)
+        if (back_of(n) < 3 && middle_of(n) < 3 && front_of(n) < 3 &&
+            ((1u << back_of(n)) | (1u << middle_of(n)) | (1u << front_of(n))) == 7u)
+            bits |= std::uint64_t{1} << n;
+    return bits;
+}();
+/// Three distinct slots and no stray bit (a shift and a test: every operation checks it).
+constexpr bool state_valid(std::uint32_t s) noexcept {
+    return (s & ~kFresh) < 64 && ((kPermutations >> (s & 63u)) & 1u) != 0;
+}
+static_assert(state_valid(make_state(0, 1, 2, false)) && state_valid(make_state(2, 0, 1, true)));
+static_assert(!state_valid(make_state(0, 0, 2, false)) && !state_valid(make_state(3, 1, 2, true)));
+static_assert(!state_valid(make_state(0, 1, 2, true) | 1u << 7));
+/// After a publish: back and middle swapped, the middle unread.
+constexpr std::uint32_t published(std::uint32_t s) noexcept {
+    return make_state(middle_of(s), back_of(s), front_of(s), true);
+}
+/// After a fresh read: front and middle swapped, nothing unread.
+constexpr std::uint32_t taken(std::uint32_t s) noexcept {
+    return make_state(back_of(s), front_of(s), middle_of(s), false);
+}
 
-struct alignas(64) SlotHeader {
+/// After each slot's item: its stamps.
+struct Stamp {
     std::int64_t time_ns;
-    std::uint64_t counter;
-    std::uint64_t written;  // 1 once the slot holds an item
-    std::uint8_t reserved[40];
+    std::uint64_t seq;  // counter-stamp + 1; 0 while the slot never held an item
 };
-static_assert(sizeof(SlotHeader) == 64);
+static_assert(sizeof(Stamp) == 16);
 
 struct alignas(64) Header {
     ipc::SegmentHeader segment;  // offset 0: magic, version, byte order
-    // offset 64: fixed
+    // offset 64: fixed at creation
     std::uint64_t item_size;
-    std::uint64_t slot_stride;   // SlotHeader + item, rounded to 64
+    std::uint64_t slot_stride;   // item + Stamp, rounded to 64
     std::uint64_t slots_offset;  // from the start of the block
-    std::uint8_t reserved0[40];
-    // offset 128: the only word both sides touch
-    std::atomic<std::uint32_t> middle;
+    std::uint64_t stamp_offset;  // of a slot's Stamp, from the slot's start
+    std::uint8_t reserved0[32];
+    // offset 128: the only word both sides write
+    std::atomic<std::uint32_t> state;
     std::uint8_t reserved1[60];
-    // offset 192: writer's own line
-    std::uint32_t back;
-    std::uint32_t reserved2;
-    std::uint64_t next_counter;
-    std::uint8_t reserved3[48];
-    // offset 256: reader's own line
-    std::uint32_t front;
-    std::uint32_t has_read;
-    std::uint64_t last_counter;
-    std::uint64_t missed_total;
-    std::uint8_t reserved4[40];
 };
-static_assert(sizeof(Header) == 320);
-static_assert(offsetof(Header, middle) == 128);
-static_assert(offsetof(Header, back) == 192);
-static_assert(offsetof(Header, front) == 256);
+static_assert(sizeof(Header) == 192);
+static_assert(offsetof(Header, state) == 128);
+static_assert(std::atomic<std::uint32_t>::is_always_lock_free);
 
 }  // namespace detail
 
 /// Bytes of memory a buffer for items of `item_size` bytes needs.
 std::size_t required_size(std::size_t item_size) noexcept;
+
+/// Checks a buffer's image of `size` bytes (header, geometry, state word) as
+/// attach() does, without throwing: the first bound broken, or none. A pure
+/// function over the bytes, for tests and fuzzers.
+ipc::Fault validate(const void* image, std::size_t size) noexcept;
 
 /// A triple buffer. Move-only; destruction detaches.
 class Tbuf {
@@ -119,87 +175,159 @@ public:
 
     /// tbufDetach: unmaps (segment) or forgets (caller memory).
     void detach() noexcept;
-    /// tbufDestroy: unmaps and removes the segment if this was its last user.
+    /// tbufDestroy: unmaps and removes the segment if no other live process
+    /// maps it (users killed without detaching are not counted).
     bool destroy() noexcept;
 
     bool valid() const noexcept { return h_ != nullptr; }
-    std::size_t item_size() const noexcept { return h_->item_size; }
-    /// Total items the reader has missed (written, never read).
-    std::uint64_t missed_total() const noexcept { return h_->missed_total; }
+    std::size_t item_size() const noexcept { return item_size_; }
+    /// Total items this handle's reads found missed (written, never read).
+    std::uint64_t missed_total() const noexcept { return missed_total_; }
+    /// What the last refused operation found damaged, naming the segment ("" if none).
+    std::string fault_message() const;
 
     // --- writer ----------------------------------------------------------------
     /// tbufWrite: copies `item` (item_size() bytes), stamps it with now_ns()
-    /// and the next counter, and makes it the newest. Returns its counter.
+    /// and the next counter, and makes it the newest. Returns its counter
+    /// (kCorrupt, nothing published, when the state word is damaged).
     std::uint64_t write(const void* item) noexcept { return write(item, ipc::now_ns()); }
     /// As write(), with a caller-supplied time-stamp (saves reading the clock).
     std::uint64_t write(const void* item, std::int64_t time_ns) noexcept {
-        std::memcpy(write_slot(), item, h_->item_size);
-        return publish(time_ns);
+        if (back_ > 2 && !become_writer()) [[unlikely]]
+            return kCorrupt;
+        ipc::copy_var(slot_[back_], static_cast<const std::byte*>(item), item_size_);
+        return publish_back(time_ns);
     }
-    /// Zero-copy writing: the writer's private slot, to fill in place...
-    void* write_slot() noexcept { return data(h_->back); }
-    /// ...then publish it (stamps, one atomic exchange). Returns its counter.
+    /// Zero-copy writing: the writer's private slot, to fill in place
+    /// (nullptr when the state word is damaged)...
+    void* write_slot() noexcept {
+        if (back_ > 2 && !become_writer()) [[unlikely]]
+            return nullptr;
+        return slot_[back_];
+    }
+    /// The counter-stamp the next publish of this handle will carry (the
+    /// newest item's + 1, also when a killed writer's successor goes on);
+    /// kCorrupt when the state word is damaged.
+    std::uint64_t next_counter() noexcept {
+        if (back_ > 2 && !become_writer()) [[unlikely]]
+            return kCorrupt;
+        return seq_;
+    }
+    /// ...then publish it (stamps, one compare-and-swap). Returns its counter.
     std::uint64_t publish(std::int64_t time_ns) noexcept {
-        detail::SlotHeader& s = slot(h_->back);
-        const std::uint64_t counter = h_->next_counter++;
-        s.time_ns = time_ns;
-        s.counter = counter;
-        s.written = 1;
-        // Release: the item is complete before the reader can take it; acquire:
-        // the reader is done with the slot we get back before we overwrite it.
-        const std::uint32_t old =
-            h_->middle.exchange(h_->back | detail::kFresh, std::memory_order_acq_rel);
-        h_->back = old & detail::kIndex;
-        return counter;
+        if (back_ > 2 && !become_writer()) [[unlikely]]
+            return kCorrupt;
+        return publish_back(time_ns);
     }
 
     // --- reader ----------------------------------------------------------------
-    /// tbufRead: the newest complete item, copied to `item` (unless empty).
+    /// tbufRead: the newest complete item, copied to `item` (unless empty or corrupt).
     ReadResult read(void* item) noexcept {
         ReadResult r;
         const void* p = read_view(r);
-        if (r.status != ReadStatus::empty) std::memcpy(item, p, h_->item_size);
+        if (r.status <= ReadStatus::reused)
+            ipc::copy_var(static_cast<std::byte*>(item), static_cast<const std::byte*>(p), item_size_);
         return r;
     }
-    /// Zero-copy reading: the newest item in place, valid until the next read.
+    /// Zero-copy reading: the newest item in place, valid until the next read
+    /// (nullptr when the state word is damaged).
     const void* read_view(ReadResult& r) noexcept {
-        bool fresh = false;
-        if (h_->middle.load(std::memory_order_relaxed) & detail::kFresh) {
-            const std::uint32_t old = h_->middle.exchange(h_->front, std::memory_order_acq_rel);
-            h_->front = old & detail::kIndex;
-            fresh = true;
+        std::uint32_t s = h_->state.load(std::memory_order_relaxed);
+        if (!detail::state_valid(s)) [[unlikely]]
+            return refuse_read(s, r);
+        const bool fresh = (s & detail::kFresh) != 0;
+        std::uint64_t had = 0;  // the seq of the item the reader held before
+        if (fresh) {
+            had = stamp(detail::front_of(s)).seq;
+            // Release: we are done with our old slot before the writer gets it;
+            // acquire: the item we take is complete. A failure means the writer
+            // published again meanwhile: take that one.
+            while (!h_->state.compare_exchange_weak(s, detail::taken(s), std::memory_order_acq_rel,
+                                                    std::memory_order_relaxed)) {
+                if (!detail::state_valid(s)) [[unlikely]]
+                    return refuse_read(s, r);
+            }
+            s = detail::taken(s);
         }
-        const detail::SlotHeader& s = slot(h_->front);
-        r.counter = s.counter;
-        r.time_ns = s.time_ns;
+        const detail::Stamp& st = stamp(detail::front_of(s));
+        r.counter = st.seq - 1;
+        r.time_ns = st.time_ns;
         r.missed = 0;
-        if (!s.written) {
+        if (st.seq == 0) {
             r.status = ReadStatus::empty;
+            r.counter = 0;
         } else if (fresh) {
             r.status = ReadStatus::fresh;
-            r.missed = h_->has_read ? s.counter - h_->last_counter - 1 : s.counter;
-            h_->missed_total += r.missed;
-            h_->last_counter = s.counter;
-            h_->has_read = 1;
+            r.missed = st.seq - had - 1;  // had == 0: every item before this one
+            missed_total_ += r.missed;
         } else {
             r.status = ReadStatus::reused;
         }
-        return data(h_->front);
+        return slot_[detail::front_of(s)];
     }
 
 private:
     explicit Tbuf(ipc::Segment seg);
     static detail::Header& init(void* memory, std::size_t size, std::size_t item_size);
-    static void check(const std::string& where, void* memory, std::size_t size);
+    static void check(const std::string& where, const void* memory, std::size_t size);
+    void bind(std::byte* base) noexcept;
 
-    detail::SlotHeader& slot(std::uint32_t i) noexcept {
-        return *reinterpret_cast<detail::SlotHeader*>(base_ + h_->slots_offset + i * h_->slot_stride);
+    // The writer's view of the state word, taken when a handle first writes
+    // and then kept from its own compare-and-swaps: only the writer moves the
+    // back slot, and the newest item is the one it published last. So a
+    // publish reads nothing shared before its swap (as the crate's writer).
+    // False (fault recorded) when the state word is damaged.
+    bool become_writer() noexcept;
+
+    // Stamps the back slot with the next counter and swaps it into the middle.
+    std::uint64_t publish_back(std::int64_t time_ns) noexcept {
+        detail::Stamp& st = stamp(back_);
+        st.time_ns = time_ns;
+        st.seq = seq_ + 1;
+        // Release: the item and its stamps are complete before the reader can
+        // take them; acquire: the reader is done with the slot we get back.
+        // The expected word is a guess (the reader took our last item, or not,
+        // as last time); a wrong guess costs a second try with the real word.
+        std::uint32_t s = guess_;
+        while (!h_->state.compare_exchange_weak(s, detail::published(s), std::memory_order_acq_rel,
+                                                std::memory_order_relaxed)) {
+            if (!detail::state_valid(s) || detail::back_of(s) != back_) [[unlikely]]
+                return lost_writer_slot(s);
+        }
+        const std::uint32_t now = detail::published(s);
+        guess_ = (s & detail::kFresh) ? now : detail::taken(now);
+        back_ = detail::back_of(now);
+        return seq_++;
     }
-    void* data(std::uint32_t i) noexcept { return &slot(i) + 1; }
+    // The state word is damaged, or names another back slot than ours (a
+    // second writer): the item went nowhere. Records the fault; kCorrupt.
+    std::uint64_t lost_writer_slot(std::uint32_t s) noexcept;
+    // Record a damaged state word; kCorrupt / a corrupt result.
+    std::uint64_t refuse(std::uint32_t s) noexcept;
+    const void* refuse_read(std::uint32_t s, ReadResult& r) noexcept {
+        refuse(s);
+        r = ReadResult{ReadStatus::corrupt, 0, 0, 0};
+        return nullptr;
+    }
+    detail::Stamp& stamp(std::uint32_t slot) noexcept {
+        return *reinterpret_cast<detail::Stamp*>(slot_[slot] + stamp_offset_);
+    }
 
     ipc::Segment seg_;             // empty for caller-supplied memory
-    std::byte* base_ = nullptr;
     detail::Header* h_ = nullptr;
+    // Kept from the header checked on attach: later writes to the shared
+    // header cannot move a copy outside the buffer.
+    std::byte* slot_[3] = {};
+    std::size_t item_size_ = 0;
+    std::size_t stamp_offset_ = 0;
+    std::uint64_t missed_total_ = 0;
+    // The writer's (see become_writer()): its slot (3: not known yet), the
+    // seq of its last item, the expected state word.
+    std::uint32_t back_ = 3;
+    std::uint32_t guess_ = 0;
+    std::uint64_t seq_ = 0;
+    ipc::Fault fault_;
+    std::string where_;            // the segment's name, for fault_message()
 };
 
 }  // namespace chimera::tbuf

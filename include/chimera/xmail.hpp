@@ -17,6 +17,28 @@
 // Hot paths (write, read, wakeup, block, mbox_send) are noexcept and return a
 // Status; set-up (create, peer attach, name-server requests) throws Error with
 // the object named.
+//
+// Untrusted memory (issue #15.3): every process that sends to a mailbox maps
+// it writable, so nothing in it is taken on trust. The owner uses the sizes
+// and offsets it created the mailbox with, and a sender those it checked
+// when it attached (validate_mailbox()), kept in its Peer; the positions of a
+// ring are bounded by the ring's size and every record length by the bytes
+// the ring holds, before anything is copied. A bad value is refused with
+// Status::corrupt and the mailbox's (or Peer's) fault_message() names the
+// segment, the ring and the field; the owner drops that ring's unread bytes
+// (counted in the ring's `discarded`) so that the other senders go on.
+//
+// Lost with a dead receiver (issue #15.2): messages a sender wrote that the
+// receiving RTPU never read before it died are not lost silently. When the
+// sender finds the receiver dead (a write, mbox_send or wakeup that returns
+// not_alive, peer() re-attaching, check_peers(), which the XM server runs
+// every 100 ms), it counts the records still in its ring there: in the
+// Peer (undelivered(): they are the last ones written to it), in
+// Mailbox::undelivered(), and in its own mailbox header (`undelivered`),
+// where status tools see it. And when an RTPU takes over the mailbox of a
+// dead predecessor of its name, it counts what that one left unread in its
+// own header (`predecessor_unread`): the loss is on record even when the
+// senders died too.
 #pragma once
 
 #include <atomic>
@@ -49,6 +71,8 @@ enum class Status : int {
     bad_argument,    ///< task or mailbox number out of range, ...
     lock_timeout,    ///< the object's lock could not be taken in time
     too_many_waiters,///< every waiter slot of the object is in use
+    corrupt,         ///< a value read from the shared segment is out of bounds: refused,
+                     ///< nothing copied (the object's fault_message() names the segment)
 };
 const char* to_string(Status s) noexcept;
 
@@ -74,7 +98,7 @@ struct MailboxConfig {
 
 namespace layout {
 
-inline constexpr std::uint32_t kMailboxVersion = 1;
+inline constexpr std::uint32_t kMailboxVersion = 2;
 inline constexpr std::size_t kNameMax = 31;  ///< RTPU and object names, characters
 
 /// The mailbox segment header (after it: wakeup words, mbox values, rings).
@@ -94,7 +118,9 @@ struct MailboxHeader {
     std::atomic<std::uint32_t> sleeping; ///< the owner is (about to be) asleep on trigger
     std::atomic<std::uint32_t> pending;  ///< bit n: mailbox interrupt n pending
     std::atomic<std::uint32_t> resets;   ///< reset interrupts handled
-    std::uint8_t reserved1[40];
+    std::atomic<std::uint64_t> undelivered; ///< messages this RTPU sent that died unread with their receivers
+    std::atomic<std::uint64_t> predecessor_unread; ///< messages a dead predecessor of this RTPU left unread (taken over)
+    std::uint8_t reserved1[24];
 };
 static_assert(sizeof(MailboxHeader) == 256);
 
@@ -120,6 +146,13 @@ static_assert(sizeof(RecordHeader) == 8);
 /// Total segment bytes for a config (the Linux form of the thesis's eq. 5).
 std::size_t mailbox_size(const MailboxConfig& config) noexcept;
 
+/// Where everything is in a mailbox, computed from its config (never read
+/// from the segment after it was checked).
+struct MailboxGeometry {
+    std::uint32_t nrtpu = 0, ntasks = 0, nmbox = 0, bufsize = 0;
+    std::uint64_t off_wakeup = 0, off_mbox = 0, off_rings = 0, ring_stride = 0, total = 0;
+};
+
 /// A task waiting on a SEM or MSG object (the thesis's waitlist entry). The
 /// task sleeps on `word` (futex); the signaller sets it under the object's
 /// lock, so a dead waiter or signaller is repaired from these fields.
@@ -138,24 +171,41 @@ static_assert(sizeof(Waiter) == 32);
 
 class Mailbox;
 
+/// Checks a mailbox image of `size` bytes as a sender does on attach (segment
+/// header, sizes, the offsets they imply, the RTPU name) and the contents of
+/// every ring (positions within the ring, each record within the bytes
+/// written): the first bound broken, or none. A pure function over the bytes.
+ipc::Fault validate_mailbox(const void* image, std::size_t size) noexcept;
+
 /// Another RTPU's mailbox as seen by this one (the thesis's xmheaders[bid]
 /// pointers). Obtained from Mailbox::peer(); valid while the Mailbox lives.
 class Peer {
 public:
     const std::string& rtpu() const noexcept { return rtpu_; }
-    std::uint32_t bid() const noexcept { return header_->bid; }
+    std::uint32_t bid() const noexcept { return bid_; }
     /// The peer's mailbox header (alive word, owner pid, counters).
     const layout::MailboxHeader& header() const noexcept { return *header_; }
+    /// Messages written here that its RTPU never read before it died: the
+    /// last undelivered() ones written to it (0 while it lives).
+    std::uint64_t undelivered() const noexcept { return undelivered_; }
+    /// What the last refused operation (Status::corrupt) found, naming the segment.
+    std::string fault_message() const;
 
 private:
     friend class Mailbox;
     std::string rtpu_;
     ipc::Segment segment_;
     layout::MailboxHeader* header_ = nullptr;
+    layout::MailboxGeometry geometry_;    // checked on attach
+    std::uint32_t bid_ = 0;
     layout::RingHeader* ring_ = nullptr;  // our ring in the peer's mailbox
     std::byte* buffer_ = nullptr;
+    std::uint64_t in_ = 0;                // our ring's write position (the truth; mirrored in ring_->in)
     std::int64_t last_probe_ns_ = 0;
     bool probe_ok_ = false;
+    bool loss_counted_ = false;           // the receiver was found dead and its unread records counted
+    std::uint64_t undelivered_ = 0;
+    ipc::Fault fault_;
     std::mutex write_mutex_;  // tasks of this RTPU share our one ring (local lock)
 };
 
@@ -230,6 +280,16 @@ public:
     /// XM_MBOX_RESET handling (xmInitLocal again): drops every unread message.
     void reset_buffers() noexcept;
 
+    /// Probes every peer this RTPU has written to; counts the messages left
+    /// unread in the mailbox of each one found dead (see undelivered()).
+    void check_peers() noexcept;
+    /// Messages this RTPU wrote that their receivers died without reading.
+    std::uint64_t undelivered() const noexcept {
+        return header_->undelivered.load(std::memory_order_relaxed);
+    }
+    /// What the last refused read (Status::corrupt) found, naming the segment.
+    std::string fault_message() const;
+
     /// How often write()/wakeup() re-check that a peer's process exists.
     void set_probe_period(std::int64_t ns) noexcept { probe_period_ns_ = ns; }
 
@@ -238,13 +298,20 @@ public:
 
 private:
     bool probe(Peer& peer) noexcept;
+    Status dead(Peer& peer) noexcept;
+    Status dead_locked(Peer& peer) noexcept;
     void signal(layout::MailboxHeader& h, std::uint32_t mbox) noexcept;
+    layout::RingHeader* own_ring(std::uint32_t b) noexcept;
+    std::atomic<std::uint32_t>* own_wakeup() noexcept;
 
     std::string sys_, rtpu_;
     std::uint32_t bid_;
     MailboxConfig config_;
+    layout::MailboxGeometry geometry_;  // of our own mailbox, as we made it
     ipc::Segment segment_;
     layout::MailboxHeader* header_ = nullptr;
+    std::vector<std::uint64_t> out_;    // each ring's read position (the truth; mirrored in the ring)
+    ipc::Fault fault_;
     std::uint32_t next_ring_ = 0;
     std::int64_t probe_period_ns_ = 1'000'000;
     std::mutex peers_mutex_;
@@ -341,6 +408,8 @@ private:
     void serve();
     void handle_message(std::uint32_t from, const std::byte* data, std::size_t length);
     void handle_request(const void* request);
+    void reap_objects() noexcept;
+    void sweep_orphans() noexcept;
     ObjectRef request(std::string_view full_name, std::uint32_t op, ipc::ObjectType type,
                       const ObjectParams& params);
 

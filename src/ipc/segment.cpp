@@ -5,6 +5,7 @@
 #include <signal.h>
 #include <sys/mman.h>
 #include <sys/stat.h>
+#include <sys/sysmacros.h>
 #include <unistd.h>
 
 #include <cerrno>
@@ -48,7 +49,46 @@ void* map_fd(const std::string& name, int fd, std::size_t size, bool prefault, b
     return base;
 }
 
+// The user lock: a shared (F_RDLCK) or exclusive (F_WRLCK) open-file-
+// description lock on the segment's first byte. OFD locks belong to the open
+// file, not to the process, so two mappings in one process are two users too,
+// and the kernel drops them when the last descriptor of the file closes (a
+// process that dies closes all of them).
+bool set_user_lock(int fd, short type, bool wait) noexcept {
+    struct flock fl {};
+    fl.l_type = type;
+    fl.l_whence = SEEK_SET;
+    fl.l_start = 0;
+    fl.l_len = 1;
+    for (;;) {
+        if (fcntl(fd, wait ? F_OFD_SETLKW : F_OFD_SETLK, &fl) == 0) return true;
+        if (errno != EINTR) return false;
+    }
+}
+
+// Same file (device and inode) as `fd`?
+bool names_file(const std::string& name, int fd) noexcept {
+    struct stat mine {}, now {};
+    if (fstat(fd, &mine) != 0) return false;
+    const int other = shm_open(name.c_str(), O_RDONLY, 0);
+    if (other < 0) return false;
+    const bool same = fstat(other, &now) == 0 && now.st_dev == mine.st_dev && now.st_ino == mine.st_ino;
+    close(other);
+    return same;
+}
+
 }  // namespace
+
+std::string describe(std::string_view segment, const Fault& f) {
+    if (!f) return "";
+    std::string s = "segment ";
+    s += segment;
+    s += ": ";
+    s += f.field;
+    if (f.index >= 0) s += " [" + std::to_string(f.index) + "]";
+    s += " is " + std::to_string(f.value) + " (must be " + f.rule + " " + std::to_string(f.limit) + ")";
+    return s;
+}
 
 std::string object_type_name(ObjectType type) {
     switch (type) {
@@ -88,7 +128,7 @@ void init_header(SegmentHeader& h, SegmentKind kind, std::size_t total_size) noe
     h.object_type = static_cast<std::uint32_t>(kind.type);
     h.byte_order = kByteOrderCode;
     h.total_size = total_size;
-    h.attach_count.store(1, std::memory_order_relaxed);
+    h.attaches.store(0, std::memory_order_relaxed);
     h.creator_pid = static_cast<std::int32_t>(getpid());
     h.state.store(static_cast<std::uint32_t>(SegmentState::building), std::memory_order_relaxed);
     h.header_size = sizeof(SegmentHeader);
@@ -134,10 +174,30 @@ void validate_header(const std::string& name, const SegmentHeader& h, SegmentKin
                                      " bytes, the segment has " + std::to_string(mapped_size));
 }
 
+Fault header_fault(const void* image, std::size_t size, SegmentKind kind) noexcept {
+    if (size < sizeof(SegmentHeader)) return {"segment size", -1, size, sizeof(SegmentHeader), "at least"};
+    const auto& h = *static_cast<const SegmentHeader*>(image);
+    if (Fault f = fault_if(h.magic != kSegmentMagic, "magic", h.magic, kSegmentMagic, "equal to")) return f;
+    if (Fault f = fault_if(h.byte_order != kByteOrderCode, "byte-order code", h.byte_order,
+                           kByteOrderCode, "equal to"))
+        return f;
+    const auto type = static_cast<std::uint32_t>(kind.type);
+    if (Fault f = fault_if(h.object_type != type, "object type", h.object_type, type, "equal to")) return f;
+    if (Fault f = fault_if(h.layout_version != kind.layout_version, "layout version",
+                           h.layout_version, kind.layout_version, "equal to"))
+        return f;
+    if (Fault f = fault_if(h.header_size != sizeof(SegmentHeader), "header size", h.header_size,
+                           sizeof(SegmentHeader), "equal to"))
+        return f;
+    return fault_if(h.total_size != size, "total size", h.total_size, size, "equal to");
+}
+
 Segment::Segment(Segment&& o) noexcept
     : name_(std::move(o.name_)),
       base_(std::exchange(o.base_, nullptr)),
       size_(std::exchange(o.size_, 0)),
+      fd_(std::exchange(o.fd_, -1)),
+      owner_(std::exchange(o.owner_, 0)),
       locked_(std::exchange(o.locked_, false)),
       creator_(std::exchange(o.creator_, false)),
       published_(std::exchange(o.published_, false)) {}
@@ -148,6 +208,8 @@ Segment& Segment::operator=(Segment&& o) noexcept {
         name_ = std::move(o.name_);
         base_ = std::exchange(o.base_, nullptr);
         size_ = std::exchange(o.size_, 0);
+        fd_ = std::exchange(o.fd_, -1);
+        owner_ = std::exchange(o.owner_, 0);
         locked_ = std::exchange(o.locked_, false);
         creator_ = std::exchange(o.creator_, false);
         published_ = std::exchange(o.published_, false);
@@ -174,6 +236,7 @@ Segment Segment::create(const std::string& name, std::size_t size, SegmentKind k
         // fchmod: the umask must not narrow the mode the caller asked for.
         if (fchmod(fd, options.mode) != 0) fail_errno(name, "fchmod", errno);
         if (ftruncate(fd, static_cast<off_t>(size)) != 0) fail_errno(name, "ftruncate", errno);
+        if (!set_user_lock(fd, F_RDLCK, false)) fail_errno(name, "fcntl(F_OFD_SETLK)", errno);
         seg.base_ = map_fd(name, fd, size, options.prefault, options.lock, seg.locked_);
         seg.size_ = size;
     } catch (...) {
@@ -181,7 +244,8 @@ Segment Segment::create(const std::string& name, std::size_t size, SegmentKind k
         shm_unlink(name.c_str());
         throw;
     }
-    close(fd);
+    seg.fd_ = fd;
+    seg.owner_ = getpid();
     init_header(seg.header(), kind, size);
     return seg;
 }
@@ -205,15 +269,20 @@ Segment Segment::attach(const std::string& name, SegmentKind kind, const AttachO
         throw SegmentError(name, "size " + std::to_string(size) +
                                      " bytes is smaller than a segment header");
     }
-    Segment seg;
-    seg.name_ = name;
-    try {
-        seg.base_ = map_fd(name, fd, size, options.prefault, options.lock, seg.locked_);
-    } catch (...) {
+    // Count ourselves in first: from here a detach_destroy_if_last() of
+    // another user cannot remove the segment, and one that removed it before
+    // has marked it destroyed, which we see below. (Waits only while a last
+    // user holds the exclusive lock to unlink the name: a few system calls.)
+    if (!set_user_lock(fd, F_RDLCK, true)) {
+        const int err = errno;
         close(fd);
-        throw;
+        fail_errno(name, "fcntl(F_OFD_SETLKW)", err);
     }
-    close(fd);
+    Segment seg;  // from here its destructor unmaps and closes on a throw
+    seg.name_ = name;
+    seg.fd_ = fd;
+    seg.owner_ = getpid();
+    seg.base_ = map_fd(name, fd, size, options.prefault, options.lock, seg.locked_);
     seg.size_ = size;
     SegmentHeader& h = seg.header();
     // A segment still being built: wait for publish() a bounded time.
@@ -221,33 +290,13 @@ Segment Segment::attach(const std::string& name, SegmentKind kind, const AttachO
     for (;;) {
         const auto state = static_cast<SegmentState>(h.state.load(std::memory_order_acquire));
         if (state == SegmentState::ready) break;
-        if (state == SegmentState::destroyed || now_ns() > deadline) {
-            std::string why = state == SegmentState::destroyed
-                                  ? "is being destroyed"
-                                  : "is still being built by pid " + std::to_string(h.creator_pid);
-            munmap(seg.base_, seg.size_);
-            seg.base_ = nullptr;
-            throw SegmentError(name, why);
-        }
+        if (state == SegmentState::destroyed) throw SegmentError(name, "is being destroyed");
+        if (now_ns() > deadline)
+            throw SegmentError(name, "is still being built by pid " + std::to_string(h.creator_pid));
         std::this_thread::sleep_for(std::chrono::microseconds(200));
     }
-    try {
-        validate_header(name, h, kind, size);
-    } catch (...) {
-        munmap(seg.base_, seg.size_);
-        seg.base_ = nullptr;
-        throw;
-    }
-    // Count ourselves in, then make sure the last user is not destroying it
-    // right now (seq_cst pairs with release(): either we see `destroyed`, or
-    // the destroyer sees our count and keeps the segment).
-    h.attach_count.fetch_add(1, std::memory_order_seq_cst);
-    if (h.state.load(std::memory_order_seq_cst) != static_cast<std::uint32_t>(SegmentState::ready)) {
-        h.attach_count.fetch_sub(1, std::memory_order_seq_cst);
-        munmap(seg.base_, seg.size_);
-        seg.base_ = nullptr;
-        throw SegmentError(name, "is being destroyed");
-    }
+    validate_header(name, h, kind, size);
+    h.attaches.fetch_add(1, std::memory_order_relaxed);
     seg.published_ = true;
     return seg;
 }
@@ -259,35 +308,83 @@ void Segment::publish() noexcept {
 }
 
 bool Segment::release(bool destroy_if_last) noexcept {
-    if (!base_) return false;
-    SegmentHeader& h = header();
+    if (!base_) {
+        if (fd_ >= 0) close(std::exchange(fd_, -1));  // attach() failed after opening
+        return false;
+    }
     bool destroy = false;
-    if (creator_ && !published_) {
-        destroy = true;  // a creation that failed half-way leaves nothing behind
-    } else {
-        const std::uint32_t before = h.attach_count.fetch_sub(1, std::memory_order_seq_cst);
-        if (before == 1 && destroy_if_last) {
-            auto ready = static_cast<std::uint32_t>(SegmentState::ready);
-            if (h.state.compare_exchange_strong(
-                    ready, static_cast<std::uint32_t>(SegmentState::destroyed),
-                    std::memory_order_seq_cst)) {
-                if (h.attach_count.load(std::memory_order_seq_cst) == 0) {
-                    destroy = true;
-                } else {
-                    // Someone attached meanwhile: it is a user now, keep the segment.
-                    h.state.store(static_cast<std::uint32_t>(SegmentState::ready),
-                                  std::memory_order_seq_cst);
-                }
-            }
+    // A copy inherited through fork() is the parent's mapping, not a user of its own.
+    if (owner_ == getpid()) {
+        if (creator_ && !published_) {
+            destroy = true;  // a creation that failed half-way leaves nothing behind
+        } else if (destroy_if_last && set_user_lock(fd_, F_WRLCK, false)) {
+            // No other live mapping holds a lock: the segment is ours to remove.
+            // `destroyed` first, so that an attacher that opened the name and
+            // waits for its shared lock learns it as soon as it gets it. The
+            // name may meanwhile have been unlinked and reused: remove only ours.
+            header().state.store(static_cast<std::uint32_t>(SegmentState::destroyed),
+                                 std::memory_order_seq_cst);
+            destroy = names_file(name_, fd_);
         }
     }
     if (locked_) munlock(base_, size_);
     munmap(base_, size_);
+    if (destroy) shm_unlink(name_.c_str());
+    if (fd_ >= 0) close(fd_);  // drops this mapping's user lock
     base_ = nullptr;
     size_ = 0;
+    fd_ = -1;
     locked_ = false;
-    if (destroy) shm_unlink(name_.c_str());
     return destroy;
+}
+
+std::uint32_t Segment::users() const noexcept {
+    struct stat st {};
+    if (fd_ < 0 || fstat(fd_, &st) != 0) return 0;
+    // /proc/locks: "N: OFDLCK ADVISORY  READ  -1 MAJ:MIN:INODE 0 0", one line per lock.
+    char needle[64];
+    std::snprintf(needle, sizeof needle, " %02x:%02x:%lu ", major(st.st_dev), minor(st.st_dev),
+                  static_cast<unsigned long>(st.st_ino));
+    std::FILE* f = std::fopen("/proc/locks", "re");
+    if (!f) return 0;
+    std::uint32_t n = 0;
+    char line[256];
+    while (std::fgets(line, sizeof line, f))
+        if (std::strstr(line, "OFDLCK") && std::strstr(line, needle) && !std::strstr(line, "->")) ++n;
+    std::fclose(f);
+    return n;
+}
+
+bool Segment::destroy_if_unused(const std::string& name) noexcept {
+    const int fd = shm_open(name.c_str(), O_RDWR, 0);
+    if (fd < 0) return false;
+    bool removed = false;
+    struct stat st {};
+    if (set_user_lock(fd, F_WRLCK, false) && fstat(fd, &st) == 0 &&
+        static_cast<std::size_t>(st.st_size) >= sizeof(SegmentHeader)) {
+        void* p = mmap(nullptr, sizeof(SegmentHeader), PROT_READ | PROT_WRITE, MAP_SHARED, fd, 0);
+        if (p != MAP_FAILED) {
+            auto* h = static_cast<SegmentHeader*>(p);
+            // Still being built by a live creator holds its lock; a dead one's is garbage too.
+            h->state.store(static_cast<std::uint32_t>(SegmentState::destroyed), std::memory_order_seq_cst);
+            munmap(p, sizeof(SegmentHeader));
+            removed = names_file(name, fd) && shm_unlink(name.c_str()) == 0;
+        }
+    }
+    close(fd);
+    return removed;
+}
+
+bool Segment::in_use(const std::string& name) noexcept {
+    const int fd = shm_open(name.c_str(), O_RDONLY, 0);
+    if (fd < 0) return false;
+    struct flock fl {};
+    fl.l_type = F_WRLCK;
+    fl.l_whence = SEEK_SET;
+    fl.l_len = 1;
+    const bool used = fcntl(fd, F_OFD_GETLK, &fl) == 0 && fl.l_type != F_UNLCK;
+    close(fd);
+    return used;
 }
 
 void Segment::detach() noexcept { release(false); }

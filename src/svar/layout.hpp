@@ -20,6 +20,7 @@
 #include <cstdint>
 #include <cstring>
 
+#include "chimera/ipc/copy.hpp"
 #include "chimera/ipc/lock.hpp"
 #include "chimera/ipc/segment.hpp"
 #include "chimera/svar.hpp"
@@ -83,44 +84,10 @@ namespace chimera::svar {
 
 namespace detail {
 
-// Copies a variable of 8 to 64 bytes (float[6], double[6]: the usual joint
-// vectors) with two to four unaligned 8- or 16-byte loads and stores, inline:
-// a call to memcpy, its size dispatch included, costs as much as the copy
-// itself, and a multi-variable transfer makes one per variable.
-[[gnu::always_inline]] inline void copy_small(std::byte* dst, const std::byte* src,
-                                              std::size_t n) noexcept {
-    if (n >= 16) {
-        std::byte a[16], b[16], c[16], d[16];
-        std::memcpy(a, src, 16);
-        std::memcpy(b, src + n - 16, 16);
-        if (n > 32) {
-            std::memcpy(c, src + 16, 16);
-            std::memcpy(d, src + n - 32, 16);
-            std::memcpy(dst + 16, c, 16);
-            std::memcpy(dst + n - 32, d, 16);
-        }
-        std::memcpy(dst, a, 16);
-        std::memcpy(dst + n - 16, b, 16);
-    } else {
-        std::byte a[8], b[8];
-        std::memcpy(a, src, 8);
-        std::memcpy(b, src + n - 8, 8);
-        std::memcpy(dst, a, 8);
-        std::memcpy(dst + n - 8, b, 8);
-    }
-}
-
-/// True for the sizes copy_small() takes.
-constexpr bool is_small(std::size_t n) noexcept { return n - 8 <= 56; }
-
-// Copies one variable of any size: copy_small() or memcpy.
-[[gnu::always_inline]] inline void copy_var(std::byte* dst, const std::byte* src,
-                                            std::size_t n) noexcept {
-    if (is_small(n))
-        copy_small(dst, src, n);
-    else
-        std::memcpy(dst, src, n);
-}
+// The copies of a variable's bytes (inline for 8 to 64 bytes): ipc/copy.hpp.
+using ipc::copy_small;
+using ipc::copy_var;
+using ipc::is_small;
 
 // The undo record around a write into the global table (see svar.hpp). The
 // writer saves the old contents of its write-set into the undo area and their

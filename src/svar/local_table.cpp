@@ -53,8 +53,8 @@ void LocalTable::build(const std::vector<const std::vector<std::string>*>& lists
     if (!global_->valid()) throw Error("local table: the global table is not attached");
     hdr_ = global_->hdr_;
     gdata_ = global_->data_;
-    gundo_ = global_->seg_.at_bytes(hdr_->undo_offset);
-    gundo_list_ = global_->seg_.at_bytes<std::uint32_t>(hdr_->undo_index_offset);
+    gundo_ = global_->undo_;
+    gundo_list_ = global_->undo_list_;
     by_global_.assign(global_->size(), -1);
     std::size_t offset = 0;
     for (std::size_t l = 0; l < lists.size(); ++l) {

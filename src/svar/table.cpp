@@ -1,6 +1,7 @@
 // The global state variable table: creation from a spec, attach, the locked
 // single-variable access, the undo record and its roll-back.
 #include <cstring>
+#include <new>
 #include <utility>
 
 #include "chimera/svar.hpp"
@@ -101,19 +102,19 @@ double VarInfo::max(std::size_t k) const noexcept {
 // --- Table -------------------------------------------------------------------
 
 Table::Table() noexcept = default;
-Table::Table(Table&& o) noexcept
-    : seg_(std::move(o.seg_)),
-      lock_options_(o.lock_options_),
-      hdr_(std::exchange(o.hdr_, nullptr)),
-      desc_(std::exchange(o.desc_, nullptr)),
-      data_(std::exchange(o.data_, nullptr)) {}
+Table::Table(Table&& o) noexcept { *this = std::move(o); }
 Table& Table::operator=(Table&& o) noexcept {
     if (this != &o) {
         seg_ = std::move(o.seg_);
         lock_options_ = o.lock_options_;
         hdr_ = std::exchange(o.hdr_, nullptr);
+        own_desc_ = std::move(o.own_desc_);
         desc_ = std::exchange(o.desc_, nullptr);
+        nvars_ = std::exchange(o.nvars_, 0);
         data_ = std::exchange(o.data_, nullptr);
+        undo_ = std::exchange(o.undo_, nullptr);
+        undo_list_ = std::exchange(o.undo_list_, nullptr);
+        source_ = std::exchange(o.source_, {});
     }
     return *this;
 }
@@ -124,10 +125,105 @@ Table::Table(ipc::Segment seg, const TableOptions& options) noexcept
     bind();
 }
 
+// Keeps the fixed part of a table already checked (or just made): the
+// descriptors copied, the areas' addresses, the counts.
 void Table::bind() noexcept {
     hdr_ = seg_.at_bytes<TableHeader>(0);
-    desc_ = seg_.at_bytes<const Descriptor>(hdr_->desc_offset);
+    nvars_ = hdr_->nvars;
+    own_desc_.reset(new (std::nothrow) Descriptor[nvars_]);
+    if (own_desc_)
+        std::memcpy(own_desc_.get(), seg_.at_bytes<const Descriptor>(hdr_->desc_offset),
+                    nvars_ * sizeof(Descriptor));
+    desc_ = own_desc_.get();
+    if (!desc_) nvars_ = 0;  // out of memory: an empty table, not a shared one
     data_ = seg_.at_bytes(hdr_->data_offset);
+    undo_ = seg_.at_bytes(hdr_->undo_offset);
+    undo_list_ = seg_.at_bytes<std::uint32_t>(hdr_->undo_index_offset);
+    source_ = {seg_.at_bytes<const char>(hdr_->source_offset), hdr_->source_len};
+}
+
+namespace {
+
+// One descriptor's offsets and sizes, against the segment's `size`.
+ipc::Fault descriptor_fault(const Descriptor& d, std::int64_t i, const TableHeader& h,
+                            std::size_t size) noexcept {
+    using ipc::fault_if;
+    if (ipc::Fault f = fault_if(strnlen(d.name, sizeof d.name) > kMaxNameLength, "variable name length",
+                                strnlen(d.name, sizeof d.name), kMaxNameLength, "at most", i))
+        return f;
+    if (ipc::Fault f = fault_if(d.type > static_cast<std::uint32_t>(Type::struct_), "variable type", d.type,
+                                static_cast<std::uint32_t>(Type::struct_), "at most", i))
+        return f;
+    const auto type = static_cast<Type>(d.type);
+    if (ipc::Fault f = fault_if(type != Type::struct_ && d.elem_size != type_size(type),
+                                "variable element size", d.elem_size, type_size(type), "equal to", i))
+        return f;
+    if (ipc::Fault f = fault_if(d.elem_size == 0 || d.nelem == 0, "variable element size * NELEM",
+                                std::uint64_t{d.elem_size} * d.nelem, 1, "at least", i))
+        return f;
+    if (ipc::Fault f = fault_if(d.bytes != std::uint64_t{d.elem_size} * d.nelem, "variable bytes", d.bytes,
+                                std::uint64_t{d.elem_size} * d.nelem, "equal to", i))
+        return f;
+    if (ipc::Fault f = fault_if(d.data_offset % detail::kVarAlign != 0, "variable data offset",
+                                d.data_offset, detail::kVarAlign, "a multiple of", i))
+        return f;
+    if (ipc::Fault f = fault_if(d.data_offset > h.data_bytes || d.bytes > h.data_bytes - d.data_offset,
+                                "variable data end", d.data_offset + d.bytes, h.data_bytes, "at most", i))
+        return f;
+    // INIT/MIN/MAX values, DESC/UNITS strings: inside the segment.
+    const auto inside = [&](std::uint64_t off, std::uint64_t len) { return off <= size && len <= size - off; };
+    for (const std::uint64_t off : {d.init_offset, d.min_offset, d.max_offset})
+        if (ipc::Fault f = fault_if(off != 0 && !inside(off, d.bytes), "variable INIT/MIN/MAX offset", off,
+                                    size - std::min<std::uint64_t>(size, d.bytes), "at most", i))
+            return f;
+    if (ipc::Fault f = fault_if(!inside(d.desc_offset, d.desc_len), "variable DESC end",
+                                d.desc_offset + d.desc_len, size, "at most", i))
+        return f;
+    return fault_if(!inside(d.units_offset, d.units_len), "variable UNITS end", d.units_offset + d.units_len,
+                    size, "at most", i);
+}
+
+}  // namespace
+
+ipc::Fault validate_table(const void* image, std::size_t size) noexcept {
+    if (ipc::Fault f = ipc::header_fault(image, size, kKind)) return f;
+    if (size < sizeof(TableHeader)) return {"size", -1, size, sizeof(TableHeader), "at least"};
+    const auto* base = static_cast<const std::byte*>(image);
+    const auto& h = *static_cast<const TableHeader*>(image);
+    const auto inside = [&](std::uint64_t off, std::uint64_t len) { return off <= size && len <= size - off; };
+    using ipc::fault_if;
+    if (ipc::Fault f = fault_if(h.nvars == 0, "nvars", h.nvars, 1, "at least")) return f;
+    if (ipc::Fault f = fault_if(!inside(h.desc_offset, std::uint64_t{h.nvars} * sizeof(Descriptor)),
+                                "descriptors end", h.desc_offset + std::uint64_t{h.nvars} * sizeof(Descriptor),
+                                size))
+        return f;
+    if (ipc::Fault f = fault_if(h.desc_offset % alignof(Descriptor) != 0, "descriptor offset", h.desc_offset,
+                                alignof(Descriptor), "a multiple of"))
+        return f;
+    if (ipc::Fault f = fault_if(!inside(h.undo_index_offset, std::uint64_t{h.nvars} * 4) ||
+                                    h.undo_index_offset % 4 != 0,
+                                "undo list offset", h.undo_index_offset, size))
+        return f;
+    if (ipc::Fault f = fault_if(!inside(h.data_offset, h.data_bytes) || h.data_offset % 64 != 0, "data end",
+                                h.data_offset + h.data_bytes, size))
+        return f;
+    if (ipc::Fault f = fault_if(!inside(h.undo_offset, h.data_bytes) || h.undo_offset % 64 != 0, "undo data end",
+                                h.undo_offset + h.data_bytes, size))
+        return f;
+    if (ipc::Fault f = fault_if(!inside(h.source_offset, h.source_len), "source name end",
+                                h.source_offset + h.source_len, size))
+        return f;
+    const auto* d = reinterpret_cast<const Descriptor*>(base + h.desc_offset);
+    for (std::uint32_t i = 0; i < h.nvars; ++i)
+        if (ipc::Fault f = descriptor_fault(d[i], i, h, size)) return f;
+    if (h.undo_active.load(std::memory_order_relaxed) != 0) {
+        if (ipc::Fault f = fault_if(h.undo_count > h.nvars, "undo count", h.undo_count, h.nvars)) return f;
+        const auto* list = reinterpret_cast<const std::uint32_t*>(base + h.undo_index_offset);
+        for (std::uint32_t i = 0; i < h.undo_count; ++i)
+            if (ipc::Fault f = fault_if(list[i] >= h.nvars, "undo list index", list[i], h.nvars, "below", i))
+                return f;
+    }
+    return {};
 }
 
 Table Table::create(const std::string& segment_name, const std::string& svar_file,
@@ -237,20 +333,22 @@ Table Table::create(const std::string& segment_name, const TableSpec& spec,
         std::memcpy(seg.at_bytes(d.units_offset), v.units.data(), v.units.size());
     }
     seg.publish();
-    return Table(std::move(seg), options);
+    Table t(std::move(seg), options);
+    if (!t.desc_) {
+        t.destroy();  // nothing half-built is left behind
+        throw std::bad_alloc();
+    }
+    return t;
 }
 
 Table Table::attach(const std::string& segment_name, const TableOptions& options) {
     ipc::Segment seg = ipc::Segment::attach(segment_name, kKind, options.attach);
-    // Validate the offsets before trusting them.
-    const auto& h = *seg.at_bytes<const TableHeader>(0);
-    const std::size_t size = seg.size();
-    const bool sane = size >= sizeof(TableHeader) && h.nvars > 0 &&
-                      h.desc_offset + std::size_t{h.nvars} * sizeof(Descriptor) <= size &&
-                      h.data_offset + h.data_bytes <= size && h.undo_offset + h.data_bytes <= size &&
-                      h.source_offset + h.source_len <= size;
-    if (!sane) throw Error("table " + segment_name + ": corrupt header (offsets outside the segment)");
-    return Table(std::move(seg), options);
+    // Validate every offset before trusting any; the handle keeps what it checked.
+    if (const ipc::Fault f = validate_table(seg.base(), seg.size()))
+        throw Error("table " + segment_name + ": corrupt: " + ipc::describe(segment_name, f));
+    Table t(std::move(seg), options);
+    if (!t.desc_) throw std::bad_alloc();
+    return t;
 }
 
 void Table::detach() noexcept {
@@ -268,11 +366,9 @@ bool Table::destroy() noexcept {
     return removed;
 }
 
-std::string_view Table::source_file() const noexcept {
-    return {seg_.at_bytes<const char>(hdr_->source_offset), hdr_->source_len};
-}
+std::string_view Table::source_file() const noexcept { return source_; }
 
-std::size_t Table::size() const noexcept { return hdr_ ? hdr_->nvars : 0; }
+std::size_t Table::size() const noexcept { return nvars_; }
 
 std::optional<std::size_t> Table::find(std::string_view name) const noexcept {
     for (std::size_t i = 0; i < size(); ++i)
@@ -307,8 +403,8 @@ TableStats Table::stats() const noexcept {
 // --- the cycle path ------------------------------------------------------------
 
 void Table::save_undo(const std::uint32_t* indices, std::size_t count) noexcept {
-    std::byte* undo = seg_.at_bytes(hdr_->undo_offset);
-    auto* list = seg_.at_bytes<std::uint32_t>(hdr_->undo_index_offset);
+    std::byte* undo = undo_;
+    std::uint32_t* list = undo_list_;
     for (std::size_t i = 0; i < count; ++i) {
         const Descriptor& d = desc_[indices[i]];
         detail::copy_var(undo + d.data_offset, data_ + d.data_offset, d.bytes);
@@ -321,11 +417,12 @@ void Table::clear_undo() noexcept { detail::undo_clear(*hdr_); }
 
 void Table::roll_back() noexcept {
     if (hdr_->undo_active.load(std::memory_order_acquire) == 0) return;
-    const std::byte* undo = seg_.at_bytes(hdr_->undo_offset);
-    const auto* list = seg_.at_bytes<const std::uint32_t>(hdr_->undo_index_offset);
-    const std::uint32_t count = hdr_->undo_count <= hdr_->nvars ? hdr_->undo_count : 0;
+    const std::byte* undo = undo_;
+    const std::uint32_t* list = undo_list_;
+    // Written by another process (the writer that died): bounded before use.
+    const std::uint32_t count = hdr_->undo_count <= nvars_ ? hdr_->undo_count : 0;
     for (std::uint32_t i = 0; i < count; ++i) {
-        if (list[i] >= hdr_->nvars) continue;
+        if (list[i] >= nvars_) continue;
         const Descriptor& d = desc_[list[i]];
         std::memcpy(data_ + d.data_offset, undo + d.data_offset, d.bytes);
     }

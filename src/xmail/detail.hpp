@@ -17,28 +17,28 @@ using layout::Waiter;
 
 enum WaiterState : std::uint32_t { kFree = 0, kWaiting = 1, kSignaled = 2 };
 
-/// Longest single sleep of a waiter: it then re-checks its word, so a
-/// signaller that died between signalling and waking delays it by at most this.
+/// Longest single sleep of a waiter: it then re-checks its word, and passes
+/// on what a waiter that died after being signalled was given (a unit, a
+/// message, the turn to send), so a death delays the others by at most this.
 inline constexpr std::int64_t kWaitSlice = 20'000'000;
 
 /// How long object operations wait for the object's lock before lock_timeout.
 inline constexpr std::int64_t kObjectLockTimeout = 2'000'000'000;
 
-/// True unless the thread certainly no longer exists (cheap: one tgkill). A
-/// zombie (killed, not yet reaped) passes: the hand-off paths use this, and a
-/// grant to a zombie is taken back by the paths that find nothing available.
-bool thread_exists(std::int32_t pid, std::int32_t tid) noexcept;
-/// True when the thread runs: gone and zombie threads are not alive
-/// (ipc::owner_alive: tgkill, then /proc). For the reclaim paths.
+/// True when the thread runs: false for a thread that is gone and for one
+/// that was killed and not yet reaped (a zombie), whose process can never
+/// take what it is given. tgkill (the thread of that process exists) and
+/// get_robust_list (the kernel empties it when the thread exits; glibc
+/// registers one for every thread), /proc only when those cannot tell.
 bool thread_alive(std::int32_t pid, std::int32_t tid) noexcept;
 
 /// Takes a free slot for the calling thread (under the object's lock).
 Waiter* waiter_add(Waiter* slots, std::uint32_t n, std::uint32_t& next_ticket,
                    std::int32_t priority) noexcept;
-/// The waiting slot with the highest priority (earliest ticket among equals)
-/// whose thread exists; slots of vanished threads are freed on the way (and
-/// reported through `reclaimed`).
-Waiter* waiter_pick(Waiter* slots, std::uint32_t n, std::uint32_t* reclaimed = nullptr) noexcept;
+/// The waiting slot with the highest priority (earliest ticket among
+/// equals). No system call: a slot of a thread that died is found dead when
+/// the wake-up reaches nobody (waiter_wake_checked()).
+Waiter* waiter_pick(Waiter* slots, std::uint32_t n) noexcept;
 inline void waiter_signal(Waiter& w) noexcept {
     w.state = kSignaled;
     w.word.store(1, std::memory_order_release);
@@ -50,9 +50,58 @@ inline void waiter_free(Waiter& w) noexcept {
     w.word.store(0, std::memory_order_relaxed);
 }
 inline void waiter_wake(Waiter& w) noexcept { ipc::futex_wake_all(w.word); }
+
+/// Who holds a slot: after the object's lock was let go, tells whether the
+/// slot is still the one signalled (its thread cannot free it if it died,
+/// but a reclaim by another user may have, and the slot been taken again).
+struct WaiterId {
+    std::int32_t pid = 0, tid = 0;
+    std::uint32_t ticket = 0;
+};
+inline WaiterId id_of(const Waiter& w) noexcept { return {w.pid, w.tid, w.ticket}; }
+inline bool still_signalled(const Waiter& w, const WaiterId& id) noexcept {
+    return w.state == kSignaled && w.pid == id.pid && w.tid == id.tid && w.ticket == id.ticket;
+}
+
+/// Wakes a signalled waiter, after the lock is let go. True when it will
+/// take what it was given: a thread slept on the word and was woken (one
+/// system call, the common case), or, when nobody slept there, its thread
+/// still runs (it had not gone to sleep yet). False: it died; the caller takes
+/// back what it gave (under the lock, if still_signalled()) and passes it on.
+bool waiter_wake_checked(Waiter& w, const WaiterId& id) noexcept;
+
+/// A plain read of a waiter field that other processes write under the
+/// object's lock: for the lock-free look of a sleeper (a hint, re-checked
+/// under the lock).
+inline std::uint32_t peek(const std::uint32_t& field) noexcept {
+    return __atomic_load_n(&field, __ATOMIC_RELAXED);
+}
+inline std::int32_t peek(const std::int32_t& field) noexcept {
+    return __atomic_load_n(&field, __ATOMIC_RELAXED);
+}
+/// True when some slot other than `self` is signalled and its thread died
+/// (the look a sleeper takes every slice, without the lock).
+bool signalled_dead(const Waiter* slots, std::uint32_t n, const Waiter* self) noexcept;
+
 /// Sleeps (outside the lock) until the slot is signalled or the absolute
-/// deadline (negative: none) passes. True when signalled.
-bool waiter_sleep(Waiter& w, std::int64_t deadline) noexcept;
+/// deadline (negative: none) passes; at every slice that passes in vain it
+/// calls `on_slice()`, which passes on what dead waiters were given. True
+/// when signalled.
+template <typename OnSlice>
+bool waiter_sleep(Waiter& w, std::int64_t deadline, OnSlice&& on_slice) noexcept {
+    for (;;) {
+        if (w.word.load(std::memory_order_acquire) != 0) return true;
+        std::int64_t slice = kWaitSlice;
+        if (deadline >= 0) {
+            const std::int64_t left = deadline - ipc::now_ns();
+            if (left <= 0) return false;
+            if (left < slice) slice = left;
+        }
+        if (ipc::futex_wait(w.word, 0, slice) == ipc::FutexResult::timed_out &&
+            w.word.load(std::memory_order_acquire) == 0)
+            on_slice();
+    }
+}
 std::uint32_t waiter_count(const Waiter* slots, std::uint32_t n) noexcept;
 
 /// Takes an object's lock; when the previous holder died, runs `repair`

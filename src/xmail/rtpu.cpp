@@ -1,6 +1,8 @@
 // The XM server of an RTPU process (thesis §5.3, §5.4): reads its mailbox,
 // acts as the name server for the IPC objects it owns, routes replies to the
 // local tasks that asked, and runs mailbox-interrupt and message handlers.
+#include <dirent.h>
+
 #include <algorithm>
 #include <condition_variable>
 #include <cstring>
@@ -47,6 +49,22 @@ std::string get(const char (&src)[N]) {
     return std::string(src, strnlen(src, N));
 }
 
+// An RTPU whose mailbox exists, says alive and whose owner process runs.
+bool rtpu_alive(const std::string& sys, const std::string& rtpu) noexcept {
+    try {
+        ipc::AttachOptions opt;
+        opt.ready_timeout_ns = 0;
+        opt.prefault = false;
+        ipc::Segment seg = ipc::Segment::attach(Mailbox::segment_name(sys, rtpu),
+                                                {ipc::ObjectType::xmail_mailbox, layout::kMailboxVersion}, opt);
+        const auto& h = *static_cast<const layout::MailboxHeader*>(seg.base());
+        const auto pid = static_cast<std::uint32_t>(h.owner_pid.load());
+        return h.alive.load() != 0 && ipc::owner_alive(std::uint64_t{pid} << 32 | pid);
+    } catch (const std::exception&) {
+        return false;
+    }
+}
+
 bool valid_part(std::string_view s) noexcept {
     if (s.empty() || s.size() > layout::kNameMax) return false;
     for (char c : s)
@@ -75,10 +93,14 @@ struct Rtpu::Pending {
 struct Rtpu::Owned {
     ipc::ObjectType type;
     std::string segment;
+    // Until then a new object may have no user yet (the requester attaches
+    // after our answer); after it, no user means its users have all gone.
+    std::int64_t grace_until = 0;  // a second after creation
 };
 
 Rtpu::Rtpu(std::string sys, std::string name, std::uint32_t bid, MailboxConfig config)
     : mailbox_(std::move(sys), std::move(name), bid, config) {
+    sweep_orphans();  // a dead predecessor's objects that nobody uses any more
     server_ = std::thread([this] { serve(); });
 }
 
@@ -92,6 +114,48 @@ Rtpu::~Rtpu() {
     std::lock_guard lock(mutex_);
     for (auto& [name, owned] : owned_) ipc::Segment::unlink(owned->segment);
     owned_.clear();
+}
+
+// Objects whose users have all gone, detached or killed, are freed by their
+// owner: the last live user frees an object when it detaches, but when the
+// last users were killed nobody is left to (issue #15.2). Lock held.
+void Rtpu::reap_objects() noexcept {
+    const std::int64_t now = ipc::now_ns();
+    for (auto it = owned_.begin(); it != owned_.end();) {
+        const Owned& o = *it->second;
+        const bool gone = now >= o.grace_until && (!ipc::Segment::exists(o.segment) ||
+                                                   ipc::Segment::destroy_if_unused(o.segment));
+        it = gone ? owned_.erase(it) : std::next(it);
+    }
+}
+
+// Segments of this system that nobody can free any more but us, freed when
+// no live process maps them: objects whose owner RTPU is gone (or an earlier
+// run of this one), and the mailboxes of RTPUs that died.
+void Rtpu::sweep_orphans() noexcept {
+    const std::string objects = "chimera." + sys() + ".obj.", mailboxes = "chimera." + sys() + ".xm.";
+    std::vector<std::string> names;
+    if (DIR* d = opendir("/dev/shm")) {
+        while (const dirent* e = readdir(d))
+            if (std::strncmp(e->d_name, objects.c_str(), objects.size()) == 0 ||
+                std::strncmp(e->d_name, mailboxes.c_str(), mailboxes.size()) == 0)
+                names.emplace_back(e->d_name);
+        closedir(d);
+    }
+    for (const std::string& n : names) {
+        const bool object = n.compare(0, objects.size(), objects) == 0;
+        const std::string rest = n.substr(object ? objects.size() : mailboxes.size());
+        const std::string owner = rest.substr(0, rest.find('.'));  // "<rtpu>.<object>" or "<rtpu>"
+        if (owner == name()) {
+            if (!object) continue;  // our own mailbox
+            std::lock_guard lock(mutex_);
+            if (owned_.count(rest.substr(std::min(rest.size(), owner.size() + 1))) != 0)
+                continue;  // ours: reap_objects() looks after it
+        } else if (rtpu_alive(sys(), owner)) {
+            continue;
+        }
+        ipc::Segment::destroy_if_unused("/" + n);
+    }
 }
 
 void Rtpu::install(std::uint32_t mbox, std::function<void(std::uint32_t)> handler) {
@@ -110,8 +174,24 @@ void Rtpu::on_message(std::function<void(std::uint32_t, const void*, std::size_t
 
 void Rtpu::serve() {
     std::vector<std::byte> buffer(mailbox_.config().bufsize);
+    std::int64_t next_check = 0, next_sweep = 0;
     while (!stop_.load()) {
         const std::uint32_t pending = mailbox_.wait_interrupts(100'000'000);
+        // Every 100 ms: messages our tasks wrote to an RTPU that died unread
+        // are counted, whether or not anyone writes to it again; objects whose
+        // users all went are freed. Every 250 ms: orphans of dead owners.
+        if (const std::int64_t now = ipc::now_ns(); now >= next_check) {
+            mailbox_.check_peers();
+            {
+                std::lock_guard lock(mutex_);
+                reap_objects();
+            }
+            next_check = now + 100'000'000;
+            if (now >= next_sweep) {
+                sweep_orphans();
+                next_sweep = now + 250'000'000;
+            }
+        }
         if (pending & (1u << kMboxReset)) mailbox_.reset_buffers();
         // Interrupts are not stacked: always look at every ring.
         ReadInfo info;
@@ -200,9 +280,11 @@ void Rtpu::handle_request(const void* request) {
                                 ipc::object_type_name(type));
             }
             // The server does not stay a user: the requester attaches next,
-            // and the last user to detach frees the segment.
+            // and the last user to detach frees the segment (or, when the
+            // last ones were killed, reap_objects()).
             seg.detach();
-            owned_.emplace(object, std::make_unique<Owned>(Owned{type, segment}));
+            owned_.emplace(object, std::make_unique<Owned>(Owned{
+                                       type, segment, ipc::now_ns() + 1'000'000'000}));
             answer(true, segment);
         } else if (it == owned_.end()) {
             throw Error("'" + full + "': no such object on RTPU '" + name() + "'");

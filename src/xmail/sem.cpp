@@ -32,7 +32,33 @@ void init_body(SemHeader* h, Kind kind, std::int32_t initial, std::string_view l
     h->value = initial;
 }
 
+// The fixed part: what attach and bind refuse.
+ipc::Fault fixed_fault(const void* image, std::size_t size) noexcept {
+    if (ipc::Fault f = ipc::header_fault(image, size, kSemKind)) return f;
+    const auto& h = *static_cast<const SemHeader*>(image);
+    using ipc::fault_if;
+    if (ipc::Fault f = fault_if(h.kind > static_cast<std::uint32_t>(Kind::counting), "kind", h.kind,
+                                static_cast<std::uint32_t>(Kind::counting)))
+        return f;
+    return fault_if(strnlen(h.name, sizeof h.name) == sizeof h.name, "name length", sizeof h.name,
+                    sizeof h.name - 1);
+}
+
 }  // namespace
+
+ipc::Fault validate(const void* image, std::size_t size) noexcept {
+    if (ipc::Fault f = fixed_fault(image, size)) return f;
+    const auto& h = *static_cast<const SemHeader*>(image);
+    const std::int64_t most = h.kind == static_cast<std::uint32_t>(Kind::binary) ? 1 : INT32_MAX;
+    if (h.value < 0 || h.value > most)
+        return {"value", -1, static_cast<std::uint64_t>(static_cast<std::int64_t>(h.value)),
+                static_cast<std::uint64_t>(most), "0 to"};
+    for (std::uint32_t i = 0; i < layout::kMaxWaiters; ++i)
+        if (ipc::Fault f = ipc::fault_if(h.waiters[i].state > kSignaled, "waiter state", h.waiters[i].state,
+                                         kSignaled, "at most", i))
+            return f;
+    return {};
+}
 
 ipc::Segment create_segment_body(const std::string& segment, const std::string& full_name,
                                  const xm::ObjectParams& params) {
@@ -66,26 +92,22 @@ Semaphore Semaphore::create(xm::Rtpu& self, std::string_view full_name, Kind kin
     xm::ObjectParams op;
     op.a = static_cast<std::uint32_t>(kind);
     op.b = static_cast<std::uint64_t>(initial);
-    const xm::ObjectRef ref = self.create_object(full_name, ipc::ObjectType::xmail_sem, op);
-    Semaphore s;
-    try {
-        s.segment_ = ipc::Segment::attach(ref.segment, kSemKind);
-    } catch (const ipc::SegmentError& e) {
-        throw xm::Error("semaphore '" + std::string(full_name) + "': " + e.what());
-    }
-    s.h_ = static_cast<SemHeader*>(s.segment_.base());
-    s.name_ = std::string(full_name);
-    return s;
+    return map(self.create_object(full_name, ipc::ObjectType::xmail_sem, op), full_name);
 }
 
 Semaphore Semaphore::attach(xm::Rtpu& self, std::string_view full_name) {
-    const xm::ObjectRef ref = self.attach_object(full_name, ipc::ObjectType::xmail_sem);
+    return map(self.attach_object(full_name, ipc::ObjectType::xmail_sem), full_name);
+}
+
+Semaphore Semaphore::map(const xm::ObjectRef& ref, std::string_view full_name) {
     Semaphore s;
     try {
         s.segment_ = ipc::Segment::attach(ref.segment, kSemKind);
     } catch (const ipc::SegmentError& e) {
         throw xm::Error("semaphore '" + std::string(full_name) + "': " + e.what());
     }
+    if (const ipc::Fault f = fixed_fault(s.segment_.base(), s.segment_.size()))
+        throw xm::Error("semaphore '" + std::string(full_name) + "': corrupt: " + ipc::describe(ref.segment, f));
     s.h_ = static_cast<SemHeader*>(s.segment_.base());
     s.name_ = std::string(full_name);
     return s;
@@ -111,9 +133,11 @@ Semaphore Semaphore::bind(void* memory) {
     } catch (const ipc::SegmentError& e) {
         throw xm::Error(e.what());
     }
+    if (const ipc::Fault f = fixed_fault(memory, sizeof(SemHeader)))
+        throw xm::Error("semaphore: corrupt: " + ipc::describe("<memory>", f));
     Semaphore s;
     s.h_ = h;
-    s.name_ = h->name;
+    s.name_ = std::string(h->name, strnlen(h->name, sizeof h->name));
     return s;
 }
 
@@ -134,7 +158,7 @@ Status Semaphore::lock() noexcept {
 }
 
 xm::layout::Waiter* Semaphore::release_unit() noexcept {
-    Waiter* w = waiter_pick(h_->waiters, layout::kMaxWaiters, &h_->reclaimed_waiters);
+    Waiter* w = waiter_pick(h_->waiters, layout::kMaxWaiters);
     if (w) {
         waiter_signal(*w);  // the unit goes straight to the waiter: value unchanged
         return w;
@@ -148,9 +172,7 @@ void Semaphore::repair() noexcept {
     for (std::uint32_t i = 0; i < layout::kMaxWaiters; ++i) {
         Waiter& w = h_->waiters[i];
         if (w.state == kFree) continue;
-        const std::uint64_t id = static_cast<std::uint64_t>(static_cast<std::uint32_t>(w.pid)) << 32 |
-                                 static_cast<std::uint32_t>(w.tid);
-        if (ipc::owner_alive(id)) {
+        if (thread_alive(w.pid, w.tid)) {
             if (w.state == kSignaled) w.word.store(1, std::memory_order_release);
             continue;
         }
@@ -164,10 +186,8 @@ void Semaphore::repair() noexcept {
     if (h_->kind == static_cast<std::uint32_t>(Kind::binary) && h_->value > 1) h_->value = 1;
 }
 
-// Units granted to waiters that died before taking them — killed after the
-// grant, or zombies the grant's cheap check let through — are passed on
-// (lock held). Looked at only when P finds no unit, and only while a grant is
-// outstanding. Returns true when a unit came back.
+// Units granted to waiters that died before taking them are passed on (lock
+// held). Returns true when a unit came back or moved on.
 bool Semaphore::reclaim_granted() noexcept {
     bool back = false;
     for (std::uint32_t i = 0; i < layout::kMaxWaiters; ++i) {
@@ -179,6 +199,16 @@ bool Semaphore::reclaim_granted() noexcept {
         back = true;
     }
     return back;
+}
+
+// A sleeper's look at every slice: a unit granted to a waiter that died
+// since (after its wake-up reached it) would otherwise strand the waiters
+// still blocked here, which sleep on their own words.
+void Semaphore::pass_on_dead_grants(const Waiter* self) noexcept {
+    if (!signalled_dead(h_->waiters, layout::kMaxWaiters, self)) return;
+    if (lock() != Status::ok) return;
+    reclaim_granted();
+    ipc::unlock(h_->mutex);
 }
 
 Status Semaphore::p(std::int64_t timeout_ns, std::int32_t priority) noexcept {
@@ -211,21 +241,36 @@ Status Semaphore::p(std::int64_t timeout_ns, std::int32_t priority) noexcept {
             fail = Status::too_many_waiters;
         ipc::unlock(h_->mutex);
         if (fail != Status::ok) return fail;
-        waiter_sleep(*me, deadline);
+        waiter_sleep(*me, deadline, [&] { pass_on_dead_grants(me); });
     }
 }
 
 Status Semaphore::v() noexcept {
     if (!h_) return Status::bad_argument;
     if (const Status s = lock(); s != Status::ok) return s;
-    Waiter* wake = release_unit();
+    Waiter* w = release_unit();
+    WaiterId id = w ? id_of(*w) : WaiterId{};
     ipc::unlock(h_->mutex);
-    if (wake) waiter_wake(*wake);
+    // No unit stays with a waiter that died (killed, reaped or not): when the
+    // wake-up reaches nobody and the thread is gone, take the unit back and
+    // pass it on, before V returns.
+    while (w && !waiter_wake_checked(*w, id)) {
+        if (lock() != Status::ok) return Status::ok;  // the sleepers' slices pass it on
+        Waiter* dead = w;
+        w = nullptr;
+        if (still_signalled(*dead, id)) {
+            waiter_free(*dead);
+            ++h_->reclaimed_waiters;
+            if ((w = release_unit())) id = id_of(*w);
+        }
+        ipc::unlock(h_->mutex);
+    }
     return Status::ok;
 }
 
 std::int32_t Semaphore::value() noexcept {
     if (!h_ || lock() != Status::ok) return -1;
+    reclaim_granted();  // a unit granted to a waiter that died is available
     const std::int32_t v = h_->value;
     ipc::unlock(h_->mutex);
     return v;

@@ -31,6 +31,21 @@ ipc::Segment create_segment_body(const std::string& segment, const std::string& 
     return seg;
 }
 
+ipc::Fault validate(const void* image, std::size_t size) noexcept {
+    if (ipc::Fault f = ipc::header_fault(image, size, kShmKind)) return f;
+    if (size < sizeof(ShmHeader)) return {"size", -1, size, sizeof(ShmHeader), "at least"};
+    const auto& h = *static_cast<const ShmHeader*>(image);
+    using ipc::fault_if;
+    if (ipc::Fault f = fault_if(h.data_offset < sizeof(ShmHeader) || h.data_offset > size, "data offset",
+                                h.data_offset, sizeof(ShmHeader), "at least"))
+        return f;
+    if (ipc::Fault f = fault_if(h.size == 0 || h.size > size - h.data_offset, "usable size", h.size,
+                                size - h.data_offset, "1 to"))
+        return f;
+    return fault_if(strnlen(h.name, sizeof h.name) == sizeof h.name, "name length", sizeof h.name,
+                    sizeof h.name - 1);
+}
+
 Segment Segment::map(std::string_view full_name, const std::string& segment) {
     Segment s;
     try {
@@ -38,6 +53,9 @@ Segment Segment::map(std::string_view full_name, const std::string& segment) {
     } catch (const ipc::SegmentError& e) {
         throw xm::Error("shared segment '" + std::string(full_name) + "': " + e.what());
     }
+    // The usable area is checked once and kept: later writes to the header move nothing.
+    if (const ipc::Fault f = validate(s.segment_.base(), s.segment_.size()))
+        throw xm::Error("shared segment '" + std::string(full_name) + "': corrupt: " + ipc::describe(segment, f));
     auto* h = static_cast<ShmHeader*>(s.segment_.base());
     s.data_ = s.segment_.at_bytes<void>(h->data_offset);
     s.size_ = h->size;
@@ -80,7 +98,7 @@ Segment& Segment::operator=(Segment&& o) noexcept {
 Segment::~Segment() { detach(); }
 
 std::uint32_t Segment::users() const noexcept {
-    return segment_.valid() ? segment_.header().attach_count.load() : 0;
+    return segment_.users();
 }
 
 bool Segment::detach() noexcept {

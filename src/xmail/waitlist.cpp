@@ -9,12 +9,19 @@
 
 namespace chimera::xm::detail {
 
-bool thread_exists(std::int32_t pid, std::int32_t tid) noexcept {
-    if (pid <= 0 || tid <= 0) return false;
-    return syscall(SYS_tgkill, pid, tid, 0) == 0 || errno != ESRCH;
-}
-
 bool thread_alive(std::int32_t pid, std::int32_t tid) noexcept {
+    if (pid <= 0 || tid <= 0) return false;
+    if (syscall(SYS_tgkill, pid, tid, 0) != 0 && errno == ESRCH) return false;
+    // tgkill succeeds on a zombie. The kernel empties a thread's robust-futex
+    // list when it exits, and glibc gives every thread one: a list means the
+    // thread runs. No list, or not allowed to look: ask /proc.
+    void* head = nullptr;
+    std::size_t len = 0;
+    if (syscall(SYS_get_robust_list, tid, &head, &len) == 0) {
+        if (head != nullptr) return true;
+    } else if (errno == ESRCH) {
+        return false;
+    }
     return ipc::owner_alive(static_cast<std::uint64_t>(static_cast<std::uint32_t>(pid)) << 32 |
                             static_cast<std::uint32_t>(tid));
 }
@@ -47,35 +54,31 @@ Waiter* waiter_add(Waiter* slots, std::uint32_t n, std::uint32_t& next_ticket,
     return freed ? waiter_add(slots, n, next_ticket, priority) : nullptr;
 }
 
-Waiter* waiter_pick(Waiter* slots, std::uint32_t n, std::uint32_t* reclaimed) noexcept {
-    for (;;) {
-        Waiter* best = nullptr;
-        for (std::uint32_t i = 0; i < n; ++i) {
-            Waiter& w = slots[i];
-            if (w.state != kWaiting) continue;
-            // Tickets wrap: compare their difference, not their values.
-            if (!best || w.priority > best->priority ||
-                (w.priority == best->priority &&
-                 static_cast<std::int32_t>(w.ticket - best->ticket) < 0))
-                best = &w;
-        }
-        if (!best || thread_exists(best->pid, best->tid)) return best;
-        waiter_free(*best);  // killed while waiting: never signal it
-        if (reclaimed) ++*reclaimed;
+Waiter* waiter_pick(Waiter* slots, std::uint32_t n) noexcept {
+    Waiter* best = nullptr;
+    for (std::uint32_t i = 0; i < n; ++i) {
+        Waiter& w = slots[i];
+        if (w.state != kWaiting) continue;
+        // Tickets wrap: compare their difference, not their values.
+        if (!best || w.priority > best->priority ||
+            (w.priority == best->priority && static_cast<std::int32_t>(w.ticket - best->ticket) < 0))
+            best = &w;
     }
+    return best;
 }
 
-bool waiter_sleep(Waiter& w, std::int64_t deadline) noexcept {
-    for (;;) {
-        if (w.word.load(std::memory_order_acquire) != 0) return true;
-        std::int64_t slice = kWaitSlice;
-        if (deadline >= 0) {
-            const std::int64_t left = deadline - ipc::now_ns();
-            if (left <= 0) return false;
-            if (left < slice) slice = left;
-        }
-        ipc::futex_wait(w.word, 0, slice);
+bool waiter_wake_checked(Waiter& w, const WaiterId& id) noexcept {
+    if (ipc::futex_wake_all(w.word) > 0) return true;
+    return thread_alive(id.pid, id.tid);
+}
+
+bool signalled_dead(const Waiter* slots, std::uint32_t n, const Waiter* self) noexcept {
+    for (std::uint32_t i = 0; i < n; ++i) {
+        const Waiter& w = slots[i];
+        if (&w == self || peek(w.state) != kSignaled) continue;
+        if (!thread_alive(peek(w.pid), peek(w.tid))) return true;
     }
+    return false;
 }
 
 std::uint32_t waiter_count(const Waiter* slots, std::uint32_t n) noexcept {

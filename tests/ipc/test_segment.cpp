@@ -1,6 +1,8 @@
 #include <gtest/gtest.h>
 
 #include <cstring>
+#include <vector>
+#include <signal.h>
 
 #include "chimera/ipc/segment.hpp"
 #include "test_util.hpp"
@@ -9,6 +11,8 @@ using namespace chimera::ipc;
 using chimera::ipc::test::fork_child;
 using chimera::ipc::test::unique_name;
 using chimera::ipc::test::wait_child;
+using chimera::ipc::test::shared_anon;
+using chimera::ipc::test::wait_for;
 
 namespace {
 
@@ -60,9 +64,9 @@ TEST(IpcSegment, CreatePublishAttachSeesBodyAndHeader) {
     EXPECT_EQ(b.at_bytes<Body>(0)->value, 1234u);
     b.at_bytes<Body>(0)->value = 7;
     EXPECT_EQ(a.at_bytes<Body>(0)->value, 7u);
-    EXPECT_EQ(a.header().attach_count.load(), 2u);
+    EXPECT_EQ(a.users(), 2u);
     b.detach();
-    EXPECT_EQ(a.header().attach_count.load(), 1u);
+    EXPECT_EQ(a.users(), 1u);
     EXPECT_TRUE(a.detach_destroy_if_last());
     EXPECT_FALSE(Segment::exists(name));
 }
@@ -87,7 +91,7 @@ TEST(IpcSegment, LayoutVersionMismatchIsAClearError) {
     a.header().layout_version = 3;
     EXPECT_EQ(error_of([&] { Segment::attach(name, kKind); }),
               "segment " + name + ": layout version 3, this library expects 2");
-    EXPECT_EQ(a.header().attach_count.load(), 1u);  // a refused attach leaves no count behind
+    EXPECT_EQ(a.users(), 1u);  // a refused attach leaves no count behind
     a.detach_destroy_if_last();
 }
 
@@ -137,7 +141,7 @@ TEST(IpcSegment, LastUserAcrossProcessesDestroys) {
     ASSERT_EQ(wait_child(child), 0);
     EXPECT_TRUE(Segment::exists(name));
     EXPECT_EQ(a.at_bytes<Body>(0)->value, 6u);
-    EXPECT_EQ(a.header().attach_count.load(), 1u);
+    EXPECT_EQ(a.users(), 1u);
     EXPECT_TRUE(a.detach_destroy_if_last());
     EXPECT_FALSE(Segment::exists(name));
 }
@@ -161,4 +165,112 @@ TEST(IpcSegment, OffsetsResolveInEveryMapping) {
     EXPECT_EQ(align_up(65, 64), 128u);
     b.detach();
     a.detach_destroy_if_last();
+}
+
+// Users killed with SIGKILL while attached are counted out at once (the
+// kernel drops their locks), so the last live user frees the segment: the
+// attach counter of the header used to keep every killed user counted.
+TEST(IpcSegment, KilledUsersAreCountedOutAndTheLastLiveUserFrees) {
+    const std::string name = unique_name("killed");
+    Segment a = make(name, 1);
+    auto* attached = shared_anon<std::atomic<int>>();
+    std::vector<pid_t> kids;
+    for (int k = 0; k < 3; ++k) {
+        kids.push_back(fork_child([&] {
+            Segment b = Segment::attach(name, kKind);
+            attached->fetch_add(1);
+            for (;;) pause();  // killed while attached: never detaches
+            return 0;
+        }));
+    }
+    ASSERT_TRUE(wait_for([&] { return attached->load() == 3; }));
+    EXPECT_EQ(a.users(), 4u);
+    for (pid_t k : kids) {
+        kill(k, SIGKILL);
+        EXPECT_EQ(wait_child(k), 128 + SIGKILL);
+    }
+    EXPECT_EQ(a.users(), 1u);
+    EXPECT_FALSE(Segment::in_use(name) && a.users() != 1u);
+    EXPECT_TRUE(a.detach_destroy_if_last());
+    EXPECT_FALSE(Segment::exists(name));
+}
+
+// The same when the killed process is still a zombie (not reaped): its
+// descriptors are closed when it dies, not when its parent waits for it.
+TEST(IpcSegment, AKilledUnreapedUserIsCountedOut) {
+    const std::string name = unique_name("zombie");
+    Segment a = make(name, 1);
+    auto* attached = shared_anon<std::atomic<int>>();
+    const pid_t kid = fork_child([&] {
+        Segment b = Segment::attach(name, kKind);
+        attached->store(1);
+        for (;;) pause();
+        return 0;
+    });
+    ASSERT_TRUE(wait_for([&] { return attached->load() == 1; }));
+    kill(kid, SIGKILL);
+    siginfo_t info{};
+    ASSERT_EQ(waitid(P_PID, static_cast<id_t>(kid), &info, WEXITED | WNOWAIT), 0);  // a zombie
+    EXPECT_TRUE(a.detach_destroy_if_last());
+    EXPECT_FALSE(Segment::exists(name));
+    wait_child(kid);
+}
+
+// A user that is not the creator frees it when the creator was killed.
+TEST(IpcSegment, TheLastLiveUserFreesWhenTheCreatorWasKilled) {
+    const std::string name = unique_name("orphan");
+    auto* made = shared_anon<std::atomic<int>>();
+    const pid_t creator = fork_child([&] {
+        Segment s = make(name, 3);
+        made->store(1);
+        for (;;) pause();
+        return 0;
+    });
+    ASSERT_TRUE(wait_for([&] { return made->load() == 1; }));
+    Segment b = Segment::attach(name, kKind);
+    EXPECT_TRUE(Segment::in_use(name));
+    kill(creator, SIGKILL);
+    wait_child(creator);
+    EXPECT_EQ(b.users(), 1u);
+    EXPECT_TRUE(b.detach_destroy_if_last());
+    EXPECT_FALSE(Segment::exists(name));
+    EXPECT_FALSE(Segment::in_use(name));
+}
+
+// A handle a child inherits through fork() is its parent's mapping: the
+// child's destructor neither frees the segment nor drops the parent's count.
+TEST(IpcSegment, AHandleCopiedByForkNeitherCountsNorFrees) {
+    const std::string name = unique_name("forked");
+    Segment a = make(name, 4);
+    const pid_t kid = fork_child([&] { return a.detach_destroy_if_last() ? 1 : 0; });
+    EXPECT_EQ(wait_child(kid), 0);
+    EXPECT_TRUE(Segment::exists(name));
+    EXPECT_EQ(a.users(), 1u);
+    EXPECT_TRUE(a.detach_destroy_if_last());
+}
+
+// An attach racing with the last user's destroy either fails cleanly or
+// keeps the segment as a new user: never a mapping of a removed name that
+// counts as alive, never a leak.
+TEST(IpcSegment, AttachRacingWithTheLastDetachNeverLeaks) {
+    for (int round = 0; round < 50; ++round) {
+        const std::string name = unique_name("race" + std::to_string(round));
+        Segment a = make(name, 5);
+        auto* go = shared_anon<std::atomic<int>>();
+        const pid_t kid = fork_child([&] {
+            while (go->load() == 0) {
+            }
+            try {
+                Segment b = Segment::attach(name, kKind);
+                b.detach_destroy_if_last();
+            } catch (const SegmentError&) {
+            }
+            return 0;
+        });
+        go->store(1);
+        a.detach_destroy_if_last();
+        EXPECT_EQ(wait_child(kid), 0);
+        EXPECT_FALSE(Segment::exists(name)) << "round " << round;
+        munmap(go, sizeof *go);
+    }
 }

@@ -1,9 +1,9 @@
 // segment_guard.hpp — removes, when a test ends (passed, failed or returned
 // early from an ASSERT), every shared segment whose name starts with the
-// test's own prefix. The library frees a segment when its last user detaches;
-// a test that kills users on purpose (kill -9 rounds) leaves segments whose
-// killed users were never counted out (issue #15), and the suite must not
-// leave them in /dev/shm.
+// test's own prefix. The library frees a segment when its last live user
+// detaches, killed users counted out (issue #15.2); the guard keeps a test
+// that fails half-way from leaving its segments in /dev/shm, and present()
+// lets a kill test assert that nothing leaked.
 //
 //   const SegmentGuard cleanup("chimera.xt1234dupbid.");
 #pragma once
@@ -24,8 +24,8 @@ public:
     SegmentGuard(const SegmentGuard&) = delete;
     SegmentGuard& operator=(const SegmentGuard&) = delete;
 
-    /// Removes them now; returns how many there were.
-    int remove_all() const {
+    /// The names (in /dev/shm) of the segments there now.
+    std::vector<std::string> present() const {
         std::vector<std::string> names;
         if (DIR* d = ::opendir("/dev/shm")) {
             while (const dirent* e = ::readdir(d)) {
@@ -34,6 +34,12 @@ public:
             }
             ::closedir(d);
         }
+        return names;
+    }
+
+    /// Removes them now; returns how many there were.
+    int remove_all() const {
+        const std::vector<std::string> names = present();
         for (const auto& n : names) ::shm_unlink(("/" + n).c_str());
         return static_cast<int>(names.size());
     }

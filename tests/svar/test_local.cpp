@@ -41,10 +41,10 @@ protected:
         table = Table::create(name, parse_svar_string(kTable, "ctl.svar"));
     }
     void TearDown() override {
-        table.destroy();
-        // A test whose attached child was killed leaves the table counted as
-        // in use (issue #15): the suite still leaves nothing in /dev/shm.
-        chimera::test::SegmentGuard(name.substr(1)).remove_all();
+        // Children that attached and were killed are counted out (issue #15.2):
+        // the last live user removes the table.
+        EXPECT_TRUE(table.destroy());
+        EXPECT_EQ(chimera::test::SegmentGuard(name.substr(1)).remove_all(), 0);
     }
     std::string name;
     Table table;

@@ -2,9 +2,12 @@
 #include <gtest/gtest.h>
 
 #include <cstring>
+#include <functional>
+#include <vector>
 
 #include "chimera/cfg.hpp"
 #include "chimera/svar.hpp"
+#include "layout.hpp"  // the segment layout, to corrupt it
 #include "svar_test_util.hpp"
 
 using namespace chimera;
@@ -155,4 +158,82 @@ TEST(SvarTable, AttachRefusesAnotherObjectType) {
         EXPECT_EQ(std::string(e.what()), "segment " + name + ": holds a tbuf, expected a svar_table");
     }
     s.detach_destroy_if_last();
+}
+
+// --- memory another process writes is bounded before use (issue #15.3) ------------
+
+// Every offset and length of the header and of a descriptor, corrupted in a
+// live table by "another process": attach refuses it, naming the segment and
+// the field; a handle attached before keeps what it checked and reads on.
+TEST(SvarTable, CorruptOffsetsAndLengthsAreRefusedNamingTheSegment) {
+    const std::string name = unique_name("bad");
+    Table t = Table::create(name, parse_svar_string(kSmall, "small.svar"));
+    Table before = Table::attach(name);
+    ipc::Segment raw = ipc::Segment::attach(name, {ipc::ObjectType::svar_table, kLayoutVersion});
+    auto& h = *static_cast<detail::TableHeader*>(raw.base());
+    auto* d = reinterpret_cast<detail::Descriptor*>(static_cast<std::byte*>(raw.base()) + h.desc_offset);
+    const std::uint64_t huge = std::uint64_t{1} << 40;
+    struct Case {
+        const char* field;
+        std::function<void(bool)> corrupt;  // true: corrupt, false: restore
+    };
+    auto u64 = [](std::uint64_t& f, std::uint64_t bad) {
+        return [&f, bad, good = f](bool on) mutable { f = on ? bad : good; };
+    };
+    auto u32 = [](std::uint32_t& f, std::uint32_t bad) {
+        return [&f, bad, good = f](bool on) mutable { f = on ? bad : good; };
+    };
+    const Case cases[] = {
+        {"nvars", u32(h.nvars, 0)},
+        {"descriptors end", u32(h.nvars, 1u << 30)},
+        {"descriptors end", u64(h.desc_offset, huge)},
+        {"undo list offset", u64(h.undo_index_offset, huge)},
+        {"data end", u64(h.data_bytes, huge)},
+        {"undo data end", u64(h.undo_offset, h.undo_offset + 64 * 1024)},
+        {"source name end", u32(h.source_len, 1u << 31)},
+        {"variable name length", [&, saved = std::string(d[1].name)](bool on) {
+             std::memset(d[1].name, on ? 'X' : 0, sizeof d[1].name);  // no NUL in the field
+             if (!on) std::memcpy(d[1].name, saved.data(), saved.size());
+         }},
+        {"variable type", u32(d[0].type, 99)},
+        {"variable element size", u32(d[0].elem_size, 3)},
+        {"variable bytes", u64(d[0].bytes, 1u << 20)},
+        {"variable bytes", u32(d[2].nelem, 1u << 31)},
+        {"variable data offset", u64(d[1].data_offset, 8)},
+        {"variable data end", u64(d[1].data_offset, huge)},
+        {"variable INIT/MIN/MAX offset", u64(d[0].init_offset, huge)},
+        {"variable INIT/MIN/MAX offset", u64(d[0].max_offset, raw.size() - 8)},
+        {"variable DESC end", u64(d[3].desc_offset, huge)},
+        {"variable UNITS end", u32(d[3].units_len, 1u << 31)},
+    };
+    std::vector<double> pos(3);
+    for (const Case& c : cases) {
+        c.corrupt(true);
+        try {
+            Table::attach(name);
+            ADD_FAILURE() << c.field << ": attached";
+        } catch (const Error& e) {
+            const std::string what = e.what();
+            EXPECT_NE(what.find("segment " + name + ": " + c.field), std::string::npos) << what;
+        }
+        EXPECT_TRUE(validate_table(raw.base(), raw.size())) << c.field;
+        // The handle attached before uses the descriptors it copied.
+        EXPECT_EQ(before.read(before.index_of("POS"), pos.data()), Status::ok) << c.field;
+        EXPECT_EQ(pos[1], 2.0);
+        EXPECT_EQ(before.var("BLOB").bytes(), 24u);
+        c.corrupt(false);
+        ASSERT_FALSE(validate_table(raw.base(), raw.size())) << "not restored: " << c.field;
+    }
+    // An undo record a dead writer left with indices past the table: refused on
+    // attach, and a recovery that rolls it back skips them.
+    h.undo_count = 2;
+    auto* list = reinterpret_cast<std::uint32_t*>(static_cast<std::byte*>(raw.base()) + h.undo_index_offset);
+    list[0] = 1000;
+    list[1] = 0;
+    h.undo_active.store(1);
+    EXPECT_NE(std::string(validate_table(raw.base(), raw.size()).field), "");
+    h.undo_active.store(0);
+    raw.detach();
+    before.detach();
+    EXPECT_TRUE(t.destroy());
 }

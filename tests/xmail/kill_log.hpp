@@ -12,6 +12,7 @@
 #pragma once
 
 #include <atomic>
+#include <cstddef>
 #include <cstdint>
 
 namespace kill_test {
@@ -49,5 +50,27 @@ inline std::uint64_t resume_sequence(const Log& log, int slot) {
     const std::uint64_t sent = log.sent[slot].load(), next = log.attempt[slot].load() + 1;
     return sent > next ? sent : next;
 }
+
+// The mailbox kill test's log (a plain segment both sides map). Receivers
+// read straight into `landing`, in shared memory, so a receiver killed
+// anywhere after taking a message leaves its id there. A sender records each
+// loss its Peer reports (the last N written to a receiver that died) as a
+// range of its sequences.
+inline constexpr int kMailSenders = 2;
+inline constexpr std::uint32_t kMailCap = 1u << 20;
+inline constexpr std::uint32_t kRangeCap = 4096;
+
+struct MailLog {
+    std::atomic<std::uint32_t> stop;
+    std::atomic<std::uint32_t> corrupt;             // a damaged payload, or a sender's unexpected status
+    std::atomic<std::uint64_t> sent[kMailSenders];  // sequences below this were written ok
+    std::atomic<std::uint32_t> ranges[kMailSenders];
+    std::uint64_t undelivered[kMailSenders][kRangeCap][2];  // [first, end) reported lost
+    std::atomic<std::uint64_t> count;               // receipts committed
+    std::uint64_t landing[kMaxWords];               // the receiver's read buffer: word 0 is the id
+    std::uint64_t ids[kMailCap];
+};
+/// The log's place in its segment: after the segment header.
+inline constexpr std::size_t kMailLogOffset = 64;
 
 }  // namespace kill_test

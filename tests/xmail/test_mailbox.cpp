@@ -274,3 +274,175 @@ TEST(Mailbox, ResetDropsUnreadMessages) {
     EXPECT_EQ(b.read(&c, 1), Status::ok);
     EXPECT_EQ(c, '3');
 }
+
+// --- lost with a dead receiver: reported, not silent (issue #15.2) ----------------
+
+namespace {
+
+// A child RTPU "c" that reads nothing and waits to be killed.
+pid_t idle_rtpu(const std::string& sys, const std::string& name, std::uint32_t bid) {
+    int ready[2];
+    if (pipe(ready) != 0) return -1;
+    const pid_t child = fork();
+    if (child == 0) {
+        Mailbox c(sys, name, bid, small());
+        char x = 1;
+        (void)!write(ready[1], &x, 1);
+        for (;;) pause();
+    }
+    char x;
+    (void)!read(ready[0], &x, 1);
+    close(ready[0]);
+    close(ready[1]);
+    return child;
+}
+
+}  // namespace
+
+TEST(Mailbox, MessagesADeadReceiverLeftUnreadAreCountedByTheSender) {
+    const std::string sys = test_sys("undeliv");
+    const chimera::test::SegmentGuard cleanup("chimera." + sys + ".");
+    Mailbox a(sys, "a", 0, small());
+    const pid_t child = idle_rtpu(sys, "c", 1);
+    auto& to_c = a.peer("c");
+    for (int i = 0; i < 5; ++i) ASSERT_EQ(a.write(to_c, "msg", 3), Status::ok);
+    kill(child, SIGKILL);
+    waitpid(child, nullptr, 0);
+    EXPECT_EQ(to_c.undelivered(), 0u);  // not known yet
+    a.set_probe_period(0);
+    EXPECT_EQ(a.write(to_c, "late", 4), Status::not_alive);
+    EXPECT_EQ(to_c.undelivered(), 5u) << "the five written and never read";
+    EXPECT_EQ(a.undelivered(), 5u);
+    EXPECT_EQ(a.header().undelivered.load(), 5u) << "visible in the sender's mailbox header";
+    EXPECT_EQ(a.write(to_c, "late", 4), Status::not_alive);
+    EXPECT_EQ(a.undelivered(), 5u) << "counted once per dead receiver";
+}
+
+TEST(Mailbox, CheckPeersCountsTheLossWithoutAnotherWrite) {
+    const std::string sys = test_sys("undeliv2");
+    const chimera::test::SegmentGuard cleanup("chimera." + sys + ".");
+    Mailbox a(sys, "a", 0, small());
+    const pid_t child = idle_rtpu(sys, "c", 1);
+    auto& to_c = a.peer("c");
+    ASSERT_EQ(a.write(to_c, "one", 3), Status::ok);
+    ASSERT_EQ(a.write(to_c, "two", 3), Status::ok);
+    kill(child, SIGKILL);
+    siginfo_t info{};
+    ASSERT_EQ(waitid(P_PID, static_cast<id_t>(child), &info, WEXITED | WNOWAIT), 0);  // a zombie
+    a.check_peers();
+    EXPECT_EQ(a.undelivered(), 2u);
+    waitpid(child, nullptr, 0);
+}
+
+TEST(Mailbox, AnRtpuServerCountsLossesOfItsTasksWithin100ms) {
+    const std::string sys = test_sys("undeliv3");
+    const chimera::test::SegmentGuard cleanup("chimera." + sys + ".");
+    xm::Rtpu a(sys, "a", 0, small());
+    const pid_t child = idle_rtpu(sys, "c", 1);
+    auto& to_c = a.mailbox().peer("c");
+    for (int i = 0; i < 3; ++i) ASSERT_EQ(a.mailbox().write(to_c, "x", 1), Status::ok);
+    kill(child, SIGKILL);
+    waitpid(child, nullptr, 0);
+    const auto until = ipc::now_ns() + 2'000'000'000;
+    while (a.mailbox().undelivered() == 0 && ipc::now_ns() < until)
+        std::this_thread::sleep_for(std::chrono::milliseconds(5));
+    EXPECT_EQ(a.mailbox().undelivered(), 3u);
+}
+
+// --- memory another process writes is bounded before use (issue #15.3) ------------
+
+TEST(Mailbox, ARingPositionOrRecordLengthOutsideTheRingIsRefused) {
+    const std::string sys = test_sys("badring");
+    Mailbox a(sys, "a", 1, small(256)), b(sys, "b", 2, small(256)), c(sys, "c", 3, small(256));
+    auto& a_to_b = a.peer("b");
+    auto& c_to_b = c.peer("b");
+    const std::string seg = Mailbox::segment_name(sys, "b");
+    // The sender's ring in b's segment, as any process mapping it can write it.
+    ipc::Segment raw = ipc::Segment::attach(seg, {ipc::ObjectType::xmail_mailbox, xm::layout::kMailboxVersion});
+    const auto& h = *static_cast<xm::layout::MailboxHeader*>(raw.base());
+    auto* ring1 = reinterpret_cast<xm::layout::RingHeader*>(static_cast<std::byte*>(raw.base()) +
+                                                            h.off_rings + h.ring_stride * 1);
+    auto* rec1 = reinterpret_cast<xm::layout::RecordHeader*>(ring1 + 1);
+    char buf[512];
+    xm::ReadInfo info;
+
+    // A record length larger than the ring.
+    ASSERT_EQ(a.write(a_to_b, "hello", 5), Status::ok);
+    ASSERT_EQ(c.write(c_to_b, "from c", 6), Status::ok);
+    rec1->length = 100000;
+    EXPECT_EQ(b.read(buf, sizeof buf, &info), Status::corrupt);
+    EXPECT_NE(b.fault_message().find("segment " + seg + ": ring record length [1] is 100000"),
+              std::string::npos)
+        << b.fault_message();
+    // The bad ring's bytes are dropped (counted); the other sender goes on.
+    ASSERT_EQ(b.read(buf, sizeof buf, &info), Status::ok);
+    EXPECT_EQ(std::string(buf, info.length), "from c");
+    EXPECT_EQ(ring1->discarded.load(), 16u);
+    // And the first one too, after the refusal.
+    ASSERT_EQ(a.write(a_to_b, "again", 5), Status::ok);
+    ASSERT_EQ(b.read(buf, sizeof buf, &info), Status::ok);
+    EXPECT_EQ(std::string(buf, info.length), "again");
+
+    // A write position beyond what the ring holds.
+    ring1->in.store(ring1->in.load() + 4096);
+    EXPECT_EQ(b.read(buf, sizeof buf, &info), Status::corrupt);
+    EXPECT_NE(b.fault_message().find("ring fill (written - read) [1] is 4096 (must be at most 256)"),
+              std::string::npos)
+        << b.fault_message();
+    // A read position the sender cannot trust: its write is refused, nothing copied.
+    ring1->out.store(ring1->out.load() - 1000);
+    EXPECT_EQ(a.write(a_to_b, "x", 1), Status::corrupt);
+    EXPECT_NE(a_to_b.fault_message().find("segment " + seg + ": ring fill"), std::string::npos)
+        << a_to_b.fault_message();
+}
+
+TEST(Mailbox, ACorruptMailboxHeaderIsRefusedOnAttachNamingTheSegment) {
+    const std::string sys = test_sys("badhdr");
+    Mailbox b(sys, "b", 1, small(256));
+    const std::string seg = Mailbox::segment_name(sys, "b");
+    auto& h = b.header();
+    const struct {
+        std::uint64_t xm::layout::MailboxHeader::*field;
+        std::uint64_t bad;
+        const char* named;
+    } offsets[] = {
+        {&xm::layout::MailboxHeader::off_rings, 1 << 30, "ring offset"},
+        {&xm::layout::MailboxHeader::ring_stride, 64, "ring stride"},
+        {&xm::layout::MailboxHeader::off_wakeup, 8, "wakeup offset"},
+        {&xm::layout::MailboxHeader::off_mbox, 1 << 20, "mailbox interrupt offset"},
+    };
+    for (const auto& o : offsets) {
+        const std::uint64_t good = h.*o.field;
+        h.*o.field = o.bad;
+        Mailbox a(sys, "a", 0, small(256));
+        try {
+            a.peer("b");
+            ADD_FAILURE() << o.named << ": attached";
+        } catch (const xm::Error& e) {
+            EXPECT_NE(std::string(e.what()).find("segment " + seg + ": " + o.named), std::string::npos)
+                << e.what();
+        }
+        h.*o.field = good;
+    }
+    for (std::uint32_t bad : {0u, 1u << 31}) {
+        const std::uint32_t good = h.bufsize;
+        h.bufsize = bad;
+        Mailbox a(sys, "a", 0, small(256));
+        EXPECT_THROW(a.peer("b"), xm::Error);
+        h.bufsize = good;
+    }
+    // The owner keeps the sizes it created the mailbox with.
+    h.bufsize = 1u << 30;
+    Mailbox a(sys, "a", 0, small(256));
+    h.bufsize = 256;
+    auto& to_b = a.peer("b");
+    h.bufsize = 1u << 30;
+    h.nrtpu = 64;
+    ASSERT_EQ(a.write(to_b, "ok", 2), Status::ok);
+    char buf[8];
+    EXPECT_EQ(b.read(buf, sizeof buf), Status::ok);
+    EXPECT_TRUE(xm::validate_mailbox(&b.header(), xm::layout::mailbox_size(small(256))));
+    h.bufsize = 256;
+    h.nrtpu = 4;
+    EXPECT_FALSE(xm::validate_mailbox(&b.header(), xm::layout::mailbox_size(small(256))));
+}

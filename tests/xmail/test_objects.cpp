@@ -14,6 +14,7 @@
 #include <sstream>
 #include <string>
 #include <thread>
+#include <tuple>
 #include <vector>
 
 #include "chimera/msg.hpp"
@@ -41,46 +42,6 @@ bool contains(const std::string& s, const std::string& part) {
 }
 
 // A helper process whose stdout we read line by line.
-struct Child {
-    pid_t pid = -1;
-    int fd = -1;
-    std::string buffered;
-    explicit Child(const std::vector<std::string>& args) {
-        int p[2];
-        if (pipe(p) != 0) return;
-        pid = spawn_helper(args, p[1]);
-        close(p[1]);
-        fd = p[0];
-    }
-    std::string line() {
-        for (;;) {
-            const auto nl = buffered.find('\n');
-            if (nl != std::string::npos) {
-                std::string l = buffered.substr(0, nl);
-                buffered.erase(0, nl + 1);
-                return l;
-            }
-            char buf[256];
-            const ssize_t n = read(fd, buf, sizeof buf);
-            if (n <= 0) return "<eof>";
-            buffered.append(buf, static_cast<std::size_t>(n));
-        }
-    }
-    int wait() {
-        int st = 0;
-        waitpid(pid, &st, 0);
-        pid = -1;
-        return WIFEXITED(st) ? WEXITSTATUS(st) : 128 + WTERMSIG(st);
-    }
-    ~Child() {
-        if (pid > 0) {
-            kill(pid, SIGKILL);
-            waitpid(pid, nullptr, 0);
-        }
-        if (fd >= 0) close(fd);
-    }
-};
-
 template <typename F>
 bool eventually(F&& f, int ms = 5000) {
     for (int i = 0; i < ms; ++i) {
@@ -316,4 +277,148 @@ TEST(Mailbox, ExpressMailBetweenProcessesAndDeathDetected) {
     echo.wait();
     EXPECT_FALSE(me.alive(peer));
     EXPECT_EQ(me.write(peer, "x", 1), Status::not_alive);
+}
+
+// --- memory another process writes is bounded before use (issue #15.3) ------------
+
+namespace {
+
+// A second mapping of a named object's segment, as any process that may
+// write it has: the corrupting side.
+ipc::Segment raw_mapping(xm::Rtpu& self, const std::string& object, ipc::ObjectType type, std::uint32_t version) {
+    return ipc::Segment::attach(self.attach_object(object, type).segment, {type, version});
+}
+
+}  // namespace
+
+// Every link, index and size of a live queue, corrupted: the operation that
+// would follow it refuses (Status::corrupt) before changing anything, its
+// fault names the segment and the field, and with the field restored the
+// queue is whole (check()) and works on.
+TEST(Msg, CorruptLinksAndSizesAreRefusedNamingTheSegment) {
+    const std::string sys = test_sys("msgbad");
+    xm::Rtpu host(sys, "host", 0);
+    msg::Params p;
+    p.blknum = 4;
+    p.blksize = 16;
+    p.policy = msg::Policy::hpf;
+    msg::Queue q = msg::Queue::create(host, "host:q", p);
+    ipc::Segment raw = raw_mapping(host, "host:q", ipc::ObjectType::xmail_msg, msg::layout::kQueueVersion);
+    const std::string seg = raw.name();
+    auto* h = static_cast<msg::layout::QueueHeader*>(raw.base());
+    auto head = [&](std::uint32_t off) {
+        return reinterpret_cast<msg::layout::MsgHead*>(static_cast<std::byte*>(raw.base()) + off);
+    };
+    auto block = [&](std::uint32_t off) {
+        return reinterpret_cast<msg::layout::MsgBHead*>(static_cast<std::byte*>(raw.base()) + off);
+    };
+    char buf[64];
+    const std::string two_blocks(20, 'm');  // 20 bytes: two 16-byte blocks
+    auto refused = [&](Status s, const char* field) {
+        EXPECT_EQ(s, Status::corrupt) << field;
+        EXPECT_NE(q.fault_message().find("segment " + seg + ": " + field), std::string::npos)
+            << q.fault_message();
+    };
+    struct Case {
+        const char* field;
+        bool by_send;                          // else by receive (one message queued first)
+        std::function<std::uint32_t&()> word;  // the field
+        std::uint32_t bad;
+    };
+    const std::uint32_t outside = static_cast<std::uint32_t>(raw.size()) + 64;
+    const Case cases[] = {
+        {"headfree", true, [&]() -> std::uint32_t& { return h->headfree; }, outside},
+        {"headfree", true, [&]() -> std::uint32_t& { return h->headfree; }, h->off_heads + 3},  // mid-header
+        {"headfree link", true, [&]() -> std::uint32_t& { return head(h->headfree)->link; }, 8},
+        {"blkfree", true, [&]() -> std::uint32_t& { return h->blkfree; }, h->off_heads},  // a header, not a block
+        {"blkfree link", true, [&]() -> std::uint32_t& { return block(h->blkfree)->link; }, outside},
+        {"headused", false, [&]() -> std::uint32_t& { return h->headused; }, outside},
+        {"headused link", false, [&]() -> std::uint32_t& { return head(h->headused)->link; }, 12},
+        {"message block link", false, [&]() -> std::uint32_t& { return head(h->headused)->blk; }, outside},
+        {"message block link", false, [&]() -> std::uint32_t& { return block(head(h->headused)->blk)->link; }, 0},
+        {"message block count", false, [&]() -> std::uint32_t& { return head(h->headused)->nblk; }, 1000},
+        {"message size", false, [&]() -> std::uint32_t& { return head(h->headused)->size; }, 33},
+    };
+    for (const Case& c : cases) {
+        if (!c.by_send) {
+            ASSERT_EQ(q.send(two_blocks.data(), two_blocks.size(), 7, 1, 0), Status::ok);
+        }
+        std::uint32_t& f = c.word();
+        const std::uint32_t good = f;
+        f = c.bad;
+        if (c.by_send)
+            refused(q.send(two_blocks.data(), two_blocks.size(), 7, 1, 0), c.field);
+        else
+            refused(q.receive(buf, sizeof buf, nullptr, 0), c.field);
+        f = good;
+        EXPECT_EQ(q.check(), "") << c.field << ": nothing was changed by the refusal";
+        if (!c.by_send) {
+            ASSERT_EQ(q.receive(buf, sizeof buf, nullptr, 0), Status::ok) << c.field;
+        }
+    }
+    // A HPF insertion walks headused: a bad link on the way is refused too.
+    ASSERT_EQ(q.send("a", 1, 0, 5, 0), Status::ok);
+    ASSERT_EQ(q.send("b", 1, 0, 3, 0), Status::ok);
+    std::uint32_t& link = head(h->headused)->link;
+    const std::uint32_t good = link;
+    link = outside;
+    refused(q.send("c", 1, 0, 1, 0), "headused link");
+    link = good;
+    EXPECT_EQ(q.check(), "");
+    // The fixed part is checked on attach.
+    const std::uint32_t stride = h->block_stride;
+    h->block_stride = 4096;
+    const std::string e = error_of([&] { msg::Queue::attach(host, "host:q"); });
+    EXPECT_TRUE(contains(e, "segment " + seg + ": block stride")) << e;
+    h->block_stride = stride;
+    EXPECT_EQ(error_of([&] { msg::Queue::attach(host, "host:q"); }), "<no error>");
+    EXPECT_FALSE(msg::validate(raw.base(), raw.size()));
+    raw.detach();
+}
+
+TEST(Shm, ACorruptUsableAreaOrNameIsRefusedOnAttach) {
+    const std::string sys = test_sys("shmbad");
+    xm::Rtpu host(sys, "host", 0);
+    shm::Segment s = shm::Segment::create(host, "host:m", 100);
+    ipc::Segment raw = raw_mapping(host, "host:m", ipc::ObjectType::xmail_shm, shm::layout::kShmVersion);
+    auto* h = static_cast<shm::layout::ShmHeader*>(raw.base());
+    const std::uint64_t offset = h->data_offset, size = h->size;
+    for (auto [field, bad_offset, bad_size] :
+         {std::tuple{"usable size", offset, std::uint64_t{1} << 40}, std::tuple{"data offset", std::uint64_t{8}, size},
+          std::tuple{"data offset", std::uint64_t{1} << 40, size}, std::tuple{"usable size", offset, std::uint64_t{0}}}) {
+        h->data_offset = bad_offset;
+        h->size = bad_size;
+        const std::string e = error_of([&] { shm::Segment::attach(host, "host:m"); });
+        EXPECT_TRUE(contains(e, "segment " + raw.name() + ": " + field)) << e;
+        EXPECT_TRUE(shm::validate(raw.base(), raw.size()));
+    }
+    h->data_offset = offset;
+    h->size = size;
+    std::memset(h->name, 'x', sizeof h->name);
+    EXPECT_TRUE(contains(error_of([&] { shm::Segment::attach(host, "host:m"); }), ": name length"));
+    h->name[5] = '\0';
+    EXPECT_EQ(error_of([&] { shm::Segment::attach(host, "host:m"); }), "<no error>");
+    EXPECT_EQ(s.size(), 100u);  // the mapping kept what it checked
+    raw.detach();
+}
+
+TEST(Sem, ACorruptKindOrNameIsRefusedOnAttach) {
+    const std::string sys = test_sys("sembad");
+    xm::Rtpu host(sys, "host", 0);
+    sem::Semaphore s = sem::Semaphore::create(host, "host:s", sem::Kind::binary, 1);
+    ipc::Segment raw = raw_mapping(host, "host:s", ipc::ObjectType::xmail_sem, sem::layout::kSemVersion);
+    auto* h = static_cast<sem::layout::SemHeader*>(raw.base());
+    h->kind = 7;
+    EXPECT_TRUE(contains(error_of([&] { sem::Semaphore::attach(host, "host:s"); }),
+                         "segment " + raw.name() + ": kind is 7"));
+    h->kind = 0;
+    std::memset(h->name, 'x', sizeof h->name);
+    EXPECT_TRUE(contains(error_of([&] { sem::Semaphore::attach(host, "host:s"); }), ": name length"));
+    h->name[3] = '\0';
+    h->value = -4;  // not an offset: P and V keep it in range (the validator names it)
+    EXPECT_TRUE(contains(ipc::describe(raw.name(), sem::validate(raw.base(), raw.size())), "value"));
+    h->value = 1;
+    EXPECT_FALSE(sem::validate(raw.base(), raw.size()));
+    EXPECT_EQ(s.try_p(), Status::ok);
+    raw.detach();
 }

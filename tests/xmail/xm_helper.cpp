@@ -10,6 +10,7 @@
 #include <thread>
 #include <vector>
 
+#include "chimera/ipc/segment.hpp"
 #include "chimera/msg.hpp"
 #include "chimera/sem.hpp"
 #include "chimera/shm.hpp"
@@ -48,6 +49,77 @@ int xm_echo(const std::string& sys, const std::string& rtpu, std::uint32_t bid) 
             auto& back = mb.peer(m.substr(0, bar));
             mb.write(back, buf.data() + bar + 1, info.length - bar - 1, 1'000'000'000);
         }
+    }
+}
+
+// The mailbox kill test's log, by its plain segment name.
+ipc::Segment mail_log(const char* name) {
+    return ipc::Segment::attach(name, {ipc::ObjectType::test, 1});
+}
+
+int mb_send(const std::string& sys, const std::string& rtpu, std::uint32_t bid, int slot, const char* log_name) {
+    ipc::Segment seg = mail_log(log_name);
+    auto* log = reinterpret_cast<kill_test::MailLog*>(static_cast<std::byte*>(seg.base()) + kill_test::kMailLogOffset);
+    xm::Mailbox mb(sys, rtpu, bid);
+    mb.set_probe_period(0);
+    std::uint64_t seq = log->sent[slot].load(), payload[kill_test::kMaxWords];
+    xm::Peer* to = nullptr;
+    while (!log->stop.load()) {
+        if (!to) {
+            try {
+                to = &mb.peer("r");
+            } catch (const xm::Error&) {
+                std::this_thread::sleep_for(std::chrono::microseconds(200));  // being restarted
+                continue;
+            }
+        }
+        const std::uint64_t id = kill_test::make_id(slot, seq);
+        const std::size_t n = kill_test::payload_words(id);
+        for (std::size_t i = 0; i < n; ++i) payload[i] = kill_test::word(id, i);
+        const Status s = mb.write(*to, payload, n * 8, 20'000'000);
+        if (s == Status::ok) {
+            log->sent[slot].store(++seq);
+        } else if (s == Status::not_alive) {
+            // The receiver died: the last undelivered() we wrote to it are lost, and said so.
+            if (const std::uint64_t lost = to->undelivered()) {
+                const std::uint32_t k = log->ranges[slot].load();
+                if (k < kill_test::kRangeCap) {
+                    log->undelivered[slot][k][0] = seq - lost;
+                    log->undelivered[slot][k][1] = seq;
+                    log->ranges[slot].store(k + 1);
+                }
+            }
+            to = nullptr;
+        } else if (s != Status::full) {
+            log->corrupt.fetch_add(1);
+            say(std::string("write failed: ") + xm::to_string(s));
+            return 3;
+        }
+    }
+    return 0;
+}
+
+int mb_recv(const std::string& sys, const std::string& rtpu, std::uint32_t bid, const char* log_name) {
+    ipc::Segment seg = mail_log(log_name);
+    auto* log = reinterpret_cast<kill_test::MailLog*>(static_cast<std::byte*>(seg.base()) + kill_test::kMailLogOffset);
+    xm::Mailbox mb(sys, rtpu, bid);
+    say("ready");
+    for (;;) {
+        log->landing[0] = 0;
+        xm::ReadInfo info;
+        const Status s = mb.read(log->landing, sizeof log->landing, &info);
+        if (s == Status::would_block) {
+            if (log->stop.load() == 2) return 0;  // the senders are done and we are empty
+            mb.wait_interrupts(5'000'000);
+            continue;
+        }
+        const std::uint64_t id = log->landing[0];
+        bool ok = s == Status::ok && info.length == kill_test::payload_words(id) * 8;
+        for (std::size_t i = 0; ok && i < info.length / 8; ++i) ok = log->landing[i] == kill_test::word(id, i);
+        if (!ok) log->corrupt.fetch_add(1);
+        const std::uint64_t n = log->count.load();
+        if (n < kill_test::kMailCap) log->ids[n] = id;
+        log->count.store(n + 1);  // the receipt is committed
     }
 }
 
@@ -119,6 +191,8 @@ int main(int argc, char** argv) {
     const auto bid = static_cast<std::uint32_t>(std::atoi(argv[4]));
     try {
         if (cmd == "xm-echo") return xm_echo(sys, rtpu, bid);
+        if (cmd == "mb-send" && argc >= 7) return mb_send(sys, rtpu, bid, std::atoi(argv[5]), argv[6]);
+        if (cmd == "mb-recv" && argc >= 6) return mb_recv(sys, rtpu, bid, argv[5]);
         xm::Rtpu self(sys, rtpu, bid);
         if (cmd == "serve") {  // an RTPU whose XM server owns objects: runs until killed
             say("ready");
@@ -129,6 +203,16 @@ int main(int argc, char** argv) {
             const std::string seen(static_cast<const char*>(s.data()), std::strlen(argv[6]));
             std::strcpy(static_cast<char*>(s.data()), argv[7]);
             say(seen == argv[6] ? "ok " + std::to_string(s.size()) : "saw " + seen);
+            return 0;
+        }
+        if (cmd == "shm-hold" && argc >= 6) {  // OBJ: attach, hold until stdin closes, detach
+            shm::Segment s = shm::Segment::attach(self, argv[5]);
+            std::memcpy(s.data(), "held", 4);
+            say("ready");
+            char c;
+            while (read(0, &c, 1) > 0) {
+            }
+            say(s.detach() ? "freed" : "kept");
             return 0;
         }
         if (cmd == "shm-create" && argc >= 7) {  // OBJ SIZE: create on another RTPU

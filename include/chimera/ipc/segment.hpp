@@ -13,8 +13,19 @@
 // "being built"; the creator fills the body and calls publish(). Until then
 // attach() refuses it, and if the creating Segment is destroyed (an exception
 // during set-up) the name is unlinked, so a failed creation leaves nothing
-// behind. attach() counts users in the header; detach_destroy_if_last() gives
-// services "destroyed by the last user" semantics.
+// behind. detach_destroy_if_last() gives services "destroyed by the last
+// user" semantics.
+//
+// Users are counted by the kernel, not by a counter in the segment: every
+// mapping keeps the segment's file open with a shared open-file-description
+// lock (fcntl F_OFD_SETLK, F_RDLCK) on it, which the kernel drops when the
+// process dies, however it dies. A user that detaches with
+// detach_destroy_if_last() asks to turn its shared lock into an exclusive one;
+// the kernel grants that only when no other mapping (of any live process)
+// holds a lock, and only then is the name removed. So a process killed by
+// SIGKILL at any instruction is counted out at once, and the last live user
+// frees the segment (issue #15.2). A handle copied into a child by fork()
+// neither counts nor frees: only the process that attached releases.
 #pragma once
 
 #include <sys/types.h>
@@ -25,6 +36,8 @@
 #include <stdexcept>
 #include <string>
 #include <string_view>
+
+#include "chimera/ipc/fault.hpp"
 
 namespace chimera::ipc {
 
@@ -65,7 +78,7 @@ struct SegmentHeader {
     std::uint32_t object_type;      ///< ObjectType
     std::uint32_t byte_order;       ///< kByteOrderCode as written by the creator
     std::uint64_t total_size;       ///< bytes, header included
-    std::atomic<std::uint32_t> attach_count;  ///< mapped users, creator included
+    std::atomic<std::uint32_t> attaches;      ///< attach() calls so far (a statistic: live users are Segment::users())
     std::int32_t creator_pid;
     std::atomic<std::uint32_t> state;         ///< SegmentState
     std::uint32_t header_size;      ///< sizeof(SegmentHeader) of the creator
@@ -155,12 +168,21 @@ public:
     /// is complete (release ordering: attachers see the whole body).
     void publish() noexcept;
 
-    /// Unmaps and decrements the attach count. The name stays.
+    /// Unmaps and gives up this mapping's user lock. The name stays.
     void detach() noexcept;
-    /// Unmaps; if this was the last user, unlinks the name. Returns true when
-    /// the segment was destroyed. (An attach racing with it either fails with
-    /// "is being destroyed" or keeps the segment alive as a new user.)
+    /// Unmaps; if no other live mapping exists, unlinks the name. Returns true
+    /// when the segment was destroyed. (An attach racing with it either fails
+    /// with "is being destroyed" or keeps the segment alive as a new user.)
     bool detach_destroy_if_last() noexcept;
+    /// Live mappings of this segment, this one included (from /proc/locks: a
+    /// slow path, for status and tests). 0 when not attached.
+    std::uint32_t users() const noexcept;
+    /// True when some live process maps the segment `name` (one fcntl probe).
+    static bool in_use(const std::string& name) noexcept;
+    /// Removes `name` when no live process maps it (its users all detached or
+    /// died), as the last user's detach_destroy_if_last() would: an attach
+    /// racing with it fails with "is being destroyed". True when removed.
+    static bool destroy_if_unused(const std::string& name) noexcept;
     /// Removes a name; false when it did not exist.
     static bool unlink(const std::string& name) noexcept;
     /// True when a segment of this name exists.
@@ -194,6 +216,8 @@ private:
     std::string name_;
     void* base_ = nullptr;
     std::size_t size_ = 0;
+    int fd_ = -1;        // open while mapped: it carries this mapping's user lock
+    pid_t owner_ = 0;    // the process that mapped it (a fork()ed copy does not release)
     bool locked_ = false;
     bool creator_ = false;
     bool published_ = false;
@@ -204,6 +228,10 @@ private:
 /// caller-supplied memory.
 void validate_header(const std::string& name, const SegmentHeader& header, SegmentKind kind,
                      std::size_t mapped_size);
+
+/// The same checks as validate_header() as a pure function over an image of
+/// `size` bytes (what a fuzzer calls): the first bound broken, or none.
+Fault header_fault(const void* image, std::size_t size, SegmentKind kind) noexcept;
 
 /// Fills a header for a new object of `total_size` bytes (state: building).
 void init_header(SegmentHeader& header, SegmentKind kind, std::size_t total_size) noexcept;
