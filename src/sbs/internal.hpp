@@ -27,6 +27,10 @@ class TaskCore;
 /// <name>.so / lib<name>.so in `dirs`); throws sbs::Error listing what was tried.
 const ChimeraModuleAbi& load_module(const std::string& name, const std::vector<std::string>& dirs);
 
+/// Criticality from frequency, scaled logarithmically between the RTPU's
+/// MINFREQ and MAXFREQ onto 1..62 (0 and 63 reserved, §4.5.1).
+int crit_for(const RtpuSpec& r, TaskType type, double freq);
+
 /// Timing-failure counters of a task (thesis §6.3), from its RTPU's scheduler.
 struct TimingCounts {
     std::uint64_t deadline = 0, maxexec = 0, minexec = 0, aborted = 0;
@@ -177,12 +181,13 @@ public:
     prof::TaskProfiler* profiler = nullptr;  // lives on the task thread's stack while it runs
 
     void set_state(State s) noexcept;
+    /// The policy text of the status (and of the status segment).
+    void publish_policy(std::string text) noexcept;
 
 private:
     static void* thread_main(void* self) noexcept;
+    /// The thread (task_loop.cpp): its set-up, then Figure 3.10 until kill.
     void run();
-    /// The policy text of the status (and of the status segment).
-    void publish_policy(std::string text) noexcept;
     /// Leaves the RTPU's scheduler (no more releases) and publishes the idle policy.
     void stop_running() noexcept;
 };

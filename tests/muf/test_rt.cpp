@@ -139,7 +139,7 @@ private:
                 skipped_.fetch_add(1);
                 continue;
             }
-            // As the runtime does (src/sbs/task.cpp): no mask saved, which
+            // As the runtime does (src/sbs/task_loop.cpp): no mask saved, which
             // would be a system call per cycle; restored after a jump instead.
             if (sigsetjmp(*sch_.cycle_mark(h_), 0) == 0) {
                 sch_.arm_abort(h_);
