@@ -5,11 +5,12 @@
 // and the interposed malloc counts its allocations, over two seconds after a
 // second of warm-up:
 //   - 0 allocations and 0 page faults per thread;
-//   - system calls: at most 2 per cycle for these tasks (none has a WCET):
-//     the wait for the release and the DEADLINE timer moved on at completion
-//     (docs/muf.md). A table lock found busy (the robot on the other CPU
-//     holds it) adds a futex call now and then, so the bound is on the mean
-//     over all cycles, with the extra calls printed.
+//   - system calls: 1 per cycle for these tasks (none has a WCET): the wait
+//     for the release (docs/muf.md; DEADLINE needs none). A table lock found
+//     busy (the robot on the other CPU holds it) adds a futex call now and
+//     then (up to 2.3 % of the cycles seen on this loaded 2-CPU machine), so
+//     the bound is 1.05 on the mean over all cycles, with the counts printed.
+//     Two per cycle (a timer call in every cycle) fails it.
 // Needs tracefs for the system-call counter: registered under
 // tests/prof/in_tracefs_namespace.sh, which mounts it privately.
 #include "fig3_7.hpp"
@@ -66,7 +67,7 @@ std::string unique_name() { return "steady" + std::to_string(::getpid()); }
 
 }  // namespace
 
-TEST(SteadyState, Figure3_7TaskThreadsMakeNoAllocationNoPageFaultAndTwoSystemCallsPerCycle) {
+TEST(SteadyState, Figure3_7TaskThreadsMakeNoAllocationNoPageFaultAndOneSystemCallPerCycle) {
     const long syscall_id = tracepoint_id("raw_syscalls/sys_enter");
     if (syscall_id < 0) {
         if (std::getenv("CHIMERA_REQUIRE_SYSCALL_COUNTER"))
@@ -129,7 +130,7 @@ TEST(SteadyState, Figure3_7TaskThreadsMakeNoAllocationNoPageFaultAndTwoSystemCal
                     static_cast<unsigned long long>(c.faults), c.allocations);
         ASSERT_GT(c.cycles, 100u) << c.name;
         EXPECT_GE(c.syscalls, c.cycles) << c.name << ": the wait alone is one per cycle: the counter missed calls";
-        EXPECT_LE(static_cast<double>(c.syscalls), 2.02 * static_cast<double>(c.cycles)) << c.name;
+        EXPECT_LE(static_cast<double>(c.syscalls), 1.05 * static_cast<double>(c.cycles)) << c.name;
         EXPECT_EQ(c.faults, 0u) << c.name;
         EXPECT_EQ(c.allocations, 0) << c.name;
     }
