@@ -3,6 +3,7 @@
 // each step of it is one member function named after the thesis.
 #include "internal.hpp"
 
+#include "chimera/cfg.hpp"
 #include "chimera/ipc/clock.hpp"
 #include "chimera/ipc/futex.hpp"
 #include "chimera/muf/rt.hpp"
@@ -145,17 +146,31 @@ constexpr auto kSync = [](Module& m, Task& t) { return m.sync(t); };
 constexpr auto kSet = [](Module& m, Task& t) { return m.set(t); };
 constexpr auto kGet = [](Module& m, Task& t) { return m.get(t); };
 
-std::vector<std::string> split_words(const std::string& text) {
-    std::vector<std::string> words;
-    std::size_t i = 0;
-    while (i < text.size()) {
-        while (i < text.size() && (text[i] == ' ' || text[i] == '\t')) ++i;
-        std::size_t j = i;
-        while (j < text.size() && text[j] != ' ' && text[j] != '\t') ++j;
-        if (j > i) words.push_back(text.substr(i, j - i));
-        i = j;
+// The states a request is valid in (Figure 3.10); set, get and freq in any.
+bool valid_in(CmdKind k, State s) noexcept {
+    switch (k) {
+        case CmdKind::on: return s == State::OFF;
+        case CmdKind::off: return s == State::ON;
+        case CmdKind::kill: return s != State::NOT_CREATED;
+        case CmdKind::clear: return s == State::ERROR;
+        case CmdKind::reinit: return s != State::NOT_CREATED && s != State::ERROR;
+        default: return true;
     }
-    return words;
+}
+
+const char* request_name(CmdKind k) noexcept {
+    switch (k) {
+        case CmdKind::on: return "on";
+        case CmdKind::off: return "off";
+        case CmdKind::kill: return "kill";
+        case CmdKind::clear: return "clear";
+        case CmdKind::reinit: return "reinit";
+        case CmdKind::set: return "set";
+        case CmdKind::get: return "get";
+        case CmdKind::freq: return "freq";
+        case CmdKind::none: break;
+    }
+    return "?";
 }
 
 // One request from the master, copied out of the mailbox.
@@ -179,6 +194,7 @@ private:
     // ---- states and transitions of Figure 3.10 ----
     bool spawn();                 // NOT-CREATED -> OFF: in-consts, init, out-consts
     void serve(const Request& q);  // a request from the master, in any state
+    void answer(Answer& a);
     Answer on();                  // OFF -> ON: in-vars and out-vars, on, out-vars, join the scheduler
     Answer off();                 // ON -> OFF
     Answer kill();                // OFF (ON: off first) -> NOT-CREATED
@@ -212,7 +228,6 @@ private:
     Outcome transfer(svar::Status st, const char* what);
     svar::Status copy_in(const svar::VarSet& set);
     svar::Status copy_out(const svar::VarSet& set);
-    void refuse(Answer& a, const char* what) const;
 
     // The two seams to the master: an error line and a signal. Every report
     // and every signal of the loop goes through one of them.
@@ -290,6 +305,12 @@ bool TaskLoop::spawn() {
 
 void TaskLoop::serve(const Request& q) {
     Answer a;
+    const State s = t_.state.load();
+    if (!valid_in(q.kind, s)) {
+        a.result = "refused: " + std::string(request_name(q.kind)) + " is not valid in state " + std::string(to_string(s));
+        answer(a);
+        return;
+    }
     switch (q.kind) {
         case CmdKind::on: a = on(); break;
         case CmdKind::off: a = off(); break;
@@ -301,6 +322,11 @@ void TaskLoop::serve(const Request& q) {
         case CmdKind::freq: a = freq(q.hz); break;
         case CmdKind::none: break;
     }
+    answer(a);
+}
+
+// Hands the answer to the master waiting in request().
+void TaskLoop::answer(Answer& a) {
     t_.arg.clear();
     std::lock_guard<std::mutex> lock(t_.cmd_mu);
     t_.cmd_result = std::move(a.result);
@@ -311,16 +337,8 @@ void TaskLoop::serve(const Request& q) {
     t_.cmd_cv.notify_all();
 }
 
-void TaskLoop::refuse(Answer& a, const char* what) const {
-    a.result = "refused: " + std::string(what) + " is not valid in state " + std::string(to_string(t_.state.load()));
-}
-
 Answer TaskLoop::on() {
     Answer a;
-    if (t_.state.load() != State::OFF) {
-        refuse(a, "on");
-        return a;
-    }
     t_.next_state.store(State::ON);
     Outcome r = transfer(copy_in(t_.set_on), "in-vars and out-vars");
     if (r == Outcome::ok) r = call_all(Phase::on, kOn);
@@ -365,10 +383,6 @@ Answer TaskLoop::on() {
 
 Answer TaskLoop::off() {
     Answer a;
-    if (t_.state.load() != State::ON) {
-        refuse(a, "off");
-        return a;
-    }
     const Outcome r = turn_off();
     if (ok_or_off(r)) {
         t_.set_state(State::OFF);
@@ -381,10 +395,6 @@ Answer TaskLoop::off() {
 
 Answer TaskLoop::kill() {
     Answer a;
-    if (t_.state.load() == State::NOT_CREATED) {
-        refuse(a, "kill");
-        return a;
-    }
     if (t_.state.load() == State::ON) {
         if (!ok_or_off(turn_off())) a.result = "error in off(): " + err_message_ + "; ";
         t_.set_state(State::OFF);  // kill runs from OFF (Figure 3.10)
@@ -402,10 +412,6 @@ Answer TaskLoop::kill() {
 
 Answer TaskLoop::clear() {
     Answer a;
-    if (t_.state.load() != State::ERROR) {
-        refuse(a, "clear");
-        return a;
-    }
     t_.next_state.store(State::OFF);
     const err::Error e{err_code_, err_module_, err_message_, nullptr, 0};
     bool still = false;
@@ -437,12 +443,7 @@ Answer TaskLoop::clear() {
 
 Answer TaskLoop::reinit() {
     Answer a;
-    const State s = t_.state.load();
-    if (s == State::NOT_CREATED || s == State::ERROR) {
-        refuse(a, "reinit");
-        return a;
-    }
-    t_.next_state.store(s);
+    t_.next_state.store(t_.state.load());
     Outcome r = transfer(copy_in(t_.set_in_consts), "in-consts");
     if (r == Outcome::ok) r = call_all(Phase::reinit, kReinit);
     if (!ok_or_off(r)) {
@@ -458,7 +459,7 @@ Answer TaskLoop::set(const std::string& key) {
     bool any = false;
     for (auto& ob : t_.objects)
         if (ob.rmod.local.has(key)) any = true;
-    const std::vector<std::string> values = split_words(t_.arg);
+    const std::vector<std::string> values = cfg::split_words(t_.arg);
     t_.arg = key + " " + t_.arg;
     for (std::size_t i = 0; i < t_.objects.size(); ++i) {
         if (any && !t_.objects[i].rmod.local.has(key)) continue;
