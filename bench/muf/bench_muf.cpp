@@ -160,39 +160,32 @@ void BM_SchedSetschedulerOnly(benchmark::State& state) {
 }
 BENCHMARK(BM_SchedSetschedulerOnly);
 
-// Per cycle, in the task thread: arm DEADLINE (CLOCK_MONOTONIC, absolute) and
-// MAXEXEC (thread CPU clock, relative) at the release, disarm DEADLINE at the
-// completion.
-void BM_DeadlineTimerArmDisarm(benchmark::State& state) {
+// Per cycle, in the thread of a task with a WCET: arm the MAXEXEC budget
+// (thread CPU clock, relative) at the release. The one timer call of a cycle.
+void BM_BudgetTimerArm(benchmark::State& state) {
     RtpuScheduler::Impl impl(Bench::make_options());
     detail::TaskSlot& s = impl.slots[0];
     s.phase = detail::Phase::waiting;
-    detail::create_timers(s, true);
+    detail::create_budget_timer(s);
     detail::bind_thread(&impl, &s, 0);
-    for (auto _ : state) {
-        const std::int64_t now = clock_ns();
-        detail::arm_timers(s, now + 1000 * kMs, 1000 * kMs);
-        detail::disarm_deadline(s);
-    }
-    detail::arm_timers(s, infinity, infinity);
+    for (auto _ : state) detail::arm_budget(s, 1000 * kMs);
+    detail::arm_budget(s, infinity);
     detail::bind_thread(nullptr, nullptr, -1);
-    detail::delete_timers(s);
+    detail::delete_budget_timer(s);
 }
-BENCHMARK(BM_DeadlineTimerArmDisarm);
+BENCHMARK(BM_BudgetTimerArm);
 
-void BM_DeadlineTimerOnly(benchmark::State& state) {
+// Per cycle, in every task thread: the DEADLINE check at the job's end (a
+// clock read against the job's deadline; no system call).
+void BM_DeadlineCheckAtJobEnd(benchmark::State& state) {
     RtpuScheduler::Impl impl(Bench::make_options());
     detail::TaskSlot& s = impl.slots[0];
-    detail::create_timers(s, false);
-    for (auto _ : state) {
-        const itimerspec arm{{0, 0}, {2'000'000'000, 0}};
-        const itimerspec off{};
-        timer_settime(s.deadline_timer, TIMER_ABSTIME, &arm, nullptr);
-        timer_settime(s.deadline_timer, TIMER_ABSTIME, &off, nullptr);
-    }
-    detail::delete_timers(s);
+    detail::bind_thread(&impl, &s, 0);
+    s.job_deadline_ns = clock_ns() + 1000 * kMs * kMs;
+    for (auto _ : state) detail::job_ended(s);
+    detail::bind_thread(nullptr, nullptr, -1);
 }
-BENCHMARK(BM_DeadlineTimerOnly);
+BENCHMARK(BM_DeadlineCheckAtJobEnd);
 
 // ------------------------------------------------------------------ jitter
 

@@ -113,6 +113,9 @@ private:
     std::map<std::string, std::string, std::less<>> defines_;
 };
 
+/// The words of `s`, split at blanks and tabs (the tokens of a line).
+std::vector<std::string> split_words(std::string_view s);
+
 /// Whole-token number parsing shared by every reader; nullopt when malformed.
 std::optional<double> parse_double(std::string_view token) noexcept;
 std::optional<std::int64_t> parse_int(std::string_view token) noexcept;

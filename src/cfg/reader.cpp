@@ -35,7 +35,11 @@ std::string_view trim(std::string_view s) {
     return s.substr(first, last - first + 1);
 }
 
-std::vector<std::string> split(std::string_view s) {
+std::string quote(std::string_view s) { return "'" + std::string(s) + "'"; }
+
+}  // namespace
+
+std::vector<std::string> split_words(std::string_view s) {
     std::vector<std::string> out;
     std::size_t i = 0;
     while (i < s.size()) {
@@ -47,10 +51,6 @@ std::vector<std::string> split(std::string_view s) {
     }
     return out;
 }
-
-std::string quote(std::string_view s) { return "'" + std::string(s) + "'"; }
-
-}  // namespace
 
 ParseError::ParseError(std::string file, int line, std::string message)
     : std::runtime_error(make_what(file, line, message)),
@@ -155,7 +155,7 @@ void Reader::fill() {
         const int number = static_cast<int>(pos_) + 1;
         const std::string_view content = trim(strip_comment(raw_[pos_++]));
         if (content.empty()) continue;
-        std::vector<std::string> tokens = split(content);
+        std::vector<std::string> tokens = split_words(content);
         Line line;
         line.number = number;
         line.keyword = tokens.front();

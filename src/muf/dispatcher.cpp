@@ -1,5 +1,6 @@
 // The per-RTPU dispatcher of the fifo backend (and of the non-critical tasks of
-// the deadline backend): it owns the release timeline, computes every ready
+// the deadline backend), and the DEADLINE watchdog of every backend. Under
+// dynamic ranking it owns the release timeline, computes every ready
 // task's urgency (Figure 6.2) at each release, completion seen, criticality or
 // deadline change, and gives the task threads SCHED_FIFO priorities in urgency
 // order, changing only those that move (thesis §6.2.3, ARCHITECTURE §5).
@@ -79,15 +80,46 @@ void RtpuScheduler::Impl::notify() noexcept {
 }
 
 void RtpuScheduler::Impl::dispatcher_main() noexcept {
+    std::uint32_t ranked = event_word.load() - 1;  // the event last ranked for
     for (;;) {
         const std::uint32_t seen = event_word.load(std::memory_order_acquire);
         if (stopping.load(std::memory_order_acquire)) return;
-        const std::int64_t next = dispatch_once(clock_ns());
-        if (next == infinity)
-            ipc::futex_wait(event_word, seen);
-        else
-            ipc::futex_wait_until(event_word, seen, next);
+        const std::int64_t now = clock_ns();
+        std::int64_t next = infinity;
+        // Under static ranking only an event (set, period, criticality) re-ranks;
+        // a watchdog wake-up does not.
+        if (seen != ranked || !static_ranking.load(std::memory_order_acquire)) {
+            next = dispatch_once(now);
+            ranked = seen;
+        }
+        next = std::min(next, watch_deadlines(now));
+        ipc::futex_wait_until(event_word, seen, next);
     }
+}
+
+// The DEADLINE watchdog: tasks make no system call to arm a deadline, so a job
+// that never returns is found here. A job seen running with its deadline ahead
+// is watched to that deadline exactly; otherwise the watchdog looks again
+// within options.watchdog_ns. A job found past its deadline is signalled once
+// (per deadline: the handler moves a continuing job's deadline a period on);
+// the handler runs in the task's own thread (failure.cpp).
+std::int64_t RtpuScheduler::Impl::watch_deadlines(std::int64_t now) noexcept {
+    std::int64_t next = now + options.watchdog_ns;
+    const int count = std::min(slot_count_seen.load(std::memory_order_acquire), detail::kMaxTasks);
+    for (int h = 0; h < count; ++h) {
+        TaskSlot& s = slots[static_cast<std::size_t>(h)];
+        if (s.state.load(std::memory_order_acquire) != SlotState::attached) continue;
+        if (s.phase.load(std::memory_order_acquire) != Phase::job) continue;
+        const std::int64_t deadline = s.job_deadline_ns.load(std::memory_order_acquire);
+        if (deadline == infinity) continue;
+        if (deadline > now) {
+            next = std::min(next, deadline);
+        } else if (s.watchdog_signalled.exchange(deadline, std::memory_order_acq_rel) != deadline) {
+            if (detail::signal_deadline(s.tid.load(std::memory_order_relaxed)) == 0)
+                watchdog_signals.fetch_add(1, std::memory_order_relaxed);
+        }
+    }
+    return next;
 }
 
 std::int64_t RtpuScheduler::Impl::dispatch_once(std::int64_t now) noexcept {

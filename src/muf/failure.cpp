@@ -1,7 +1,9 @@
-// Timing failures (thesis §6.3): the per-task DEADLINE and MAXEXEC timers, the
-// signal handler that runs the user's FailureHandler in the failing task's own
-// thread, critical sections that hold handlers off, and the thesis's task API
-// (set_dfhandler, set_criticality, set_deadline, pause, execstart/end/left).
+// Timing failures (thesis §6.3): DEADLINE seen by the task at its job's
+// completion or signalled by the RTPU's watchdog (dispatcher.cpp) for a job
+// still running, the per-task MAXEXEC CPU-time timer, the signal handler that
+// runs the user's FailureHandler in the failing task's own thread, critical
+// sections that hold handlers off, and the thesis's task API (set_dfhandler,
+// set_criticality, set_deadline, pause, execstart/end/left). See docs/muf.md.
 //
 // Everything reachable from the signal handler is async-signal-safe: atomics,
 // timer_settime/timer_gettime, clock_gettime, futex wake, siglongjmp.
@@ -66,9 +68,8 @@ struct ThreadState {
     volatile sig_atomic_t skip_next = 0;
     volatile sig_atomic_t cycle_aborted = 0;
 
-    std::int64_t armed_deadline = infinity;  // absolute, as armed
-    bool deadline_timer_set = false;         // the kernel timer holds armed_deadline
-    bool maxexec_timer_set = false;          // the CPU-time timer holds a budget
+    std::int64_t reported_deadline = infinity;  // the job deadline whose failure was delivered
+    bool maxexec_timer_set = false;             // the CPU-time timer holds a budget
     bool budget_armed = false;
     std::int64_t budget_ns = infinity;
     std::int64_t budget_cpu_start = 0;  // SCHED_DEADLINE tasks: CPU time at the release
@@ -109,9 +110,12 @@ bool still_applies(ThreadState& t, Failure kind, bool from_kernel_overrun) noexc
     TaskSlot& s = *t.slot;
     if (s.phase.load(std::memory_order_acquire) != Phase::job) return false;
     switch (kind) {
-        case Failure::deadline:
-            return t.armed_deadline != infinity && timer_left(s.deadline_timer) == 0 &&
-                   clock_ns() >= t.armed_deadline;
+        case Failure::deadline: {
+            // From the watchdog: the job it saw late may have ended since, and a
+            // failure already reported (at completion) is not reported twice.
+            const std::int64_t d = s.job_deadline_ns.load(std::memory_order_acquire);
+            return d != infinity && d != t.reported_deadline && clock_ns() >= d;
+        }
         case Failure::maxexec:
             if (from_kernel_overrun) return s.deadline_reserved.load(std::memory_order_relaxed);
             return t.budget_armed && s.maxexec_timer_created && timer_left(s.maxexec_timer) == 0;
@@ -144,14 +148,11 @@ FailureAction run_handler(ThreadState& t, Failure kind) noexcept {
     if (kind == Failure::deadline && t.deadline_sets == sets_before &&
         s.phase.load(std::memory_order_acquire) == Phase::job) {
         // The job goes on with the next period's time: its deadline moves one
-        // period on, so a task that never completes fails once per period.
+        // period on, so a task that never completes fails once per period (the
+        // watchdog sees the new deadline).
         const std::int64_t period = s.period_ns.load(std::memory_order_relaxed);
-        if (period > 0 && t.armed_deadline != infinity) {
-            t.armed_deadline += period;
-            s.job_deadline_ns.store(t.armed_deadline, std::memory_order_release);
-            const itimerspec its{{0, 0}, to_ts(t.armed_deadline)};
-            timer_settime(s.deadline_timer, TIMER_ABSTIME, &its, nullptr);
-        }
+        const std::int64_t d = s.job_deadline_ns.load(std::memory_order_acquire);
+        if (period > 0 && d != infinity) s.job_deadline_ns.store(d + period, std::memory_order_release);
     }
     if (action == FailureAction::skip_next) t.skip_next = 1;
     // Failures raised while the handler ran (set_deadline's MINEXEC) follow it.
@@ -197,6 +198,7 @@ void on_failure_signal(int sig, siginfo_t* info, void*) {
             overrun ? Failure::maxexec : static_cast<Failure>(info->si_value.sival_int);
         if (still_applies(t, kind, overrun)) {
             if (kind == Failure::maxexec) t.budget_armed = false;
+            if (kind == Failure::deadline) t.reported_deadline = t.slot->job_deadline_ns.load();
             deliver(t, kind);
         }
     }
@@ -247,67 +249,39 @@ void bind_thread(RtpuScheduler::Impl* impl, TaskSlot* slot, TaskHandle h) noexce
     t.abort_armed = 0;
     t.skip_next = 0;
     t.cycle_aborted = 0;
-    t.armed_deadline = infinity;
-    t.deadline_timer_set = false;
+    t.reported_deadline = infinity;
     t.maxexec_timer_set = false;
     t.budget_armed = false;
     t.raised_while_held = false;
 }
 
-void create_timers(TaskSlot& s, bool cpu_timer) {
+void create_budget_timer(TaskSlot& s) {
     const pid_t tid = static_cast<pid_t>(syscall(SYS_gettid));
-    s.deadline_timer = make_timer(CLOCK_MONOTONIC, Failure::deadline, tid, "DEADLINE");
-    s.timers_created = true;
-    if (cpu_timer) {
-        clockid_t cpu_clock;
-        const int rc = pthread_getcpuclockid(pthread_self(), &cpu_clock);
-        if (rc != 0) {
-            timer_delete(s.deadline_timer);
-            s.timers_created = false;
-            throw SchedError(std::string("muf: pthread_getcpuclockid failed: ") + std::strerror(rc));
-        }
-        try {
-            s.maxexec_timer = make_timer(cpu_clock, Failure::maxexec, tid, "MAXEXEC");
-        } catch (...) {
-            timer_delete(s.deadline_timer);
-            s.timers_created = false;
-            throw;
-        }
-        s.maxexec_timer_created = true;
-    }
+    clockid_t cpu_clock;
+    if (const int rc = pthread_getcpuclockid(pthread_self(), &cpu_clock); rc != 0)
+        throw SchedError(std::string("muf: pthread_getcpuclockid failed: ") + std::strerror(rc));
+    s.maxexec_timer = make_timer(cpu_clock, Failure::maxexec, tid, "MAXEXEC");
+    s.maxexec_timer_created = true;
 }
 
-void delete_timers(TaskSlot& s) noexcept {
+void delete_budget_timer(TaskSlot& s) noexcept {
     if (s.maxexec_timer_created) timer_delete(s.maxexec_timer);
-    if (s.timers_created) timer_delete(s.deadline_timer);
     s.maxexec_timer_created = false;
-    s.timers_created = false;
 }
 
-// The DEADLINE timer is set to the deadline of the job to come, not armed at
-// each release and disarmed at each completion: cycle_complete() moves it on to
-// the next job's deadline, so a release that comes on time finds it set and
-// makes no system call. Between jobs it stands at a deadline that lies after
-// the next release; if it fires while no job runs (a skipped or late release,
-// a task turned off) still_applies() finds no job and the signal is ignored.
-void set_deadline_timer(TaskSlot& s, std::int64_t deadline_abs, std::int64_t now) noexcept {
-    ThreadState& t = tl;
-    // Already set for this deadline, and it lies ahead: nothing to do. (One
-    // that has passed is set again, so the kernel fires it now, in the job.)
-    if (t.armed_deadline == deadline_abs && t.deadline_timer_set &&
-        deadline_abs > (now > 0 ? now : clock_ns()))
-        return;
-    t.armed_deadline = deadline_abs;
-    t.deadline_timer_set = deadline_abs != infinity;
-    if (s.timers_created) {
-        const itimerspec its{{0, 0}, to_ts(deadline_abs == infinity ? 0 : deadline_abs)};
-        timer_settime(s.deadline_timer, TIMER_ABSTIME, &its, nullptr);
-    }
+int signal_deadline(pid_t tid) noexcept {
+    siginfo_t info;
+    std::memset(&info, 0, sizeof info);
+    info.si_signo = g_timer_signal;
+    info.si_code = SI_QUEUE;
+    info.si_pid = getpid();
+    info.si_uid = getuid();
+    info.si_value.sival_int = static_cast<int>(Failure::deadline);
+    return syscall(SYS_rt_tgsigqueueinfo, getpid(), tid, g_timer_signal, &info) == 0 ? 0 : errno;
 }
 
-void arm_timers(TaskSlot& s, std::int64_t deadline_abs, std::int64_t budget_ns, std::int64_t now) noexcept {
+void arm_budget(TaskSlot& s, std::int64_t budget_ns) noexcept {
     ThreadState& t = tl;
-    set_deadline_timer(s, deadline_abs, now);
     const bool finite = budget_ns > 0 && budget_ns != infinity;
     t.budget_ns = finite ? budget_ns : infinity;
     t.budget_armed = finite;
@@ -323,19 +297,12 @@ void arm_timers(TaskSlot& s, std::int64_t deadline_abs, std::int64_t budget_ns, 
     }
 }
 
-void job_complete_timers(TaskSlot& s, std::int64_t next_deadline_abs) noexcept {
-    set_deadline_timer(s, next_deadline_abs, 0);
-}
-
-void disarm_deadline(TaskSlot& s) noexcept {
+void job_ended(TaskSlot& s) noexcept {
     ThreadState& t = tl;
-    t.armed_deadline = infinity;
-    if (!t.deadline_timer_set) return;
-    t.deadline_timer_set = false;
-    if (s.timers_created) {
-        const itimerspec its{};
-        timer_settime(s.deadline_timer, TIMER_ABSTIME, &its, nullptr);
-    }
+    const std::int64_t d = s.job_deadline_ns.load(std::memory_order_acquire);
+    if (d == infinity || d == t.reported_deadline || clock_ns() <= d) return;
+    t.reported_deadline = d;
+    raise_failure_here(Failure::deadline);
 }
 
 FailureAction raise_failure_here(Failure kind) noexcept {
@@ -424,7 +391,7 @@ void set_deadline(std::int64_t start_ns, std::int64_t min_c_ns, std::int64_t max
     s.job_release_ns.store(start_ns, std::memory_order_relaxed);
     s.job_deadline_ns.store(abs_deadline, std::memory_order_release);
     s.phase.store(detail::Phase::job, std::memory_order_release);
-    detail::arm_timers(s, abs_deadline, max_c_ns);
+    detail::arm_budget(s, max_c_ns);
     if (t.impl && s.pacing.load(std::memory_order_relaxed) == detail::Pacing::dispatched)
         t.impl->notify();
     if (min_c_ns > 0 && abs_deadline != infinity) {
@@ -438,8 +405,9 @@ void pause(std::int64_t restart_ns, std::int64_t min_c_ns, std::int64_t max_c_ns
            std::int64_t deadline_ns) noexcept {
     detail::ThreadState& t = tl;
     if (t.slot) {
-        t.slot->phase.store(detail::Phase::waiting, std::memory_order_release);
-        detail::disarm_deadline(*t.slot);
+        detail::Phase job = detail::Phase::job;
+        if (t.slot->phase.compare_exchange_strong(job, detail::Phase::waiting, std::memory_order_acq_rel))
+            detail::job_ended(*t.slot);
     }
     const timespec ts = detail::to_ts(restart_ns);
     while (clock_nanosleep(CLOCK_MONOTONIC, TIMER_ABSTIME, &ts, nullptr) == EINTR) {

@@ -1,7 +1,6 @@
 // Scheduling classes and CPU pinning for the muf backends: SCHED_FIFO,
 // SCHED_OTHER and SCHED_DEADLINE (through the raw sched_setattr system call:
 // glibc 2.36 has no wrapper and no struct sched_attr).
-#include <dirent.h>
 #include <fcntl.h>
 #include <pthread.h>
 #include <sched.h>
@@ -14,7 +13,6 @@
 #include <cstdio>
 #include <cstdlib>
 #include <cstring>
-#include <fstream>
 #include <mutex>
 #include <string>
 
@@ -123,36 +121,6 @@ std::string hold_cpu_wakeup_latency() {
             if (fd >= 0) ::close(fd);
         }
     });
-    return note;
-}
-
-std::string raise_timer_thread(int cpu, int prio) {
-    if (read_long("/sys/kernel/realtime", 0) != 1) return "";
-    const std::string wanted = "ktimers/" + std::to_string(cpu);
-    DIR* proc = opendir("/proc");
-    if (!proc) return "";
-    std::string note;
-    while (dirent* e = readdir(proc)) {
-        char* end = nullptr;
-        const long pid = std::strtol(e->d_name, &end, 10);
-        if (pid <= 0 || *end != '\0') continue;
-        std::ifstream comm("/proc/" + std::string(e->d_name) + "/comm");
-        std::string name;
-        if (!std::getline(comm, name) || name != wanted) continue;
-        sched_param sp{};
-        const int policy = sched_getscheduler(static_cast<pid_t>(pid));
-        if (policy == SCHED_FIFO && sched_getparam(static_cast<pid_t>(pid), &sp) == 0 && sp.sched_priority >= prio)
-            break;
-        const int rc = set_fifo(static_cast<pid_t>(pid), prio);
-        note = rc == 0 ? wanted + " (pid " + std::to_string(pid) + ") raised from " +
-                             (policy == SCHED_FIFO ? "SCHED_FIFO " + std::to_string(sp.sched_priority) : "its policy") +
-                             " to SCHED_FIFO " + std::to_string(prio) +
-                             " so that timing-failure timers fire while tasks run (it stays so after this process)"
-                       : "cannot raise " + wanted + " to SCHED_FIFO " + std::to_string(prio) + ": " + std::strerror(rc) +
-                             "; DEADLINE failures of a task that never blocks may come late";
-        break;
-    }
-    closedir(proc);
     return note;
 }
 

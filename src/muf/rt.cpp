@@ -142,25 +142,29 @@ RtpuScheduler::Impl::Impl(RtpuOptions o) : options(std::move(o)) {
     if (e.crit_bits == 0 || e.user_bits == 0 || e.dyn_bits == 0 ||
         e.crit_bits + e.dyn_bits + e.user_bits > 64 || e.dyn_bits > 62)
         throw SchedError(who + "urgency encoding must have 1..64 bits in all (c, d, u > 0, d <= 62)");
+    if (options.watchdog_ns <= 0) throw SchedError(who + "watchdog_ns must be positive");
     detail::install_failure_signals();
     epoch_ns = options.epoch_ns > 0 ? options.epoch_ns : clock_ns();
-    if (options.backend == Backend::other) return;
 
+    // The dispatcher is also the DEADLINE watchdog, so every backend has one:
+    // at SCHED_FIFO options.fifo_high where it may, else (backend other, no
+    // privilege) a best-effort watchdog under SCHED_OTHER.
+    const bool want_fifo = options.backend != Backend::other;
     std::promise<int> started;
     auto result = started.get_future();
-    dispatcher = std::thread([this, &started] {
+    dispatcher = std::thread([this, &started, want_fifo] {
         dispatcher_tid.store(static_cast<int>(syscall(SYS_gettid)));
         pthread_setname_np(pthread_self(), "muf-dispatch");
         const int pin = detail::pin_to_cpu(options.cpu);
-        const int rc = detail::set_fifo(0, options.fifo_high);
-        started.set_value(rc != 0 ? rc : pin);
-        if (rc != 0) return;
+        const int rc = want_fifo ? detail::set_fifo(0, options.fifo_high) : 0;
+        started.set_value(rc != 0 ? rc : want_fifo ? pin : 0);
+        if (rc != 0 && rc != EPERM) return;
         dispatcher_main();
     });
     const int rc = result.get();
+    if (!want_fifo) return;
     if (rc == EPERM) {
         privileged = false;
-        dispatcher.join();
         warn_no_privilege(options, rc);
         return;
     }
@@ -180,9 +184,6 @@ RtpuScheduler::Impl::Impl(RtpuOptions o) : options(std::move(o)) {
     if (const std::string note = detail::hold_cpu_wakeup_latency();
         !note.empty() && !latency_note_said.exchange(true))
         std::fprintf(stderr, "chimera: %s\n", note.c_str());
-    if (const std::string note = detail::raise_timer_thread(options.cpu, options.fifo_high);
-        !note.empty() && !options.quiet)
-        std::fprintf(stderr, "chimera: rtpu %s: %s\n", options.name.c_str(), note.c_str());
 }
 
 RtpuScheduler::Impl::~Impl() {
@@ -456,7 +457,7 @@ void RtpuScheduler::attach_current_thread(TaskHandle h) {
     // sleep to the nanosecond, as clock_nanosleep does for them.
     prctl(PR_SET_TIMERSLACK, 1UL, 0UL, 0UL, 0UL);
     try {
-        detail::create_timers(s, !reserved);
+        if (!reserved) detail::create_budget_timer(s);  // SCHED_DEADLINE has its own (DL_OVERRUN)
     } catch (...) {
         if (reserved || pacing == Pacing::dispatched) detail::set_other(0);
         throw;
@@ -483,7 +484,7 @@ void RtpuScheduler::detach_current_thread(TaskHandle h) noexcept {
     TaskSlot* s = m.slot(h);
     if (!s || s->tid.load() != static_cast<int>(syscall(SYS_gettid))) return;
     if (s->state.load() == SlotState::attached) s->state.store(SlotState::added);
-    detail::delete_timers(*s);
+    detail::delete_budget_timer(*s);
     detail::bind_thread(nullptr, nullptr, -1);
     detail::set_other(0);
     s->fifo_prio.store(0);
@@ -560,7 +561,7 @@ Wake RtpuScheduler::wait_release(TaskHandle h, const std::atomic<std::uint32_t>*
     const std::int64_t budget = !s.params.maxexec_check ? infinity
                                 : s.params.effective_ns > 0 ? s.params.effective_ns
                                                             : s.params.wcet_ns;
-    detail::arm_timers(s, deadline, budget, now);
+    detail::arm_budget(s, budget);
     return Wake::release;
 }
 
@@ -569,16 +570,9 @@ void RtpuScheduler::cycle_complete(TaskHandle h) noexcept {
     if (!sp) return;
     TaskSlot& s = *sp;
     detail::clear_abort();
-    // The job ends before the timer is disarmed: a signal in between is stale.
+    // The job ends first: a watchdog signal from now on finds no job and is stale.
     Phase job = Phase::job;
-    s.phase.compare_exchange_strong(job, Phase::waiting, std::memory_order_acq_rel);
-    if (s.self_timed.load(std::memory_order_relaxed)) {
-        detail::disarm_deadline(s);
-    } else {
-        // Set for the job to come now, while there is nothing else to do.
-        const std::int64_t next = s.next_release_ns.load(std::memory_order_relaxed);
-        detail::job_complete_timers(s, next + s.rel_deadline_ns.load(std::memory_order_relaxed));
-    }
+    if (s.phase.compare_exchange_strong(job, Phase::waiting, std::memory_order_acq_rel)) detail::job_ended(s);
     if (detail::take_cycle_aborted())
         s.missed.fetch_add(1, std::memory_order_relaxed);
     else
@@ -628,6 +622,7 @@ Assignment RtpuScheduler::assignment() const {
 
 std::uint64_t RtpuScheduler::reschedules() const noexcept { return impl_->reschedules.load(); }
 std::uint64_t RtpuScheduler::priority_changes() const noexcept { return impl_->priority_changes.load(); }
+std::uint64_t RtpuScheduler::watchdog_signals() const noexcept { return impl_->watchdog_signals.load(); }
 bool RtpuScheduler::static_ranking() const noexcept {
     return impl_->options.backend == Backend::fifo && impl_->privileged &&
            impl_->static_ranking.load(std::memory_order_acquire);

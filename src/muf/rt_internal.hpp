@@ -68,10 +68,10 @@ struct TaskSlot {
 
     // --- the task thread's own (read elsewhere only for status) ---
     sigjmp_buf mark;
-    timer_t deadline_timer{};
     timer_t maxexec_timer{};
-    bool timers_created = false;
     bool maxexec_timer_created = false;
+    /// The watchdog's: the job deadline it last signalled (no second signal for it).
+    std::atomic<std::int64_t> watchdog_signalled{infinity};
     std::uint32_t control_seen = 0;  ///< self-paced: release_word value last seen
 };
 
@@ -121,6 +121,7 @@ struct RtpuScheduler::Impl {
     std::atomic<bool> stopping{false};
     std::atomic<std::uint64_t> reschedules{0};
     std::atomic<std::uint64_t> priority_changes{0};
+    std::atomic<std::uint64_t> watchdog_signals{0};  // DEADLINE signals sent by the watchdog
     std::atomic<int> dispatcher_tid{0};
     std::thread dispatcher;
 
@@ -134,6 +135,8 @@ struct RtpuScheduler::Impl {
     /// Wakes the dispatcher (async-signal-safe).
     void notify() noexcept;
     void dispatcher_main() noexcept;
+    /// Signals the jobs found past their deadlines; returns when to look again.
+    std::int64_t watch_deadlines(std::int64_t now) noexcept;
     /// One pass: releases due tasks, ranks, applies; returns the next release time.
     std::int64_t dispatch_once(std::int64_t now) noexcept;
     /// Ranks the tasks and applies their priorities, changing only those that
@@ -167,12 +170,6 @@ int set_deadline_policy(pid_t tid, std::int64_t runtime_ns, std::int64_t deadlin
                         std::int64_t period_ns) noexcept;
 /// Text of what the thread really runs under, from the kernel.
 std::string describe_policy(pid_t tid);
-/// On a PREEMPT_RT kernel (/sys/kernel/realtime = 1), POSIX timers expire in the
-/// per-CPU `ktimers/<cpu>` thread, which runs at SCHED_FIFO 1: a task spinning
-/// above it would never see its DEADLINE timer. Raises that thread to `prio`
-/// when it is below. Returns a one-line note of what was done ("" when nothing
-/// was needed: not PREEMPT_RT, or already high enough); throws nothing.
-std::string raise_timer_thread(int cpu, int prio);
 /// Locks the process's memory (mlockall MCL_CURRENT | MCL_FUTURE) once per
 /// process, unless CHIMERA_NO_MLOCK is set or the build has a sanitizer.
 /// Returns "" when locked, else one line saying why not (said once by the caller).
@@ -193,18 +190,21 @@ int timer_signal() noexcept;
 /// Binds the calling thread to a task (nullptr unbinds); touches the
 /// thread-local state so it is allocated before any signal can arrive.
 void bind_thread(RtpuScheduler::Impl* impl, TaskSlot* slot, TaskHandle h) noexcept;
-/// Creates the DEADLINE timer (CLOCK_MONOTONIC) and, when `cpu_timer`, the
-/// MAXEXEC timer (the thread's CPU clock), both signalling this thread. Throws SchedError.
-void create_timers(TaskSlot& s, bool cpu_timer);
-void delete_timers(TaskSlot& s) noexcept;
-/// At a release: arms DEADLINE at `deadline_abs` and MAXEXEC with `budget` (<= 0 or
-/// infinity: not armed); `now`, when the caller has read the clock (0: read
-/// here). Async-signal-safe.
-void arm_timers(TaskSlot& s, std::int64_t deadline_abs, std::int64_t budget_ns, std::int64_t now = 0) noexcept;
-void disarm_deadline(TaskSlot& s) noexcept;
-/// At a job's completion: the DEADLINE timer moves on to the next job's
-/// deadline (infinity: none), so an on-time release needs no system call.
-void job_complete_timers(TaskSlot& s, std::int64_t next_deadline_abs) noexcept;
+/// Creates the MAXEXEC timer (the thread's CPU clock), signalling this thread.
+/// Throws SchedError.
+void create_budget_timer(TaskSlot& s);
+void delete_budget_timer(TaskSlot& s) noexcept;
+/// At a release: arms MAXEXEC with `budget` (<= 0 or infinity: not armed; a
+/// task without a budget makes no system call here). Async-signal-safe.
+void arm_budget(TaskSlot& s, std::int64_t budget_ns) noexcept;
+/// The job of the calling thread has ended (its phase already left `job`): if
+/// it ended after its deadline and that failure was not reported yet, DEADLINE
+/// is raised here, in the task (the handler runs; there is no cycle to abort).
+/// One clock read, no system call where the vDSO serves the clock.
+void job_ended(TaskSlot& s) noexcept;
+/// The watchdog's signal to task thread `tid`: its job is past its deadline.
+/// 0 or the errno.
+int signal_deadline(pid_t tid) noexcept;
 /// Raises a failure in the calling thread outside a signal handler (MINEXEC at a
 /// release); returns the handler's action. Counts it.
 FailureAction raise_failure_here(Failure kind) noexcept;

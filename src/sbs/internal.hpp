@@ -30,6 +30,10 @@ const ChimeraModuleAbi& load_module(const std::string& name, const std::vector<s
 /// .rmod's folder, the install folder (CHIMERA_MODULE_PATH comes first, in load_module).
 std::vector<std::string> module_search_dirs(const RmodFile& rmod, std::vector<std::string> dirs);
 
+/// Criticality from frequency, scaled logarithmically between the RTPU's
+/// MINFREQ and MAXFREQ onto 1..62 (0 and 63 reserved, §4.5.1).
+int crit_for(const RtpuSpec& r, TaskType type, double freq);
+
 /// Timing-failure counters of a task (thesis §6.3), from its RTPU's scheduler.
 struct TimingCounts {
     std::uint64_t deadline = 0, maxexec = 0, minexec = 0, aborted = 0;
@@ -180,12 +184,13 @@ public:
     prof::TaskProfiler* profiler = nullptr;  // lives on the task thread's stack while it runs
 
     void set_state(State s) noexcept;
+    /// The policy text of the status (and of the status segment).
+    void publish_policy(std::string text) noexcept;
 
 private:
     static void* thread_main(void* self) noexcept;
+    /// The thread (task_loop.cpp): its set-up, then Figure 3.10 until kill.
     void run();
-    /// The policy text of the status (and of the status segment).
-    void publish_policy(std::string text) noexcept;
     /// Leaves the RTPU's scheduler (no more releases) and publishes the idle policy.
     void stop_running() noexcept;
 };

@@ -5,11 +5,15 @@
 // and the interposed malloc counts its allocations, over two seconds after a
 // second of warm-up:
 //   - 0 allocations and 0 page faults per thread;
-//   - system calls: at most 2 per cycle for these tasks (none has a WCET):
-//     the wait for the release and the DEADLINE timer moved on at completion
-//     (docs/muf.md). A table lock found busy (the robot on the other CPU
-//     holds it) adds a futex call now and then, so the bound is on the mean
-//     over all cycles, with the extra calls printed.
+//   - system calls: 1 per cycle for these tasks (none has a WCET): the wait
+//     for the release (docs/muf.md; DEADLINE needs none). A table lock found
+//     busy (the robot on the other CPU holds it) adds a futex(2) call now and
+//     then, and a cycle switched out (preempted: by the RTPU's DEADLINE
+//     watchdog, or on this loaded 2-CPU machine) costs the profiler one read
+//     of its exact counter (issue #14 item 3 counts neither): the futex calls
+//     are counted apart (the same tracepoint filtered on futex(2)), switched
+//     cycles come from the profile, and the rest is held to one per cycle
+//     (+2 for the counting window's edges). A timer call in every cycle fails it.
 // Needs tracefs for the system-call counter: registered under
 // tests/prof/in_tracefs_namespace.sh, which mounts it privately.
 #include "fig3_7.hpp"
@@ -18,6 +22,7 @@
 
 #include <gtest/gtest.h>
 #include <linux/perf_event.h>
+#include <sys/ioctl.h>
 #include <sys/syscall.h>
 #include <unistd.h>
 
@@ -57,6 +62,18 @@ int open_counter(std::uint32_t type, std::uint64_t config, long tid) {
     return static_cast<int>(syscall(SYS_perf_event_open, &a, static_cast<pid_t>(tid), -1, -1, PERF_FLAG_FD_CLOEXEC));
 }
 
+// The same tracepoint counting only futex(2) calls: the table lock found busy
+// (FUTEX_WAIT/WAKE); the release wait of these tasks is futex_waitv, not futex.
+int open_lock_counter(std::uint64_t syscall_id, long tid) {
+    const int fd = open_counter(PERF_TYPE_TRACEPOINT, syscall_id, tid);
+    const std::string filter = "id == " + std::to_string(SYS_futex);
+    if (fd >= 0 && ::ioctl(fd, PERF_EVENT_IOC_SET_FILTER, filter.c_str()) != 0) {
+        ::close(fd);
+        return -1;
+    }
+    return fd;
+}
+
 std::uint64_t read_counter(int fd) {
     std::uint64_t v = 0;
     return ::read(fd, &v, sizeof v) == sizeof v ? v : ~0ull;
@@ -66,7 +83,7 @@ std::string unique_name() { return "steady" + std::to_string(::getpid()); }
 
 }  // namespace
 
-TEST(SteadyState, Figure3_7TaskThreadsMakeNoAllocationNoPageFaultAndTwoSystemCallsPerCycle) {
+TEST(SteadyState, Figure3_7TaskThreadsMakeNoAllocationNoPageFaultAndOneSystemCallPerCycle) {
     const long syscall_id = tracepoint_id("raw_syscalls/sys_enter");
     if (syscall_id < 0) {
         if (std::getenv("CHIMERA_REQUIRE_SYSCALL_COUNTER"))
@@ -85,9 +102,9 @@ TEST(SteadyState, Figure3_7TaskThreadsMakeNoAllocationNoPageFaultAndTwoSystemCal
     struct Counted {
         std::string name;
         long tid = 0;
-        int syscalls_fd = -1, faults_fd = -1;
-        std::uint64_t syscalls0 = 0, faults0 = 0, cycles0 = 0;
-        std::uint64_t syscalls = 0, faults = 0, cycles = 0;
+        int syscalls_fd = -1, faults_fd = -1, lock_fd = -1;
+        std::uint64_t syscalls0 = 0, faults0 = 0, cycles0 = 0, lock0 = 0, switched0 = 0;
+        std::uint64_t syscalls = 0, faults = 0, cycles = 0, lock = 0, switched = 0;
         long allocations = -1;
     };
     std::vector<Counted> threads;
@@ -100,9 +117,13 @@ TEST(SteadyState, Figure3_7TaskThreadsMakeNoAllocationNoPageFaultAndTwoSystemCal
         c.faults_fd = open_counter(PERF_TYPE_SOFTWARE, PERF_COUNT_SW_PAGE_FAULTS, c.tid);
         ASSERT_GE(c.syscalls_fd, 0) << c.name << ": perf_event_open: " << std::strerror(errno);
         ASSERT_GE(c.faults_fd, 0) << c.name << ": perf_event_open: " << std::strerror(errno);
+        c.lock_fd = open_lock_counter(static_cast<std::uint64_t>(syscall_id), c.tid);
+        ASSERT_GE(c.lock_fd, 0) << c.name << ": perf_event_open with a futex filter: " << std::strerror(errno);
         c.syscalls0 = read_counter(c.syscalls_fd);
+        c.lock0 = read_counter(c.lock_fd);
         c.faults0 = read_counter(c.faults_fd);
         c.cycles0 = st.cycles;
+        c.switched0 = st.profile.switched;
         threads.push_back(c);
     }
     // Allocations: one thread at a time, half a second each.
@@ -115,21 +136,30 @@ TEST(SteadyState, Figure3_7TaskThreadsMakeNoAllocationNoPageFaultAndTwoSystemCal
         auto& c = threads[i];
         c.syscalls = read_counter(c.syscalls_fd) - c.syscalls0;
         c.faults = read_counter(c.faults_fd) - c.faults0;
-        c.cycles = sbs->status(std::vector<TaskId>{robot, traj, jpid, grav}[i]).cycles - c.cycles0;
+        c.lock = read_counter(c.lock_fd) - c.lock0;
+        ::close(c.lock_fd);
+        const auto st = sbs->status(std::vector<TaskId>{robot, traj, jpid, grav}[i]);
+        c.cycles = st.cycles - c.cycles0;
+        c.switched = st.profile.switched - c.switched0;
         ::close(c.syscalls_fd);
         ::close(c.faults_fd);
     }
     sbs->finish();
 
     for (const auto& c : threads) {
-        std::printf("%-12s tid %-7ld cycles %-6llu system calls %-6llu (%.3f per cycle) page faults %llu allocations %ld\n",
+        std::printf("%-12s tid %-7ld cycles %-6llu system calls %-6llu (%.3f per cycle; %llu futex of the table lock, "
+                    "%llu cycles switched out) page faults %llu allocations %ld\n",
                     c.name.c_str(), c.tid, static_cast<unsigned long long>(c.cycles),
                     static_cast<unsigned long long>(c.syscalls),
                     c.cycles ? static_cast<double>(c.syscalls) / static_cast<double>(c.cycles) : 0.0,
+                    static_cast<unsigned long long>(c.lock), static_cast<unsigned long long>(c.switched),
                     static_cast<unsigned long long>(c.faults), c.allocations);
         ASSERT_GT(c.cycles, 100u) << c.name;
         EXPECT_GE(c.syscalls, c.cycles) << c.name << ": the wait alone is one per cycle: the counter missed calls";
-        EXPECT_LE(static_cast<double>(c.syscalls), 2.02 * static_cast<double>(c.cycles)) << c.name;
+        // The wait; beyond it only the lock found busy and, in a cycle switched
+        // out, the profiler's one read of its exact counter.
+        EXPECT_LE(c.syscalls, c.cycles + c.lock + c.switched + 2) << c.name;
+        EXPECT_LE(static_cast<double>(c.lock + c.switched), 0.2 * static_cast<double>(c.cycles)) << c.name;
         EXPECT_EQ(c.faults, 0u) << c.name;
         EXPECT_EQ(c.allocations, 0) << c.name;
     }

@@ -139,7 +139,7 @@ private:
                 skipped_.fetch_add(1);
                 continue;
             }
-            // As the runtime does (src/sbs/task.cpp): no mask saved, which
+            // As the runtime does (src/sbs/task_loop.cpp): no mask saved, which
             // would be a system call per cycle; restored after a jump instead.
             if (sigsetjmp(*sch_.cycle_mark(h_), 0) == 0) {
                 sch_.arm_abort(h_);
@@ -311,6 +311,36 @@ TEST_P(MufFailures, DeadlineRunsTheHandlerInTheTaskThread) {
     EXPECT_EQ(st.aborted, 0u);
 }
 
+// A job that ends after its deadline is reported at its end, by the task
+// itself, even when the watchdog never looks: one task with an implicit
+// deadline ranks statically (the dispatcher is off the release path) and the
+// watchdog's longest sleep is far beyond the test. Every job sleeps past the
+// period, so every job is one DEADLINE failure, handled in the task's thread,
+// and none is aborted (the cycle is over when it is seen).
+TEST_P(MufFailures, DeadlineOfAJobThatEndsLateIsReportedAtItsEnd) {
+    RtpuOptions o = options(GetParam());
+    o.watchdog_ns = 3'600'000 * ms;
+    RtpuScheduler sch(o);
+    Probe probe;
+    probe.action = FailureAction::abort_cycle;
+    RtTaskParams p = task("late", 20 * ms, 15 * ms);
+    p.maxexec_check = false;
+    Runner r(sch, p, [] { std::this_thread::sleep_for(25ms); }, &probe);
+    ASSERT_TRUE(r.start()) << r.error();
+    ASSERT_TRUE(eventually([&] { return sch.status(r.handle()).cycles >= 4; }))
+        << sch.status(r.handle()).cycles << " cycles, " << sch.status(r.handle()).missed << " missed, "
+        << sch.status(r.handle()).deadline_failures << " DEADLINE, " << r.started_cycles() << " started";
+    r.stop();
+    const RtTaskStatus st = sch.status(r.handle());
+    EXPECT_EQ(probe.wrong_thread.load(), 0);
+    EXPECT_EQ(st.deadline_failures, static_cast<std::uint64_t>(probe.count[1].load()));
+    // Every job but the one stop() cut short (it ends after its task left).
+    EXPECT_GE(st.deadline_failures, 3u);
+    EXPECT_LE(st.cycles - st.deadline_failures, 1u);
+    EXPECT_GE(st.cycles, st.deadline_failures);
+    EXPECT_EQ(st.aborted, 0u);
+}
+
 TEST_P(MufFailures, MaxexecRunsTheHandlerInTheTaskThread) {
     RtpuScheduler sch(options(GetParam()));
     Probe probe;
@@ -378,6 +408,7 @@ TEST_P(MufFailures, AbortInsideACriticalSectionWaitsForLeaveAndFreesTheLock) {
     EXPECT_EQ(table_lock.owner.load(), 0u);             // no lock left held
     EXPECT_EQ(locked_ok.load(), sections_done.load());
     EXPECT_GE(st.aborted, 3u);
+    EXPECT_GE(sch.watchdog_signals(), st.aborted);  // a job that never ends is the watchdog's
     // A cycle that got past leave_critical completed; the others were aborted
     // there, and the next cycles ran after each abort.
     EXPECT_EQ(static_cast<std::uint64_t>(after_leave.load()), st.cycles);
@@ -831,9 +862,9 @@ TEST(MufStatic, NonHarmonicOrConstrainedDeadlinesStayWithTheDispatcher) {
 }
 
 // System calls of a task thread per cycle in steady state, counted by the
-// kernel (raw_syscalls tracepoint): the wait for the release, plus one
-// timer_settime that moves the DEADLINE timer on at completion, plus one for
-// the CPU budget of a task with a WCET. Needs tracefs (registered as
+// kernel (raw_syscalls tracepoint): the wait for the release, plus one for
+// the CPU budget of a task with a WCET; DEADLINE costs none (the task checks
+// it at the job's end, the watchdog finds a job that never ends). Needs tracefs (registered as
 // muf_rt_syscalls under tests/prof/in_tracefs_namespace.sh).
 TEST(MufStatic, SystemCallsPerCycle) {
     if (chimera::test::open_syscall_counter() < 0) {
@@ -878,7 +909,9 @@ TEST(MufStatic, SystemCallsPerCycle) {
         ASSERT_GT(last, first);
         // One read of the counter is inside the window.
         const std::uint64_t calls = last - first - 1;
-        const std::uint64_t per_cycle = (wcet == 0 ? 2 : 3) + clock_read;
+        // The wait, and for a WCET the budget timer armed at the release; the clock
+        // is read twice (at the release and at the job's end, for DEADLINE).
+        const std::uint64_t per_cycle = (wcet == 0 ? 1 : 2) + 2 * clock_read;
         EXPECT_LE(calls, per_cycle * kCycles) << calls << " system calls in " << kCycles << " cycles";
         EXPECT_GE(calls, kCycles) << "the wait alone is one per cycle: the counter missed calls";
     }

@@ -110,6 +110,11 @@ struct RtpuOptions {
     /// harmonic rates are released at the same instants whenever they were
     /// turned on. 0: the moment the scheduler is made.
     std::int64_t epoch_ns = 0;
+    /// The DEADLINE watchdog's longest sleep: a job still running past its
+    /// deadline is signalled at most max(0, watchdog_ns - D) after it (D its
+    /// relative deadline), plus the watchdog's wake-up; a job that ends late is
+    /// reported at its end whatever this is (docs/muf.md).
+    std::int64_t watchdog_ns = 10'000'000;
 };
 
 /// One periodic task. Times in nanoseconds.
@@ -214,6 +219,8 @@ public:
     /// Dispatcher counters: urgency recomputations and priority changes made.
     std::uint64_t reschedules() const noexcept;
     std::uint64_t priority_changes() const noexcept;
+    /// DEADLINE signals the watchdog sent (jobs found running past their deadline).
+    std::uint64_t watchdog_signals() const noexcept;
     /// True while the fifo backend ranks statically (see the top of this file):
     /// tasks release themselves and the dispatcher is off the release path.
     bool static_ranking() const noexcept;
