@@ -5,9 +5,9 @@
 #include <signal.h>
 #include <sys/mman.h>
 #include <sys/stat.h>
-#include <sys/sysmacros.h>
 #include <unistd.h>
 
+#include <algorithm>
 #include <cerrno>
 #include <climits>
 #include <chrono>
@@ -64,6 +64,45 @@ bool set_user_lock(int fd, short type, bool wait) noexcept {
         if (fcntl(fd, wait ? F_OFD_SETLKW : F_OFD_SETLK, &fl) == 0) return true;
         if (errno != EINTR) return false;
     }
+}
+
+// Each mapping also holds an exclusive lock on one byte of its own in
+// [1, kUserSlots]: users() counts those locks exactly with F_OFD_GETLK
+// (/proc/locks cannot: it is read a page at a time, and locks that come and go
+// elsewhere in the system between pages make lines repeat or vanish).
+constexpr off_t kUserSlots = 1 << 16;
+
+bool lock_one_free_slot(int fd) noexcept {
+    for (off_t slot = 1; slot <= kUserSlots; ++slot) {
+        struct flock fl {};
+        fl.l_type = F_WRLCK;
+        fl.l_whence = SEEK_SET;
+        fl.l_start = slot;
+        fl.l_len = 1;
+        if (fcntl(fd, F_OFD_SETLK, &fl) == 0) return true;
+        if (errno == EINTR) --slot;
+        else if (errno != EAGAIN && errno != EACCES) return false;
+    }
+    errno = EUSERS;
+    return false;
+}
+
+// Slot locks held in [first, last], probed through `probe`, an open file
+// description of its own (so that every mapping's lock conflicts with it).
+// The kernel reports one conflicting lock, not necessarily the lowest: split
+// the range around it.
+std::uint32_t count_slot_locks(int probe, off_t first, off_t last) noexcept {
+    if (first > last) return 0;
+    struct flock fl {};
+    fl.l_type = F_WRLCK;
+    fl.l_whence = SEEK_SET;
+    fl.l_start = first;
+    fl.l_len = last - first + 1;
+    if (fcntl(probe, F_OFD_GETLK, &fl) != 0 || fl.l_type == F_UNLCK) return 0;
+    const off_t lo = std::max(first, fl.l_start);
+    const off_t hi = fl.l_len == 0 ? last : std::min(last, fl.l_start + fl.l_len - 1);
+    return static_cast<std::uint32_t>(hi - lo + 1) + count_slot_locks(probe, first, lo - 1) +
+           count_slot_locks(probe, hi + 1, last);
 }
 
 // Same file (device and inode) as `fd`?
@@ -237,6 +276,7 @@ Segment Segment::create(const std::string& name, std::size_t size, SegmentKind k
         if (fchmod(fd, options.mode) != 0) fail_errno(name, "fchmod", errno);
         if (ftruncate(fd, static_cast<off_t>(size)) != 0) fail_errno(name, "ftruncate", errno);
         if (!set_user_lock(fd, F_RDLCK, false)) fail_errno(name, "fcntl(F_OFD_SETLK)", errno);
+        if (!lock_one_free_slot(fd)) fail_errno(name, "user slot lock", errno);
         seg.base_ = map_fd(name, fd, size, options.prefault, options.lock, seg.locked_);
         seg.size_ = size;
     } catch (...) {
@@ -277,6 +317,11 @@ Segment Segment::attach(const std::string& name, SegmentKind kind, const AttachO
         const int err = errno;
         close(fd);
         fail_errno(name, "fcntl(F_OFD_SETLKW)", err);
+    }
+    if (!lock_one_free_slot(fd)) {
+        const int err = errno;
+        close(fd);
+        fail_errno(name, "user slot lock", err);
     }
     Segment seg;  // from here its destructor unmaps and closes on a throw
     seg.name_ = name;
@@ -339,19 +384,13 @@ bool Segment::release(bool destroy_if_last) noexcept {
 }
 
 std::uint32_t Segment::users() const noexcept {
-    struct stat st {};
-    if (fd_ < 0 || fstat(fd_, &st) != 0) return 0;
-    // /proc/locks: "N: OFDLCK ADVISORY  READ  -1 MAJ:MIN:INODE 0 0", one line per lock.
-    char needle[64];
-    std::snprintf(needle, sizeof needle, " %02x:%02x:%lu ", major(st.st_dev), minor(st.st_dev),
-                  static_cast<unsigned long>(st.st_ino));
-    std::FILE* f = std::fopen("/proc/locks", "re");
-    if (!f) return 0;
-    std::uint32_t n = 0;
-    char line[256];
-    while (std::fgets(line, sizeof line, f))
-        if (std::strstr(line, "OFDLCK") && std::strstr(line, needle) && !std::strstr(line, "->")) ++n;
-    std::fclose(f);
+    if (fd_ < 0) return 0;
+    // A second open file description of the same file, whatever its name now.
+    const std::string self = "/proc/self/fd/" + std::to_string(fd_);
+    const int probe = open(self.c_str(), O_RDONLY | O_CLOEXEC);
+    if (probe < 0) return 0;
+    const std::uint32_t n = count_slot_locks(probe, 1, kUserSlots);
+    close(probe);
     return n;
 }
 

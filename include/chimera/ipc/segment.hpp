@@ -174,7 +174,8 @@ public:
     /// when the segment was destroyed. (An attach racing with it either fails
     /// with "is being destroyed" or keeps the segment alive as a new user.)
     bool detach_destroy_if_last() noexcept;
-    /// Live mappings of this segment, this one included (from /proc/locks: a
+    /// Live mappings of this segment, this one included: each holds a lock
+    /// on a byte of its own, counted with about two fcntl calls per user (a
     /// slow path, for status and tests). 0 when not attached.
     std::uint32_t users() const noexcept;
     /// True when some live process maps the segment `name` (one fcntl probe).

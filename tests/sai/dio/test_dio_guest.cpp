@@ -56,6 +56,8 @@ using chimera::test::gpiosim_value;
 
 constexpr chimera::LocalKey kPinProbeLocalKeys[] = {
     {"ILLEGAL", chimera::LocalType::integer, 0, 1, true, "1 sets the illegal-configuration flag", "0"},
+    {"SYSFS", chimera::LocalType::word, 0, 0, false, "gpio-sim bank folder read at kill()", ""},
+    {"LINES", chimera::LocalType::numbers, 0, 63, false, "lines of that bank read at kill()", ""},
 };
 
 class PinProbe : public chimera::Module {
