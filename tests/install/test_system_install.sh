@@ -28,7 +28,8 @@ prefix=$(meson introspect "$build" --buildoptions |
 work=$(mktemp -d /tmp/chimera-sysinstall.XXXXXX)
 trap 'rm -rf "$work"' EXIT
 cp -a /etc "$work/etc"
-exec unshare -m -- bash -euo pipefail -c '
+# not exec: the EXIT trap removes $work afterwards
+unshare -m -- bash -euo pipefail -c '
     build=$1 source=$2 work=$3
     mount --make-rprivate /
     mount -t tmpfs tmpfs /usr/local

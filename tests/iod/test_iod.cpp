@@ -17,6 +17,7 @@
 #include <cerrno>
 #include <chrono>
 #include <cstdlib>
+#include <filesystem>
 #include <fstream>
 #include <functional>
 #include <string>
@@ -163,6 +164,10 @@ protected:
         lockdir_ = ::testing::TempDir() + "iodlocks." + std::to_string(getpid());
         ::mkdir(lockdir_.c_str(), 0700);
         setenv("CHIMERA_IOD_LOCKDIR", lockdir_.c_str(), 1);
+    }
+    void TearDown() override {
+        std::error_code ec;
+        std::filesystem::remove_all(lockdir_, ec);
     }
     std::string lockdir_;
     iod::Database db_ = iod::Database::from_string(kDb, "lab.iod");
