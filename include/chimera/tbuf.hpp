@@ -238,7 +238,8 @@ public:
         const bool fresh = (s & detail::kFresh) != 0;
         std::uint64_t had = 0;  // the seq of the item the reader held before
         if (fresh) {
-            had = stamp(detail::front_of(s)).seq;
+            // Before the swap: the old front slot is the writer's after it.
+            had = front_seq_ != kUnknownSeq ? front_seq_ : stamp(detail::front_of(s)).seq;
             // Release: we are done with our old slot before the writer gets it;
             // acquire: the item we take is complete. A failure means the writer
             // published again meanwhile: take that one.
@@ -250,6 +251,7 @@ public:
             s = detail::taken(s);
         }
         const detail::Stamp& st = stamp(detail::front_of(s));
+        front_seq_ = st.seq;
         r.counter = st.seq - 1;
         r.time_ns = st.time_ns;
         r.missed = 0;
@@ -321,6 +323,10 @@ private:
     std::size_t item_size_ = 0;
     std::size_t stamp_offset_ = 0;
     std::uint64_t missed_total_ = 0;
+    // The reader's: the seq of the item in its front slot, kept so that a read
+    // touches only the slot it takes (unknown until this handle first reads).
+    static constexpr std::uint64_t kUnknownSeq = ~std::uint64_t{0};
+    std::uint64_t front_seq_ = kUnknownSeq;
     // The writer's (see become_writer()): its slot (3: not known yet), the
     // seq of its last item, the expected state word.
     std::uint32_t back_ = 3;

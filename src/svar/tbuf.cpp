@@ -70,6 +70,7 @@ Tbuf& Tbuf::operator=(Tbuf&& o) noexcept {
         item_size_ = std::exchange(o.item_size_, 0);
         stamp_offset_ = std::exchange(o.stamp_offset_, 0);
         missed_total_ = std::exchange(o.missed_total_, 0);
+        front_seq_ = std::exchange(o.front_seq_, kUnknownSeq);
         back_ = std::exchange(o.back_, 3);
         guess_ = o.guess_;
         seq_ = o.seq_;
