@@ -39,6 +39,7 @@
 #include <sys/wait.h>
 #include <unistd.h>
 
+#include <algorithm>
 #include <atomic>
 #include <cstdio>
 #include <cstdlib>
@@ -94,6 +95,36 @@ void reap(benchmark::State& state, pid_t child) {
 }
 
 constexpr std::int64_t kPartnerTimeout = 5'000'000'000;  // a partner never hangs
+
+// Each round trip's own time (one clock read per trip, as the peers'
+// harness in ../shared/peers/ipc-baselines does): reported as the counters
+// p50_ns and p99_ns beside Google Benchmark's mean, which a single trip
+// preempted by other work on a shared machine can move a lot.
+class RoundTrips {
+public:
+    RoundTrips() { samples_.reserve(kMax); }
+    void start() noexcept { last_ = chimera::ipc::now_ns(); }
+    void mark() noexcept {
+        const std::int64_t now = chimera::ipc::now_ns();
+        if (samples_.size() < kMax) samples_.push_back(now - last_);
+        last_ = now;
+    }
+    void report(benchmark::State& state) {
+        if (samples_.empty()) return;
+        const auto at = [&](double q) {
+            auto nth = samples_.begin() + static_cast<std::ptrdiff_t>(q * static_cast<double>(samples_.size() - 1));
+            std::nth_element(samples_.begin(), nth, samples_.end());
+            return static_cast<double>(*nth);
+        };
+        state.counters["p50_ns"] = at(0.5);
+        state.counters["p99_ns"] = at(0.99);
+    }
+
+private:
+    static constexpr std::size_t kMax = std::size_t{1} << 21;
+    std::vector<std::int64_t> samples_;
+    std::int64_t last_ = 0;
+};
 
 // Placement of a round trip (see the top): the caller's CPU, and its
 // partner's (applied in the child after fork()). Restores the caller's
@@ -237,15 +268,19 @@ void SemPingPong(benchmark::State& state) {
             pong.v();
         }
     }
+    RoundTrips trips;
+    trips.start();
     for (auto _ : state) {
         ping.v();
         if (pong.p(kPartnerTimeout) != Status::ok) {
             state.SkipWithError("semP timed out");
             break;
         }
+        trips.mark();
     }
     sh->stop.store(1);
     ping.v();
+    trips.report(state);
     reap(state, child);
 }
 
@@ -269,6 +304,8 @@ void MsgPingPong(benchmark::State& state) {
             if (reply.send(in.data(), info.size, 0, 0, kPartnerTimeout) != Status::ok) _exit(1);
         }
     }
+    RoundTrips trips;
+    trips.start();
     for (auto _ : state) {
         request.send(out.data(), size, 0, 0, kPartnerTimeout);
         msg::Info info;
@@ -276,8 +313,10 @@ void MsgPingPong(benchmark::State& state) {
             state.SkipWithError("msgReceive timed out");
             break;
         }
+        trips.mark();
     }
     request.send(out.data(), 0, 1, 0, kPartnerTimeout);
+    trips.report(state);
     reap(state, child);
     state.SetBytesProcessed(static_cast<std::int64_t>(state.iterations() * size * 2));
 }
@@ -301,14 +340,18 @@ void MqPingPong(benchmark::State& state) {
             if (mq_send(reply, in.data(), static_cast<std::size_t>(n), 0) != 0) _exit(1);
         }
     }
+    RoundTrips trips;
+    trips.start();
     for (auto _ : state) {
         mq_send(request, out.data(), size, 0);
         if (mq_receive(reply, in.data(), in.size(), nullptr) != static_cast<ssize_t>(size)) {
             state.SkipWithError("mq_receive failed");
             break;
         }
+        trips.mark();
     }
     mq_send(request, out.data(), 0, 1);
+    trips.report(state);
     reap(state, child);
     mq_close(request);
     mq_close(reply);
@@ -345,6 +388,8 @@ void MsgBusyPingPong(benchmark::State& state) {
             if (reply.send(in.data(), info.size, 0, 0, 0) != Status::ok) _exit(1);
         }
     }
+    RoundTrips trips;
+    trips.start();
     for (auto _ : state) {
         request.send(out.data(), size, 0, 0, 0);
         msg::Info info;
@@ -352,8 +397,10 @@ void MsgBusyPingPong(benchmark::State& state) {
             state.SkipWithError("msgReceive polled in vain");
             break;
         }
+        trips.mark();
     }
     request.send(out.data(), 0, 1, 0, kPartnerTimeout);
+    trips.report(state);
     reap(state, child);
     state.SetBytesProcessed(static_cast<std::int64_t>(state.iterations() * size * 2));
 }
@@ -387,14 +434,18 @@ void PipePingPong(benchmark::State& state) {
     }
     close(request[0]);
     close(reply[1]);
+    RoundTrips trips;
+    trips.start();
     for (auto _ : state) {
         if (write(request[1], out.data(), size) != static_cast<ssize_t>(size) ||
             !read_all(reply[0], in.data(), size)) {
             state.SkipWithError("pipe round trip failed");
             break;
         }
+        trips.mark();
     }
     close(request[1]);
+    trips.report(state);
     reap(state, child);
     close(reply[0]);
     state.SetBytesProcessed(static_cast<std::int64_t>(state.iterations() * size * 2));
