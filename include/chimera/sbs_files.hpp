@@ -192,5 +192,9 @@ struct SbsFile {
 SbsFile read_sbs(const std::string& path);
 /// Parses from a reader; relative SVARFILE paths are resolved against `base_dir`.
 SbsFile parse_sbs(cfg::Reader& reader, const std::string& base_dir);
+/// Throws cfg::ParseError (FILE:LINE of the RTPU) when an RTPU names a CPU
+/// this process may not run on: one check for sbs and chimcfg check (which
+/// therefore judges a file for the machine it runs on).
+void check_rtpu_cpus(const SbsFile& f);
 
 }  // namespace chimera

@@ -1,6 +1,8 @@
 // The .rmod and .sbs readers (see include/chimera/sbs_files.hpp for the formats).
 #include "chimera/sbs_files.hpp"
 
+#include <sched.h>
+
 #include <cstdio>
 #include <algorithm>
 #include <cctype>
@@ -309,6 +311,18 @@ std::string frequency_problem(double hz) {
     return {};
 }
 
+void check_rtpu_cpus(const SbsFile& f) {
+    cpu_set_t allowed;
+    CPU_ZERO(&allowed);
+    if (sched_getaffinity(0, sizeof(allowed), &allowed) != 0) return;
+    for (const auto& r : f.rtpus)
+        if (r.cpu >= CPU_SETSIZE || !CPU_ISSET(r.cpu, &allowed))
+            throw cfg::ParseError(f.path, r.line,
+                                  "RTPU " + r.name + " names CPU " + std::to_string(r.cpu) +
+                                      ", which this process may not use (it has " +
+                                      std::to_string(CPU_COUNT(&allowed)) + " CPUs)");
+}
+
 RmodFile read_rmod(const std::string& path) {
     cfg::Reader r = cfg::Reader::from_file(path);
     return parse_rmod(r, path);
@@ -408,7 +422,7 @@ SbsFile parse_sbs(cfg::Reader& r, const std::string& base_dir) {
                 else r.fail(o, "BACKEND must be fifo, deadline or other, found '" + v + "'");
             } else {
                 double hz = r.to_double(o, 0, o.keyword);
-                if (!positive_finite(hz)) r.fail(o, o.keyword + " must be a positive number of Hz");
+                if (const std::string why = frequency_problem(hz); !why.empty()) r.fail(o, o.keyword + ": " + why);
                 (o.keyword == "MINFREQ" ? spec.minfreq : spec.maxfreq) = hz;
             }
         }

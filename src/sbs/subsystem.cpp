@@ -68,17 +68,7 @@ std::string_view to_string(Control c) noexcept {
 namespace detail {
 
 SubsystemCore::SubsystemCore(SbsFile f) : file(std::move(f)) {
-    cpu_set_t allowed;
-    CPU_ZERO(&allowed);
-    if (sched_getaffinity(0, sizeof(allowed), &allowed) == 0) {
-        for (const auto& r : file.rtpus) {
-            if (r.cpu >= CPU_SETSIZE || !CPU_ISSET(r.cpu, &allowed))
-                throw cfg::ParseError(file.path, r.line,
-                                      "RTPU " + r.name + " names CPU " + std::to_string(r.cpu) +
-                                          ", which this process may not use (it has " +
-                                          std::to_string(CPU_COUNT(&allowed)) + " CPUs)");
-        }
-    }
+    check_rtpu_cpus(file);
     const std::string seg = ipc::segment_name(file.subsystem, "svar");
     if (ipc::Segment::exists(seg)) {
         if (!ipc::Segment::is_stale(seg))

@@ -96,6 +96,15 @@ sed 's/^FREQ .*/FREQ      99999999999999999999999/' ctl.rmod > "$tmp/fast.rmod"
 run 1 check "$tmp/fast.rmod" &&
 same "FREQ 1e23" "$err" "$tmp/fast.rmod:9: FREQ 99999999999999999999999: 1e+23 Hz is above the highest task frequency, 1e+06 Hz (a period of 1 us)"
 
+# An RTPU's frequency bounds hold to the task frequency range, and its CPU to
+# the CPUs this machine lets the process use, as sbs holds them.
+sed 's/^MAXFREQ .*/MAXFREQ 1e30/' ctl.sbs > "$tmp/maxfreq.sbs"
+sed 's/^RTPU .*/RTPU main 200/' ctl.sbs > "$tmp/cpu.sbs"
+cp controller.svar "$tmp/"
+run 1 check "$tmp/maxfreq.sbs" "$tmp/cpu.sbs" &&
+same "MAXFREQ, CPU" "$err" "$tmp/maxfreq.sbs:$(grep -n '^MAXFREQ' ctl.sbs | cut -d: -f1): MAXFREQ: 1e+30 Hz is above the highest task frequency, 1e+06 Hz (a period of 1 us)
+$tmp/cpu.sbs:$(grep -n '^RTPU' ctl.sbs | cut -d: -f1): RTPU main names CPU 200, which this process may not use (it has $(nproc) CPUs)"
+
 # Sizes without overflow, bounded by the documented maximum: 64 x
 # struct[1073741824] wrapped to '0 bytes of data'; one NELEM of 2 GB is refused
 # at its line without allocating it.

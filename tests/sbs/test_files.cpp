@@ -179,6 +179,10 @@ TEST(SbsFile, Errors) {
               "sub.sbs:4: ERRPRINT must be errors, warnings or none, found 'all'");
     EXPECT_EQ(error_of([] { sbs("SUBSYSTEM s\nSVARFILE t.svar\nRTPU cpu0\nMINFREQ 10\nMAXFREQ 5\nEOF\n"); }),
               "sub.sbs:3: RTPU cpu0: MINFREQ must be below MAXFREQ");
+    EXPECT_EQ(error_of([] { sbs("SUBSYSTEM s\nSVARFILE t.svar\nRTPU cpu0\nMAXFREQ 1e30\nEOF\n"); }),
+              "sub.sbs:4: MAXFREQ: 1e+30 Hz is above the highest task frequency, 1e+06 Hz (a period of 1 us)");
+    EXPECT_EQ(error_of([] { sbs("SUBSYSTEM s\nSVARFILE t.svar\nRTPU cpu0\nMINFREQ nan\nEOF\n"); }),
+              "sub.sbs:4: expected a number for MINFREQ, found 'nan'");
     EXPECT_EQ(error_of([] { sbs("SUBSYSTEM s\nSVARFILE t.svar\nRTPU cpu0\nUSAGE shared\nUSAGE shared\nEOF\n"); }),
               "sub.sbs:5: USAGE given twice for RTPU cpu0");
     EXPECT_EQ(error_of([] { sbs("SUBSYSTEM s\nSVARFILE t.svar\nRTPU cpu0\nRTPU cpu0\nEOF\n"); }),

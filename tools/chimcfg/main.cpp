@@ -104,6 +104,7 @@ std::string summary_rmod(const std::string& path, const ModuleLookup& modules) {
 
 std::string summary_sbs(const std::string& path) {
     const chimera::SbsFile f = chimera::read_sbs(path);
+    chimera::check_rtpu_cpus(f);
     // The table it names must be a good .svar too.
     const TableSpec spec = chimera::svar::parse_svar_file(f.svarfile);
     return path + ": ok, subsystem " + f.subsystem + ", " + plural(f.rtpus.size(), "RTPU") +
