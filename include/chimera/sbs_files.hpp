@@ -63,6 +63,7 @@
 #include <chimera/cfg.hpp>
 
 #include <cstdint>
+#include <functional>
 #include <optional>
 #include <string>
 #include <string_view>
@@ -146,6 +147,13 @@ struct RmodFile {
     std::vector<std::string> global_in_vars() const;
     std::vector<std::string> global_out_vars() const;
 };
+
+/// Why the ports of `f` do not fit a table ("" when they do): every
+/// INCONST, OUTCONST, INVAR and OUTVAR (SVARALIAS applied) names a variable
+/// for which `is_variable` is true; `svarfile` names the table in the
+/// message. One check for spawn and chimcfg check.
+std::string port_problem(const RmodFile& f, const std::function<bool(const std::string&)>& is_variable,
+                         std::string_view svarfile);
 
 /// Reads a .rmod; throws cfg::ParseError.
 RmodFile read_rmod(const std::string& path);

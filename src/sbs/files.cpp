@@ -323,6 +323,21 @@ void check_rtpu_cpus(const SbsFile& f) {
                                       std::to_string(CPU_COUNT(&allowed)) + " CPUs)");
 }
 
+std::string port_problem(const RmodFile& f, const std::function<bool(const std::string&)>& is_variable,
+                         std::string_view svarfile) {
+    const std::pair<const char*, const std::vector<std::string>*> lists[] = {
+        {"INCONST", &f.in_consts}, {"OUTCONST", &f.out_consts}, {"INVAR", &f.in_vars}, {"OUTVAR", &f.out_vars}};
+    for (auto [keyword, list] : lists) {
+        for (const auto& port : *list) {
+            const std::string g = f.global_name(port);
+            if (!is_variable(g))
+                return f.path + ": " + keyword + " " + port + (g != port ? " (SVARALIAS " + g + ")" : "") +
+                       " is not a variable of the state variable table " + std::string(svarfile);
+        }
+    }
+    return {};
+}
+
 RmodFile read_rmod(const std::string& path) {
     cfg::Reader r = cfg::Reader::from_file(path);
     return parse_rmod(r, path);

@@ -72,16 +72,9 @@ TaskCore::TaskCore(SubsystemCore& s, int task_id, const RtpuSpec& r, std::vector
 
     // Every port must be a variable of the global table.
     for (const auto& f : rmods) {
-        const std::pair<const char*, const std::vector<std::string>*> lists[] = {
-            {"INCONST", &f.in_consts}, {"OUTCONST", &f.out_consts}, {"INVAR", &f.in_vars}, {"OUTVAR", &f.out_vars}};
-        for (auto [kw, list] : lists) {
-            for (const auto& port : *list) {
-                const std::string g = f.global_name(port);
-                if (!sbs.table.find(g))
-                    throw Error(f.path + ": " + kw + " " + port + (g != port ? " (SVARALIAS " + g + ")" : "") +
-                                " is not a variable of the state variable table " + sbs.file.svarfile);
-            }
-        }
+        const std::string why =
+            port_problem(f, [&](const std::string& g) { return sbs.table.find(g).has_value(); }, sbs.file.svarfile);
+        if (!why.empty()) throw Error(why);
     }
 
     // Combined objects: a variable produced by one and read by another stays

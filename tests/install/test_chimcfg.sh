@@ -42,7 +42,7 @@ same() {
 # Good files of the three kinds: one line each, exit 0, nothing on stderr.
 run 0 check controller.svar ctl.rmod ctl.sbs &&
 same "check of good files (stdout)" "$out" "controller.svar: ok, svar, 3 variables, 76 bytes of data
-ctl.rmod: ok, rmod ctl, module pid, periodic at 100 Hz; in-consts GAIN; out-consts none; in-vars Q_REF; out-vars TAU; LOCAL not checked (module pid not on the module path: --module-path DIR or CHIMERA_MODULE_PATH)
+ctl.rmod: ok, rmod ctl, module pid, periodic at 100 Hz; in-consts GAIN; out-consts none; in-vars Q_REF; out-vars TAU; ports checked against controller.svar; LOCAL not checked (module pid not on the module path: --module-path DIR or CHIMERA_MODULE_PATH)
 ctl.sbs: ok, subsystem ctl, 1 RTPU, master main, svar controller.svar (3 variables)" &&
 same "check of good files (stderr)" "$err" ""
 
@@ -56,7 +56,7 @@ same "fixed thesis sample" "$out" "$thesis/thesis_sample_fixed.svar: ok, svar, 4
 
 # Good and bad together: the good ones still get their line, exit 1.
 run 1 check ctl.rmod truncated.svar bad_keyword.rmod nothere.svar notes.txt &&
-same "mixed check (stdout)" "$out" "ctl.rmod: ok, rmod ctl, module pid, periodic at 100 Hz; in-consts GAIN; out-consts none; in-vars Q_REF; out-vars TAU; LOCAL not checked (module pid not on the module path: --module-path DIR or CHIMERA_MODULE_PATH)" &&
+same "mixed check (stdout)" "$out" "ctl.rmod: ok, rmod ctl, module pid, periodic at 100 Hz; in-consts GAIN; out-consts none; in-vars Q_REF; out-vars TAU; ports not checked (give the .sbs or .svar too); LOCAL not checked (module pid not on the module path: --module-path DIR or CHIMERA_MODULE_PATH)" &&
 same "mixed check (stderr)" "$err" "truncated.svar:6: truncated file: expected EOF as the last line, found end of file
 bad_keyword.rmod:9: a periodic task needs FREQ or PERIOD, found FRQ
 nothere.svar: cannot open file: No such file or directory
@@ -86,15 +86,21 @@ $tmp/huge.rmod:12: LOCAL ILIMIT: '1e309' is not a number
 $tmp/negative.rmod:12: LOCAL ILIMIT: -5 is out of range [0, inf]
 $tmp/typo.rmod:12: LOCAL ILIMT: not a key of pid (KP, KI, KD, ILIMIT, ULIMIT)"
 CHIMERA_MODULE_PATH=$pid_dir run 0 check "$tmp/good.rmod" &&
-same "LOCAL checked" "$out" "$tmp/good.rmod: ok, rmod good, module pid, periodic at 100 Hz; in-consts GAIN; out-consts none; in-vars Q_REF; out-vars TAU; LOCAL checked against module pid"
+same "LOCAL checked" "$out" "$tmp/good.rmod: ok, rmod good, module pid, periodic at 100 Hz; in-consts GAIN; out-consts none; in-vars Q_REF; out-vars TAU; ports not checked (give the .sbs or .svar too); LOCAL checked against module pid"
 fi
 run 0 check --no-modules "$tmp/inf.rmod" &&
-same "--no-modules" "$out" "$tmp/inf.rmod: ok, rmod inf, module pid, periodic at 100 Hz; in-consts GAIN; out-consts none; in-vars Q_REF; out-vars TAU; LOCAL not checked (--no-modules)"
+same "--no-modules" "$out" "$tmp/inf.rmod: ok, rmod inf, module pid, periodic at 100 Hz; in-consts GAIN; out-consts none; in-vars Q_REF; out-vars TAU; ports not checked (give the .sbs or .svar too); LOCAL not checked (--no-modules)"
 
 # Ranges: a task frequency above 1 MHz (FREQ 1e23 was '1e+23 Hz').
 sed 's/^FREQ .*/FREQ      99999999999999999999999/' ctl.rmod > "$tmp/fast.rmod"
 run 1 check "$tmp/fast.rmod" &&
 same "FREQ 1e23" "$err" "$tmp/fast.rmod:9: FREQ 99999999999999999999999: 1e+23 Hz is above the highest task frequency, 1e+06 Hz (a period of 1 us)"
+
+# A .rmod's ports against the table of the .sbs (or .svar) checked with it, as
+# spawn holds them.
+sed 's/^INVAR .*/INVAR     NOSUCH/' ctl.rmod > "$tmp/port.rmod"
+run 1 check ctl.sbs "$tmp/port.rmod" &&
+same "ports" "$err" "$tmp/port.rmod: INVAR NOSUCH is not a variable of the state variable table controller.svar"
 
 # An RTPU's frequency bounds hold to the task frequency range, and its CPU to
 # the CPUs this machine lets the process use, as sbs holds them.

@@ -23,6 +23,7 @@
 #include <cstdio>
 #include <filesystem>
 #include <iostream>
+#include <set>
 #include <string>
 #include <vector>
 
@@ -85,8 +86,42 @@ std::string local_check(const chimera::RmodFile& r, const ModuleLookup& modules)
     }
 }
 
-std::string summary_rmod(const std::string& path, const ModuleLookup& modules) {
+/// The table the .rmod files given are checked against: that of the first
+/// .sbs given (its SVARFILE), else the first .svar given.
+struct PortTable {
+    std::string svarfile;  // "" : none given
+    std::set<std::string> names;
+};
+
+PortTable port_table(const std::vector<std::string>& files) {
+    PortTable t;
+    for (const char* kind : {".sbs", ".svar"}) {
+        for (const std::string& path : files) {
+            if (extension(path) != kind) continue;
+            try {
+                t.svarfile = kind == std::string(".sbs") ? chimera::read_sbs(path).svarfile : path;
+                for (const auto& v : chimera::svar::parse_svar_file(t.svarfile).vars) t.names.insert(v.name);
+                return t;
+            } catch (const std::exception&) {
+                t = {};  // reported on its own line; the ports stay unchecked
+            }
+        }
+    }
+    return t;
+}
+
+// The ports against the table, as spawn checks them.
+std::string port_check(const chimera::RmodFile& r, const PortTable& table) {
+    if (table.svarfile.empty()) return "ports not checked (give the .sbs or .svar too)";
+    const std::string why = chimera::port_problem(
+        r, [&](const std::string& g) { return table.names.count(g) != 0; }, table.svarfile);
+    if (!why.empty()) throw std::runtime_error(why);
+    return "ports checked against " + table.svarfile;
+}
+
+std::string summary_rmod(const std::string& path, const ModuleLookup& modules, const PortTable& table) {
     const chimera::RmodFile r = chimera::read_rmod(path);
+    const std::string ports = port_check(r, table);
     const std::string local = local_check(r, modules);
     std::string s = path + ": ok, rmod " + r.name + ", module " + r.module + ", " +
                     std::string(chimera::to_string(r.type));
@@ -98,7 +133,7 @@ std::string summary_rmod(const std::string& path, const ModuleLookup& modules) {
     s += "; " + list_summary("in-consts", r.global_in_consts()) + "; " +
          list_summary("out-consts", r.global_out_consts()) + "; " +
          list_summary("in-vars", r.global_in_vars()) + "; " +
-         list_summary("out-vars", r.global_out_vars()) + "; " + local;
+         list_summary("out-vars", r.global_out_vars()) + "; " + ports + "; " + local;
     return s;
 }
 
@@ -113,6 +148,7 @@ std::string summary_sbs(const std::string& path) {
 }
 
 int check(const std::vector<std::string>& files, const ModuleLookup& modules) {
+    const PortTable table = port_table(files);
     int bad = 0;
     for (const std::string& path : files) {
         try {
@@ -121,7 +157,7 @@ int check(const std::vector<std::string>& files, const ModuleLookup& modules) {
             if (ext == ".svar")
                 line = summary_svar(path);
             else if (ext == ".rmod")
-                line = summary_rmod(path, modules);
+                line = summary_rmod(path, modules, table);
             else if (ext == ".sbs")
                 line = summary_sbs(path);
             else
