@@ -203,6 +203,11 @@ public:
 
     /// Adds a folder to search for module shared objects.
     void add_module_path(std::string dir);
+    /// Loads the module shared object at `path` (NAME.so or libNAME.so: its
+    /// constructors run) and adds its folder to the module path, so a .rmod
+    /// naming MODULE NAME spawns from it. Returns NAME. Throws sbs::Error (not a
+    /// module, another module NAME already loaded from elsewhere).
+    std::string load_module(const std::string& path);
 
     /// sbsSpawn: creates a task from a .rmod on an RTPU (empty: the MASTER
     /// RTPU), runs in-consts, init, out-consts and returns once the task is
@@ -258,6 +263,8 @@ public:
 
     /// sbsStatus / sbsStatusAll (live tasks, creation order).
     TaskStatus status(TaskId task) const;
+    /// The task's state alone (status() also hands over its first warning).
+    State state(TaskId task) const;
     std::vector<TaskStatus> status_all() const;
 
     /// Signal masks: bits set are the signals the master catches. A task whose

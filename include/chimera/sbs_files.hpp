@@ -155,6 +155,10 @@ struct RmodFile {
 std::string port_problem(const RmodFile& f, const std::function<bool(const std::string&)>& is_variable,
                          std::string_view svarfile);
 
+/// Why `rmods` cannot be one combined task ("" when they can): its objects
+/// run at one rate and task type (§3.8.1). For spawn and chimcfg check.
+std::string combined_problem(const std::vector<RmodFile>& rmods);
+
 /// Reads a .rmod; throws cfg::ParseError.
 RmodFile read_rmod(const std::string& path);
 /// Parses from a reader (for text held in memory); `path` names the rmod.
@@ -185,6 +189,24 @@ struct RtpuSpec {
     int line = 0;  ///< line of the RTPU keyword
 };
 
+/// A TASK line of a .sbs, with the SET lines under it: a task the `sbs` tool
+/// spawns when it starts the subsystem (an addition to the thesis's .sbs,
+/// §4.5.1, so that `save` can write a running configuration back; see
+/// docs/cli.md). The library parses it; a program using Subsystem directly
+/// spawns what it wants itself.
+struct TaskLine {
+    struct Set {
+        std::string key;
+        std::vector<std::string> values;
+        int line = 0;
+    };
+    std::vector<std::string> rmods;  ///< one rmod, or the objects of a combined task (a+b+c, §3.8.1)
+    std::string rtpu;                ///< "" : the MASTER RTPU
+    bool on = false;                 ///< ON: turned on after every TASK line is spawned
+    std::vector<Set> local;          ///< SET KEY VALUE...: LOCAL values given before it is turned on
+    int line = 0;
+};
+
 /// A parsed .sbs file.
 struct SbsFile {
     std::string path;
@@ -192,6 +214,7 @@ struct SbsFile {
     std::string svarfile;   ///< SVARFILE, resolved against the .sbs's folder
     std::string master;     ///< MASTER (the first RTPU when absent)
     std::vector<RtpuSpec> rtpus;
+    std::vector<TaskLine> tasks;  ///< TASK lines, in file order
 
     const RtpuSpec* find_rtpu(std::string_view name) const noexcept;
 };

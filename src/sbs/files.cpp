@@ -338,6 +338,20 @@ std::string port_problem(const RmodFile& f, const std::function<bool(const std::
     return {};
 }
 
+std::string combined_problem(const std::vector<RmodFile>& rmods) {
+    if (rmods.empty()) return {};
+    std::string name;
+    for (const auto& f : rmods) name += (name.empty() ? "" : "+") + f.name;
+    const RmodFile& first = rmods.front();
+    for (const auto& f : rmods)
+        if (f.type != first.type || std::fabs(f.freq - first.freq) > 1e-9 * std::max(1.0, first.freq))
+            return "combined task " + name + ": " + f.name + " has TASKTYPE " + std::string(to_string(f.type)) +
+                   " at " + std::to_string(f.freq) + " Hz, " + first.name + " has " +
+                   std::string(to_string(first.type)) + " at " + std::to_string(first.freq) +
+                   " Hz; combined objects must run at one rate (§3.8.1)";
+    return {};
+}
+
 RmodFile read_rmod(const std::string& path) {
     cfg::Reader r = cfg::Reader::from_file(path);
     return parse_rmod(r, path);
@@ -350,6 +364,43 @@ const RtpuSpec* SbsFile::find_rtpu(std::string_view name) const noexcept {
         if (r.name == name) return &r;
     return nullptr;
 }
+
+namespace {
+
+// TASK RMOD[+RMOD...] [RTPU] [ON|OFF], then its SET KEY VALUE... lines.
+TaskLine parse_task_line(cfg::Reader& r, const SbsFile& f) {
+    const cfg::Line l = r.expect_one_of({"TASK"});
+    r.require_args(l, 1, 3);
+    TaskLine t;
+    t.line = l.number;
+    for (std::size_t at = 0;;) {
+        const auto plus = l.args[0].find('+', at);
+        t.rmods.push_back(l.args[0].substr(at, plus == std::string::npos ? std::string::npos : plus - at));
+        if (t.rmods.back().empty()) r.fail(l, "TASK " + l.args[0] + ": an empty rmod name");
+        if (plus == std::string::npos) break;
+        at = plus + 1;
+    }
+    std::size_t next = 1;
+    if (next < l.args.size() && l.args[next] != "ON" && l.args[next] != "OFF") {
+        t.rtpu = l.args[next++];
+        if (!f.find_rtpu(t.rtpu)) r.fail(l, "TASK " + l.args[0] + ": no RTPU " + t.rtpu + " in this file");
+    }
+    if (next < l.args.size()) t.on = l.args[next++] == "ON";
+    if (next < l.args.size()) r.fail(l, "TASK takes RMOD[+RMOD...] [RTPU] [ON|OFF], found '" + l.args[next] + "'");
+    for (const TaskLine& other : f.tasks)
+        for (const std::string& a : t.rmods)
+            if (std::find(other.rmods.begin(), other.rmods.end(), a) != other.rmods.end())
+                r.fail(l, "TASK: rmod " + a + " is already a task of line " + std::to_string(other.line));
+    while (const cfg::Line* p = r.peek()) {
+        if (p->keyword != "SET") break;
+        const cfg::Line set = r.expect("SET");
+        if (set.args.size() < 2) r.fail(set, "SET takes KEY VALUE... (a LOCAL key of the task above)");
+        t.local.push_back({set.args[0], std::vector<std::string>(set.args.begin() + 1, set.args.end()), set.number});
+    }
+    return t;
+}
+
+}  // namespace
 
 SbsFile parse_sbs(cfg::Reader& r, const std::string& base_dir) {
     SbsFile f;
@@ -392,7 +443,7 @@ SbsFile parse_sbs(cfg::Reader& r, const std::string& base_dir) {
 
         std::set<std::string> given;
         while (const cfg::Line* p = r.peek()) {
-            if (p->keyword == "RTPU") break;
+            if (p->keyword == "RTPU" || p->keyword == "TASK") break;
             cfg::Line o = r.expect_one_of(
                 {"SCHEDULER", "USAGE", "ERRPRINT", "MINFREQ", "MAXFREQ", "BACKEND", "ACCOUNTING"});
             if (!given.insert(o.keyword).second)
@@ -444,7 +495,8 @@ SbsFile parse_sbs(cfg::Reader& r, const std::string& base_dir) {
         if (!(spec.minfreq < spec.maxfreq))
             r.fail(rl, "RTPU " + spec.name + ": MINFREQ must be below MAXFREQ");
         f.rtpus.push_back(std::move(spec));
-    } while (r.peek() != nullptr);
+    } while (r.peek() != nullptr && r.peek()->keyword == "RTPU");
+    while (r.peek() != nullptr) f.tasks.push_back(parse_task_line(r, f));
     r.expect_end();
 
     if (master) {

@@ -26,6 +26,9 @@ class TaskCore;
 /// Finds the C-ABI table of MODULE `name` (in the program, then as
 /// <name>.so / lib<name>.so in `dirs`); throws sbs::Error listing what was tried.
 const ChimeraModuleAbi& load_module(const std::string& name, const std::vector<std::string>& dirs);
+/// Loads the module shared object at `path` (NAME.so or libNAME.so) itself,
+/// whatever the module path says; returns NAME. Throws sbs::Error.
+std::string load_module_file(const std::string& path);
 /// Where spawn looks for the module of `rmod`: `dirs` (add_module_path), the
 /// .rmod's folder, the install folder (CHIMERA_MODULE_PATH comes first, in load_module).
 std::vector<std::string> module_search_dirs(const RmodFile& rmod, std::vector<std::string> dirs);

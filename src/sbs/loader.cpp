@@ -56,6 +56,7 @@ std::mutex g_mu;
 // Loaded modules stay loaded for the life of the process: instances and
 // their vtables live in the shared object.
 std::map<std::string, const ChimeraModuleAbi*> g_loaded;
+std::map<std::string, std::string> g_loaded_from;  // name -> the file it came from
 
 const ChimeraModuleAbi* check(const void* sym, const std::string& name, const std::string& where) {
     const auto* abi = static_cast<const ChimeraModuleAbi*>(sym);
@@ -71,7 +72,53 @@ const ChimeraModuleAbi* check(const void* sym, const std::string& name, const st
     return abi;
 }
 
+// dlopen()s `file` and takes its table of module `name` (g_mu held);
+// nullptr when the library has no such symbol.
+const ChimeraModuleAbi* open_locked(const std::string& name, const std::filesystem::path& file) {
+    void* h = dlopen(file.c_str(), RTLD_NOW | RTLD_LOCAL);
+    if (!h) {
+        const char* e = dlerror();
+        throw Error("module " + name + ": cannot load " + file.string() + ": " + (e ? e : "dlopen failed"));
+    }
+    const void* sym = dlsym(h, module_symbol(name).c_str());
+    if (!sym) {
+        dlclose(h);
+        return nullptr;
+    }
+    const auto* abi = check(sym, name, file.string());
+    g_loaded[name] = abi;
+    g_loaded_from[name] = std::filesystem::absolute(file).lexically_normal().string();
+    return abi;
+}
+
 }  // namespace
+
+std::string load_module_file(const std::string& path) {
+    const std::filesystem::path file(path);
+    std::error_code ec;
+    if (!std::filesystem::is_regular_file(file, ec))
+        throw Error("module load " + path + ": not a regular file");
+    std::string name = file.stem().string();
+    if (file.extension() != ".so") throw Error("module load " + path + ": a module is a shared object, NAME.so or libNAME.so");
+    if (name.rfind("lib", 0) == 0 && name.size() > 3) name.erase(0, 3);
+    const bool identifier = std::all_of(name.begin(), name.end(), [](unsigned char c) {
+        return std::isalnum(c) != 0 || c == '_';
+    });
+    if (!identifier) throw Error("module load " + path + ": '" + name + "' is not a module name (letters, digits, _)");
+    std::lock_guard<std::mutex> lock(g_mu);
+    if (auto it = g_loaded.find(name); it != g_loaded.end()) {
+        const auto from = g_loaded_from.find(name);
+        const std::string where = from == g_loaded_from.end() ? "the program" : from->second;
+        if (where != std::filesystem::absolute(file).lexically_normal().string())
+            throw Error("module load " + path + ": module " + name + " is already loaded from " + where +
+                        " (a loaded module stays loaded for the life of the process)");
+        return name;
+    }
+    if (!open_locked(name, file))
+        throw Error("module load " + path + ": no symbol " + module_symbol(name) + " (a module is built with CHIMERA_MODULE(" +
+                    name + ", Class))");
+    return name;
+}
 
 std::vector<std::string> module_search_dirs(const RmodFile& rmod, std::vector<std::string> dirs) {
     const std::string folder = std::filesystem::path(rmod.path).parent_path().string();
@@ -124,20 +171,8 @@ const ChimeraModuleAbi& load_module(const std::string& name, const std::vector<s
                 tried += "\n  " + p.string() + " (absent)";
                 continue;
             }
-            void* h = dlopen(p.c_str(), RTLD_NOW | RTLD_LOCAL);
-            if (!h) {
-                const char* e = dlerror();
-                throw Error("module " + name + ": cannot load " + p.string() + ": " + (e ? e : "dlopen failed"));
-            }
-            const void* sym = dlsym(h, symbol.c_str());
-            if (!sym) {
-                dlclose(h);
-                tried += "\n  " + p.string() + " (no symbol " + symbol + ")";
-                continue;
-            }
-            const auto* abi = check(sym, name, p.string());
-            g_loaded[name] = abi;
-            return *abi;
+            if (const ChimeraModuleAbi* abi = open_locked(name, p)) return *abi;
+            tried += "\n  " + p.string() + " (no symbol " + symbol + ")";
         }
     }
     throw ModuleNotFound("module " + name + " not found: not linked into the program, and no " + name + ".so or lib" + name +

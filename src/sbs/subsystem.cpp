@@ -210,6 +210,14 @@ const SbsFile& Subsystem::file() const noexcept { return core_->file; }
 const std::string& Subsystem::name() const noexcept { return core_->file.subsystem; }
 void Subsystem::add_module_path(std::string dir) { core_->module_dirs.push_back(std::move(dir)); }
 
+std::string Subsystem::load_module(const std::string& path) {
+    std::string name = detail::load_module_file(path);
+    const std::string dir = std::filesystem::absolute(path).parent_path().string();
+    auto& dirs = core_->module_dirs;
+    if (std::find(dirs.begin(), dirs.end(), dir) == dirs.end()) dirs.push_back(dir);
+    return name;
+}
+
 TaskId Subsystem::spawn(const std::string& rmod_path, std::string_view rtpu) {
     return spawn_combined({rmod_path}, rtpu);
 }
@@ -566,6 +574,8 @@ TaskStatus Subsystem::status(TaskId id) const {
     fill_profile(s, *core_->task(id), core_->status.snapshot());
     return s;
 }
+
+State Subsystem::state(TaskId id) const { return core_->task(id)->state.load(); }
 
 TaskStatus Subsystem::status_without_profile(TaskId id) const {
     detail::TaskCore* t = core_->task(id);

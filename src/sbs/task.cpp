@@ -60,13 +60,7 @@ TaskCore::TaskCore(SubsystemCore& s, int task_id, const RtpuSpec& r, std::vector
     name = join_names(names, "+");
     type = rmods.front().type;
     const double freq = rmods.front().freq;
-    for (const auto& f : rmods) {
-        if (f.type != type || std::fabs(f.freq - freq) > 1e-9 * std::max(1.0, freq))
-            throw Error("combined task " + name + ": " + f.name + " has TASKTYPE " + std::string(to_string(f.type)) +
-                        " at " + std::to_string(f.freq) + " Hz, " + rmods.front().name + " has " +
-                        std::string(to_string(type)) + " at " + std::to_string(freq) +
-                        " Hz; combined objects must run at one rate (§3.8.1)");
-    }
+    if (const std::string why = combined_problem(rmods); !why.empty()) throw Error(why);
     period_ns.store(freq > 0 ? static_cast<std::int64_t>(std::llround(1e9 / freq)) : 0);
     crit.store(crit_for(rtpu, type, freq));
 

@@ -421,6 +421,112 @@ TEST(SbsCli, BadSbsFileNamesFileAndLine) {
     EXPECT_NE(r.err.find("bad.sbs:"), std::string::npos) << r.err;
 }
 
+// A .sbs of this workspace's subsystem with `tail` after its RTPU.
+std::string sbs_with(const Workspace& ws, const std::string& name, const std::string& tail) {
+    return ws.write(name, "SUBSYSTEM " + ws.subsystem() + "\nSVARFILE  " + sbs_test::env("SBS_TEST_DATA") +
+                              "/tools.svar\nRTPU      cpu0\nBACKEND   other\n" + tail + "EOF\n");
+}
+
+Outcome run_sbs_file(const std::string& file, const std::string& script) {
+    return sbs_test::run(sbs_test::env("SBS_EXE"),
+                         {file, "--module-path", sbs_test::env("SBS_TEST_DATA"), "--no-attach", "-c", script, "--json"});
+}
+
+TEST(SbsCli, TaskLinesOfTheSbsStartTheirTasks) {
+    Workspace ws;
+    ws.write("follow200.rmod",
+             "MODULE ramp\nDESC follower at the ramp's rate\nINVAR X\nOUTVAR Y\nTASKTYPE periodic\nFREQ 200\n"
+             "LOCAL\nGAIN 2\nEOF\n");
+    const std::string file = sbs_with(ws, "tasks.sbs", "TASK ramp+follow200 ON\nSET GAIN 4\nTASK follow\n");
+    const Outcome r = run_sbs_file(file, "sleep 0.2; status; set ramp+follow200 GAIN; display all X Y");
+    ASSERT_EQ(r.status, 0) << r.out << r.err;
+    const auto replies = json_lines(r.out);
+    ASSERT_EQ(replies.size(), 4u) << r.out;
+    ASSERT_EQ(replies[1]["data"]["tasks"].size(), 2u);
+    EXPECT_EQ(replies[1]["data"]["tasks"][0]["rmod"], "ramp+follow200");
+    EXPECT_EQ(replies[1]["data"]["tasks"][0]["state"], "ON");
+    EXPECT_EQ(replies[1]["data"]["tasks"][1]["rmod"], "follow");
+    EXPECT_EQ(replies[1]["data"]["tasks"][1]["state"], "OFF");  // no ON: spawned and left OFF
+    EXPECT_EQ(replies[2]["data"]["value"], "4");
+    const auto& values = replies[3]["data"]["vars"];
+    ASSERT_EQ(values.size(), 2u);
+    EXPECT_GT(values[1]["values"][0].get<double>(), 0.0);
+    // The SET line reached the module: Y = 4 * X of the same cycle, X internal to the task.
+    const auto ok = sbs_test::run(sbs_test::env("CHIMCFG_EXE"), {"check", "--module-path", sbs_test::env("SBS_TEST_DATA"), file});
+    EXPECT_EQ(ok.status, 0) << ok.out << ok.err;
+}
+
+TEST(SbsCli, ATaskLineThatFailsNamesItsLineAndStartsNothing) {
+    Workspace ws;
+    const std::string file = sbs_with(ws, "bad.sbs", "TASK ramp ON\nTASK follow ON\nSET NOKEY 1\n");
+    const Outcome r = run_sbs_file(file, "status");
+    EXPECT_EQ(r.status, 1) << r.out << r.err;
+    EXPECT_NE(r.err.find("bad.sbs:7: "), std::string::npos) << r.err;  // the SET line
+    EXPECT_NE(r.err.find("NOKEY"), std::string::npos) << r.err;
+    EXPECT_FALSE(std::filesystem::exists("/dev/shm/chimera." + ws.subsystem() + ".svar"));
+    const std::string missing = sbs_with(ws, "missing.sbs", "TASK nosuch\n");
+    const Outcome m = run_sbs_file(missing, "status");
+    EXPECT_EQ(m.status, 1);
+    EXPECT_NE(m.err.find("missing.sbs:5: "), std::string::npos) << m.err;
+    const auto check = sbs_test::run(sbs_test::env("CHIMCFG_EXE"), {"check", missing});
+    EXPECT_EQ(check.status, 1);
+    EXPECT_NE(check.err.find("missing.sbs:5: TASK nosuch: no file nosuch[.rmod]"), std::string::npos) << check.err;
+    // TASK names an RTPU of the file; a rmod is one task only.
+    const std::string rtpu = sbs_with(ws, "rtpu.sbs", "TASK ramp cpu9\n");
+    EXPECT_NE(run_sbs_file(rtpu, "status").err.find("rtpu.sbs:5: TASK ramp: no RTPU cpu9 in this file"), std::string::npos);
+    const std::string twice = sbs_with(ws, "twice.sbs", "TASK ramp\nTASK follow+ramp\n");
+    EXPECT_NE(run_sbs_file(twice, "status").err.find("twice.sbs:6: TASK: rmod ramp is already a task of line 5"),
+              std::string::npos);
+}
+
+TEST(SbsCli, SaveWritesASbsThatStartsTheSameSubsystem) {
+    Workspace ws;
+    const std::string saved = ws.dir() + "/saved.sbs";
+    const auto r = ok_json(ws, "spawn ramp; set STEP 5; on; spawn follow; save " + saved);
+    EXPECT_EQ(r.back()["data"]["file"], saved);
+    const std::string text = r.back()["data"]["sbs"];
+    EXPECT_NE(text.find("SET STEP 5\n"), std::string::npos) << text;
+    EXPECT_EQ(text.find("SET GAIN"), std::string::npos) << text;  // unchanged LOCAL stays in the .rmod
+    ASSERT_TRUE(std::filesystem::exists(saved));
+    // It starts the same tasks, in the same states, with the same LOCAL.
+    const Outcome again = run_sbs_file(saved, "status; set ramp STEP; set follow GAIN");
+    ASSERT_EQ(again.status, 0) << again.out << again.err;
+    const auto replies = json_lines(again.out);
+    ASSERT_EQ(replies.size(), 3u);
+    const auto* ramp = task(replies[0], "ramp");
+    const auto* follow = task(replies[0], "follow");
+    ASSERT_TRUE(ramp && follow) << replies[0].dump();
+    EXPECT_EQ((*ramp)["state"], "ON");
+    EXPECT_EQ((*follow)["state"], "OFF");
+    EXPECT_EQ(replies[1]["data"]["value"], "5");
+    EXPECT_EQ(replies[2]["data"]["value"], "2");
+    EXPECT_EQ(sbs_test::run(sbs_test::env("CHIMCFG_EXE"), {"check", saved}).status, 0);
+    // Only to a .sbs name, never over the network (tests/tools/test_sbs_network.cpp).
+    EXPECT_NE(failing(ws, "save " + ws.dir() + "/x.txt").find("ends in .sbs"), std::string::npos);
+}
+
+TEST(SbsCli, ModuleLoadFromAPathMakesItsRmodsSpawn) {
+    Workspace ws;
+    // A .rmod whose module is on no folder of the module path: its folder holds no library.
+    const std::string rmod = ws.write("elsewhere.rmod", "MODULE ramp\nDESC ramp\nINVAR none\nOUTVAR X\n"
+                                                       "TASKTYPE periodic\nFREQ 200\nEOF\n");
+    const std::string so = sbs_test::env("RAMP_SO");
+    const std::string module_path = sbs_test::env("CHIMERA_MODULE_PATH");
+    ::unsetenv("CHIMERA_MODULE_PATH");  // the folder of ramp.so: off the path for this test
+    const Outcome before = sbs_test::run(sbs_test::env("SBS_EXE"), {ws.sbs(), "--no-attach", "-c", "spawn " + rmod});
+    const Outcome after = sbs_test::run(sbs_test::env("SBS_EXE"),
+                                        {ws.sbs(), "--no-attach", "--json", "-c", "module load " + so + "; spawn " + rmod});
+    ::setenv("CHIMERA_MODULE_PATH", module_path.c_str(), 1);
+    EXPECT_EQ(before.status, 1) << before.out << before.err;
+    EXPECT_NE(before.err.find("module ramp not found"), std::string::npos) << before.err;
+    ASSERT_EQ(after.status, 0) << after.out << after.err;
+    const auto replies = json_lines(after.out);
+    EXPECT_EQ(replies[0]["data"]["module"], "ramp");
+    EXPECT_EQ(replies[1]["data"]["module"], "ramp");
+    EXPECT_NE(failing(ws, "module load " + ws.dir() + "/elsewhere.rmod").find("shared object"), std::string::npos);
+    EXPECT_NE(failing(ws, "module load /nonexistent/x.so").find("not a regular file"), std::string::npos);
+}
+
 TEST(SbsCli, ScriptFromStdin) {
     Workspace ws;
     const Outcome r = ws.sbs_run({}, "spawn ramp\non\nbogus\nstatus\n");

@@ -330,6 +330,13 @@ TEST(SbsNetwork, UnprivilegedUserCannotGetCodeLoadedByTheMaster) {
         EXPECT_EQ(r.dump().find("ELF"), std::string::npos) << r.dump();
         EXPECT_EQ(r.dump().find("found"), std::string::npos) << r.dump();
     }
+    // Nor loads a library by path, nor writes a file.
+    for (const std::string& cmd : {"module load " + sbs_test::env("PROBE_SO"), "save " + dir + "/x.sbs"}) {
+        const auto r = c.request(cmd, 10000);
+        EXPECT_FALSE(r["ok"].get<bool>()) << cmd;
+        EXPECT_NE(r.value("error", "").find("over the network"), std::string::npos) << r.dump();
+    }
+    EXPECT_FALSE(std::filesystem::exists(dir + "/x.sbs"));
     EXPECT_FALSE(std::filesystem::exists(marker)) << "the probe's constructor ran in the master";
     // What is on the module path still spawns by name.
     EXPECT_TRUE(c.request("spawn ramp", 10000)["ok"].get<bool>());

@@ -21,8 +21,10 @@
 
 #include <charconv>
 #include <cstdio>
+#include <cstdlib>
 #include <filesystem>
 #include <iostream>
+#include <optional>
 #include <set>
 #include <string>
 #include <vector>
@@ -137,14 +139,55 @@ std::string summary_rmod(const std::string& path, const ModuleLookup& modules, c
     return s;
 }
 
-std::string summary_sbs(const std::string& path) {
+// The .rmod of a TASK line as sbs finds it: the path given, beside the
+// .sbs, or NAME[.rmod] in the module path folders.
+std::optional<std::string> task_rmod_file(const std::string& name, const std::string& sbs_path,
+                                          const ModuleLookup& modules) {
+    std::vector<std::string> dirs = {"", std::filesystem::path(sbs_path).parent_path().string()};
+    if (const char* env = std::getenv("CHIMERA_MODULE_PATH")) {
+        std::string rest = env;
+        for (std::size_t colon; (colon = rest.find(':')) != std::string::npos; rest.erase(0, colon + 1))
+            if (colon > 0) dirs.push_back(rest.substr(0, colon));
+        if (!rest.empty()) dirs.push_back(rest);
+    }
+    dirs.insert(dirs.end(), modules.dirs.begin(), modules.dirs.end());
+    for (const auto& d : dirs)
+        for (const std::string& file : {name, name + ".rmod"}) {
+            const auto p = d.empty() ? std::filesystem::path(file) : std::filesystem::path(d) / file;
+            std::error_code ec;
+            if (p.extension() == ".rmod" && std::filesystem::is_regular_file(p, ec)) return p.string();
+        }
+    return std::nullopt;
+}
+
+std::string summary_sbs(const std::string& path, const ModuleLookup& modules) {
     const chimera::SbsFile f = chimera::read_sbs(path);
     chimera::check_rtpu_cpus(f);
     // The table it names must be a good .svar too.
     const TableSpec spec = chimera::svar::parse_svar_file(f.svarfile);
+    // Each TASK line's .rmod files as spawn reads them, their ports against that table.
+    std::set<std::string> names;
+    for (const auto& v : spec.vars) names.insert(v.name);
+    for (const chimera::TaskLine& t : f.tasks) {
+        std::vector<chimera::RmodFile> objects;
+        for (const std::string& rmod : t.rmods) {
+            const auto file = task_rmod_file(rmod, path, modules);
+            if (!file)
+                throw std::runtime_error(path + ":" + std::to_string(t.line) + ": TASK " + rmod + ": no file " + rmod +
+                                         "[.rmod] here, beside the .sbs or on the module path");
+            const chimera::RmodFile r = chimera::read_rmod(*file);
+            const std::string why =
+                chimera::port_problem(r, [&](const std::string& g) { return names.count(g) != 0; }, f.svarfile);
+            if (!why.empty()) throw std::runtime_error(path + ":" + std::to_string(t.line) + ": " + why);
+            objects.push_back(r);
+        }
+        if (const std::string why = chimera::combined_problem(objects); !why.empty())
+            throw std::runtime_error(path + ":" + std::to_string(t.line) + ": " + why);
+    }
     return path + ": ok, subsystem " + f.subsystem + ", " + plural(f.rtpus.size(), "RTPU") +
            ", master " + f.master + ", svar " + f.svarfile + " (" +
-           plural(spec.vars.size(), "variable") + ")";
+           plural(spec.vars.size(), "variable") + ")" +
+           (f.tasks.empty() ? "" : ", " + plural(f.tasks.size(), "TASK line") + " (rmod files, ports and rates checked)");
 }
 
 int check(const std::vector<std::string>& files, const ModuleLookup& modules) {
@@ -159,7 +202,7 @@ int check(const std::vector<std::string>& files, const ModuleLookup& modules) {
             else if (ext == ".rmod")
                 line = summary_rmod(path, modules, table);
             else if (ext == ".sbs")
-                line = summary_sbs(path);
+                line = summary_sbs(path, modules);
             else
                 throw std::runtime_error(path + ": unknown kind of file '" + ext +
                                          "' (expected .svar, .rmod or .sbs)");

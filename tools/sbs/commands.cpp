@@ -11,6 +11,7 @@
 #include <cstdlib>
 #include <cstring>
 #include <filesystem>
+#include <fstream>
 #include <set>
 #include <stdexcept>
 #include <thread>
@@ -227,12 +228,13 @@ const std::vector<CommandInfo>& command_table() {
         {"freq", "freq [RMOD] [HZ]", "show or change the frequency of a task"},
         {"help", "help [COMMAND]", "list the commands, or explain one"},
         {"kill", "kill [RMOD]", "destroy a task (off first if it is ON)"},
-        {"module", "module [NAME]", "list the modules and .rmod files on the module path, or show one's ports and LOCAL keys"},
+        {"module", "module [NAME] | module load PATH", "list the modules and .rmod files on the module path, or show one's ports and LOCAL keys; `module load` loads a module shared object (NAME.so, libNAME.so) from PATH and adds its folder to the module path (not over the network)"},
         {"network", "network", "pass control to a network peer until it quits or is lost"},
         {"off", "off [RMOD]", "send the off signal"},
         {"on", "on [RMOD]", "send the on signal"},
         {"quit", "quit", "leave this interface (at the prompt: finish the subsystem and exit)"},
         {"reconfig", "reconfig SIG RMOD [, SIG RMOD ...]", "apply an ordered list of signals (on off kill clear); stops at the first failure"},
+        {"save", "save FILE.sbs", "write the running configuration as a .sbs that starts the same subsystem: the RTPUs, a TASK line per task (its RTPU, ON when on) and a SET line per LOCAL value changed at run time (not over the network)"},
         {"set", "set [RMOD] [KEY [VALUE...]]", "show the LOCAL configuration of a task, one key, or change a key"},
         {"setvar", "setvar VAR[IDX] VALUE... [--force]", "write a state variable of the running table (halcmd setp): range-checked against the .svar MIN/MAX; refused while a task produces it unless --force"},
         {"show", "show rtpu|svar [NAME...]", "show the RTPUs (CPU, policy, scheduler, tasks, planned utilisation) or the variables with producers and consumers (halcmd show thread / show sig)"},
@@ -343,6 +345,7 @@ Reply Interpreter::run(const Words& w) {
     if (c == "help") return cmd_help(w);
     if (c == "show") return cmd_show(w);
     if (c == "setvar") return cmd_setvar(w);
+    if (c == "save") return cmd_save(w);
     Reply r;
     if (c == "sleep") {
         double seconds = -1;
@@ -507,6 +510,7 @@ Reply Interpreter::cmd_spawn(const Words& w) {
     if (is_task(name)) throw CommandError("spawn: task " + name + " already exists (kill it first)");
     const sbs::TaskId id = paths.size() == 1 ? sbs_.spawn(paths[0], rtpu) : sbs_.spawn_combined(paths, rtpu);
     rmods_[name] = files.size() == 1 ? std::move(files[0]) : combined_view(name, files);
+    files_of_[name] = paths;
     default_rmod_ = name;
     const auto s = sbs_.status(id);
     rtpu_of_[name] = s.rtpu;
@@ -927,8 +931,23 @@ Reply Interpreter::cmd_setvar(const Words& w) {
     return r;
 }
 
+Reply Interpreter::module_load(const Words& w) {
+    if (w.size() != 3) throw CommandError("usage: module load PATH");
+    if (origin_ == Origin::network)
+        throw CommandError("module load: over the network no library is loaded from a path; only the master's own "
+                           "prompt or -c may (the module path it was started with serves the network)");
+    const std::string name = sbs_.load_module(w[2]);
+    const std::string dir = fs::absolute(w[2]).parent_path().string();
+    if (std::find(extra_dirs_.begin(), extra_dirs_.end(), dir) == extra_dirs_.end()) extra_dirs_.push_back(dir);
+    Reply r;
+    r.text = "module " + name + " loaded from " + w[2] + "; " + dir + " is on the module path";
+    r.data = {{"module", name}, {"path", w[2]}, {"dir", dir}};
+    return r;
+}
+
 Reply Interpreter::cmd_module(const Words& w) {
-    if (w.size() > 2) throw CommandError("usage: module [NAME]");
+    if (w.size() >= 2 && w[1] == "load") return module_load(w);
+    if (w.size() > 2) throw CommandError("usage: module [NAME] | module load PATH");
     const auto dirs = module_path();
     std::map<std::string, std::string> modules, rmod_files;
     scan_dirs(dirs, modules, rmod_files);
@@ -1229,6 +1248,104 @@ std::vector<std::string> Interpreter::complete_locked(std::string_view line) {
     for (const auto& s : cand)
         if (s.compare(0, prefix.size(), prefix) == 0) out.push_back(s);
     return out;
+}
+
+}  // namespace chimera::cli
+
+namespace chimera::cli {
+
+// ----------------------------------------------------------------- save, TASK lines
+
+Reply Interpreter::start_tasks() {
+    const SbsFile& f = sbs_.file();
+    std::vector<std::string> spawned, to_turn_on;
+    auto fail = [&](int line, const std::string& why) {
+        for (auto it = spawned.rbegin(); it != spawned.rend(); ++it) execute("kill " + *it);
+        return Reply::failure("start", f.path + ":" + std::to_string(line) + ": " + why);
+    };
+    for (const TaskLine& t : f.tasks) {
+        const std::string name = join(t.rmods, "+");
+        Reply r = execute("spawn " + name + (t.rtpu.empty() ? "" : " " + t.rtpu));
+        if (!r.ok) return fail(t.line, r.error);
+        const std::string rmod = r.data.value("rmod", name);
+        spawned.push_back(rmod);
+        for (const TaskLine::Set& set : t.local) {
+            r = execute("set " + rmod + " " + set.key + " " + join(set.values));
+            if (!r.ok) return fail(set.line, r.error);
+        }
+        if (t.on) to_turn_on.push_back(rmod);
+    }
+    if (!to_turn_on.empty()) {
+        std::string items;
+        for (const auto& rmod : to_turn_on) items += (items.empty() ? "" : ", ") + std::string("on ") + rmod;
+        const Reply r = execute("reconfig " + items);
+        if (!r.ok) return fail(f.tasks.front().line, r.error);
+    }
+    Reply r;
+    r.text = spawned.empty() ? "" : "started " + join(spawned) + (to_turn_on.empty() ? "" : "; on: " + join(to_turn_on));
+    r.data = {{"spawned", spawned}, {"on", to_turn_on}};
+    return r;
+}
+
+// The running configuration as .sbs text (see cmd_save).
+std::string Interpreter::saved_sbs() const {
+    const SbsFile& f = sbs_.file();
+    std::string out = "# Saved by sbs `save` from subsystem " + f.subsystem + " (started from " + f.path + ").\n";
+    out += "SUBSYSTEM " + f.subsystem + "\nSVARFILE  " + fs::absolute(f.svarfile).lexically_normal().string() +
+           "\nMASTER    " + f.master + "\n";
+    for (const RtpuSpec& r : f.rtpus) {
+        out += "\nRTPU      " + r.name + " " + std::to_string(r.cpu) + "\nSCHEDULER " + std::string(to_string(r.scheduler)) +
+               "\nUSAGE     " + std::string(to_string(r.usage)) + "\nERRPRINT  " + std::string(to_string(r.errprint)) +
+               "\nMINFREQ   " + fmt("%.17g", r.minfreq) + "\nMAXFREQ   " + fmt("%.17g", r.maxfreq) +
+               "\nBACKEND   " + std::string(to_string(r.backend)) + "\n";
+        if (r.half_tick) out += "ACCOUNTING halftick " + fmt("%.17g", r.tick) + "\n";
+    }
+    for (const auto& [name, file] : rmods_) {
+        const auto files = files_of_.find(name);
+        if (files == files_of_.end()) continue;
+        std::vector<std::string> paths;
+        for (const auto& p : files->second) paths.push_back(fs::absolute(p).lexically_normal().string());
+        const auto id = sbs_.find(name);
+        const bool on = id && sbs_.state(*id) == State::ON;
+        const auto rtpu = rtpu_of_.find(name);
+        out += "\nTASK " + join(paths, "+") + (rtpu == rtpu_of_.end() ? "" : " " + rtpu->second) + (on ? " ON" : " OFF") + "\n";
+        for (const auto& e : file.local.entries())
+            if (e.line == 0) out += "SET " + e.key + " " + join(e.values) + "\n";
+    }
+    return out + "EOF\n";
+}
+
+Reply Interpreter::cmd_save(const Words& w) {
+    if (w.size() != 2) throw CommandError("usage: save FILE.sbs");
+    if (origin_ == Origin::network)
+        throw CommandError("save: over the network no file is written; save at the master's own prompt or with -c");
+    const fs::path path(w[1]);
+    if (path.extension() != ".sbs") throw CommandError("save: " + w[1] + ": the file name ends in .sbs");
+    const std::string text = saved_sbs();
+    // What is written must read back as a .sbs: checked before it replaces anything.
+    try {
+        cfg::Reader reader = cfg::Reader::from_string(text, w[1]);
+        parse_sbs(reader, "");
+    } catch (const std::exception& e) {
+        throw CommandError(std::string("save: the configuration does not read back (") + e.what() + "); nothing written");
+    }
+    const fs::path tmp = path.string() + ".tmp";
+    {
+        std::ofstream out(tmp, std::ios::trunc);
+        out << text;
+        out.flush();
+        if (!out) throw CommandError("save: cannot write " + tmp.string());
+    }
+    std::error_code ec;
+    fs::rename(tmp, path, ec);
+    if (ec) {
+        fs::remove(tmp, ec);
+        throw CommandError("save: cannot replace " + w[1]);
+    }
+    Reply r;
+    r.text = "saved subsystem " + sbs_.name() + " to " + w[1] + " (" + std::to_string(files_of_.size()) + " task line(s))";
+    r.data = {{"file", w[1]}, {"sbs", text}};
+    return r;
 }
 
 }  // namespace chimera::cli

@@ -62,6 +62,12 @@ public:
     /// CHIMERA_MODULE_PATH, --module-path, the .sbs's folder, the installed folder.
     std::vector<std::string> module_path() const;
 
+    /// Spawns the .sbs's TASK lines in file order (each one's SET lines
+    /// applied after its spawn), then turns on those marked ON in one
+    /// reconfig. On a failure it kills what it spawned and the reply's error
+    /// starts with FILE:LINE of the TASK or SET line.
+    Reply start_tasks();
+
     /// Lets go of the shared segments this interpreter mapped, so the
     /// subsystem's finish() (their last user) removes them.
     void detach();
@@ -91,6 +97,9 @@ private:
     Reply local_view(sbs::TaskId id);
     Reply cmd_show(const Words& w);
     Reply cmd_setvar(const Words& w);
+    Reply cmd_save(const Words& w);
+    Reply module_load(const Words& w);
+    std::string saved_sbs() const;
     struct Users {
         std::vector<std::string> producers, consumers;  // live tasks writing / reading a variable
     };
@@ -102,6 +111,7 @@ private:
     std::vector<std::string> fields_;
     std::map<std::string, RmodFile> rmods_;  // rmod name -> the file it was spawned from
     std::map<std::string, std::string> rtpu_of_;  // rmod name -> its RTPU (rmods_ says which are live)
+    std::map<std::string, std::vector<std::string>> files_of_;  // rmod name -> the .rmod paths it was spawned from
     std::optional<svar::Table> table_;
     std::optional<prof::StatusReader> prof_;
     Origin origin_ = Origin::local;  // of the command being executed

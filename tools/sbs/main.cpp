@@ -507,6 +507,13 @@ int main(int argc, char** argv) {
     try {
         // With --serve the sockets open once the script has run, so a peer
         // never finds them while the script still has control.
+        // The .sbs's TASK lines first: the script, the prompt and the network
+        // find the configured tasks there (and none when one failed).
+        if (!subsystem->file().tasks.empty()) {
+            const Reply started = interp.start_tasks();
+            if (!started.ok) throw std::runtime_error(started.error);
+            if (!json && !started.text.empty()) std::cout << started.text << std::endl;
+        }
         if ((net.listen || !net.tcp.empty()) && !serve) master.server();
         if (serve || !script.empty() || net.listen || !net.tcp.empty() || ::isatty(STDIN_FILENO))
             catch_interrupts();
