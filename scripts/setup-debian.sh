@@ -3,7 +3,7 @@
 # Idempotent: packages already installed are not fetched again.
 set -euo pipefail
 packages=(
-  meson ninja-build pkg-config g++              # build
+  meson ninja-build pkg-config g++ make         # build (make: the Makefile chimgen writes for a module built outside the tree)
   dpkg-dev                                       # dpkg-architecture: meson then installs into lib/<multiarch>, where Debian's loader and pkg-config look
   libgtest-dev libgmock-dev libbenchmark-dev     # tests and bench/
   libeigen3-dev liborocos-kdl-dev libkdl-parser-dev liburdfdom-dev  # robotics modules

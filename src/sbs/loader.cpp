@@ -123,9 +123,7 @@ std::string load_module_file(const std::string& path) {
 std::vector<std::string> module_search_dirs(const RmodFile& rmod, std::vector<std::string> dirs) {
     const std::string folder = std::filesystem::path(rmod.path).parent_path().string();
     dirs.push_back(folder.empty() ? std::string(".") : folder);
-#ifdef CHIMERA_MODULE_DIR
-    dirs.push_back(CHIMERA_MODULE_DIR);
-#endif
+    for (auto& d : default_module_dirs()) dirs.push_back(std::move(d));
     return dirs;
 }
 
@@ -184,6 +182,35 @@ const ChimeraModuleAbi& load_module(const std::string& name, const std::vector<s
 }  // namespace chimera::sbs::detail
 
 namespace chimera::sbs {
+
+std::vector<std::string> default_module_dirs() {
+    std::vector<std::string> dirs;
+#ifdef CHIMERA_MODULE_DIR
+    dirs.emplace_back(CHIMERA_MODULE_DIR);
+#endif
+#ifdef CHIMERA_BUILD_ROOT
+    // A program run from the build tree it was built in (build/tools/sbs/sbs)
+    // finds the modules built beside it, one folder each, with no flag.
+    namespace fs = std::filesystem;
+    std::error_code ec;
+    const fs::path exe = fs::read_symlink("/proc/self/exe", ec);
+    const fs::path root = CHIMERA_BUILD_ROOT;
+    const auto [end, ignored] = std::mismatch(root.begin(), root.end(), exe.begin(), exe.end());
+    if (!ec && end == root.end()) {
+        // The libraries are built in build/modules/NAME, their .rmod files
+        // stay in the source's modules/NAME.
+        for (const fs::path tree : {root, fs::path(CHIMERA_SOURCE_ROOT)}) {
+            std::vector<std::string> found;
+            for (fs::directory_iterator it(tree / "modules", ec), last; !ec && it != last; it.increment(ec))
+                if (it->is_directory(ec)) found.push_back(it->path().string());
+            std::sort(found.begin(), found.end());
+            dirs.insert(dirs.end(), found.begin(), found.end());
+            ec.clear();
+        }
+    }
+#endif
+    return dirs;
+}
 
 std::vector<LocalKey> module_local_keys(const RmodFile& rmod, const std::vector<std::string>& module_dirs) {
     const ChimeraModuleAbi& abi = detail::load_module(rmod.module, detail::module_search_dirs(rmod, module_dirs));

@@ -48,5 +48,16 @@ unshare -m -- bash -euo pipefail -c '
     diff -u "$source/tests/install/controller.expected" out.txt
     echo "== the installed tools run from PATH"
     env -i PATH=/usr/local/bin:/usr/bin:/bin chimcfg check "$source/tests/install/data/controller.svar"
+    echo "== a chimgen skeleton: built unedited by its Makefile against the installed library, spawned by name"
+    skel="$work/skel"
+    env -i PATH=/usr/local/bin:/usr/bin:/bin chimgen skel --in-var Q_REF --out-var TAU --freq 100 \
+        --svar "$source/tests/install/data/controller.svar" -o "$skel" > /dev/null
+    env -i PATH=/usr/local/bin:/usr/bin:/bin make -s -C "$skel"
+    cp "$source/tests/install/data/controller.svar" "$skel/"
+    sed "s/^SUBSYSTEM .*/SUBSYSTEM skel$$/" "$source/tests/install/data/ctl.sbs" > "$skel/skel.sbs"
+    env -i PATH=/usr/local/bin:/usr/bin:/bin CHIMERA_MODULE_PATH="$skel" \
+        sbs "$skel/skel.sbs" --no-attach -c "spawn skel; on; sleep 0.2; status skel" > "$skel/out.txt" ||
+        { cat "$skel/out.txt"; exit 1; }
+    grep -E "^skel +main .* ON " "$skel/out.txt" || { echo "the skeleton does not run:"; cat "$skel/out.txt"; exit 1; }
     echo "== system install test passed"
 ' bash "$build" "$source" "$work"

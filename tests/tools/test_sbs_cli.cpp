@@ -5,6 +5,7 @@
 #include <gtest/gtest.h>
 
 #include <filesystem>
+#include <set>
 
 using sbs_test::json_lines;
 using sbs_test::Outcome;
@@ -525,6 +526,24 @@ TEST(SbsCli, ModuleLoadFromAPathMakesItsRmodsSpawn) {
     EXPECT_EQ(replies[1]["data"]["module"], "ramp");
     EXPECT_NE(failing(ws, "module load " + ws.dir() + "/elsewhere.rmod").find("shared object"), std::string::npos);
     EXPECT_NE(failing(ws, "module load /nonexistent/x.so").find("not a regular file"), std::string::npos);
+}
+
+TEST(SbsCli, FromTheBuildTreeTheShippedModulesNeedNoFlag) {
+    Workspace ws;
+    const std::string module_path = sbs_test::env("CHIMERA_MODULE_PATH");
+    ::unsetenv("CHIMERA_MODULE_PATH");
+    const Outcome r = sbs_test::run(sbs_test::env("SBS_EXE"), {ws.sbs(), "--no-attach", "--json", "-c", "module"});
+    ::setenv("CHIMERA_MODULE_PATH", module_path.c_str(), 1);
+    ASSERT_EQ(r.status, 0) << r.out << r.err;
+    const auto replies = json_lines(r.out);
+    ASSERT_EQ(replies.size(), 1u);
+    std::set<std::string> rmods;
+    for (const auto& f : replies[0]["data"]["rmods"]) rmods.insert(f["name"].get<std::string>());
+    EXPECT_TRUE(rmods.count("jpid") && rmods.count("jpidg")) << r.out;  // modules/pid of the source tree
+    std::string pid_so;
+    for (const auto& m : replies[0]["data"]["modules"])
+        if (m["name"] == "pid") pid_so = m["path"];
+    EXPECT_EQ(pid_so, sbs_test::env("CHIMERA_LIB_DIR") + "/modules/pid/pid.so") << r.out;  // built beside sbs
 }
 
 TEST(SbsCli, ScriptFromStdin) {

@@ -65,5 +65,8 @@ std::string generate_rmod(const ModuleSpec& spec);
 /// A meson.build for the module's folder (works in-tree under modules/ and in
 /// a project that finds chimera through pkg-config).
 std::string generate_meson(const ModuleSpec& spec);
+/// A Makefile that builds the module outside the tree through pkg-config
+/// (installed library, or a build tree with PKG_CONFIG_PATH=BUILD/meson-uninstalled).
+std::string generate_makefile(const ModuleSpec& spec);
 
 }  // namespace chimera::chimgen

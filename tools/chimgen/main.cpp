@@ -192,8 +192,10 @@ int main(int argc, char** argv) {
             write_file(rmod_path, rmod_text, force);
         }
         write_file(dir / "meson.build", generate_meson(spec), force);
+        write_file(dir / "Makefile", generate_makefile(spec), force);
         std::cout << "chimgen: wrote " << (dir / (spec.rmod.module + ".cpp")).string() << ", "
-                  << rmod_path.string() << ", " << (dir / "meson.build").string() << "\n";
+                  << rmod_path.string() << ", " << (dir / "meson.build").string() << ", "
+                  << (dir / "Makefile").string() << "\n";
         if (svar_file.empty() && typed.size() < static_cast<std::size_t>(
                                                     spec.rmod.in_consts.size() + spec.rmod.out_consts.size() +
                                                     spec.rmod.in_vars.size() + spec.rmod.out_vars.size())) {

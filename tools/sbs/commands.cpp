@@ -274,9 +274,7 @@ std::vector<std::string> Interpreter::module_path() const {
     dirs.insert(dirs.end(), extra_dirs_.begin(), extra_dirs_.end());
     const auto sbs_dir = fs::path(sbs_.file().path).parent_path();
     dirs.push_back(sbs_dir.empty() ? std::string(".") : sbs_dir.string());
-#ifdef CHIMERA_MODULE_DIR
-    dirs.emplace_back(CHIMERA_MODULE_DIR);
-#endif
+    for (auto& d : sbs::default_module_dirs()) dirs.push_back(std::move(d));
     return dirs;
 }
 
