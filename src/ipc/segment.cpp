@@ -49,17 +49,23 @@ void* map_fd(const std::string& name, int fd, std::size_t size, bool prefault, b
     return base;
 }
 
+// A lock request on `len` bytes from `start` (fcntl's record-lock form).
+struct flock byte_range(short type, off_t start, off_t len) noexcept {
+    struct flock fl {};
+    fl.l_type = type;
+    fl.l_whence = SEEK_SET;
+    fl.l_start = start;
+    fl.l_len = len;
+    return fl;
+}
+
 // The user lock: a shared (F_RDLCK) or exclusive (F_WRLCK) open-file-
 // description lock on the segment's first byte. OFD locks belong to the open
 // file, not to the process, so two mappings in one process are two users too,
 // and the kernel drops them when the last descriptor of the file closes (a
 // process that dies closes all of them).
 bool set_user_lock(int fd, short type, bool wait) noexcept {
-    struct flock fl {};
-    fl.l_type = type;
-    fl.l_whence = SEEK_SET;
-    fl.l_start = 0;
-    fl.l_len = 1;
+    struct flock fl = byte_range(type, 0, 1);
     for (;;) {
         if (fcntl(fd, wait ? F_OFD_SETLKW : F_OFD_SETLK, &fl) == 0) return true;
         if (errno != EINTR) return false;
@@ -74,11 +80,7 @@ constexpr off_t kUserSlots = 1 << 16;
 
 bool lock_one_free_slot(int fd) noexcept {
     for (off_t slot = 1; slot <= kUserSlots; ++slot) {
-        struct flock fl {};
-        fl.l_type = F_WRLCK;
-        fl.l_whence = SEEK_SET;
-        fl.l_start = slot;
-        fl.l_len = 1;
+        struct flock fl = byte_range(F_WRLCK, slot, 1);
         if (fcntl(fd, F_OFD_SETLK, &fl) == 0) return true;
         if (errno == EINTR) --slot;
         else if (errno != EAGAIN && errno != EACCES) return false;
@@ -93,11 +95,7 @@ bool lock_one_free_slot(int fd) noexcept {
 // the range around it.
 std::uint32_t count_slot_locks(int probe, off_t first, off_t last) noexcept {
     if (first > last) return 0;
-    struct flock fl {};
-    fl.l_type = F_WRLCK;
-    fl.l_whence = SEEK_SET;
-    fl.l_start = first;
-    fl.l_len = last - first + 1;
+    struct flock fl = byte_range(F_WRLCK, first, last - first + 1);
     if (fcntl(probe, F_OFD_GETLK, &fl) != 0 || fl.l_type == F_UNLCK) return 0;
     const off_t lo = std::max(first, fl.l_start);
     const off_t hi = fl.l_len == 0 ? last : std::min(last, fl.l_start + fl.l_len - 1);
@@ -417,10 +415,7 @@ bool Segment::destroy_if_unused(const std::string& name) noexcept {
 bool Segment::in_use(const std::string& name) noexcept {
     const int fd = shm_open(name.c_str(), O_RDONLY, 0);
     if (fd < 0) return false;
-    struct flock fl {};
-    fl.l_type = F_WRLCK;
-    fl.l_whence = SEEK_SET;
-    fl.l_len = 1;
+    struct flock fl = byte_range(F_WRLCK, 0, 1);
     const bool used = fcntl(fd, F_OFD_GETLK, &fl) == 0 && fl.l_type != F_UNLCK;
     close(fd);
     return used;
