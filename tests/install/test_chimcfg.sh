@@ -42,7 +42,7 @@ same() {
 # Good files of the three kinds: one line each, exit 0, nothing on stderr.
 run 0 check controller.svar ctl.rmod ctl.sbs &&
 same "check of good files (stdout)" "$out" "controller.svar: ok, svar, 3 variables, 76 bytes of data
-ctl.rmod: ok, rmod ctl, module pid, periodic at 100 Hz; in-consts GAIN; out-consts none; in-vars Q_REF; out-vars TAU; ports checked against controller.svar; LOCAL not checked (module pid not on the module path: --module-path DIR or CHIMERA_MODULE_PATH)
+ctl.rmod: ok, rmod ctl, module pid, periodic at 100 Hz; in-consts GAIN; out-consts none; in-vars Q_REF; out-vars TAU; ports checked against controller.svar; LOCAL checked against module pid
 ctl.sbs: ok, subsystem ctl, 1 RTPU, master main, svar controller.svar (3 variables)" &&
 same "check of good files (stderr)" "$err" ""
 
@@ -56,7 +56,7 @@ same "fixed thesis sample" "$out" "$thesis/thesis_sample_fixed.svar: ok, svar, 4
 
 # Good and bad together: the good ones still get their line, exit 1.
 run 1 check ctl.rmod truncated.svar bad_keyword.rmod nothere.svar notes.txt &&
-same "mixed check (stdout)" "$out" "ctl.rmod: ok, rmod ctl, module pid, periodic at 100 Hz; in-consts GAIN; out-consts none; in-vars Q_REF; out-vars TAU; ports not checked (give the .sbs or .svar too); LOCAL not checked (module pid not on the module path: --module-path DIR or CHIMERA_MODULE_PATH)" &&
+same "mixed check (stdout)" "$out" "ctl.rmod: ok, rmod ctl, module pid, periodic at 100 Hz; in-consts GAIN; out-consts none; in-vars Q_REF; out-vars TAU; ports not checked (give the .sbs or .svar too); LOCAL checked against module pid" &&
 same "mixed check (stderr)" "$err" "truncated.svar:6: truncated file: expected EOF as the last line, found end of file
 bad_keyword.rmod:9: a periodic task needs FREQ or PERIOD, found FRQ
 nothere.svar: cannot open file: No such file or directory
@@ -95,6 +95,13 @@ same "--no-modules" "$out" "$tmp/inf.rmod: ok, rmod inf, module pid, periodic at
 sed 's/^FREQ .*/FREQ      99999999999999999999999/' ctl.rmod > "$tmp/fast.rmod"
 run 1 check "$tmp/fast.rmod" &&
 same "FREQ 1e23" "$err" "$tmp/fast.rmod:9: FREQ 99999999999999999999999: 1e+23 Hz is above the highest task frequency, 1e+06 Hz (a period of 1 us)"
+
+# From the build tree the shipped modules are on the default path (above);
+# a module nowhere leaves LOCAL unchecked and says how to name its folder.
+sed 's/^MODULE .*/MODULE    ghostmod/' ctl.rmod > "$tmp/ghost.rmod"
+run 0 check "$tmp/ghost.rmod" &&
+grep -q "LOCAL not checked (module ghostmod not on the module path: --module-path DIR or CHIMERA_MODULE_PATH)" "$out" ||
+    { echo "FAIL: a module nowhere:" >&2; cat "$out" "$err" >&2; failures=$((failures + 1)); }
 
 # A .rmod's ports against the table of the .sbs (or .svar) checked with it, as
 # spawn holds them.
