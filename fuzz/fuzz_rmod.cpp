@@ -65,7 +65,8 @@ void check_rmod(const RmodFile& f) {
         try {
             (void)f.local.number(e.key, 0.0);  // documented: std::invalid_argument when not one number
         } catch (const std::invalid_argument& err) {
-            require(std::string(err.what()).find(e.key) != std::string::npos, "LOCAL error without its key");
+            require(std::string(err.what()).rfind("fuzz.rmod:" + std::to_string(e.line) + ":", 0) == 0,
+                    std::string("a LOCAL error without FILE:LINE: ") + err.what());
         }
     }
 }

@@ -15,6 +15,10 @@ using fuzz::require;
 extern "C" int LLVMFuzzerTestOneInput(const std::uint8_t* data, std::size_t size) {
     const fuzz::Image image(data, size);
     if (fuzz::checked_fault("tbuf::validate", image, tbuf::validate)) return 0;
+    // The validator checks bounds; whether the buffer is published yet is the
+    // segment's life cycle, which attach_in() waits for or refuses.
+    const auto* segment = static_cast<const ipc::SegmentHeader*>(image.data());
+    if (segment->state.load() != static_cast<std::uint32_t>(ipc::SegmentState::ready)) return 0;
     tbuf::Tbuf t;
     try {
         t = tbuf::Tbuf::attach_in(image.data(), image.size());
