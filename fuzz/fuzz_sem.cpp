@@ -12,6 +12,7 @@ extern "C" int LLVMFuzzerTestOneInput(const std::uint8_t* data, std::size_t size
     const fuzz::Image image(data, size);
     if (fuzz::checked_fault("sem::validate", image, sem::validate)) return 0;
     fuzz::require(image.size() >= sem::Semaphore::memory_size(), "sem::validate accepted a short image");
+    if (image.size() != sem::Semaphore::memory_size()) return 0;  // bind() takes memory of exactly that size
     try {
         const sem::Semaphore s = sem::Semaphore::bind(image.data());
         fuzz::require(s.valid(), "bind gave no semaphore");
