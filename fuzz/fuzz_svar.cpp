@@ -2,7 +2,8 @@
 //
 // Invariants: only cfg::ParseError escapes, with FILE:LINE; a table the
 // reader accepts is one Table::create lays out as it is (names, sizes that
-// match their types, INIT/MIN/MAX within the type and NELEM long, MIN <= MAX,
+// match their types, INIT/MIN/MAX within the type, INIT at most and MIN/MAX
+// exactly NELEM long (nothing is stored per element beyond them), MIN <= MAX,
 // the data within kMaxTableDataBytes without overflow, names unique).
 #include <cmath>
 #include <limits>
@@ -16,8 +17,9 @@ using fuzz::require;
 
 namespace {
 
-void check_values(const svar::VarSpec& v, const std::vector<double>& values, const char* what) {
-    require(values.size() == v.nelem, v.name + ": " + what + " does not hold NELEM values");
+void check_values(const svar::VarSpec& v, const std::vector<double>& values, const char* what, bool all) {
+    require(all ? values.size() == v.nelem : values.size() <= v.nelem,
+            v.name + ": " + what + (all ? " does not hold NELEM values" : " holds more than NELEM values"));
     for (double x : values) {
         require(std::isfinite(x), v.name + ": " + what + " value not finite");
         if (v.type == svar::Type::float_)
@@ -44,10 +46,11 @@ void check_spec(const svar::TableSpec& spec) {
             continue;
         }
         require(v.elem_size == svar::type_size(v.type), v.name + ": element size does not match the type");
-        check_values(v, v.init, "INIT");
+        require(v.has_init == !v.init.empty(), v.name + ": INIT values without INIT, or none with it");
+        check_values(v, v.init, "INIT", false);
         if (v.has_range) {
-            check_values(v, v.min, "MIN");
-            check_values(v, v.max, "MAX");
+            check_values(v, v.min, "MIN", true);
+            check_values(v, v.max, "MAX", true);
             for (std::size_t k = 0; k < v.nelem; ++k) require(v.min[k] <= v.max[k], v.name + ": MIN above MAX");
         }
     }
