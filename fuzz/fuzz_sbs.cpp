@@ -4,7 +4,9 @@
 // accepts is a subsystem the master can build: a name of letters, digits, _
 // and -, an SVARFILE resolved against the file's folder, at least one RTPU,
 // RTPU names unique, a MASTER that is one of them, CPU numbers >= 0,
-// 0 < MINFREQ < MAXFREQ (finite), a half-tick in (0, 1] s.
+// 0 < MINFREQ < MAXFREQ (finite), a half-tick in (0, 1] s; TASK lines
+// naming each rmod once, on an RTPU of the file, their SET lines with a key
+// and a value.
 #include <cctype>
 #include <cmath>
 #include <set>
@@ -39,6 +41,16 @@ void check_sbs(const SbsFile& f) {
         check_rtpu(r);
     }
     require(f.find_rtpu(f.master) != nullptr, "MASTER " + f.master + " is no RTPU of the file");
+    std::set<std::string> rmods;
+    for (const TaskLine& t : f.tasks) {
+        require(!t.rmods.empty() && t.line > 0, "a TASK without rmod or line");
+        for (const std::string& rmod : t.rmods)
+            require(!rmod.empty() && rmod.find('+') == std::string::npos && rmods.insert(rmod).second,
+                    "TASK line " + std::to_string(t.line) + ": rmod '" + rmod + "' empty, combined or a task twice");
+        require(t.rtpu.empty() || f.find_rtpu(t.rtpu) != nullptr, "TASK on RTPU " + t.rtpu + ", not in the file");
+        for (const TaskLine::Set& set : t.local)
+            require(!set.key.empty() && !set.values.empty() && set.line > t.line, "a SET without key or value");
+    }
 }
 
 }  // namespace
