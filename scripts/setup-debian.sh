@@ -16,6 +16,7 @@ packages=(
   rt-tests tmux util-linux                       # cyclictest (bench), terminal tests, taskset
   help2man                                       # the programs' man pages, from their --help
   strace                                         # the no-system-call check of the SVAR hot path (test)
+  clang libclang-rt-14-dev                       # scripts/fuzz.sh: libFuzzer (-fsanitize=fuzzer needs the runtime, only recommended by clang)
 )
 missing=()
 for p in "${packages[@]}"; do

@@ -117,7 +117,10 @@ struct VarSpec {
     std::string desc;
     std::string units;
     bool has_init = false;         ///< an INIT line was given
-    std::vector<double> init;      ///< nelem values (zeros where absent); empty for struct
+    std::vector<double> init;      ///< the INIT values given (at most nelem); the others
+                                   ///< are 0 (init_at()). Never padded to nelem: a 52-byte
+                                   ///< file can declare 2^28 elements
+    double init_at(std::size_t k) const noexcept { return k < init.size() ? init[k] : 0.0; }
     bool has_range = false;
     std::vector<double> min, max;  ///< nelem values each when has_range
     int line = 0;                  ///< line of the NAME keyword

@@ -126,6 +126,8 @@ struct Stamp {
     std::uint64_t seq;  // counter-stamp + 1; 0 while the slot never held an item
 };
 static_assert(sizeof(Stamp) == 16);
+/// Stamps from 2^63 on cannot come from counting: a writer refuses to go on from one.
+inline constexpr std::uint64_t kMaxSeq = std::uint64_t{1} << 63;
 
 struct alignas(64) Header {
     ipc::SegmentHeader segment;  // offset 0: magic, version, byte order
@@ -189,7 +191,8 @@ public:
     // --- writer ----------------------------------------------------------------
     /// tbufWrite: copies `item` (item_size() bytes), stamps it with now_ns()
     /// and the next counter, and makes it the newest. Returns its counter
-    /// (kCorrupt, nothing published, when the state word is damaged).
+    /// (kCorrupt, nothing published, when the state word is damaged or the
+    /// newest item's counter-stamp is one no writer could have made, >= kMaxSeq).
     std::uint64_t write(const void* item) noexcept { return write(item, ipc::now_ns()); }
     /// As write(), with a caller-supplied time-stamp (saves reading the clock).
     std::uint64_t write(const void* item, std::int64_t time_ns) noexcept {

@@ -377,6 +377,8 @@ TaskLine parse_task_line(cfg::Reader& r, const SbsFile& f) {
         const auto plus = l.args[0].find('+', at);
         t.rmods.push_back(l.args[0].substr(at, plus == std::string::npos ? std::string::npos : plus - at));
         if (t.rmods.back().empty()) r.fail(l, "TASK " + l.args[0] + ": an empty rmod name");
+        if (std::find(t.rmods.begin(), t.rmods.end() - 1, t.rmods.back()) != t.rmods.end() - 1)
+            r.fail(l, "TASK " + l.args[0] + ": rmod " + t.rmods.back() + " is named twice");
         if (plus == std::string::npos) break;
         at = plus + 1;
     }

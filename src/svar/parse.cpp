@@ -126,7 +126,8 @@ VarSpec parse_var(cfg::Reader& r) {
         v.init = values(r, *init, v, "INIT");
         v.has_init = true;
     }
-    if (!is_struct) v.init.resize(v.nelem, 0.0);  // "all others are set to 0"
+    // "All others are set to 0": init_at() says so without storing them (a
+    // byte array at the table limit would take 2 GB of doubles to parse).
 
     if (auto min = r.accept("MIN")) {
         if (is_struct) r.fail(*min, "struct variable " + v.name + " cannot have MIN/MAX");

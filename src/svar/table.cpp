@@ -311,7 +311,7 @@ Table Table::create(const std::string& segment_name, const TableSpec& spec,
             d.init_offset = val_off[i];
             std::byte* data = seg.at_bytes(data_off + var_off[i]);
             for (std::size_t k = 0; k < v.nelem; ++k) {
-                const double x = k < v.init.size() ? v.init[k] : 0.0;
+                const double x = v.init_at(k);
                 store_value(v.type, seg.at_bytes(d.init_offset + k * v.elem_size), x);
                 store_value(v.type, data + k * v.elem_size, x);  // INIT applied at creation
             }

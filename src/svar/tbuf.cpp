@@ -106,8 +106,17 @@ bool Tbuf::become_writer() noexcept {
         refuse(s);
         return false;
     }
+    // The newest item's counter-stamp goes on from there. One at 2^63 or more
+    // was not written by counting (that takes centuries); going on from it
+    // would wrap into kCorrupt and 0 ("never held an item"), so a published
+    // item would look refused and the reader would see none.
+    const std::uint64_t seq = stamp((s & detail::kFresh) ? detail::middle_of(s) : detail::front_of(s)).seq;
+    if (seq >= detail::kMaxSeq) {
+        fault_ = ipc::Fault{"counter-stamp of the newest item", -1, seq, detail::kMaxSeq - 1};
+        return false;
+    }
     back_ = detail::back_of(s);
-    seq_ = stamp((s & detail::kFresh) ? detail::middle_of(s) : detail::front_of(s)).seq;
+    seq_ = seq;
     guess_ = s;
     return true;
 }

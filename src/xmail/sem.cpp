@@ -35,6 +35,10 @@ void init_body(SemHeader* h, Kind kind, std::int32_t initial, std::string_view l
 // The fixed part: what attach and bind refuse.
 ipc::Fault fixed_fault(const void* image, std::size_t size) noexcept {
     if (ipc::Fault f = ipc::header_fault(image, size, kSemKind)) return f;
+    // The segment header's own size matches the image; the semaphore after it
+    // must fit too (a peer can publish a segment too short for one).
+    if (ipc::Fault f = ipc::fault_if(size < sizeof(SemHeader), "segment size", size, sizeof(SemHeader), "at least"))
+        return f;
     const auto& h = *static_cast<const SemHeader*>(image);
     using ipc::fault_if;
     if (ipc::Fault f = fault_if(h.kind > static_cast<std::uint32_t>(Kind::counting), "kind", h.kind,

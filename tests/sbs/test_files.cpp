@@ -166,6 +166,14 @@ TEST(SbsFile, Accounting) {
     EXPECT_FALSE(f.rtpus[2].half_tick);  // the default
 }
 
+// Found by fuzz/fuzz_sbs: a combined task naming one rmod twice was accepted
+// (the same rmod on two TASK lines is refused). fuzz/corpus/sbs/rmod-twice-in-a-task.sbs
+TEST(SbsFile, ACombinedTaskNamesEachRmodOnce) {
+    EXPECT_EQ(error_of([] { sbs("SUBSYSTEM s\nSVARFILE t.svar\nRTPU cpu0\nTASK a+b+a\nEOF\n"); }),
+              "sub.sbs:4: TASK a+b+a: rmod a is named twice");
+    EXPECT_EQ(sbs("SUBSYSTEM s\nSVARFILE t.svar\nRTPU cpu0\nTASK a+b\nEOF\n").tasks.at(0).rmods.size(), 2u);
+}
+
 TEST(SbsFile, Errors) {
     EXPECT_EQ(error_of([] { sbs("SUBSYSTEM s\nSVARFILE t.svar\nMASTER cpu9\nRTPU cpu0\nEOF\n"); }),
               "sub.sbs:3: MASTER names RTPU 'cpu9', which is not defined in this file");

@@ -65,7 +65,8 @@ TEST(SvarParse, ThesisSampleFixedIsAccepted) {
     EXPECT_EQ(sg.type, Type::int_);
     EXPECT_EQ(sg.nelem, 8u);
     EXPECT_FALSE(sg.has_init);
-    EXPECT_EQ(sg.init, std::vector<double>(8, 0.0));  // no INIT: zeros
+    EXPECT_TRUE(sg.init.empty());  // no INIT: zeros
+    EXPECT_EQ(sg.init_at(7), 0.0);
     EXPECT_EQ(sg.min, std::vector<double>(8, -1000.0));
     EXPECT_EQ(sg.max, std::vector<double>(8, 1000.0));
     const VarSpec& traj = spec.vars[3];
@@ -103,9 +104,22 @@ TEST(SvarParse, EveryTypeHasItsCSize) {
     EXPECT_EQ(type_spelling(Type::unsigned_, 4), "unsigned");
 }
 
-TEST(SvarParse, ShortInitIsPaddedWithZeros) {
+TEST(SvarParse, ShortInitLeavesTheOthersZero) {
     const TableSpec s = parse_svar_string(std::string(kHead) + "INIT 1.5\nEOF\n", "t.svar");
-    EXPECT_EQ(s.vars[0].init, (std::vector<double>{1.5, 0.0, 0.0}));
+    EXPECT_EQ(s.vars[0].init, (std::vector<double>{1.5}));
+    EXPECT_EQ(s.vars[0].init_at(1), 0.0);
+    EXPECT_EQ(s.vars[0].init_at(2), 0.0);
+}
+
+// Found by fuzz/fuzz_svar: the INIT values were padded with zeros to NELEM,
+// so this 52-byte file took 2 GB and tens of seconds to parse.
+// (fuzz/corpus/svar/nelem-at-the-table-limit.svar)
+TEST(SvarParse, ALargeNelemCostsNoMemoryPerElement) {
+    const TableSpec s =
+        parse_svar_string("NAME A\nTYPE byte\nDESC d\nUNITS u\nNELEM 268435456\nEOF\n", "big.svar");
+    EXPECT_EQ(s.vars[0].nelem, kMaxTableDataBytes);
+    EXPECT_EQ(s.vars[0].init.capacity(), 0u);
+    EXPECT_EQ(s.vars[0].init_at(kMaxTableDataBytes - 1), 0.0);
 }
 
 TEST(SvarParse, KeywordOrderIsEnforced) {

@@ -373,6 +373,34 @@ TEST(Tbuf, KillLoopWriterAndReaderStayConsistent) {
 // corrupted by "another process" (a second mapping): attach refuses a bad
 // geometry naming the segment; a damaged state word makes read() and write()
 // refuse with the segment named, and nothing is read or written outside.
+// Found by fuzz/fuzz_tbuf: a writer that took over a buffer whose newest
+// item's counter-stamp was 2^64 - 1 went on from it, so its item carried
+// kCorrupt as its counter (a write that looked refused) and the stamp wrapped
+// to 0, which the reader takes for a slot that never held an item.
+TEST(Tbuf, AWriterRefusesToGoOnFromACounterStampNoWriteCouldMake) {
+    auto* block = shared_anon<Block>();
+    Tbuf first = Tbuf::create_in(block, sizeof(Block), sizeof(Item));
+    Item item{};
+    ASSERT_EQ(first.write(&item, 1), 0u);
+    auto& h = *reinterpret_cast<detail::Header*>(block);
+    const std::uint32_t s = h.state.load();
+    auto* newest = reinterpret_cast<detail::Stamp*>(reinterpret_cast<std::byte*>(block) + h.slots_offset +
+                                                    detail::middle_of(s) * h.slot_stride + h.stamp_offset);
+    for (std::uint64_t bad : {~std::uint64_t{0}, detail::kMaxSeq}) {
+        newest->seq = bad;
+        Tbuf writer = Tbuf::attach_in(block, sizeof(Block));
+        EXPECT_EQ(writer.write(&item, 2), kCorrupt);
+        EXPECT_NE(writer.fault_message().find("counter-stamp"), std::string::npos) << writer.fault_message();
+    }
+    newest->seq = detail::kMaxSeq - 1;  // the highest a writer goes on from
+    Tbuf writer = Tbuf::attach_in(block, sizeof(Block));
+    EXPECT_EQ(writer.write(&item, 3), detail::kMaxSeq - 1);
+    Tbuf reader = Tbuf::attach_in(block, sizeof(Block));
+    const ReadResult r = reader.read(&item);
+    EXPECT_EQ(r.status, ReadStatus::fresh);
+    EXPECT_EQ(r.counter, detail::kMaxSeq - 1);
+}
+
 TEST(Tbuf, CorruptFieldsAreRefusedNamingTheSegment) {
     const std::string name = unique_name("tbbad");
     Tbuf w = Tbuf::create(name, 24);

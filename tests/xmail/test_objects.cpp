@@ -402,6 +402,22 @@ TEST(Shm, ACorruptUsableAreaOrNameIsRefusedOnAttach) {
     raw.detach();
 }
 
+// Found by fuzz/fuzz_sem: a segment whose header claims the short size it
+// has passed the segment checks, and the semaphore's fields were read past
+// its end. (fuzz/corpus/sem/short-segment holds the fuzzer's input.)
+TEST(Sem, ASegmentTooShortForASemaphoreIsRefused) {
+    alignas(64) std::byte memory[sem::Semaphore::memory_size()];
+    sem::Semaphore s = sem::Semaphore::over(memory, sem::Kind::binary, 1);
+    auto* h = reinterpret_cast<sem::layout::SemHeader*>(memory);
+    const std::size_t short_size = sizeof(ipc::SegmentHeader) + 8;
+    h->segment.total_size = short_size;
+    const ipc::Fault f = sem::validate(memory, short_size);
+    ASSERT_TRUE(f);
+    EXPECT_STREQ(f.field, "segment size");
+    EXPECT_EQ(f.limit, sem::Semaphore::memory_size());
+    EXPECT_THROW(sem::Semaphore::bind(memory), xm::Error);  // bind reads the whole header: its own size
+}
+
 TEST(Sem, ACorruptKindOrNameIsRefusedOnAttach) {
     const std::string sys = test_sys("sembad");
     xm::Rtpu host(sys, "host", 0);

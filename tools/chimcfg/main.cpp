@@ -256,7 +256,9 @@ int dump(const std::string& path) {
         if (v.type == Type::struct_) {
             std::cout << "    init  (struct: zero, set by the application)\n";
         } else {
-            std::cout << "    init  " << values(v.init, v.type)
+            std::vector<double> init(v.nelem);
+            for (std::size_t k = 0; k < v.nelem; ++k) init[k] = v.init_at(k);
+            std::cout << "    init  " << values(init, v.type)
                       << (v.has_init ? "" : "  (no INIT: zeros)") << '\n';
             if (v.has_range) {
                 std::cout << "    min   " << values(v.min, v.type) << '\n';

@@ -1,0 +1,11 @@
+// fuzz/fuzz_shm.cpp — shm::validate() over arbitrary segment images (what
+// shmAttach checks). Invariants: no crash or read outside the image, one
+// verdict per image, a fault named by segment and field.
+#include "chimera/shm.hpp"
+#include "harness.hpp"
+
+extern "C" int LLVMFuzzerTestOneInput(const std::uint8_t* data, std::size_t size) {
+    const chimera::fuzz::Image image(data, size);
+    chimera::fuzz::checked_fault("shm::validate", image, chimera::shm::validate);
+    return 0;
+}
