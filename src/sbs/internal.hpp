@@ -2,6 +2,8 @@
 // subsystem master (SubsystemCore). Not installed.
 #pragma once
 
+#include "chimera/ipc/pi_mutex.hpp"
+#include "chimera/ipc/ring.hpp"
 #include "chimera/module.hpp"
 #include "chimera/muf/rt.hpp"
 #include "chimera/prof.hpp"
@@ -9,13 +11,13 @@
 #include "chimera/svar.hpp"
 
 #include <atomic>
-#include <condition_variable>
 #include <csetjmp>
 #include <cstdint>
 #include <memory>
 #include <mutex>
 #include <pthread.h>
 #include <string>
+#include <thread>
 #include <vector>
 
 namespace chimera::sbs::detail {
@@ -146,13 +148,14 @@ public:
     std::atomic<std::uint32_t> events{0};  // aperiodic: pending wake-ups
     std::atomic<bool> stopping{false};     // finish/kill in progress for a blocking sync()
 
-    // --- messages: guarded by msg_mu (never held across a method call) ---
-    mutable std::mutex msg_mu;
+    // --- messages: guarded by msg_mu (never held across a method call; the
+    // task thread takes it, so it inherits priority: docs/muf.md, Locks) ---
+    mutable ipc::PiMutex msg_mu;
     std::string policy;
     int error_code = 0;
     std::string error_text;    // error that put the task in ERROR (or last error)
     std::string error_module;
-    std::string first_warning;
+    char first_warning[160] = {};  // "" when none; fixed, so a warning never allocates
     // Fixed buffer read by Task::error_message() in the task itself.
     char last_msg[160] = {};
     std::atomic<int> last_num{0};
@@ -160,8 +163,13 @@ public:
     // --- request mailbox ---
     std::atomic<std::uint32_t> word{0};  // bumped for every request and event (futex word)
     std::atomic<bool> cmd_pending{false};  // a request waits (read by the loop without a lock)
-    std::mutex cmd_mu;
-    std::condition_variable cmd_cv;
+    // cmd_mu guards the fields below; the task thread answers by bumping
+    // `answered` and waking it (a futex: glibc condition variables inherit no
+    // priority and the task must never wait on one).
+    ipc::PiMutex cmd_mu;
+    std::atomic<std::uint32_t> answered{0};
+    void wait_answer(const bool& done);
+    void tell_master() noexcept;
     CmdKind cmd = CmdKind::none;
     std::string cmd_arg, cmd_key, cmd_reply, cmd_result;
     double cmd_hz = 0;
@@ -218,33 +226,45 @@ public:
     int rtpu_index(const RtpuSpec& rtpu) const noexcept;
     std::vector<std::string> module_dirs;
 
-    mutable std::mutex tasks_mu;
+    mutable ipc::PiMutex tasks_mu;  // the error path reads the states under it
     std::vector<std::unique_ptr<TaskCore>> tasks;  // index = TaskId
     TaskCore* task(TaskId id) const;               // throws Error on a bad id
 
-    // Signals task -> master: a bounded queue (drops the oldest when full).
+    // Signals task -> master: a lock-free bounded queue; a task never waits
+    // for the master. Full, the newest signal is dropped and counted.
     std::atomic<std::uint32_t> wide_mask{sig::ALL};
     void post_signal(TaskCore& from, int signal) noexcept;
-    std::mutex sig_mu;
-    std::condition_variable sig_cv;
-    static constexpr std::size_t kSignalQueue = 256;
     struct Pending {
         int signal;
         int task;
     };
-    Pending queue[kSignalQueue];
-    std::size_t q_head = 0, q_size = 0;
+    static constexpr std::size_t kSignalQueue = 256;
+    ipc::Ring<Pending, kSignalQueue> signal_queue;
+    ipc::Doorbell signal_bell;
+    std::atomic<std::uint64_t> signals_dropped{0};
 
     // The illegal-configuration flag bits in the SVAR table (§3.10).
     static constexpr std::uint32_t kIllegalReconfig = 1u;  // reconfiguration in progress
     static constexpr std::uint32_t kIllegalError = 2u;     // a task is halted in ERROR
     static constexpr std::uint32_t kIllegalTask = 4u;      // set by a task
-    std::mutex flag_mu;
+    ipc::PiMutex flag_mu;
     void set_flag(std::uint32_t bit, bool on) noexcept;
     void refresh_error_flag() noexcept;
 
-    // Printing of errors and warnings per the RTPU's ERRPRINT.
-    void print(const RtpuSpec& rtpu, bool is_error, const std::string& line) noexcept;
+    // Errors and warnings per the RTPU's ERRPRINT. A task thread only queues
+    // its line (no stdio, no allocation, no wait); the reporter thread, not
+    // real-time, prints it. A full queue drops the line and counts it.
+    void print(const RtpuSpec& rtpu, bool is_error, std::initializer_list<std::string_view> parts) noexcept;
+    struct Report {
+        char text[248];
+    };
+    ipc::Ring<Report, 64> reports;
+    ipc::Doorbell report_bell;
+    std::atomic<std::uint64_t> reports_dropped{0};
+    std::atomic<bool> reporter_stop{false};
+    std::thread reporter;  // last: started after everything it reads
+    void report_loop() noexcept;
+    void drain_reports() noexcept;
 
     std::atomic<bool> rt_warned{false};
     bool finished = false;

@@ -9,6 +9,7 @@
 #include <algorithm>
 #include <cmath>
 #include <cstdio>
+#include <cstring>
 #include <filesystem>
 #include <map>
 #include <sched.h>
@@ -92,6 +93,7 @@ SubsystemCore::SubsystemCore(SbsFile f) : file(std::move(f)) {
         table.destroy();  // nothing half-built is left behind
         throw;
     }
+    reporter = std::thread([this] { report_loop(); });
 }
 
 muf::RtpuScheduler& SubsystemCore::scheduler(const RtpuSpec& rtpu) {
@@ -137,10 +139,14 @@ int SubsystemCore::rtpu_index(const RtpuSpec& rtpu) const noexcept {
     return 0;
 }
 
-SubsystemCore::~SubsystemCore() = default;
+SubsystemCore::~SubsystemCore() {
+    reporter_stop.store(true);
+    report_bell.ring();
+    if (reporter.joinable()) reporter.join();
+}
 
 TaskCore* SubsystemCore::task(TaskId id) const {
-    std::lock_guard<std::mutex> lock(tasks_mu);
+    std::lock_guard<ipc::PiMutex> lock(tasks_mu);
     if (id.value < 0 || static_cast<std::size_t>(id.value) >= tasks.size() || !tasks[id.value])
         throw Error("subsystem " + file.subsystem + ": no task with id " + std::to_string(id.value));
     return tasks[id.value].get();
@@ -152,20 +158,15 @@ void SubsystemCore::post_signal(TaskCore& from, int signal) noexcept {
     from.signals_sent.fetch_or(bit, std::memory_order_relaxed);
     const std::uint32_t mask = from.own_sigmask.load() ? from.sigmask.load() : wide_mask.load();
     if (!(mask & bit)) return;  // masked: ignored and discarded (§4.5.3)
-    {
-        std::lock_guard<std::mutex> lock(sig_mu);
-        if (q_size == kSignalQueue) {  // full: the oldest gives way
-            q_head = (q_head + 1) % kSignalQueue;
-            --q_size;
-        }
-        queue[(q_head + q_size) % kSignalQueue] = Pending{signal, from.id};
-        ++q_size;
+    if (!signal_queue.push(Pending{signal, from.id})) {
+        signals_dropped.fetch_add(1, std::memory_order_relaxed);
+        return;
     }
-    sig_cv.notify_all();
+    signal_bell.ring();
 }
 
 void SubsystemCore::set_flag(std::uint32_t bit, bool on) noexcept {
-    std::lock_guard<std::mutex> lock(flag_mu);
+    std::lock_guard<ipc::PiMutex> lock(flag_mu);
     std::uint32_t f = table.illegal_configuration();
     f = on ? (f | bit) : (f & ~bit);
     table.set_illegal_configuration(f);
@@ -174,17 +175,51 @@ void SubsystemCore::set_flag(std::uint32_t bit, bool on) noexcept {
 void SubsystemCore::refresh_error_flag() noexcept {
     bool any = false;
     {
-        std::lock_guard<std::mutex> lock(tasks_mu);
+        std::lock_guard<ipc::PiMutex> lock(tasks_mu);
         for (const auto& t : tasks)
             if (t && t->state.load() == State::ERROR) any = true;
     }
     set_flag(kIllegalError, any);
 }
 
-void SubsystemCore::print(const RtpuSpec& r, bool is_error, const std::string& line) noexcept {
+void SubsystemCore::print(const RtpuSpec& r, bool is_error, std::initializer_list<std::string_view> parts) noexcept {
     if (r.errprint == ErrPrint::none) return;
     if (!is_error && r.errprint != ErrPrint::warnings) return;
-    std::fprintf(stderr, "%s\n", line.c_str());
+    Report rep;
+    std::size_t n = 0;
+    for (std::string_view p : parts) {  // cut to the slot: a line never allocates
+        const std::size_t k = std::min(p.size(), sizeof rep.text - 1 - n);
+        std::memcpy(rep.text + n, p.data(), k);
+        n += k;
+    }
+    rep.text[n] = '\0';
+    if (!reports.push(rep)) {
+        reports_dropped.fetch_add(1, std::memory_order_relaxed);
+        return;
+    }
+    report_bell.ring();
+}
+
+void SubsystemCore::drain_reports() noexcept {
+    Report rep;
+    while (reports.pop(rep)) std::fprintf(stderr, "%s\n", rep.text);
+    if (const std::uint64_t lost = reports_dropped.exchange(0); lost != 0)
+        std::fprintf(stderr, "chimera: subsystem %s: %llu error/warning lines dropped (the queue was full)\n",
+                     file.subsystem.c_str(), static_cast<unsigned long long>(lost));
+}
+
+// The reporter thread: SCHED_OTHER whatever the master runs at, so printing
+// never competes with the tasks.
+void SubsystemCore::report_loop() noexcept {
+    sched_param sp{};
+    pthread_setschedparam(pthread_self(), SCHED_OTHER, &sp);
+    pthread_setname_np(pthread_self(), "chimera-report");
+    for (;;) {
+        const std::uint32_t seen = report_bell.read();
+        drain_reports();
+        if (reporter_stop.load()) return;
+        report_bell.wait(seen);
+    }
 }
 
 }  // namespace detail
@@ -255,7 +290,7 @@ TaskId Subsystem::spawn_combined(const std::vector<std::string>& rmod_paths, std
         for (const auto& v : f.global_in_consts()) {
             if (std::find(produced_here.begin(), produced_here.end(), v) != produced_here.end()) continue;
             bool found = false;
-            std::lock_guard<std::mutex> lock(c.tasks_mu);
+            std::lock_guard<ipc::PiMutex> lock(c.tasks_mu);
             for (const auto& t : c.tasks) {
                 if (!t || t->state.load() == State::NOT_CREATED) continue;
                 if (std::find(t->out_consts.begin(), t->out_consts.end(), v) != t->out_consts.end()) found = true;
@@ -270,7 +305,7 @@ TaskId Subsystem::spawn_combined(const std::vector<std::string>& rmod_paths, std
 
     int id;
     {
-        std::lock_guard<std::mutex> lock(c.tasks_mu);
+        std::lock_guard<ipc::PiMutex> lock(c.tasks_mu);
         id = static_cast<int>(c.tasks.size());
     }
     auto task = std::make_unique<detail::TaskCore>(c, id, *rtpu, std::move(rmods));
@@ -287,7 +322,7 @@ TaskId Subsystem::spawn_combined(const std::vector<std::string>& rmod_paths, std
         before.emplace_back(ix, std::move(buf));
     }
     {
-        std::lock_guard<std::mutex> lock(c.tasks_mu);
+        std::lock_guard<ipc::PiMutex> lock(c.tasks_mu);
         c.tasks.push_back(std::move(task));
     }
     t->start();  // throws on init failure; the task stays in the list as NOT-CREATED
@@ -301,7 +336,7 @@ TaskId Subsystem::spawn_combined(const std::vector<std::string>& rmod_paths, std
     if (!changed.empty()) {
         std::vector<detail::TaskCore*> readers;
         {
-            std::lock_guard<std::mutex> lock(c.tasks_mu);
+            std::lock_guard<ipc::PiMutex> lock(c.tasks_mu);
             for (const auto& o : c.tasks) {
                 if (!o || o.get() == t) continue;
                 const State s = o->state.load();
@@ -326,7 +361,7 @@ TaskId Subsystem::spawn_combined(const std::vector<std::string>& rmod_paths, std
 }
 
 std::optional<TaskId> Subsystem::find(std::string_view rmod) const {
-    std::lock_guard<std::mutex> lock(core_->tasks_mu);
+    std::lock_guard<ipc::PiMutex> lock(core_->tasks_mu);
     std::optional<TaskId> dead;
     for (std::size_t i = core_->tasks.size(); i-- > 0;) {
         const auto& t = core_->tasks[i];
@@ -375,7 +410,7 @@ void Subsystem::control(TaskId id, Control signal, std::string_view a) {
         throw Refused(std::string(to_string(signal)) + " refused for task " + t->name + ": " + why_refused(s, signal));
     if (signal == Control::on) {
         // Turning one task on must not give a variable a second producer.
-        std::lock_guard<std::mutex> lock(c.tasks_mu);
+        std::lock_guard<ipc::PiMutex> lock(c.tasks_mu);
         for (const auto& o : c.tasks) {
             if (!o || o.get() == t || o->state.load() != State::ON) continue;
             for (const auto& v : t->out_vars)
@@ -397,7 +432,7 @@ ReconfigResult Subsystem::reconfig(std::span<const ReconfigItem> items) {
     std::map<detail::TaskCore*, State> after;
     std::vector<detail::TaskCore*> order;
     {
-        std::lock_guard<std::mutex> lock(c.tasks_mu);
+        std::lock_guard<ipc::PiMutex> lock(c.tasks_mu);
         for (const auto& t : c.tasks)
             if (t) {
                 after[t.get()] = t->state.load();
@@ -547,7 +582,7 @@ void Subsystem::set(TaskId id, std::string_view key, std::string_view value) {
 void Subsystem::event(TaskId id) noexcept {
     detail::TaskCore* t = nullptr;
     {
-        std::lock_guard<std::mutex> lock(core_->tasks_mu);
+        std::lock_guard<ipc::PiMutex> lock(core_->tasks_mu);
         if (id.value < 0 || static_cast<std::size_t>(id.value) >= core_->tasks.size()) return;
         t = core_->tasks[id.value].get();
     }
@@ -611,9 +646,9 @@ TaskStatus Subsystem::status_without_profile(TaskId id) const {
     }
     s.warnings = t->warnings.load();
     {
-        std::lock_guard<std::mutex> lock(t->msg_mu);
+        std::lock_guard<ipc::PiMutex> lock(t->msg_mu);
         s.warning = t->first_warning;
-        t->first_warning.clear();  // shown once (§4.4.1)
+        t->first_warning[0] = '\0';  // shown once (§4.4.1)
         s.policy = t->policy;
         if (s.state == State::ERROR) {
             s.error_code = t->error_code;
@@ -632,7 +667,7 @@ TaskStatus Subsystem::status_without_profile(TaskId id) const {
 std::vector<TaskStatus> Subsystem::status_all() const {
     std::vector<TaskId> ids;
     {
-        std::lock_guard<std::mutex> lock(core_->tasks_mu);
+        std::lock_guard<ipc::PiMutex> lock(core_->tasks_mu);
         for (std::size_t i = 0; i < core_->tasks.size(); ++i)
             if (core_->tasks[i] && core_->tasks[i]->state.load() != State::NOT_CREATED)
                 ids.push_back(TaskId{static_cast<int>(i)});
@@ -657,30 +692,26 @@ void Subsystem::clear_task_sigmask(TaskId id) { core_->task(id)->own_sigmask.sto
 std::optional<SignalEvent> Subsystem::sig_wait(std::uint32_t wanted, std::optional<TaskId> from,
                                                std::chrono::nanoseconds timeout) {
     auto& c = *core_;
-    const auto deadline = std::chrono::steady_clock::now() + timeout;
-    std::unique_lock<std::mutex> lock(c.sig_mu);
+    const std::int64_t deadline = timeout.count() < 0 ? -1 : ipc::now_ns() + timeout.count();
+    bool expired = false;
     for (;;) {
-        while (c.q_size > 0) {
-            const auto p = c.queue[c.q_head];
-            c.q_head = (c.q_head + 1) % detail::SubsystemCore::kSignalQueue;
-            --c.q_size;
+        const std::uint32_t seen = c.signal_bell.read();
+        detail::SubsystemCore::Pending p{};
+        while (c.signal_queue.pop(p)) {
             if (!(sig::bit(p.signal) & wanted)) continue;  // not of interest: discarded
             if (from && from->value != p.task) continue;
+            c.drain_reports();  // a task's error line comes before the master acts on its signal
             SignalEvent ev;
             ev.signal = p.signal;
             ev.task = TaskId{p.task};
-            lock.unlock();
             try {
                 ev.rmod = c.task(ev.task)->name;
             } catch (...) {
             }
             return ev;
         }
-        if (timeout.count() < 0) {
-            c.sig_cv.wait(lock);
-        } else if (c.sig_cv.wait_until(lock, deadline) == std::cv_status::timeout && c.q_size == 0) {
-            return std::nullopt;
-        }
+        if (expired) return std::nullopt;
+        expired = !c.signal_bell.wait(seen, deadline);  // then looks once more
     }
 }
 
@@ -697,7 +728,7 @@ void Subsystem::finish() {
     c.finished = true;
     std::vector<detail::TaskCore*> live;
     {
-        std::lock_guard<std::mutex> lock(c.tasks_mu);
+        std::lock_guard<ipc::PiMutex> lock(c.tasks_mu);
         for (const auto& t : c.tasks)
             if (t) live.push_back(t.get());
     }
@@ -717,7 +748,7 @@ void Subsystem::finish() {
         t->join();
     }
     {
-        std::lock_guard<std::mutex> lock(c.tasks_mu);
+        std::lock_guard<ipc::PiMutex> lock(c.tasks_mu);
         c.tasks.clear();
     }
     {

@@ -212,17 +212,15 @@ void TaskCore::start() {
     pthread_attr_destroy(&attr);
     if (rc != 0) throw Error("spawn " + name + ": pthread_create failed: " + std::strerror(rc));
     joinable = true;
-    std::unique_lock<std::mutex> lock(cmd_mu);
-    cmd_cv.wait(lock, [&] { return started; });
+    wait_answer(started);
     if (start_failed) {
-        lock.unlock();
         join();
         throw Error("spawn " + name + ": " + start_error);
     }
 }
 
 std::string TaskCore::request(CmdKind kind, std::string a, std::string key, double hz, std::string* out) {
-    std::unique_lock<std::mutex> lock(cmd_mu);
+    std::unique_lock<ipc::PiMutex> lock(cmd_mu);
     cmd = kind;
     cmd_arg = std::move(a);
     cmd_key = std::move(key);
@@ -234,14 +232,32 @@ std::string TaskCore::request(CmdKind kind, std::string a, std::string key, doub
     lock.unlock();
     word.fetch_add(1, std::memory_order_release);
     ipc::futex_wake_all(word);
+    wait_answer(cmd_done);
     lock.lock();
-    cmd_cv.wait(lock, [&] { return cmd_done; });
     if (out) *out = cmd_reply;
     return cmd_result;
 }
 
+// The master, until the task thread set `done` (under cmd_mu) and told it.
+void TaskCore::wait_answer(const bool& done) {
+    for (;;) {
+        const std::uint32_t seen = answered.load(std::memory_order_acquire);
+        {
+            std::lock_guard<ipc::PiMutex> lock(cmd_mu);
+            if (done) return;
+        }
+        ipc::futex_wait(answered, seen);
+    }
+}
+
+// The task thread, after setting the flag the master waits for.
+void TaskCore::tell_master() noexcept {
+    answered.fetch_add(1, std::memory_order_release);
+    ipc::futex_wake_all(answered);
+}
+
 void TaskCore::publish_policy(std::string text) noexcept {
-    std::lock_guard<std::mutex> lock(msg_mu);
+    std::lock_guard<ipc::PiMutex> lock(msg_mu);
     policy = std::move(text);
     if (slot.valid()) slot.set_policy(policy);
 }
@@ -312,6 +328,16 @@ bool Task::command_pending() const noexcept {
 void Task::error(int code, std::string_view message, const char* file, int line) const {
     err::invoke(code, module(), message, file, line);
 }
+namespace {
+// Into a fixed buffer, cut to fit: the warning path never allocates.
+template <std::size_t N>
+void copy_cut(char (&to)[N], std::string_view from) noexcept {
+    const std::size_t n = std::min(from.size(), N - 1);
+    std::memcpy(to, from.data(), n);
+    to[n] = '\0';
+}
+}  // namespace
+
 void Task::warning(std::string_view message) noexcept {
     // Locks and allocation: a timing-failure handler (an abort) waits until they are done.
     muf::enter_critical();
@@ -320,26 +346,14 @@ void Task::warning(std::string_view message) noexcept {
         c.warnings.fetch_add(1, std::memory_order_relaxed);
         if (c.slot.valid()) c.slot.warning(message);
         {
-            std::unique_lock<std::mutex> lock(c.msg_mu, std::try_to_lock);
+            std::unique_lock<ipc::PiMutex> lock(c.msg_mu, std::try_to_lock);
             if (lock.owns_lock()) {
-                const std::size_t n = std::min(message.size(), sizeof(c.last_msg) - 1);
-                std::memcpy(c.last_msg, message.data(), n);
-                c.last_msg[n] = '\0';
+                copy_cut(c.last_msg, message);
                 c.last_num.store(-1);
-                if (c.first_warning.empty()) {
-                    try {
-                        c.first_warning.assign(message);
-                    } catch (...) {
-                    }
-                }
+                if (c.first_warning[0] == '\0') copy_cut(c.first_warning, message);
             }
         }
-        if (c.rtpu.errprint == ErrPrint::warnings) {
-            try {
-                c.sbs.print(c.rtpu, false, "WARNING> " + std::string(rmod()) + ": " + std::string(message));
-            } catch (...) {
-            }
-        }
+        c.sbs.print(c.rtpu, false, {"WARNING> ", rmod(), ": ", message});
     }();
     muf::leave_critical();
     send_signal(sig::WARNING);

@@ -10,6 +10,7 @@
 #include "chimera/trace.hpp"
 
 #include <algorithm>
+#include <charconv>
 #include <cmath>
 #include <csignal>
 #include <cstdio>
@@ -264,7 +265,7 @@ void TaskLoop::run() {
     while (alive_) {
         const std::uint32_t seen = t_.word.load(std::memory_order_acquire);
         if (t_.cmd_pending.load(std::memory_order_acquire)) {
-            std::unique_lock<std::mutex> lock(t_.cmd_mu);
+            std::unique_lock<ipc::PiMutex> lock(t_.cmd_mu);
             const Request q{t_.cmd, t_.cmd_key, t_.cmd_hz};
             t_.arg = t_.cmd_arg;
             lock.unlock();
@@ -295,11 +296,13 @@ bool TaskLoop::spawn() {
     } else {
         t_.set_state(State::OFF);
     }
-    std::lock_guard<std::mutex> lock(t_.cmd_mu);
-    t_.start_failed = o != Outcome::ok;
-    t_.start_error = std::move(failure);
-    t_.started = true;
-    t_.cmd_cv.notify_all();
+    {
+        std::lock_guard<ipc::PiMutex> lock(t_.cmd_mu);
+        t_.start_failed = o != Outcome::ok;
+        t_.start_error = std::move(failure);
+        t_.started = true;
+    }
+    t_.tell_master();
     return o == Outcome::ok;
 }
 
@@ -328,13 +331,15 @@ void TaskLoop::serve(const Request& q) {
 // Hands the answer to the master waiting in request().
 void TaskLoop::answer(Answer& a) {
     t_.arg.clear();
-    std::lock_guard<std::mutex> lock(t_.cmd_mu);
-    t_.cmd_result = std::move(a.result);
-    t_.cmd_reply = std::move(a.reply);
-    t_.cmd = CmdKind::none;
-    t_.cmd_done = true;
-    t_.cmd_pending.store(false, std::memory_order_release);
-    t_.cmd_cv.notify_all();
+    {
+        std::lock_guard<ipc::PiMutex> lock(t_.cmd_mu);
+        t_.cmd_result = std::move(a.result);
+        t_.cmd_reply = std::move(a.reply);
+        t_.cmd = CmdKind::none;
+        t_.cmd_done = true;
+        t_.cmd_pending.store(false, std::memory_order_release);
+    }
+    t_.tell_master();
 }
 
 Answer TaskLoop::on() {
@@ -432,7 +437,7 @@ Answer TaskLoop::clear() {
     } else {
         t_.set_state(State::OFF);
         if (t_.slot.valid()) t_.slot.clear_error();
-        std::lock_guard<std::mutex> ml(t_.msg_mu);
+        std::lock_guard<ipc::PiMutex> ml(t_.msg_mu);
         t_.error_text.clear();
         t_.error_module.clear();
         t_.error_code = 0;
@@ -743,7 +748,7 @@ void TaskLoop::record(const err::Error& e) {
     err_code_ = e.code;
     err_module_ = std::string(e.module);
     err_message_ = std::string(e.message);
-    std::lock_guard<std::mutex> lock(t_.msg_mu);
+    std::lock_guard<ipc::PiMutex> lock(t_.msg_mu);
     const std::size_t n = std::min(e.message.size(), sizeof(t_.last_msg) - 1);
     std::memcpy(t_.last_msg, e.message.data(), n);
     t_.last_msg[n] = '\0';
@@ -754,9 +759,14 @@ void TaskLoop::record(const err::Error& e) {
 }
 
 void TaskLoop::report_error(std::string_view object, std::string_view message, const char* phase, int code) {
-    std::string line = "ERROR> " + std::string(object) + ": " + std::string(message);
-    if (phase) line += " (code " + std::to_string(code) + ", in " + phase + ")";
-    t_.sbs.print(t_.rtpu, true, line);
+    if (!phase) {
+        t_.sbs.print(t_.rtpu, true, {"ERROR> ", object, ": ", message});
+        return;
+    }
+    char num[16];
+    const auto [end, ec] = std::to_chars(num, num + sizeof num, code);
+    t_.sbs.print(t_.rtpu, true,
+                 {"ERROR> ", object, ": ", message, " (code ", std::string_view(num, end - num), ", in ", phase, ")"});
 }
 
 Outcome TaskLoop::transfer(svar::Status st, const char* what) {
@@ -816,7 +826,7 @@ void TaskCore::run() {
             std::fprintf(stderr, "chimera: task %s runs unprofiled: %s\n", name.c_str(), e.what());
         }
         slot.set_tid(static_cast<int>(tid.load()));
-        std::lock_guard<std::mutex> lock(msg_mu);
+        std::lock_guard<ipc::PiMutex> lock(msg_mu);
         slot.set_policy(policy);
     }
     struct ProfilerDetach {
