@@ -55,6 +55,7 @@
 #include <thread>
 #include <vector>
 
+#include "chimera/ipc/pi_mutex.hpp"
 #include "chimera/ipc/lock.hpp"
 #include "chimera/ipc/segment.hpp"
 
@@ -206,7 +207,7 @@ private:
     bool loss_counted_ = false;           // the receiver was found dead and its unread records counted
     std::uint64_t undelivered_ = 0;
     ipc::Fault fault_;
-    std::mutex write_mutex_;  // tasks of this RTPU share our one ring (local lock)
+    ipc::PiMutex write_mutex_;  // tasks of this RTPU share our one ring (local lock; inherits priority)
 };
 
 /// What read() tells about the message it returned.
@@ -314,10 +315,10 @@ private:
     ipc::Fault fault_;
     std::uint32_t next_ring_ = 0;
     std::int64_t probe_period_ns_ = 1'000'000;
-    std::mutex peers_mutex_;
+    ipc::PiMutex peers_mutex_;  // a task sending looks its peer up under it
     std::map<std::string, std::unique_ptr<Peer>, std::less<>> peers_;
     std::vector<std::unique_ptr<Peer>> retired_;  // dead peers other threads may still hold
-    std::mutex tasks_mutex_;
+    ipc::PiMutex tasks_mutex_;
     std::uint64_t tasks_used_[4] = {};
 };
 
