@@ -1,0 +1,145 @@
+// Nothing slow on a task thread (issue #14 item 7): a warning or an error
+// raised on a task thread is queued in the subsystem's fixed ring and printed
+// by the reporter thread, so the task thread itself makes no allocation and no
+// write(2) for it. Counted by the kernel per thread (the raw_syscalls
+// tracepoint filtered on the write calls) and by the interposed malloc.
+// Needs tracefs: registered under tests/prof/in_tracefs_namespace.sh.
+#include "alloc_counter.hpp"
+#include "syscall_counter.hpp"
+
+#include "chimera/sbs.hpp"
+
+#include <gtest/gtest.h>
+#include <sys/ioctl.h>
+
+#include <chrono>
+#include <cstdlib>
+#include <filesystem>
+#include <fstream>
+#include <string>
+#include <thread>
+
+namespace fs = std::filesystem;
+using namespace std::chrono_literals;
+using chimera::State;
+using chimera::sbs::Control;
+using chimera::sbs::Subsystem;
+
+namespace {
+
+long tracepoint_id() {
+    for (const char* root : {"/sys/kernel/tracing/events/", "/sys/kernel/debug/tracing/events/"}) {
+        std::ifstream f(std::string(root) + "raw_syscalls/sys_enter/id");
+        long id = -1;
+        if (f >> id) return id;
+    }
+    return -1;
+}
+
+// The write(2)/writev(2) calls of thread `tid` from now on (stdio ends in them).
+int open_write_counter(long id, long tid) {
+    perf_event_attr a{};
+    a.size = sizeof a;
+    a.type = PERF_TYPE_TRACEPOINT;
+    a.config = static_cast<std::uint64_t>(id);
+    const int fd = static_cast<int>(syscall(SYS_perf_event_open, &a, static_cast<pid_t>(tid), -1, -1, PERF_FLAG_FD_CLOEXEC));
+    const std::string filter = "id == " + std::to_string(SYS_write) + " || id == " + std::to_string(SYS_writev);
+    if (fd >= 0 && ::ioctl(fd, PERF_EVENT_IOC_SET_FILTER, filter.c_str()) != 0) {
+        ::close(fd);
+        return -1;
+    }
+    return fd;
+}
+
+class TaskIo : public ::testing::Test {
+protected:
+    void SetUp() override {
+        syscall_id_ = tracepoint_id();
+        if (syscall_id_ < 0) {
+            if (std::getenv("CHIMERA_REQUIRE_SYSCALL_COUNTER")) FAIL() << "the raw_syscalls tracepoint cannot be opened";
+            GTEST_SKIP() << "no raw_syscalls tracepoint: tracefs not mounted (see tests/prof/in_tracefs_namespace.sh)";
+        }
+        name_ = "taskio" + std::to_string(::getpid());
+        dir_ = fs::temp_directory_path() / name_;
+        fs::create_directories(dir_);
+        std::ofstream(dir_ / "t.svar") << "NAME A\nTYPE double\nDESC unused\nUNITS none\nNELEM 1\nEOF\n";
+    }
+    void TearDown() override {
+        sbs_.reset();
+        fs::remove_all(dir_);
+    }
+    Subsystem& init(const std::string& errprint) {
+        std::ofstream(dir_ / "t.sbs") << "SUBSYSTEM " << name_ << "\nSVARFILE t.svar\nRTPU cpu0\nERRPRINT " << errprint
+                                      << "\nEOF\n";
+        sbs_ = Subsystem::init((dir_ / "t.sbs").string());
+        return *sbs_;
+    }
+    std::string rmod(const std::string& local) {
+        std::ofstream(dir_ / "w.rmod") << "MODULE warner\nDESC warns every cycle\nTASKTYPE periodic\nFREQ 200\n"
+                                       << (local.empty() ? "" : "LOCAL\n" + local) << "EOF\n";
+        return (dir_ / "w.rmod").string();
+    }
+    long syscall_id_ = -1;
+    std::string name_;
+    fs::path dir_;
+    std::unique_ptr<Subsystem> sbs_;
+};
+
+}  // namespace
+
+TEST_F(TaskIo, AWarningInSteadyStateNeitherAllocatesNorWritesOnTheTaskThread) {
+    testing::internal::CaptureStderr();
+    auto& s = init("warnings");
+    const auto w = s.spawn(rmod(""));
+    s.control(w, Control::on);
+    std::this_thread::sleep_for(300ms);  // warm-up: every path of a warning taken
+    const long tid = s.status(w).tid;
+    const int writes = open_write_counter(syscall_id_, tid);
+    ASSERT_GE(writes, 0) << "perf_event_open with a write filter: " << std::strerror(errno);
+    const auto warnings0 = s.status(w).warnings;
+    const std::uint64_t writes0 = chimera::test::read_syscall_counter(writes);
+    chimera::test::alloc_count_start(chimera::test::AllocScope::thread, tid);
+    std::this_thread::sleep_for(500ms);
+    const long allocations = chimera::test::alloc_count_stop();
+    const std::uint64_t task_writes = chimera::test::read_syscall_counter(writes) - writes0;
+    const auto warned = s.status(w).warnings - warnings0;
+    ::close(writes);
+    s.finish();  // the reporter has printed every queued line when finish returns
+    const std::string err = testing::internal::GetCapturedStderr();
+
+    ASSERT_GT(warned, 20u) << "the task did not warn in steady state";
+    EXPECT_EQ(allocations, 0) << "allocations on the task thread for " << warned << " warnings";
+    EXPECT_EQ(task_writes, 0u) << "write calls on the task thread for " << warned << " warnings";
+    // And the lines were printed all the same, by another thread.
+    EXPECT_NE(err.find("WARNING> w: joint 3 clipped to its limit\n"), std::string::npos) << err.substr(0, 400);
+}
+
+// A module's cycle() that throws (module.hpp): error() is called with code
+// err::code::exception and "exception: WHAT"; the default error() answers
+// ERROR, so the task is halted in ERROR with that message, the master gets
+// sig::ERROR, and the ERROR> line is printed by the reporter, not written
+// from the task thread.
+TEST_F(TaskIo, ACycleThatThrowsHaltsTheTaskInErrorAndReportsThroughTheRing) {
+    testing::internal::CaptureStderr();
+    auto& s = init("errors");
+    const auto w = s.spawn(rmod("THROW_AT 10\n"));
+    const int writes = open_write_counter(syscall_id_, s.status(w).tid);
+    ASSERT_GE(writes, 0);
+    const std::uint64_t writes0 = chimera::test::read_syscall_counter(writes);
+    s.control(w, Control::on);
+    const auto ev = s.sig_wait(chimera::sig::bit(chimera::sig::ERROR), w, 5s);
+    const std::uint64_t task_writes = chimera::test::read_syscall_counter(writes) - writes0;
+    ::close(writes);
+    ASSERT_TRUE(ev) << "no ERROR signal";
+    const auto st = s.status(w);
+    s.finish();
+    const std::string err = testing::internal::GetCapturedStderr();
+
+    EXPECT_EQ(st.state, State::ERROR);
+    EXPECT_EQ(st.error, "exception: joint 3 encoder lost");
+    EXPECT_EQ(st.cycles, 9u);  // the throwing cycle wrote no out-vars and is not counted
+    EXPECT_EQ(task_writes, 0u);
+    EXPECT_NE(err.find("ERROR> w: exception: joint 3 encoder lost (code"), std::string::npos) << err;
+    // ERRPRINT errors: the warnings of cycles 1..9 are counted, never printed.
+    EXPECT_EQ(err.find("WARNING>"), std::string::npos) << err;
+}
