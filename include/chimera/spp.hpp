@@ -42,8 +42,9 @@
 //   EOF
 #pragma once
 
+#include "chimera/ipc/pi_mutex.hpp"
+
 #include <atomic>
-#include <condition_variable>
 #include <cstddef>
 #include <cstdint>
 #include <memory>
@@ -244,8 +245,10 @@ private:
     std::atomic<bool> realtime_{false};
     std::atomic<int> lock_waiters_{0};
 
-    std::mutex lock_mutex_;                // lock()/release() hand-over and slot allocation
-    std::condition_variable lock_cv_;
+    // lock()/release() hand-over and slot allocation. Tasks take it, so it
+    // inherits priority; a task waiting for the grant sleeps on its slot's
+    // `granted` word (no condition variable: they inherit nothing).
+    ipc::PiMutex lock_mutex_;
     std::uint64_t lock_ticket_ = 0;
     std::thread thread_;
 };

@@ -39,6 +39,7 @@ struct Processor::Slot {
     // Under lock_mutex_:
     bool in_use = false;
     bool waiting = false;        // for the lock
+    std::atomic<std::uint32_t> granted{0};  // bumped when the lock is granted (lock() sleeps on it)
     std::uint64_t ticket = 0;    // order of lock requests (ties in priority)
 
     bool empty() const noexcept {
@@ -120,7 +121,7 @@ std::unique_ptr<Processor> Processor::init(const Config& config, const Library& 
 Processor::~Processor() {
     int attached = 0;
     {
-        std::lock_guard<std::mutex> lk(lock_mutex_);
+        std::lock_guard<ipc::PiMutex> lk(lock_mutex_);
         for (const auto& sp : slots_) attached += sp->in_use ? 1 : 0;
     }
     if (attached > 0) {
@@ -250,7 +251,7 @@ void Processor::run() noexcept {
             s->wakeups.fetch_add(1, std::memory_order_release);
             s->wakeups.notify_all();
         } else if (c.type == CommandType::RELEASE) {
-            std::lock_guard<std::mutex> lk(lock_mutex_);
+            std::lock_guard<ipc::PiMutex> lk(lock_mutex_);
             if (owner_.load() == s->index) {
                 owner_.store(-1, std::memory_order_release);
                 grant_next_locked();
@@ -296,14 +297,15 @@ void Processor::grant_next_locked() {
     if (!best) return;
     best->waiting = false;
     owner_.store(best->index, std::memory_order_release);
-    lock_cv_.notify_all();
+    best->granted.fetch_add(1, std::memory_order_release);
+    best->granted.notify_all();
     kick();
 }
 
 // --- the task's SPP object ----------------------------------------------------------
 
 std::unique_ptr<Spp> Spp::init(Processor& p, int priority) {
-    std::lock_guard<std::mutex> lk(p.lock_mutex_);
+    std::lock_guard<ipc::PiMutex> lk(p.lock_mutex_);
     for (auto& sp : p.slots_) {
         Processor::Slot& s = *sp;
         if (s.in_use) continue;
@@ -382,7 +384,7 @@ int Spp::wait() noexcept {
 void Spp::lock() {
     if (locked_ || finished_) return;
     Processor::Slot& s = *proc_->slots_[static_cast<std::size_t>(slot_)];
-    std::unique_lock<std::mutex> lk(proc_->lock_mutex_);
+    std::unique_lock<ipc::PiMutex> lk(proc_->lock_mutex_);
     s.waiting = true;
     s.ticket = ++proc_->lock_ticket_;
     if (proc_->owner_.load() < 0) proc_->grant_next_locked();
@@ -391,7 +393,9 @@ void Spp::lock() {
     // that RELEASE may hand the SPP to a higher-priority locker first.
     if (s.waiting) {
         proc_->lock_waiters_.fetch_add(1);
-        proc_->lock_cv_.wait(lk, [&] { return !s.waiting; });
+        const std::uint32_t seen = s.granted.load(std::memory_order_relaxed);  // under the lock: no grant missed
+        lk.unlock();
+        while (s.granted.load(std::memory_order_acquire) == seen) s.granted.wait(seen, std::memory_order_acquire);
         proc_->lock_waiters_.fetch_sub(1);
     }
     locked_ = true;
@@ -412,7 +416,7 @@ void Spp::finish() noexcept {
     wait();
     finished_ = true;
     Processor::Slot& s = *proc_->slots_[static_cast<std::size_t>(slot_)];
-    std::lock_guard<std::mutex> lk(proc_->lock_mutex_);
+    std::lock_guard<ipc::PiMutex> lk(proc_->lock_mutex_);
     s.active.store(false, std::memory_order_release);
     s.in_use = false;
 }
