@@ -48,6 +48,19 @@
 // Real-time path: cycle() (and sync() for synchronous tasks) should not allocate,
 // block, or take locks other than through the runtime.
 //
+// A cycle() that throws: the runtime catches it on the task thread and calls
+// error() with code err::code::exception and message "exception: WHAT" (what()
+// of a std::exception, "unknown exception" otherwise). error()'s answer decides,
+// as for any error: ERROR (the default) halts the task in ERROR with that
+// message in its status, sends sig::ERROR to the master and raises the
+// illegal-configuration flag; OFF turns it off (off() is not called); CONTINUE
+// carries on. The cycle's out-vars are not written unless error() says CONTINUE,
+// and a cycle that failed is not counted. The other tasks run on. The ERROR>
+// line goes through the subsystem's report ring and is printed by its reporter
+// thread, never from the task thread. Throwing allocates (the exception object)
+// and unwinds: it is an error path, not a way to return from a cycle.
+// Task::warning() is real-time safe: no allocation, no stdio, no wait.
+//
 // Timing failures (thesis §6.3, ARCHITECTURE §6). The scheduler watches every
 // periodic cycle: DEADLINE (not done by the end of its period), MAXEXEC (more
 // CPU time than the .rmod's WCET, or EFFECTIVE) and MINEXEC. A module opts in
