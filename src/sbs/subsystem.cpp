@@ -747,6 +747,7 @@ void Subsystem::finish() {
         }
         t->join();
     }
+    c.drain_reports();  // every task has ended: its last lines are printed before finish returns
     {
         std::lock_guard<ipc::PiMutex> lock(c.tasks_mu);
         c.tasks.clear();
