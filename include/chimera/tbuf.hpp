@@ -50,6 +50,8 @@
 // (kCorrupt, "another writer") instead of going on.
 #pragma once
 
+#include "chimera/export.hpp"
+
 #include <atomic>
 #include <cstddef>
 #include <cstdint>
@@ -148,15 +150,15 @@ static_assert(std::atomic<std::uint32_t>::is_always_lock_free);
 }  // namespace detail
 
 /// Bytes of memory a buffer for items of `item_size` bytes needs.
-std::size_t required_size(std::size_t item_size) noexcept;
+CHIMERA_API std::size_t required_size(std::size_t item_size) noexcept;
 
 /// Checks a buffer's image of `size` bytes (header, geometry, state word) as
 /// attach() does, without throwing: the first bound broken, or none. A pure
 /// function over the bytes, for tests and fuzzers.
-ipc::Fault validate(const void* image, std::size_t size) noexcept;
+CHIMERA_API ipc::Fault validate(const void* image, std::size_t size) noexcept;
 
 /// A triple buffer. Move-only; destruction detaches.
-class Tbuf {
+class CHIMERA_API Tbuf {
 public:
     Tbuf() noexcept = default;
     Tbuf(Tbuf&&) noexcept;

@@ -60,7 +60,7 @@ Geometry geometry(const Params& p) {
 // The queue as this handle checked it: the segment, and the geometry kept in
 // the handle. Every offset read from the segment goes through head_ok() /
 // block_ok() before it is followed; a bad one becomes a Fault.
-struct Queue::Ops {
+struct CHIMERA_LOCAL Queue::Ops {
     QueueHeader* q;
     const Geometry& g;
 

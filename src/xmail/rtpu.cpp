@@ -85,12 +85,12 @@ std::pair<std::string, std::string> split_name(std::string_view full) {
     return {std::string(rtpu), std::string(name)};
 }
 
-struct Rtpu::Pending {
+struct CHIMERA_LOCAL Rtpu::Pending {
     bool done = false;
     NsReply reply{};
 };
 
-struct Rtpu::Owned {
+struct CHIMERA_LOCAL Rtpu::Owned {
     ipc::ObjectType type;
     std::string segment;
     // Until then a new object may have no user yet (the requester attaches

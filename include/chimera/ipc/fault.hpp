@@ -11,6 +11,8 @@
 // describe() turns into a message naming the segment, off the hot path.
 #pragma once
 
+#include "chimera/export.hpp"
+
 #include <cstdint>
 #include <string>
 #include <string_view>
@@ -38,6 +40,6 @@ constexpr Fault fault_if(bool broken, const char* field, std::uint64_t value, st
 
 /// "segment /chimera.arm.xm.b: ring 3 record length 99999 (must be at most 4088)";
 /// "" for no fault.
-std::string describe(std::string_view segment, const Fault& fault);
+CHIMERA_API std::string describe(std::string_view segment, const Fault& fault);
 
 }  // namespace chimera::ipc
