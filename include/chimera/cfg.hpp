@@ -70,7 +70,7 @@ public:
     /// line has been reached. Throws if the file ends without EOF.
     const Line* peek();
     /// Consumes and returns the next line; nullopt at EOF.
-    std::optional<Line> next();
+    [[nodiscard]] std::optional<Line> next();
     /// True when the next line's keyword is `keyword` (case-sensitive).
     bool next_is(std::string_view keyword);
     /// Consumes a line with this keyword, or fails: "expected NAME, found AME".
@@ -78,7 +78,7 @@ public:
     /// Consumes a line whose keyword is one of `keywords`, or fails naming them all.
     Line expect_one_of(std::initializer_list<std::string_view> keywords);
     /// Consumes the line if its keyword matches.
-    std::optional<Line> accept(std::string_view keyword);
+    [[nodiscard]] std::optional<Line> accept(std::string_view keyword);
     /// Requires that the EOF line is next: "expected EOF, found X".
     void expect_end();
     /// Line number of the EOF line (or of the last line when truncated).
@@ -119,7 +119,7 @@ private:
 CHIMERA_API std::vector<std::string> split_words(std::string_view s);
 
 /// Whole-token number parsing shared by every reader; nullopt when malformed.
-CHIMERA_API std::optional<double> parse_double(std::string_view token) noexcept;
-CHIMERA_API std::optional<std::int64_t> parse_int(std::string_view token) noexcept;
+[[nodiscard]] CHIMERA_API std::optional<double> parse_double(std::string_view token) noexcept;
+[[nodiscard]] CHIMERA_API std::optional<std::int64_t> parse_int(std::string_view token) noexcept;
 
 }  // namespace chimera::cfg

@@ -145,7 +145,7 @@ CHIMERA_API void invoke(int code, std::string_view module, std::string_view mess
 /// here. Returns true when body completed, false when it was left by a jump.
 /// Marks nest; a jump goes to the innermost mark with that id.
 template <typename F>
-bool mark(int id, F&& body);
+[[nodiscard]] bool mark(int id, F&& body);
 
 /// Debug mode: the default handler prints FILE:LINE with the message (§8.2).
 /// Initially on in builds without NDEBUG and when CHIMERA_ERR_DEBUG=1.

@@ -202,14 +202,14 @@ public:
     /// devices: reads up to `count` bytes, returns the number read.
     /// Negative errno on failure; 0 when nothing new is available and the
     /// WAIT flag says not to block.
-    virtual long read(void* buf, std::size_t count) noexcept = 0;
+    [[nodiscard]] virtual long read(void* buf, std::size_t count) noexcept = 0;
     /// Port devices: writes one element per opened port from `buf`
     /// (`count` >= nports()). Streams and memory: `count` bytes.
-    virtual long write(const void* buf, std::size_t count) noexcept = 0;
+    [[nodiscard]] virtual long write(const void* buf, std::size_t count) noexcept = 0;
     /// Status command (PORTSIZE, PORTNUM, FLAGS are common to all classes).
-    long status(Status cmd, long arg = 0) noexcept;
-    long status(Status cmd, void* arg) noexcept;
-    long control(Control cmd, long arg) noexcept;
+    [[nodiscard]] long status(Status cmd, long arg = 0) noexcept;
+    [[nodiscard]] long status(Status cmd, void* arg) noexcept;
+    [[nodiscard]] long control(Control cmd, long arg) noexcept;
     /// MEM only: the mapped block (nullptr for other classes).
     virtual void* mmap() noexcept { return nullptr; }
 

@@ -93,7 +93,7 @@ class TaskCore;
 }
 
 /// Return code of every module method (the thesis's I_OK, SBS_OFF, SBS_CONTINUE, SBS_ERROR).
-enum class Result : int {
+enum class [[nodiscard]] Result : int {
     OK = 0,        ///< success
     OFF = 1,       ///< on(): cannot start yet, stay OFF; error()/clear(): go to OFF;
                    ///< cycle(): goal reached, turn myself off (SIG_OFF to the master)

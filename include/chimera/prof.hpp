@@ -241,7 +241,7 @@ struct CHIMERA_API Histogram {
     /// smallest bucket upper edge t with Ψ(t) >= H, in ns. nullopt when
     /// the histogram is empty or H is reached only in the overflow bucket
     /// (the profile does not bound E).
-    std::optional<std::uint64_t> effective_ns(double hardness) const noexcept;
+    [[nodiscard]] std::optional<std::uint64_t> effective_ns(double hardness) const noexcept;
 };
 
 /// One task's status: the §4.4.1 fields plus what the Linux port adds.
@@ -456,12 +456,12 @@ public:
     /// Attaches by subsystem name; throws ipc::SegmentError if absent.
     static StatusReader attach(std::string_view subsystem);
     /// Like attach(), nullopt if the segment does not exist (yet).
-    static std::optional<StatusReader> try_attach(std::string_view subsystem);
+    [[nodiscard]] static std::optional<StatusReader> try_attach(std::string_view subsystem);
 
     std::vector<TaskStatus> snapshot() const;
     std::vector<TaskStatus> snapshot(std::int64_t now_ns) const;
     /// Raw consistent copy of one slot (nullopt if free).
-    std::optional<RawSlot> raw(std::uint32_t index) const;
+    [[nodiscard]] std::optional<RawSlot> raw(std::uint32_t index) const;
     RtpuEpoch rtpu_epoch(int rtpu) const;
 
     /// The master's status command: snapshot, then reset every RTPU.

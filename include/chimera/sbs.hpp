@@ -137,7 +137,7 @@ struct ReconfigItem {
 
 /// Result of reconfig(): ok, or the index of the item that failed and why.
 /// Items before `failed` were applied; it and those after it were not sent.
-struct ReconfigResult {
+struct [[nodiscard]] ReconfigResult {
     bool ok = true;
     std::size_t processed = 0;  ///< items applied
     std::size_t failed = 0;     ///< index of the failing item (when !ok)
@@ -230,7 +230,7 @@ public:
     TaskId spawn_combined(const std::vector<std::string>& rmod_paths, std::string_view rtpu = {});
 
     /// Looks a task up by rmod name (the latest one created with that name).
-    std::optional<TaskId> find(std::string_view rmod) const;
+    [[nodiscard]] std::optional<TaskId> find(std::string_view rmod) const;
 
     /// sbsControl: applies one signal and waits until the task has done it.
     /// Throws Refused when invalid for the state, VerifyError when turning the
@@ -285,7 +285,7 @@ public:
     /// sbsSigWait: the oldest caught signal whose bit is in `wanted` (from
     /// `from` only, if given); caught signals that do not match are discarded.
     /// nullopt on timeout (a negative timeout waits forever).
-    std::optional<SignalEvent> sig_wait(std::uint32_t wanted = sig::ALL, std::optional<TaskId> from = {},
+    [[nodiscard]] std::optional<SignalEvent> sig_wait(std::uint32_t wanted = sig::ALL, std::optional<TaskId> from = {},
                                         std::chrono::nanoseconds timeout = std::chrono::nanoseconds(-1));
     /// sbsSigSend from the master side (for drivers and tests).
     void sig_send(TaskId from, int signal);

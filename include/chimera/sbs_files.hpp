@@ -98,7 +98,7 @@ public:
     bool has(std::string_view key) const noexcept { return find(key) != nullptr; }
     const Entry* find(std::string_view key) const noexcept;
     /// All values of `key`, joined by one space; nullopt when absent.
-    std::optional<std::string> text(std::string_view key) const;
+    [[nodiscard]] std::optional<std::string> text(std::string_view key) const;
     /// The values of `key` as numbers. Throws std::invalid_argument naming the
     /// file, line and key when absent or not numeric.
     std::vector<double> numbers(std::string_view key) const;

@@ -267,23 +267,23 @@ public:
 
     // Buffered commands: 0, or -EINVAL (bad handle, range, args), -ENOSPC
     // (command buffer full: wait() and issue again), -EPIPE (after finish).
-    int call(Handle routine, const Args& args = {}) noexcept;
+    [[nodiscard]] int call(Handle routine, const Args& args = {}) noexcept;
     /// XFER task → SPP: `bytes` from `src` into the variable at `offset`.
     /// `src` must stay valid until the command has run (wait()).
-    int write(Handle variable, const void* src, std::size_t bytes, std::size_t offset = 0) noexcept;
+    [[nodiscard]] int write(Handle variable, const void* src, std::size_t bytes, std::size_t offset = 0) noexcept;
     /// XFER SPP → task.
-    int read(Handle variable, void* dst, std::size_t bytes, std::size_t offset = 0) noexcept;
+    [[nodiscard]] int read(Handle variable, void* dst, std::size_t bytes, std::size_t offset = 0) noexcept;
     /// Issues WAKEUP and blocks until the executive reaches it: every command
     /// issued before has run. 0, or -EPIPE after finish. The buffer keeps an
     /// entry for the WAKEUP beyond its QUEUE commands, so a full buffer is no
     /// obstacle and wait() sleeps at once.
-    int wait() noexcept;
+    [[nodiscard]] int wait() noexcept;
     /// Exclusive access for a job; blocks until granted (priority order). A
     /// task locking again after release() waits for that release to run, and
     /// for any higher-priority locker it hands the SPP to.
     void lock();
     /// Buffered end of the job: the lock passes on when the executive reaches it.
-    int release() noexcept;
+    [[nodiscard]] int release() noexcept;
     /// Waits for the commands issued, releases a held lock, detaches.
     void finish() noexcept;
 

@@ -136,7 +136,7 @@ struct CHIMERA_API TableSpec {
     std::vector<VarSpec> vars;
 
     /// Index of `name`, or nullopt.
-    std::optional<std::size_t> find(std::string_view name) const noexcept;
+    [[nodiscard]] std::optional<std::size_t> find(std::string_view name) const noexcept;
 };
 
 /// Parses a .svar file; throws cfg::ParseError ("FILE:LINE: message").
@@ -154,7 +154,7 @@ public:
 };
 
 /// Result of a cycle-path operation.
-enum class Status : int {
+enum class [[nodiscard]] Status : int {
     ok = 0,       ///< done
     recovered,    ///< done; the lock was taken over from a dead holder, and its
                   ///< interrupted write (if any) was rolled back first
@@ -264,7 +264,7 @@ public:
     std::string_view source_file() const noexcept;
 
     std::size_t size() const noexcept;  ///< number of variables
-    std::optional<std::size_t> find(std::string_view name) const noexcept;
+    [[nodiscard]] std::optional<std::size_t> find(std::string_view name) const noexcept;
     /// Index of `name`; throws Error "table T has no variable X".
     std::size_t index_of(std::string_view name) const;
     VarInfo var(std::size_t index) const noexcept;
@@ -372,7 +372,7 @@ public:
     /// Untyped translate (any type).
     void* translate_any(std::string_view name);
     /// Global index of a translated pointer, or nullopt.
-    std::optional<std::size_t> index_of(const void* local) const noexcept;
+    [[nodiscard]] std::optional<std::size_t> index_of(const void* local) const noexcept;
 
     // --- single variable (svarRead / svarWrite, and the Ix variants) -------
     /// Global → local for the variable at `local` (a translated pointer).

@@ -63,7 +63,7 @@
 namespace chimera::xm {
 
 /// Result of a hot-path operation (express mail, SEM, MSG).
-enum class Status : int {
+enum class [[nodiscard]] Status : int {
     ok = 0,
     would_block,     ///< non-blocking call: queue full/empty, semaphore taken, no message
     timed_out,       ///< the timeout passed
@@ -329,7 +329,7 @@ inline ipc::LockStatus lock(ipc::LockWord& word, std::int64_t timeout_ns) noexce
     options.timeout_ns = timeout_ns;
     return ipc::lock(word, options);
 }
-inline bool unlock(ipc::LockWord& word) noexcept { return ipc::unlock(word); }
+[[nodiscard]] inline bool unlock(ipc::LockWord& word) noexcept { return ipc::unlock(word); }
 
 /// xmLockFix (§5.3.2): the two-step lock for a peer that has no atomic
 /// test-and-set. Step 1 picks one contender per side (RTPUs with TAS on
@@ -346,7 +346,7 @@ struct CHIMERA_API LockFix {
     std::atomic<std::uint32_t> flag[2] = {0, 0};
 
     /// Returns false when `timeout_ns` (negative: no limit) passed; nothing held then.
-    bool lock(Who who, std::int64_t timeout_ns = -1) noexcept;
+    [[nodiscard]] bool lock(Who who, std::int64_t timeout_ns = -1) noexcept;
     void unlock(Who who) noexcept;
 };
 static_assert(sizeof(LockFix) == 20);

@@ -407,9 +407,10 @@ int Spp::release() noexcept {
 void Spp::finish() noexcept {
     if (finished_) return;
     if (locked_) {
-        while (release() == -ENOSPC) wait();
+        // wait() fails only once finished (-EPIPE), which finish() sets below.
+        while (release() == -ENOSPC) (void)wait();
     }
-    wait();
+    (void)wait();  // drains this task's commands
     finished_ = true;
     Processor::Slot& s = *proc_->slots_[static_cast<std::size_t>(slot_)];
     std::lock_guard<std::mutex> lk(proc_->lock_mutex_);

@@ -303,7 +303,9 @@ void Rtpu::handle_request(const void* request) {
     }
     try {
         Peer& back = mailbox_.peer(get(req.reply_rtpu));
-        mailbox_.write(back, &reply, sizeof reply, 100'000'000);
+        // Not delivered (the requester died or its ring stayed full): it
+        // times out on its own (request_timeout_ns) and says so.
+        (void)mailbox_.write(back, &reply, sizeof reply, 100'000'000);
     } catch (const Error&) {
         // The requester is gone: nobody to answer.
     }

@@ -22,7 +22,7 @@ namespace chimera::ipc {
 /// One broken bound. `field` is static text ("ring record length"), so
 /// recording a fault allocates nothing; `index` says which element of an
 /// array (ring, waiter, header), -1 for none.
-struct Fault {
+struct [[nodiscard]] Fault {
     const char* field = nullptr;  ///< nullptr: no fault
     std::int64_t index = -1;
     std::uint64_t value = 0;      ///< what was found

@@ -42,7 +42,7 @@ struct alignas(64) LockWord {
 static_assert(sizeof(LockWord) == 64);
 static_assert(std::atomic<std::uint64_t>::is_always_lock_free);
 
-enum class LockStatus : int {
+enum class [[nodiscard]] LockStatus : int {
     acquired = 0,  ///< the caller holds the lock
     recovered,     ///< the caller holds the lock, taken over from a dead holder
     forced,        ///< the caller holds the lock, reset blindly after a timeout
@@ -128,7 +128,7 @@ inline LockStatus try_lock(LockWord& lock) noexcept {
 /// (self_owner_id(), never 0) at hand: one CAS from free to `self`. False, and
 /// nothing changed, when the lock was not free; lock() does the rest then
 /// (already held, spin, poll, recover, time out).
-inline bool lock_if_free(LockWord& lock, std::uint64_t self) noexcept {
+[[nodiscard]] inline bool lock_if_free(LockWord& lock, std::uint64_t self) noexcept {
     std::uint64_t expected = 0;
     return lock.owner.compare_exchange_strong(expected, self, std::memory_order_acquire,
                                               std::memory_order_relaxed);
@@ -155,13 +155,13 @@ inline LockStatus lock(LockWord& lock, const LockOptions& options = {}) noexcept
 /// check and the store, the store frees the new holder's lock, and that holder
 /// learns it when its own unlock() returns false. The reset is reported as
 /// forced in any case, and forced already means "data may be torn".
-inline bool unlock(LockWord& lock, std::uint64_t self) noexcept {
+[[nodiscard]] inline bool unlock(LockWord& lock, std::uint64_t self) noexcept {
     if (lock.owner.load(std::memory_order_relaxed) != self) return false;
     lock.owner.store(0, std::memory_order_release);
     return true;
 }
 /// The same, `self` being the caller's owner word (self_owner_id()).
-inline bool unlock(LockWord& lock) noexcept { return unlock(lock, self_owner_id()); }
+[[nodiscard]] inline bool unlock(LockWord& lock) noexcept { return unlock(lock, self_owner_id()); }
 
 /// Takes the lock over from a holder known to be dead (CAS from its word);
 /// counts and reports the recovery. Exposed for services that find a dead
@@ -174,7 +174,9 @@ public:
     explicit LockGuard(LockWord& lock, const LockOptions& options = {}) noexcept
         : lock_(lock), status_(ipc::lock(lock, options)) {}
     ~LockGuard() {
-        if (holds(status_)) unlock(lock_);
+        // A destructor cannot report a lock reset under its holder (possible only
+        // with reset_on_timeout): code that must know calls unlock() itself.
+        if (holds(status_)) (void)unlock(lock_);
     }
     LockGuard(const LockGuard&) = delete;
     LockGuard& operator=(const LockGuard&) = delete;

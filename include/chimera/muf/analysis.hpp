@@ -27,7 +27,7 @@ enum class Policy { rm, edf, muf };
 
 CHIMERA_API std::string_view to_string(Policy policy) noexcept;
 /// "rm", "edf", "muf" (also upper case, as .sbs files write them).
-CHIMERA_API std::optional<Policy> parse_policy(std::string_view text) noexcept;
+[[nodiscard]] CHIMERA_API std::optional<Policy> parse_policy(std::string_view text) noexcept;
 
 /// Criticality levels of §6.5.2 (1 lowest .. 6 highest).
 namespace crit {

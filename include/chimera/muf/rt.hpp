@@ -72,7 +72,7 @@ namespace chimera::muf {
 
 enum class Backend { fifo, deadline, other };
 CHIMERA_API std::string_view to_string(Backend backend) noexcept;
-CHIMERA_API std::optional<Backend> parse_backend(std::string_view text) noexcept;
+[[nodiscard]] CHIMERA_API std::optional<Backend> parse_backend(std::string_view text) noexcept;
 
 /// The three timing failures, numbered as in the thesis.
 enum class Failure : int { deadline = 1, maxexec = 2, minexec = 3 };
