@@ -7,6 +7,6 @@
 
 extern "C" int LLVMFuzzerTestOneInput(const std::uint8_t* data, std::size_t size) {
     const chimera::fuzz::Image image(data, size);
-    chimera::fuzz::checked_fault("xm::validate_mailbox", image, chimera::xm::validate_mailbox);
+    (void)chimera::fuzz::checked_fault("xm::validate_mailbox", image, chimera::xm::validate_mailbox);  // its checks are the harness; the fault itself is not needed here
     return 0;
 }

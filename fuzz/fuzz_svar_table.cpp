@@ -8,6 +8,6 @@
 
 extern "C" int LLVMFuzzerTestOneInput(const std::uint8_t* data, std::size_t size) {
     const chimera::fuzz::Image image(data, size);
-    chimera::fuzz::checked_fault("svar::validate_table", image, chimera::svar::validate_table);
+    (void)chimera::fuzz::checked_fault("svar::validate_table", image, chimera::svar::validate_table);  // its checks are the harness; the fault itself is not needed here
     return 0;
 }

@@ -126,9 +126,11 @@ void triple_buffer(Writer& out) {
     tbuf::Tbuf reader = tbuf::Tbuf::attach_in(m.get(), size);
     char item[24] = "item";
     out.save("tbuf", "empty", m.get(), size);
-    for (int i = 0; i < 3; ++i) writer.write(item, 100 + i);
-    reader.read(item);
-    writer.write(item, 200);
+    bool ok = true;
+    for (int i = 0; i < 3; ++i) ok = ok && writer.write(item, 100 + i) != tbuf::kCorrupt;
+    ok = ok && reader.read(item).status == tbuf::ReadStatus::fresh;
+    ok = ok && writer.write(item, 200) != tbuf::kCorrupt;
+    if (!ok) throw std::runtime_error("make_seeds: the TBUF seed was not written and read as intended");
     out.save("tbuf", "written-read-written", m.get(), size);
 }
 

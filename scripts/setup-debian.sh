@@ -17,6 +17,7 @@ packages=(
   help2man                                       # the programs' man pages, from their --help
   strace                                         # the no-system-call check of the SVAR hot path (test)
   clang libclang-rt-14-dev                       # scripts/fuzz.sh: libFuzzer (-fsanitize=fuzzer needs the runtime, only recommended by clang)
+  abigail-tools                                  # abidw/abidiff: the ABI check against abi/libchimera.abi (tests/abi)
 )
 missing=()
 for p in "${packages[@]}"; do

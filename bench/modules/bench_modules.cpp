@@ -74,7 +74,8 @@ public:
     }
     ~Bench() {
         for (auto& t : tasks_)
-            for (auto& o : t->objects) o.module->kill(*o.view);
+            for (auto& o : t->objects)
+                if (o.module->kill(*o.view) != Result::OK) std::fprintf(stderr, "%s: kill failed\n", o.rmod.name.c_str());
         tasks_.clear();
         core_->table.destroy();
     }
@@ -85,14 +86,17 @@ public:
         for (const auto& p : rmods) files.push_back(read_rmod(p));
         auto t = std::make_unique<TaskCore>(*core_, static_cast<int>(tasks_.size()), core_->file.rtpus[0],
                                             std::move(files));
-        t->local->copy_from_global(t->set_in_consts);
+        auto copied = [](svar::Status s, const char* what) {
+            if (!svar::transferred(s)) throw std::runtime_error(std::string(what) + ": " + svar::to_string(s));
+        };
+        copied(t->local->copy_from_global(t->set_in_consts), "in-consts");
         for (auto& o : t->objects)
             if (o.module->init(*o.view) != Result::OK) throw std::runtime_error(o.rmod.name + ": init failed");
-        t->local->copy_to_global(t->set_out_consts);
-        t->local->copy_from_global(t->set_on);
+        copied(t->local->copy_to_global(t->set_out_consts), "out-consts");
+        copied(t->local->copy_from_global(t->set_on), "on-vars");
         for (auto& o : t->objects)
             if (o.module->on(*o.view) != Result::OK) throw std::runtime_error(o.rmod.name + ": on failed");
-        t->local->copy_to_global(t->set_out_vars);
+        copied(t->local->copy_to_global(t->set_out_vars), "out-vars");
         tasks_.push_back(std::move(t));
         return *tasks_.back();
     }
@@ -109,9 +113,15 @@ Bench& bench() {
 
 void run_cycle(benchmark::State& state, TaskCore& t, bool with_transfer) {
     for (auto _ : state) {
-        if (with_transfer) t.local->copy_from_global(t.set_in_vars);
+        if (with_transfer && !svar::transferred(t.local->copy_from_global(t.set_in_vars))) [[unlikely]] {
+            state.SkipWithError("in-vars copy failed");
+            break;
+        }
         for (auto& o : t.objects) benchmark::DoNotOptimize(o.module->cycle(*o.view));
-        if (with_transfer) t.local->copy_to_global(t.set_out_vars);
+        if (with_transfer && !svar::transferred(t.local->copy_to_global(t.set_out_vars))) [[unlikely]] {
+            state.SkipWithError("out-vars copy failed");
+            break;
+        }
         benchmark::ClobberMemory();
     }
 }

@@ -240,7 +240,10 @@ void BM_TableLockUnlock(benchmark::State& state) {
             break;
         }
         benchmark::ClobberMemory();
-        chimera::ipc::unlock(lock);
+        if (!chimera::ipc::unlock(lock)) [[unlikely]] {
+            state.SkipWithError("table lock lost");
+            break;
+        }
     }
 }
 
@@ -341,10 +344,11 @@ void BM_TbufWriteRead(benchmark::State& state) {
     Buffers b(bytes);
     std::int64_t stamp = 0;
     for (auto _ : state) {
-        if (stamped)
-            tb.write(b.s(0), ++stamp);
-        else
-            tb.write(b.s(0));
+        const std::uint64_t counter = stamped ? tb.write(b.s(0), ++stamp) : tb.write(b.s(0));
+        if (counter == chimera::tbuf::kCorrupt) [[unlikely]] {
+            state.SkipWithError("tbuf write refused");
+            break;
+        }
         const chimera::tbuf::ReadResult r = tb.read(b.d(0));
         benchmark::DoNotOptimize(r);
         benchmark::DoNotOptimize(b.dst.data());

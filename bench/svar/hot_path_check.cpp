@@ -72,7 +72,7 @@ int main(int argc, char** argv) {
         failures += local.read_ix(tau_ix) != svar::Status::ok;
         failures += table.read(tau_ix, tool_buffer) != svar::Status::ok;
         item[0] = static_cast<float>(i);
-        tb.write(item);
+        failures += tb.write(item) == tbuf::kCorrupt;
         failures += tb.read(got).status != tbuf::ReadStatus::fresh;
     };
     round(0);

@@ -230,7 +230,7 @@ void SemPV(benchmark::State& state) {
     sem::Semaphore s = sem::Semaphore::over(memory, sem::Kind::binary, 1, "bench:s");
     for (auto _ : state) {
         if (s.p(0) != Status::ok) state.SkipWithError("semP failed");
-        s.v();
+        if (s.v() != Status::ok) state.SkipWithError("semV failed");
     }
 }
 
@@ -265,13 +265,16 @@ void SemPingPong(benchmark::State& state) {
         for (;;) {
             if (ping.p(kPartnerTimeout) != Status::ok) _exit(1);
             if (sh->stop.load()) _exit(0);
-            pong.v();
+            if (pong.v() != Status::ok) _exit(1);
         }
     }
     RoundTrips trips;
     trips.start();
     for (auto _ : state) {
-        ping.v();
+        if (ping.v() != Status::ok) {
+            state.SkipWithError("semV failed");
+            break;
+        }
         if (pong.p(kPartnerTimeout) != Status::ok) {
             state.SkipWithError("semP timed out");
             break;
@@ -279,7 +282,7 @@ void SemPingPong(benchmark::State& state) {
         trips.mark();
     }
     sh->stop.store(1);
-    ping.v();
+    if (ping.v() != Status::ok) kill(child, SIGKILL);  // the partner never sees the stop: reap() reports it
     trips.report(state);
     reap(state, child);
 }
@@ -307,7 +310,10 @@ void MsgPingPong(benchmark::State& state) {
     RoundTrips trips;
     trips.start();
     for (auto _ : state) {
-        request.send(out.data(), size, 0, 0, kPartnerTimeout);
+        if (request.send(out.data(), size, 0, 0, kPartnerTimeout) != Status::ok) {
+            state.SkipWithError("msgSend timed out");
+            break;
+        }
         msg::Info info;
         if (reply.receive(in.data(), in.size(), &info, kPartnerTimeout) != Status::ok) {
             state.SkipWithError("msgReceive timed out");
@@ -315,7 +321,7 @@ void MsgPingPong(benchmark::State& state) {
         }
         trips.mark();
     }
-    request.send(out.data(), 0, 1, 0, kPartnerTimeout);
+    if (request.send(out.data(), 0, 1, 0, kPartnerTimeout) != Status::ok) kill(child, SIGKILL);  // see reap()
     trips.report(state);
     reap(state, child);
     state.SetBytesProcessed(static_cast<std::int64_t>(state.iterations() * size * 2));
@@ -391,7 +397,10 @@ void MsgBusyPingPong(benchmark::State& state) {
     RoundTrips trips;
     trips.start();
     for (auto _ : state) {
-        request.send(out.data(), size, 0, 0, 0);
+        if (request.send(out.data(), size, 0, 0, 0) != Status::ok) {
+            state.SkipWithError("msgSend refused");
+            break;
+        }
         msg::Info info;
         if (poll(reply, info) != Status::ok) {
             state.SkipWithError("msgReceive polled in vain");
@@ -399,7 +408,7 @@ void MsgBusyPingPong(benchmark::State& state) {
         }
         trips.mark();
     }
-    request.send(out.data(), 0, 1, 0, kPartnerTimeout);
+    if (request.send(out.data(), 0, 1, 0, kPartnerTimeout) != Status::ok) kill(child, SIGKILL);  // see reap()
     trips.report(state);
     reap(state, child);
     state.SetBytesProcessed(static_cast<std::int64_t>(state.iterations() * size * 2));

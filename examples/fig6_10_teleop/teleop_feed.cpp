@@ -121,6 +121,13 @@ Options parse(int argc, char** argv) {
     return o;
 }
 
+// A write the buffer refused (its shared state word is damaged) stops the feed.
+bool written(const chimera::tbuf::Tbuf& feed, std::uint64_t counter) {
+    if (counter != chimera::tbuf::kCorrupt) return true;
+    std::fprintf(stderr, "teleop_feed: %s\n", feed.fault_message().c_str());
+    return false;
+}
+
 int sweep(const Options& o, chimera::tbuf::Tbuf& feed) {
     std::vector<double> q(o.ndof);
     const std::int64_t step_ns = static_cast<std::int64_t>(1e9 / o.rate);
@@ -131,7 +138,7 @@ int sweep(const Options& o, chimera::tbuf::Tbuf& feed) {
         std::this_thread::sleep_for(std::chrono::nanoseconds(at - chimera::ipc::now_ns()));
         const double s = std::sin(2 * std::numbers::pi * (static_cast<double>(k) / o.rate) / o.period);
         for (std::size_t j = 0; j < o.ndof; ++j) q[j] = o.base[j] + o.amp[j] * s;
-        feed.write(q.data());
+        if (!written(feed, feed.write(q.data()))) return 1;
     }
     std::printf("teleop_feed: %lld set-points written to %s, last [", static_cast<long long>(count + 1),
                 chimera::teleop::feed_segment(o.name).c_str());
@@ -155,7 +162,7 @@ int from_stdin(const Options& o, chimera::tbuf::Tbuf& feed) {
             std::fprintf(stderr, "teleop_feed: stdin line %ld: expected %zu numbers (rad), skipped\n", line_no, o.ndof);
             continue;
         }
-        feed.write(q.data());
+        if (!written(feed, feed.write(q.data()))) return 1;
         ++sent;
     }
     std::printf("teleop_feed: %ld set-points written to %s\n", sent, chimera::teleop::feed_segment(o.name).c_str());

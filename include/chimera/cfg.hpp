@@ -12,6 +12,8 @@
 // Every error is a ParseError whose what() reads `FILE:LINE: message`.
 #pragma once
 
+#include "chimera/export.hpp"
+
 #include <cstdint>
 #include <initializer_list>
 #include <map>
@@ -24,7 +26,7 @@
 namespace chimera::cfg {
 
 /// An error in a configuration file; what() is "FILE:LINE: message".
-class ParseError : public std::runtime_error {
+class CHIMERA_API ParseError : public std::runtime_error {
 public:
     ParseError(std::string file, int line, std::string message);
     const std::string& file() const noexcept { return file_; }
@@ -53,7 +55,7 @@ inline constexpr std::uintmax_t kMaxFileBytes = 4u << 20;
 
 /// Reads a file line by line. Usage: a parser calls expect()/accept() in the
 /// order the format fixes, and finishes with expect_end().
-class Reader {
+class CHIMERA_API Reader {
 public:
     /// Reads the whole file; throws ParseError("FILE:0: cannot open ...").
     /// Only a regular file of at most kMaxFileBytes (a FIFO, a device such
@@ -68,7 +70,7 @@ public:
     /// line has been reached. Throws if the file ends without EOF.
     const Line* peek();
     /// Consumes and returns the next line; nullopt at EOF.
-    std::optional<Line> next();
+    [[nodiscard]] std::optional<Line> next();
     /// True when the next line's keyword is `keyword` (case-sensitive).
     bool next_is(std::string_view keyword);
     /// Consumes a line with this keyword, or fails: "expected NAME, found AME".
@@ -76,7 +78,7 @@ public:
     /// Consumes a line whose keyword is one of `keywords`, or fails naming them all.
     Line expect_one_of(std::initializer_list<std::string_view> keywords);
     /// Consumes the line if its keyword matches.
-    std::optional<Line> accept(std::string_view keyword);
+    [[nodiscard]] std::optional<Line> accept(std::string_view keyword);
     /// Requires that the EOF line is next: "expected EOF, found X".
     void expect_end();
     /// Line number of the EOF line (or of the last line when truncated).
@@ -114,10 +116,10 @@ private:
 };
 
 /// The words of `s`, split at blanks and tabs (the tokens of a line).
-std::vector<std::string> split_words(std::string_view s);
+CHIMERA_API std::vector<std::string> split_words(std::string_view s);
 
 /// Whole-token number parsing shared by every reader; nullopt when malformed.
-std::optional<double> parse_double(std::string_view token) noexcept;
-std::optional<std::int64_t> parse_int(std::string_view token) noexcept;
+[[nodiscard]] CHIMERA_API std::optional<double> parse_double(std::string_view token) noexcept;
+[[nodiscard]] CHIMERA_API std::optional<std::int64_t> parse_int(std::string_view token) noexcept;
 
 }  // namespace chimera::cfg

@@ -23,6 +23,8 @@
 // Installing allocates; invoke() on a `continue` path allocates nothing.
 #pragma once
 
+#include "chimera/export.hpp"
+
 #include <cstdint>
 #include <exception>
 #include <functional>
@@ -78,7 +80,7 @@ struct Match {
 
 /// Thrown by invoke() when the handler (or the default) aborts. Owns a copy of
 /// the error so it survives unwinding.
-class Aborted : public std::exception {
+class CHIMERA_API Aborted : public std::exception {
 public:
     Aborted(const Error& e);
     const char* what() const noexcept override { return text_.c_str(); }
@@ -98,7 +100,7 @@ private:
 };
 
 /// Thrown by invoke() for a jump-to-mark outcome; caught by err::mark().
-class MarkJump : public Aborted {
+class CHIMERA_API MarkJump : public Aborted {
 public:
     MarkJump(const Error& e, int mark_id) : Aborted(e), mark_(mark_id) {}
     int mark() const noexcept { return mark_; }
@@ -113,11 +115,11 @@ using HandlerId = std::uint64_t;
 /// Installs `handler` at the head of the calling thread's chain (it takes
 /// precedence over every handler installed before it). Per-code: set
 /// match.code; per-module: set match.module.
-HandlerId install(Match match, Handler handler);
+CHIMERA_API HandlerId install(Match match, Handler handler);
 /// Removes a handler installed by this thread; unknown ids are ignored.
-void remove(HandlerId id) noexcept;
+CHIMERA_API void remove(HandlerId id) noexcept;
 /// Number of handlers on the calling thread's chain (for tests and diagnostics).
-std::size_t chain_size() noexcept;
+CHIMERA_API std::size_t chain_size() noexcept;
 
 /// A handler for the lifetime of a C++ scope (the thesis's per-scope handler).
 class HandlerScope {
@@ -136,34 +138,34 @@ private:
 /// continue; otherwise throws Aborted or MarkJump. A jump to a mark that is not
 /// active on this thread becomes an abort (the message says so). An error
 /// raised from inside a handler goes straight to the default handler.
-void invoke(int code, std::string_view module, std::string_view message, const char* file = nullptr,
-            int line = 0);
+CHIMERA_API void invoke(int code, std::string_view module, std::string_view message, const char* file = nullptr,
+                        int line = 0);
 
 /// Runs `body` under a mark: a handler returning Outcome::jump(id) unwinds to
 /// here. Returns true when body completed, false when it was left by a jump.
 /// Marks nest; a jump goes to the innermost mark with that id.
 template <typename F>
-bool mark(int id, F&& body);
+[[nodiscard]] bool mark(int id, F&& body);
 
 /// Debug mode: the default handler prints FILE:LINE with the message (§8.2).
 /// Initially on in builds without NDEBUG and when CHIMERA_ERR_DEBUG=1.
-void set_debug(bool on) noexcept;
-bool debug() noexcept;
+CHIMERA_API void set_debug(bool on) noexcept;
+CHIMERA_API bool debug() noexcept;
 
 /// Where the default handler prints (stderr when unset). Process-wide; set it
 /// before starting tasks.
-void set_printer(std::function<void(std::string_view line)> printer);
+CHIMERA_API void set_printer(std::function<void(std::string_view line)> printer);
 
 /// The default handler's text: "ERROR> module: message (code N)" plus
 /// " [file:line]" when `with_location`.
-std::string format(const Error& e, bool with_location);
+CHIMERA_API std::string format(const Error& e, bool with_location);
 
 /// The default handler itself: prints, then returns Outcome::abort().
-Outcome default_handler(const Error& e);
+CHIMERA_API Outcome default_handler(const Error& e);
 
 namespace detail {
-void push_mark(int id) noexcept;
-void pop_mark() noexcept;
+CHIMERA_API void push_mark(int id) noexcept;
+CHIMERA_API void pop_mark() noexcept;
 struct MarkGuard {
     explicit MarkGuard(int id) noexcept { push_mark(id); }
     ~MarkGuard() { pop_mark(); }

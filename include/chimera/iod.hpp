@@ -43,6 +43,8 @@
 // a negative errno on failure, as the thesis's time-critical methods do.
 #pragma once
 
+#include "chimera/export.hpp"
+
 #include <cstddef>
 #include <cstdint>
 #include <memory>
@@ -81,7 +83,7 @@ inline constexpr unsigned kSizeMask = BYTE | WORD | LONG;
 
 /// Device classes of §7.2.
 enum class DeviceClass { SIO, PIO, ADC, DAC, RCB, SBS, MEM };
-std::string_view class_name(DeviceClass c) noexcept;
+CHIMERA_API std::string_view class_name(DeviceClass c) noexcept;
 
 // --- status and control commands -----------------------------------------------
 enum class Status : int {
@@ -137,7 +139,7 @@ inline constexpr std::uint8_t SIO_MARK = 3;
 inline constexpr std::uint8_t SIO_SPACE = 4;
 
 /// Set-up error (open, database); what() names the device or FILE:LINE.
-class Error : public std::runtime_error {
+class CHIMERA_API Error : public std::runtime_error {
 public:
     explicit Error(const std::string& message) : std::runtime_error(message) {}
 };
@@ -151,7 +153,7 @@ struct FrameSpec {
     int first_port = 0;   ///< logical number of its first port
 };
 
-struct DeviceSpec {
+struct CHIMERA_API DeviceSpec {
     std::string name;
     DeviceClass device_class = DeviceClass::PIO;
     std::string driver;   ///< gpio, socketcan, termios, shm
@@ -174,7 +176,7 @@ struct DeviceSpec {
     int port_bits(int port) const noexcept;
 };
 
-class Database {
+class CHIMERA_API Database {
 public:
     /// Parses a database file; throws iod::Error "FILE:LINE: message".
     static Database load(const std::string& path);
@@ -188,7 +190,7 @@ private:
 };
 
 // --- the IOD object ------------------------------------------------------------------
-class Device {
+class CHIMERA_API Device {
 public:
     virtual ~Device();
     Device(const Device&) = delete;
@@ -200,14 +202,14 @@ public:
     /// devices: reads up to `count` bytes, returns the number read.
     /// Negative errno on failure; 0 when nothing new is available and the
     /// WAIT flag says not to block.
-    virtual long read(void* buf, std::size_t count) noexcept = 0;
+    [[nodiscard]] virtual long read(void* buf, std::size_t count) noexcept = 0;
     /// Port devices: writes one element per opened port from `buf`
     /// (`count` >= nports()). Streams and memory: `count` bytes.
-    virtual long write(const void* buf, std::size_t count) noexcept = 0;
+    [[nodiscard]] virtual long write(const void* buf, std::size_t count) noexcept = 0;
     /// Status command (PORTSIZE, PORTNUM, FLAGS are common to all classes).
-    long status(Status cmd, long arg = 0) noexcept;
-    long status(Status cmd, void* arg) noexcept;
-    long control(Control cmd, long arg) noexcept;
+    [[nodiscard]] long status(Status cmd, long arg = 0) noexcept;
+    [[nodiscard]] long status(Status cmd, void* arg) noexcept;
+    [[nodiscard]] long control(Control cmd, long arg) noexcept;
     /// MEM only: the mapped block (nullptr for other classes).
     virtual void* mmap() noexcept { return nullptr; }
 
@@ -253,16 +255,16 @@ private:
 /// requested, so an output never shows any other value first (without it they
 /// come up at 0, which is not the safe state of an active-low output). An
 /// initial buffer for any other device or direction is refused.
-std::unique_ptr<Device> open(const Database& db, std::string_view name, int start, int end,
-                             unsigned flags, const void* initial = nullptr);
+CHIMERA_API std::unique_ptr<Device> open(const Database& db, std::string_view name, int start, int end,
+                                         unsigned flags, const void* initial = nullptr);
 
 /// Value conversions of §7.2.1, exposed for tests and SAI modules.
 /// Port value (port_bits wide) → element (elem_bits wide).
-std::uint32_t convert_in(std::uint32_t raw, int port_bits, int elem_bits, unsigned flags) noexcept;
+CHIMERA_API std::uint32_t convert_in(std::uint32_t raw, int port_bits, int elem_bits, unsigned flags) noexcept;
 /// Element value (elem_bits wide) → port value (port_bits wide).
-std::uint32_t convert_out(std::uint32_t value, int elem_bits, int port_bits, unsigned flags) noexcept;
+CHIMERA_API std::uint32_t convert_out(std::uint32_t value, int elem_bits, int port_bits, unsigned flags) noexcept;
 
 /// Directory of the per-device lock files (default /dev/shm; CHIMERA_IOD_LOCKDIR).
-std::string lock_directory();
+CHIMERA_API std::string lock_directory();
 
 }  // namespace chimera::iod

@@ -83,6 +83,8 @@
 // that raises an error is not abandoned once its error handling has begun.
 #pragma once
 
+#include "chimera/export.hpp"
+
 #include <chimera/err.hpp>
 #include <chimera/muf/rt.hpp>
 #include <chimera/sbs_files.hpp>
@@ -104,7 +106,7 @@ class TaskCore;
 }
 
 /// Return code of every module method (the thesis's I_OK, SBS_OFF, SBS_CONTINUE, SBS_ERROR).
-enum class Result : int {
+enum class [[nodiscard]] Result : int {
     OK = 0,        ///< success
     OFF = 1,       ///< on(): cannot start yet, stay OFF; error()/clear(): go to OFF;
                    ///< cycle(): goal reached, turn myself off (SIG_OFF to the master)
@@ -114,8 +116,8 @@ enum class Result : int {
 
 /// Task states of Figure 3.10.
 enum class State : std::uint8_t { NOT_CREATED = 0, OFF = 1, ON = 2, ERROR = 3 };
-std::string_view to_string(State s) noexcept;   ///< "NOT-CREATED", "OFF", "ON", "ERROR"
-std::string_view to_string(Result r) noexcept;  ///< "OK", "OFF", "CONTINUE", "ERROR"
+CHIMERA_API std::string_view to_string(State s) noexcept;   ///< "NOT-CREATED", "OFF", "ON", "ERROR"
+CHIMERA_API std::string_view to_string(Result r) noexcept;  ///< "OK", "OFF", "CONTINUE", "ERROR"
 
 /// SBS signals, task -> master (§4.5.3): 32 in all, a bitmap; bit n = 1u << n.
 namespace sig {
@@ -130,14 +132,14 @@ inline constexpr int USER = 7;      ///< first user-defined signal (USER .. 31)
 inline constexpr int COUNT = 32;
 inline constexpr std::uint32_t ALL = 0xffffffffu;
 constexpr std::uint32_t bit(int s) noexcept { return s >= 0 && s < COUNT ? (1u << s) : 0u; }
-std::string_view name(int s) noexcept;  ///< "OFF", ..., "USER7", ...; "" when out of range
+CHIMERA_API std::string_view name(int s) noexcept;  ///< "OFF", ..., "USER7", ...; "" when out of range
 }  // namespace sig
 
 /// The task as its module sees it (the thesis's sbsTask_t). Passed to every
 /// method; valid for the task's whole life. All fields are always available,
 /// whichever method runs. For a combined task (several objects, §3.8.1) each
 /// object gets its own view (its own rmod, aliases and LOCAL), sharing the task.
-class Task {
+class CHIMERA_API Task {
 public:
     // --- identity and configuration -------------------------------------
     std::string_view rmod() const noexcept;    ///< rmod name (file stem)
@@ -243,7 +245,7 @@ enum class LocalType : std::uint8_t {
     word,     ///< exactly one word (a file name, a mode)
     text,     ///< any words
 };
-std::string_view to_string(LocalType t) noexcept;  ///< "number", "numbers", ...
+CHIMERA_API std::string_view to_string(LocalType t) noexcept;  ///< "number", "numbers", ...
 
 /// An open end of a LocalKey range: {"Q0", LocalType::numbers, -unbounded, unbounded, ...}.
 inline constexpr double unbounded = std::numeric_limits<double>::infinity();
@@ -260,26 +262,26 @@ struct LocalKey {
 };
 
 /// The declaration in `keys` matching `key` (exact, else the longest `*` prefix); nullptr when none.
-const LocalKey* find_local_key(std::span<const LocalKey> keys, std::string_view key) noexcept;
+CHIMERA_API const LocalKey* find_local_key(std::span<const LocalKey> keys, std::string_view key) noexcept;
 /// Why `values` cannot be given to `key` at run time ("" when it can): unknown
 /// key, spawn-only key, wrong type or count, out of range. `module` names the module.
-std::string check_local_set(std::span<const LocalKey> keys, std::string_view module, std::string_view key,
-                            const std::vector<std::string>& values);
+CHIMERA_API std::string check_local_set(std::span<const LocalKey> keys, std::string_view module, std::string_view key,
+                                        const std::vector<std::string>& values);
 /// The LOCAL section of a .rmod against what its module declares, as spawn
 /// runs it before init() and `chimcfg check` with the module found on the
 /// module path: a key the module does not declare (a typo would be ignored),
 /// a value of the wrong type or count, a number that is not finite (inf, nan,
 /// 1e309) or outside [min, max]. Throws cfg::ParseError "FILE:LINE: LOCAL KEY:
 /// reason" for the first problem. A module that declares nothing takes any LOCAL.
-void check_local_section(std::span<const LocalKey> keys, std::string_view module, const LocalConfig& local);
+CHIMERA_API void check_local_section(std::span<const LocalKey> keys, std::string_view module, const LocalConfig& local);
 /// One line describing a declaration: "KP numbers [0, 1e+06] live — proportional gain".
-std::string describe(const LocalKey& k);
+CHIMERA_API std::string describe(const LocalKey& k);
 
 /// Base class of every control module. Every method has a default, so a module
 /// overrides only what it needs. Defaults: OK for init, reinit, on, cycle, off,
 /// kill, set, get, sync; error() returns ERROR (suspend, operator needed);
 /// clear() returns OFF (the operator's clear is trusted).
-class Module {
+class CHIMERA_API Module {
 public:
     virtual ~Module() = default;
 
@@ -325,7 +327,7 @@ inline constexpr std::uint32_t CHIMERA_MODULE_MAGIC = 0x43484d4dU;  // "CHMM"
 inline constexpr std::uint32_t CHIMERA_MODULE_ABI_VERSION = 3;  // 2: timing_failure, abortable; 3: local_keys
 
 /// Symbol name looked up for MODULE `name`: "chimera_module_<name>".
-std::string module_symbol(std::string_view name);
+CHIMERA_API std::string module_symbol(std::string_view name);
 
 }  // namespace chimera
 

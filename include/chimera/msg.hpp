@@ -45,6 +45,8 @@
 // is: a corrupt queue is not repaired behind its users' backs.
 #pragma once
 
+#include "chimera/export.hpp"
+
 #include <cstddef>
 #include <cstdint>
 #include <string>
@@ -135,13 +137,13 @@ struct Geometry {
 /// Checks the fixed part of a queue's image of `size` bytes (segment header,
 /// parameters, the offsets they imply), as attach() and bind() do: the first
 /// bound broken, or none. A pure function over the bytes.
-ipc::Fault validate_geometry(const void* image, std::size_t size) noexcept;
+CHIMERA_API ipc::Fault validate_geometry(const void* image, std::size_t size) noexcept;
 /// validate_geometry() and the structure of a queue at rest (no operation in
 /// progress): every list link and block chain inside the queue, no list
 /// longer than blknum, each message's size within its blocks, every waiter's
 /// handed message in range, the counts matching the lists. For fuzzers and
 /// check(); the operations check each link as they follow it.
-ipc::Fault validate(const void* image, std::size_t size) noexcept;
+CHIMERA_API ipc::Fault validate(const void* image, std::size_t size) noexcept;
 
 /// Counters of a queue.
 struct Stats {
@@ -155,7 +157,7 @@ struct Stats {
 };
 
 /// A mapping of one queue (msgAttach's result). Move-only.
-class Queue {
+class CHIMERA_API Queue {
 public:
     Queue() = default;
     Queue(Queue&&) noexcept;

@@ -62,6 +62,8 @@
 // constructor are set-up calls: they may allocate, lock and throw.
 #pragma once
 
+#include "chimera/export.hpp"
+
 #include <array>
 #include <atomic>
 #include <cstddef>
@@ -100,14 +102,14 @@ enum class TaskState : std::uint32_t {
     killing = 5,   ///< in kill
 };
 /// "NOT-CREATED", "OFF", "ON", "ERROR", "SPAWNING", "KILLING".
-const char* to_string(TaskState state) noexcept;
+CHIMERA_API const char* to_string(TaskState state) noexcept;
 
 /// How per-cycle CPU time is quantised.
 enum class Accounting : std::uint32_t {
     nanoseconds = 0,  ///< exact, the default
     half_tick = 1,    ///< the thesis's half-tick quantisation (§6.7)
 };
-const char* to_string(Accounting accounting) noexcept;
+CHIMERA_API const char* to_string(Accounting accounting) noexcept;
 
 /// Where a task's CPU time comes from (shown in the status; never silent).
 enum class CpuClock : std::uint32_t {
@@ -116,7 +118,7 @@ enum class CpuClock : std::uint32_t {
     thread_cputime = 2,   ///< fallback: CLOCK_THREAD_CPUTIME_ID at both ends (2 syscalls/cycle)
 };
 /// "none", "perf-page", "thread-cputime".
-const char* to_string(CpuClock clock) noexcept;
+CHIMERA_API const char* to_string(CpuClock clock) noexcept;
 
 /// Half-ticks for `cpu_ns` of CPU time with a tick of `tick_ns` (> 0): whole
 /// ticks count 2, a trailing partial tick counts 1 (§6.7).
@@ -227,7 +229,7 @@ static_assert(std::atomic<std::int64_t>::is_always_lock_free);
 
 /// Per-cycle CPU-time histogram: bucket i counts cycles with
 /// i*width <= c < (i+1)*width; the last bucket also holds everything above.
-struct Histogram {
+struct CHIMERA_API Histogram {
     std::uint64_t bucket_width_ns = 0;  ///< 0: off
     std::array<std::uint32_t, kHistogramBuckets> counts{};
 
@@ -239,7 +241,7 @@ struct Histogram {
     /// smallest bucket upper edge t with Ψ(t) >= H, in ns. nullopt when
     /// the histogram is empty or H is reached only in the overflow bucket
     /// (the profile does not bound E).
-    std::optional<std::uint64_t> effective_ns(double hardness) const noexcept;
+    [[nodiscard]] std::optional<std::uint64_t> effective_ns(double hardness) const noexcept;
 };
 
 /// One task's status: the §4.4.1 fields plus what the Linux port adds.
@@ -319,7 +321,7 @@ struct RtpuEpoch {
 
 /// The §4.4.1 / §6.7 derivation, a pure function (exact tests use it with a
 /// chosen `now_ns`). ptime = now − start (whole ticks in half-tick mode).
-TaskStatus derive(const RawSlot& raw, const RtpuEpoch& rtpu, std::int64_t now_ns);
+CHIMERA_API TaskStatus derive(const RawSlot& raw, const RtpuEpoch& rtpu, std::int64_t now_ns);
 
 // ---------------------------------------------------------------------------
 // Errors
@@ -327,7 +329,7 @@ TaskStatus derive(const RawSlot& raw, const RtpuEpoch& rtpu, std::int64_t now_ns
 
 /// A set-up failure (segment full, bad RTPU, ...); what() names the segment
 /// and object.
-class StatusError : public std::runtime_error {
+class CHIMERA_API StatusError : public std::runtime_error {
 public:
     using std::runtime_error::runtime_error;
 };
@@ -354,7 +356,7 @@ struct TaskIdentity {
 /// Setters: one writer at a time — the task's thread, or the claimer before
 /// the thread starts / after it has ended. All are noexcept, lock-free and
 /// allocation-free; strings are truncated to fit.
-class TaskSlot {
+class CHIMERA_API TaskSlot {
 public:
     TaskSlot() noexcept = default;
     bool valid() const noexcept { return slot_ != nullptr; }
@@ -400,7 +402,7 @@ struct StatusOptions {
 
 /// The status segment of one subsystem (owned by the master). Move-only.
 /// Destruction destroys the segment if this is its last user.
-class StatusSegment {
+class CHIMERA_API StatusSegment {
 public:
     StatusSegment() = default;
     StatusSegment(StatusSegment&&) noexcept = default;
@@ -448,18 +450,18 @@ private:
 
 /// A read-only view from any process (chimtop, the sbs CLI). Never writes the
 /// task groups; reset requests only bump RTPU epochs.
-class StatusReader {
+class CHIMERA_API StatusReader {
 public:
     StatusReader() = default;
     /// Attaches by subsystem name; throws ipc::SegmentError if absent.
     static StatusReader attach(std::string_view subsystem);
     /// Like attach(), nullopt if the segment does not exist (yet).
-    static std::optional<StatusReader> try_attach(std::string_view subsystem);
+    [[nodiscard]] static std::optional<StatusReader> try_attach(std::string_view subsystem);
 
     std::vector<TaskStatus> snapshot() const;
     std::vector<TaskStatus> snapshot(std::int64_t now_ns) const;
     /// Raw consistent copy of one slot (nullopt if free).
-    std::optional<RawSlot> raw(std::uint32_t index) const;
+    [[nodiscard]] std::optional<RawSlot> raw(std::uint32_t index) const;
     RtpuEpoch rtpu_epoch(int rtpu) const;
 
     /// The master's status command: snapshot, then reset every RTPU.
@@ -489,7 +491,7 @@ private:
 /// per-thread CPU-time counter and records the tid); the four cycle calls
 /// are then made by that thread only. Move-only; destroying it closes the
 /// counter (the slot keeps its last values).
-class TaskProfiler {
+class CHIMERA_API TaskProfiler {
 public:
     TaskProfiler() noexcept = default;
     /// Opens the CPU-time source for the calling thread; `allow_perf=false`

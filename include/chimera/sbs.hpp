@@ -59,6 +59,8 @@
 // best effort; status shows the policy each task really got.
 #pragma once
 
+#include "chimera/export.hpp"
+
 #include <chimera/module.hpp>
 #include <chimera/prof.hpp>
 #include <chimera/sbs_files.hpp>
@@ -86,20 +88,20 @@ struct TaskId {
 
 /// Control signals master -> task (sbsControl).
 enum class Control : std::uint8_t { on, off, kill, clear };
-std::string_view to_string(Control c) noexcept;
+CHIMERA_API std::string_view to_string(Control c) noexcept;
 
 /// Any failure of a master call; what() names the task/file and the reason.
-class Error : public std::runtime_error {
+class CHIMERA_API Error : public std::runtime_error {
 public:
     using std::runtime_error::runtime_error;
 };
 /// A signal invalid for the task's current state (nothing happened).
-class Refused : public Error {
+class CHIMERA_API Refused : public Error {
 public:
     using Error::Error;
 };
 /// §3.3.1 verification failed: the variable and the modules are named.
-class VerifyError : public Error {
+class CHIMERA_API VerifyError : public Error {
 public:
     using Error::Error;
 };
@@ -109,10 +111,10 @@ public:
 /// tree's module folders (build/modules/*), so `build/tools/sbs/sbs FILE.sbs`
 /// finds the shipped modules with no --module-path. CHIMERA_MODULE_PATH and
 /// --module-path / add_module_path() come before them.
-std::vector<std::string> default_module_dirs();
+CHIMERA_API std::vector<std::string> default_module_dirs();
 
 /// No module of that name on the module path (it may be elsewhere: see module_local_keys).
-class ModuleNotFound : public Error {
+class CHIMERA_API ModuleNotFound : public Error {
 public:
     using Error::Error;
 };
@@ -122,7 +124,7 @@ public:
 /// install folder) — so its constructors run. For `chimcfg check`, which then
 /// runs check_local_section() as spawn does. Throws ModuleNotFound, or Error
 /// for a module found but not loadable.
-std::vector<LocalKey> module_local_keys(const RmodFile& rmod, const std::vector<std::string>& module_dirs);
+CHIMERA_API std::vector<LocalKey> module_local_keys(const RmodFile& rmod, const std::vector<std::string>& module_dirs);
 
 /// One item of sbsReconfig.
 struct ReconfigItem {
@@ -135,7 +137,7 @@ struct ReconfigItem {
 
 /// Result of reconfig(): ok, or the index of the item that failed and why.
 /// Items before `failed` were applied; it and those after it were not sent.
-struct ReconfigResult {
+struct [[nodiscard]] ReconfigResult {
     bool ok = true;
     std::size_t processed = 0;  ///< items applied
     std::size_t failed = 0;     ///< index of the failing item (when !ok)
@@ -178,9 +180,9 @@ struct TaskStatus {
 
 /// "rmod rtpu tid S crit state cycle miss refF mezF ..." in one line, plus
 /// WARNING> / ERROR> lines as §4.4.1 prints them.
-std::string format_status(const TaskStatus& s);
+CHIMERA_API std::string format_status(const TaskStatus& s);
 /// The column header matching format_status().
-std::string format_status_header();
+CHIMERA_API std::string format_status_header();
 
 /// A signal received by sig_wait().
 struct SignalEvent {
@@ -193,7 +195,7 @@ namespace detail {
 class SubsystemCore;
 }
 
-class Subsystem {
+class CHIMERA_API Subsystem {
 public:
     /// sbsInit: reads the .sbs, creates the subsystem's SVAR table from its
     /// SVARFILE. Throws cfg::ParseError (FILE:LINE:) or sbs::Error.
@@ -228,7 +230,7 @@ public:
     TaskId spawn_combined(const std::vector<std::string>& rmod_paths, std::string_view rtpu = {});
 
     /// Looks a task up by rmod name (the latest one created with that name).
-    std::optional<TaskId> find(std::string_view rmod) const;
+    [[nodiscard]] std::optional<TaskId> find(std::string_view rmod) const;
 
     /// sbsControl: applies one signal and waits until the task has done it.
     /// Throws Refused when invalid for the state, VerifyError when turning the
@@ -283,7 +285,7 @@ public:
     /// sbsSigWait: the oldest caught signal whose bit is in `wanted` (from
     /// `from` only, if given); caught signals that do not match are discarded.
     /// nullopt on timeout (a negative timeout waits forever).
-    std::optional<SignalEvent> sig_wait(std::uint32_t wanted = sig::ALL, std::optional<TaskId> from = {},
+    [[nodiscard]] std::optional<SignalEvent> sig_wait(std::uint32_t wanted = sig::ALL, std::optional<TaskId> from = {},
                                         std::chrono::nanoseconds timeout = std::chrono::nanoseconds(-1));
     /// sbsSigSend from the master side (for drivers and tests).
     void sig_send(TaskId from, int signal);

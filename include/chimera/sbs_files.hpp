@@ -60,6 +60,8 @@
 //   EOF
 #pragma once
 
+#include "chimera/export.hpp"
+
 #include <chimera/cfg.hpp>
 
 #include <cstdint>
@@ -76,8 +78,8 @@ namespace chimera {
 enum class TaskType : std::uint8_t { periodic, synchronous, sporadic, deferrable, background };
 
 /// "periodic", ...; and the one-letter status code of §4.4.1 (P, Y, S, D, B).
-std::string_view to_string(TaskType t) noexcept;
-char status_letter(TaskType t) noexcept;
+CHIMERA_API std::string_view to_string(TaskType t) noexcept;
+CHIMERA_API char status_letter(TaskType t) noexcept;
 /// True for sporadic, deferrable and background: woken by an event, not a clock.
 inline bool is_aperiodic(TaskType t) noexcept {
     return t == TaskType::sporadic || t == TaskType::deferrable || t == TaskType::background;
@@ -85,7 +87,7 @@ inline bool is_aperiodic(TaskType t) noexcept {
 
 /// The LOCAL section of a .rmod: free `KEY value...` lines, in file order.
 /// Keys are unique. Values are kept as text (DEFINEs substituted).
-class LocalConfig {
+class CHIMERA_API LocalConfig {
 public:
     struct Entry {
         std::string key;
@@ -96,7 +98,7 @@ public:
     bool has(std::string_view key) const noexcept { return find(key) != nullptr; }
     const Entry* find(std::string_view key) const noexcept;
     /// All values of `key`, joined by one space; nullopt when absent.
-    std::optional<std::string> text(std::string_view key) const;
+    [[nodiscard]] std::optional<std::string> text(std::string_view key) const;
     /// The values of `key` as numbers. Throws std::invalid_argument naming the
     /// file, line and key when absent or not numeric.
     std::vector<double> numbers(std::string_view key) const;
@@ -121,10 +123,10 @@ inline constexpr double kMinFrequencyHz = 1e-6;
 inline constexpr double kMaxFrequencyHz = 1e6;
 /// Why `hz` is not a task frequency ("" when it is): one check for the
 /// .rmod reader (so chimcfg check), spawn and Subsystem::freq_set.
-std::string frequency_problem(double hz);
+CHIMERA_API std::string frequency_problem(double hz);
 
 /// A parsed .rmod file.
-struct RmodFile {
+struct CHIMERA_API RmodFile {
     std::string path;    ///< as opened
     std::string name;    ///< the rmod name: the file name without folder and `.rmod`
     std::string module;  ///< MODULE
@@ -152,27 +154,27 @@ struct RmodFile {
 /// INCONST, OUTCONST, INVAR and OUTVAR (SVARALIAS applied) names a variable
 /// for which `is_variable` is true; `svarfile` names the table in the
 /// message. One check for spawn and chimcfg check.
-std::string port_problem(const RmodFile& f, const std::function<bool(const std::string&)>& is_variable,
-                         std::string_view svarfile);
+CHIMERA_API std::string port_problem(const RmodFile& f, const std::function<bool(const std::string&)>& is_variable,
+                                     std::string_view svarfile);
 
 /// Why `rmods` cannot be one combined task ("" when they can): its objects
 /// run at one rate and task type (§3.8.1). For spawn and chimcfg check.
-std::string combined_problem(const std::vector<RmodFile>& rmods);
+CHIMERA_API std::string combined_problem(const std::vector<RmodFile>& rmods);
 
 /// Reads a .rmod; throws cfg::ParseError.
-RmodFile read_rmod(const std::string& path);
+CHIMERA_API RmodFile read_rmod(const std::string& path);
 /// Parses from a reader (for text held in memory); `path` names the rmod.
-RmodFile parse_rmod(cfg::Reader& reader, const std::string& path);
+CHIMERA_API RmodFile parse_rmod(cfg::Reader& reader, const std::string& path);
 
 enum class Scheduler : std::uint8_t { RM, EDF, MUF };
 enum class Usage : std::uint8_t { exclusive, shared };
 enum class ErrPrint : std::uint8_t { errors, warnings, none };
 enum class Backend : std::uint8_t { fifo, deadline, other };
 
-std::string_view to_string(Scheduler s) noexcept;
-std::string_view to_string(Usage u) noexcept;
-std::string_view to_string(ErrPrint e) noexcept;
-std::string_view to_string(Backend b) noexcept;
+CHIMERA_API std::string_view to_string(Scheduler s) noexcept;
+CHIMERA_API std::string_view to_string(Usage u) noexcept;
+CHIMERA_API std::string_view to_string(ErrPrint e) noexcept;
+CHIMERA_API std::string_view to_string(Backend b) noexcept;
 
 /// One RTPU block of a .sbs file.
 struct RtpuSpec {
@@ -208,7 +210,7 @@ struct TaskLine {
 };
 
 /// A parsed .sbs file.
-struct SbsFile {
+struct CHIMERA_API SbsFile {
     std::string path;
     std::string subsystem;  ///< SUBSYSTEM
     std::string svarfile;   ///< SVARFILE, resolved against the .sbs's folder
@@ -220,12 +222,12 @@ struct SbsFile {
 };
 
 /// Reads a .sbs; throws cfg::ParseError.
-SbsFile read_sbs(const std::string& path);
+CHIMERA_API SbsFile read_sbs(const std::string& path);
 /// Parses from a reader; relative SVARFILE paths are resolved against `base_dir`.
-SbsFile parse_sbs(cfg::Reader& reader, const std::string& base_dir);
+CHIMERA_API SbsFile parse_sbs(cfg::Reader& reader, const std::string& base_dir);
 /// Throws cfg::ParseError (FILE:LINE of the RTPU) when an RTPU names a CPU
 /// this process may not run on: one check for sbs and chimcfg check (which
 /// therefore judges a file for the machine it runs on).
-void check_rtpu_cpus(const SbsFile& f);
+CHIMERA_API void check_rtpu_cpus(const SbsFile& f);
 
 }  // namespace chimera

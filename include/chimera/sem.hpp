@@ -17,6 +17,8 @@
 // died is repaired by the next user.
 #pragma once
 
+#include "chimera/export.hpp"
+
 #include <cstddef>
 #include <cstdint>
 #include <string>
@@ -58,9 +60,9 @@ static_assert(sizeof(SemHeader) == 256 + 32 * kMaxWaiters);
 /// first bound broken, or none. A pure function over the bytes. (Nothing in
 /// a semaphore is an offset; attach and bind check all but the value and
 /// the waiters, which P and V keep in range themselves.)
-ipc::Fault validate(const void* image, std::size_t size) noexcept;
+CHIMERA_API ipc::Fault validate(const void* image, std::size_t size) noexcept;
 
-class Semaphore {
+class CHIMERA_API Semaphore {
 public:
     Semaphore() = default;
     Semaphore(Semaphore&&) noexcept;

@@ -9,6 +9,8 @@
 // removes the name at once (existing mappings stay valid until detached).
 #pragma once
 
+#include "chimera/export.hpp"
+
 #include <cstddef>
 #include <cstdint>
 #include <string>
@@ -37,10 +39,10 @@ static_assert(sizeof(ShmHeader) == 192);
 /// Checks a shared segment's image of `size` bytes as attach() does (segment
 /// header, the usable area inside the segment, the name ending in its field):
 /// the first bound broken, or none. A pure function over the bytes.
-ipc::Fault validate(const void* image, std::size_t size) noexcept;
+CHIMERA_API ipc::Fault validate(const void* image, std::size_t size) noexcept;
 
 /// One mapping of a shared segment. Move-only; destruction detaches.
-class Segment {
+class CHIMERA_API Segment {
 public:
     Segment() = default;
     Segment(Segment&&) noexcept;

@@ -42,6 +42,7 @@
 //   EOF
 #pragma once
 
+#include "chimera/export.hpp"
 #include "chimera/ipc/pi_mutex.hpp"
 
 #include <atomic>
@@ -59,7 +60,7 @@
 namespace chimera::spp {
 
 /// Set-up error (configuration, library, translate); what() names the SPP or FILE:LINE.
-class Error : public std::runtime_error {
+class CHIMERA_API Error : public std::runtime_error {
 public:
     explicit Error(const std::string& m) : std::runtime_error(m) {}
 };
@@ -106,7 +107,7 @@ private:
 class Processor;
 
 /// The SPP's memory as a routine sees it.
-class Memory {
+class CHIMERA_API Memory {
 public:
     /// The variable's storage, or nullptr for a handle that is not a variable.
     template <typename T = std::byte>
@@ -125,7 +126,7 @@ private:
 using Routine = void (*)(Memory& memory, const Args& args);
 
 /// The library "downloaded" to an SPP at init: routines and variables by name.
-class Library {
+class CHIMERA_API Library {
 public:
     /// Throws Error when the name is already used.
     void add_routine(std::string name, Routine fn);
@@ -162,17 +163,17 @@ struct Config {
     int line = 0;
 };
 
-std::vector<Config> load_config(const std::string& path);
-std::vector<Config> parse_config(std::string_view text, std::string name);
+CHIMERA_API std::vector<Config> load_config(const std::string& path);
+CHIMERA_API std::vector<Config> parse_config(std::string_view text, std::string name);
 /// The entry of that name; throws Error naming the SPP when absent.
-const Config& find_config(const std::vector<Config>& configs, std::string_view name);
+CHIMERA_API const Config& find_config(const std::vector<Config>& configs, std::string_view name);
 
 /// Command types of the executive (§7.4.2). RELEASE is the buffered end of a
 /// locked job.
 enum class CommandType : std::uint8_t { CALL, WAKEUP, XFER_IN, XFER_OUT, RELEASE };
 
 /// One configured SPP and its executive thread.
-class Processor {
+class CHIMERA_API Processor {
 public:
     /// Lays out the library's variables in MEMSIZE bytes and starts the
     /// executive, pinned and raised as configured before this returns.
@@ -254,7 +255,7 @@ private:
 };
 
 /// One task's SPP object (§7.4.1): init is the constructor, finish the destructor.
-class Spp {
+class CHIMERA_API Spp {
 public:
     /// Attaches a task of this priority (higher runs first). Throws Error when
     /// TASKS objects are already in use.
@@ -268,23 +269,23 @@ public:
 
     // Buffered commands: 0, or -EINVAL (bad handle, range, args), -ENOSPC
     // (command buffer full: wait() and issue again), -EPIPE (after finish).
-    int call(Handle routine, const Args& args = {}) noexcept;
+    [[nodiscard]] int call(Handle routine, const Args& args = {}) noexcept;
     /// XFER task → SPP: `bytes` from `src` into the variable at `offset`.
     /// `src` must stay valid until the command has run (wait()).
-    int write(Handle variable, const void* src, std::size_t bytes, std::size_t offset = 0) noexcept;
+    [[nodiscard]] int write(Handle variable, const void* src, std::size_t bytes, std::size_t offset = 0) noexcept;
     /// XFER SPP → task.
-    int read(Handle variable, void* dst, std::size_t bytes, std::size_t offset = 0) noexcept;
+    [[nodiscard]] int read(Handle variable, void* dst, std::size_t bytes, std::size_t offset = 0) noexcept;
     /// Issues WAKEUP and blocks until the executive reaches it: every command
     /// issued before has run. 0, or -EPIPE after finish. The buffer keeps an
     /// entry for the WAKEUP beyond its QUEUE commands, so a full buffer is no
     /// obstacle and wait() sleeps at once.
-    int wait() noexcept;
+    [[nodiscard]] int wait() noexcept;
     /// Exclusive access for a job; blocks until granted (priority order). A
     /// task locking again after release() waits for that release to run, and
     /// for any higher-priority locker it hands the SPP to.
     void lock();
     /// Buffered end of the job: the lock passes on when the executive reaches it.
-    int release() noexcept;
+    [[nodiscard]] int release() noexcept;
     /// Waits for the commands issued, releases a held lock, detaches.
     void finish() noexcept;
 

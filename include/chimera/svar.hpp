@@ -42,6 +42,8 @@
 // returns Status::forced.
 #pragma once
 
+#include "chimera/export.hpp"
+
 #include <cstddef>
 #include <cstdint>
 #include <initializer_list>
@@ -84,11 +86,11 @@ enum class Type : std::uint32_t {
 };
 
 /// "byte", "char", ..., "struct".
-std::string_view type_name(Type type) noexcept;
+CHIMERA_API std::string_view type_name(Type type) noexcept;
 /// Element size of a fixed-size type; 0 for struct_.
-std::size_t type_size(Type type) noexcept;
+CHIMERA_API std::size_t type_size(Type type) noexcept;
 /// The type written as in a .svar file: "double", "struct[32]".
-std::string type_spelling(Type type, std::size_t elem_size);
+CHIMERA_API std::string type_spelling(Type type, std::size_t elem_size);
 
 /// The svar::Type that a C++ type maps to (std::nullopt: only as struct).
 template <typename T>
@@ -129,30 +131,30 @@ struct VarSpec {
 };
 
 /// A parsed .svar file.
-struct TableSpec {
+struct CHIMERA_API TableSpec {
     std::string file;
     std::vector<VarSpec> vars;
 
     /// Index of `name`, or nullopt.
-    std::optional<std::size_t> find(std::string_view name) const noexcept;
+    [[nodiscard]] std::optional<std::size_t> find(std::string_view name) const noexcept;
 };
 
 /// Parses a .svar file; throws cfg::ParseError ("FILE:LINE: message").
-TableSpec parse_svar_file(const std::string& path);
+CHIMERA_API TableSpec parse_svar_file(const std::string& path);
 /// Parses .svar text; `name` stands for FILE in errors.
-TableSpec parse_svar_string(std::string_view text, const std::string& name);
+CHIMERA_API TableSpec parse_svar_string(std::string_view text, const std::string& name);
 
 // ---------------------------------------------------------------------------
 // Errors and statuses
 
 /// A set-up error naming the table and the variable or list involved.
-class Error : public std::runtime_error {
+class CHIMERA_API Error : public std::runtime_error {
 public:
     using std::runtime_error::runtime_error;
 };
 
 /// Result of a cycle-path operation.
-enum class Status : int {
+enum class [[nodiscard]] Status : int {
     ok = 0,       ///< done
     recovered,    ///< done; the lock was taken over from a dead holder, and its
                   ///< interrupted write (if any) was rolled back first
@@ -164,7 +166,7 @@ enum class Status : int {
     reentered,    ///< nothing transferred: this thread holds the table lock already
     bad_argument, ///< nothing transferred: unknown pointer or index
 };
-const char* to_string(Status s) noexcept;
+CHIMERA_API const char* to_string(Status s) noexcept;
 /// True when data was transferred (ok, recovered, forced, lock_lost).
 constexpr bool transferred(Status s) noexcept {
     return s == Status::ok || s == Status::recovered || s == Status::forced ||
@@ -187,10 +189,10 @@ class Table;
 /// strings, source name), sizes that match their types without overflow,
 /// names that end inside their field, and an active undo record's count and
 /// indices. The first bound broken, or none. A pure function over the bytes.
-ipc::Fault validate_table(const void* image, std::size_t size) noexcept;
+CHIMERA_API ipc::Fault validate_table(const void* image, std::size_t size) noexcept;
 
 /// Read-only view of one variable's descriptor in the global table.
-class VarInfo {
+class CHIMERA_API VarInfo {
 public:
     std::size_t index() const noexcept;     ///< unique index in the table (svarYyyIx)
     std::string_view name() const noexcept;
@@ -232,7 +234,7 @@ struct TableStats {
 /// One process's mapping of a global table (svarCreate / svarAttach).
 /// Move-only; destruction detaches. Any number of threads of a process may
 /// share one Table.
-class Table {
+class CHIMERA_API Table {
 public:
     Table() noexcept;
     Table(Table&&) noexcept;
@@ -262,7 +264,7 @@ public:
     std::string_view source_file() const noexcept;
 
     std::size_t size() const noexcept;  ///< number of variables
-    std::optional<std::size_t> find(std::string_view name) const noexcept;
+    [[nodiscard]] std::optional<std::size_t> find(std::string_view name) const noexcept;
     /// Index of `name`; throws Error "table T has no variable X".
     std::size_t index_of(std::string_view name) const;
     VarInfo var(std::size_t index) const noexcept;
@@ -338,7 +340,7 @@ private:
 
 /// A task's private copy of the variables it uses (svarAttach's local table).
 /// One thread uses a LocalTable; it refers to, and must not outlive, its Table.
-class LocalTable {
+class CHIMERA_API LocalTable {
 public:
     /// A local table for a port-based object: its .rmod port lists (names as
     /// in the global table, SVARALIAS already applied). A name may appear in
@@ -370,7 +372,7 @@ public:
     /// Untyped translate (any type).
     void* translate_any(std::string_view name);
     /// Global index of a translated pointer, or nullopt.
-    std::optional<std::size_t> index_of(const void* local) const noexcept;
+    [[nodiscard]] std::optional<std::size_t> index_of(const void* local) const noexcept;
 
     // --- single variable (svarRead / svarWrite, and the Ix variants) -------
     /// Global → local for the variable at `local` (a translated pointer).

@@ -50,6 +50,8 @@
 // (kCorrupt, "another writer") instead of going on.
 #pragma once
 
+#include "chimera/export.hpp"
+
 #include <atomic>
 #include <cstddef>
 #include <cstdint>
@@ -73,7 +75,7 @@ enum class ReadStatus : std::uint8_t {
     corrupt,  ///< the shared state word is damaged: nothing read (see fault_message())
 };
 
-struct ReadResult {
+struct [[nodiscard]] ReadResult {
     ReadStatus status = ReadStatus::empty;
     std::uint64_t counter = 0;  ///< counter-stamp of the item
     std::int64_t time_ns = 0;   ///< time-stamp of the item
@@ -148,15 +150,15 @@ static_assert(std::atomic<std::uint32_t>::is_always_lock_free);
 }  // namespace detail
 
 /// Bytes of memory a buffer for items of `item_size` bytes needs.
-std::size_t required_size(std::size_t item_size) noexcept;
+CHIMERA_API std::size_t required_size(std::size_t item_size) noexcept;
 
 /// Checks a buffer's image of `size` bytes (header, geometry, state word) as
 /// attach() does, without throwing: the first bound broken, or none. A pure
 /// function over the bytes, for tests and fuzzers.
-ipc::Fault validate(const void* image, std::size_t size) noexcept;
+CHIMERA_API ipc::Fault validate(const void* image, std::size_t size) noexcept;
 
 /// A triple buffer. Move-only; destruction detaches.
-class Tbuf {
+class CHIMERA_API Tbuf {
 public:
     Tbuf() noexcept = default;
     Tbuf(Tbuf&&) noexcept;
@@ -193,9 +195,9 @@ public:
     /// and the next counter, and makes it the newest. Returns its counter
     /// (kCorrupt, nothing published, when the state word is damaged or the
     /// newest item's counter-stamp is one no writer could have made, >= kMaxSeq).
-    std::uint64_t write(const void* item) noexcept { return write(item, ipc::now_ns()); }
+    [[nodiscard]] std::uint64_t write(const void* item) noexcept { return write(item, ipc::now_ns()); }
     /// As write(), with a caller-supplied time-stamp (saves reading the clock).
-    std::uint64_t write(const void* item, std::int64_t time_ns) noexcept {
+    [[nodiscard]] std::uint64_t write(const void* item, std::int64_t time_ns) noexcept {
         if (back_ > 2 && !become_writer()) [[unlikely]]
             return kCorrupt;
         ipc::copy_var(slot_[back_], static_cast<const std::byte*>(item), item_size_);
@@ -203,7 +205,7 @@ public:
     }
     /// Zero-copy writing: the writer's private slot, to fill in place
     /// (nullptr when the state word is damaged)...
-    void* write_slot() noexcept {
+    [[nodiscard]] void* write_slot() noexcept {
         if (back_ > 2 && !become_writer()) [[unlikely]]
             return nullptr;
         return slot_[back_];
@@ -211,13 +213,13 @@ public:
     /// The counter-stamp the next publish of this handle will carry (the
     /// newest item's + 1, also when a killed writer's successor goes on);
     /// kCorrupt when the state word is damaged.
-    std::uint64_t next_counter() noexcept {
+    [[nodiscard]] std::uint64_t next_counter() noexcept {
         if (back_ > 2 && !become_writer()) [[unlikely]]
             return kCorrupt;
         return seq_;
     }
     /// ...then publish it (stamps, one compare-and-swap). Returns its counter.
-    std::uint64_t publish(std::int64_t time_ns) noexcept {
+    [[nodiscard]] std::uint64_t publish(std::int64_t time_ns) noexcept {
         if (back_ > 2 && !become_writer()) [[unlikely]]
             return kCorrupt;
         return publish_back(time_ns);

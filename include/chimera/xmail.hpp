@@ -41,6 +41,8 @@
 // senders died too.
 #pragma once
 
+#include "chimera/export.hpp"
+
 #include <atomic>
 #include <condition_variable>
 #include <cstddef>
@@ -62,7 +64,7 @@
 namespace chimera::xm {
 
 /// Result of a hot-path operation (express mail, SEM, MSG).
-enum class Status : int {
+enum class [[nodiscard]] Status : int {
     ok = 0,
     would_block,     ///< non-blocking call: queue full/empty, semaphore taken, no message
     timed_out,       ///< the timeout passed
@@ -75,10 +77,10 @@ enum class Status : int {
     corrupt,         ///< a value read from the shared segment is out of bounds: refused,
                      ///< nothing copied (the object's fault_message() names the segment)
 };
-const char* to_string(Status s) noexcept;
+CHIMERA_API const char* to_string(Status s) noexcept;
 
 /// A set-up error (create, attach, name server); what() names the object.
-class Error : public std::runtime_error {
+class CHIMERA_API Error : public std::runtime_error {
 public:
     using std::runtime_error::runtime_error;
 };
@@ -145,7 +147,7 @@ struct RecordHeader {
 static_assert(sizeof(RecordHeader) == 8);
 
 /// Total segment bytes for a config (the Linux form of the thesis's eq. 5).
-std::size_t mailbox_size(const MailboxConfig& config) noexcept;
+CHIMERA_API std::size_t mailbox_size(const MailboxConfig& config) noexcept;
 
 /// Where everything is in a mailbox, computed from its config (never read
 /// from the segment after it was checked).
@@ -176,11 +178,11 @@ class Mailbox;
 /// header, sizes, the offsets they imply, the RTPU name) and the contents of
 /// every ring (positions within the ring, each record within the bytes
 /// written): the first bound broken, or none. A pure function over the bytes.
-ipc::Fault validate_mailbox(const void* image, std::size_t size) noexcept;
+CHIMERA_API ipc::Fault validate_mailbox(const void* image, std::size_t size) noexcept;
 
 /// Another RTPU's mailbox as seen by this one (the thesis's xmheaders[bid]
 /// pointers). Obtained from Mailbox::peer(); valid while the Mailbox lives.
-class Peer {
+class CHIMERA_API Peer {
 public:
     const std::string& rtpu() const noexcept { return rtpu_; }
     std::uint32_t bid() const noexcept { return bid_; }
@@ -218,7 +220,7 @@ struct ReadInfo {
 
 /// This RTPU's express mail: its own mailbox (xmInitLocal) plus handles to
 /// the mailboxes of the other RTPUs (xmInit). One per process.
-class Mailbox {
+class CHIMERA_API Mailbox {
 public:
     /// Creates `/chimera.<sys>.xm.<rtpu>` and marks it alive. A mailbox left by
     /// a dead process is taken over; one whose owner still runs is an error.
@@ -328,7 +330,7 @@ inline ipc::LockStatus lock(ipc::LockWord& word, std::int64_t timeout_ns) noexce
     options.timeout_ns = timeout_ns;
     return ipc::lock(word, options);
 }
-inline bool unlock(ipc::LockWord& word) noexcept { return ipc::unlock(word); }
+[[nodiscard]] inline bool unlock(ipc::LockWord& word) noexcept { return ipc::unlock(word); }
 
 /// xmLockFix (§5.3.2): the two-step lock for a peer that has no atomic
 /// test-and-set. Step 1 picks one contender per side (RTPUs with TAS on
@@ -337,7 +339,7 @@ inline bool unlock(ipc::LockWord& word) noexcept { return ipc::unlock(word); }
 /// thesis listing, unlock also clears the caller's flag: without that a host
 /// that locks after an RTPU unlocked waits until the RTPU locks again (the
 /// model in tests/xmail shows the hang).
-struct LockFix {
+struct CHIMERA_API LockFix {
     enum Who : std::uint32_t { rtpu = 0, host = 1 };
     std::atomic<std::uint32_t> rtpumutex{0};
     std::atomic<std::uint32_t> hostmutex{0};
@@ -345,7 +347,7 @@ struct LockFix {
     std::atomic<std::uint32_t> flag[2] = {0, 0};
 
     /// Returns false when `timeout_ns` (negative: no limit) passed; nothing held then.
-    bool lock(Who who, std::int64_t timeout_ns = -1) noexcept;
+    [[nodiscard]] bool lock(Who who, std::int64_t timeout_ns = -1) noexcept;
     void unlock(Who who) noexcept;
 };
 static_assert(sizeof(LockFix) == 20);
@@ -365,13 +367,13 @@ struct ObjectParams {
 };
 
 /// Splits "rtpu:name"; throws Error when either part is missing or too long.
-std::pair<std::string, std::string> split_name(std::string_view full);
+CHIMERA_API std::pair<std::string, std::string> split_name(std::string_view full);
 
 /// One RTPU process: its Mailbox plus its XM server thread. The server reads
 /// every message, answers name-server requests for objects this RTPU owns,
 /// routes replies to the local tasks that asked, and runs the handlers of
 /// mailbox interrupts and of user messages.
-class Rtpu {
+class CHIMERA_API Rtpu {
 public:
     Rtpu(std::string sys, std::string name, std::uint32_t bid, MailboxConfig config = {});
     /// Stops the server, destroys the objects this RTPU created, clears alive.

@@ -355,7 +355,7 @@ private:
             if (pending(nodes_[j]))
                 missing += (missing.empty() ? "" : ", ") + describe(j) +
                            (nodes_[j].tpdo1_stamp ? " (no operational heartbeat)" : " (no TPDO1, no answer to NMT start)");
-        kill(t);  // confirms nothing with the nodes that never answered
+        (void)kill(t);  // always OK; confirms nothing with the nodes that never answered (they are warned of)
         rb::module_error(t, "no answer within ENABLE_TIMEOUT " + std::to_string(enable_timeout_) + " s from " + missing +
                                 ": is the drive powered, on the bus, with that node id?");
     }

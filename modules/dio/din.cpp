@@ -63,9 +63,11 @@ public:
     Result on(chimera::Task& t) override {
         // DIN is valid from `on`, not from the first cycle: read the levels
         // now (without waiting, whatever the task type), and count edges from here.
-        if (synchronous_) set_wait(iod::WAITNONE);
+        if (synchronous_)
+            if (const long rc = set_wait(iod::WAITNONE); rc < 0) return io_failed(t, "setting WAITNONE", rc);
         const long n = dev_->read(raw_.data(), raw_.size());
-        if (synchronous_) set_wait(iod::WAITONE);
+        if (synchronous_)
+            if (const long rc = set_wait(iod::WAITONE); rc < 0) return io_failed(t, "setting WAITONE", rc);
         if (n < 0) return io_failed(t, "read", n);
         for (std::size_t k = 0; k < raw_.size(); ++k) edge_base_[k] = port_events(k);
         publish();
@@ -95,7 +97,9 @@ public:
     Result set(chimera::Task& t) override {
         const std::string_view arg = t.arg();
         dio::update_config(cfg_, t.rmod_file(), dio::Direction::in, t.type(), arg.substr(0, arg.find(' ')));
-        if (synchronous_) dev_->control(iod::Control::WAIT_TIMEOUT, cfg_.sync_timeout_us);
+        if (synchronous_)
+            if (const long rc = dev_->control(iod::Control::WAIT_TIMEOUT, cfg_.sync_timeout_us); rc < 0)
+                return io_failed(t, "setting the wait timeout", rc);
         return Result::OK;
     }
 
@@ -116,7 +120,9 @@ private:
         return e < 0 ? 0u : static_cast<std::uint32_t>(e);
     }
 
-    void set_wait(unsigned wait) noexcept { dev_->control(iod::Control::SET_FLAGS, iod::READ | iod::LONG | wait); }
+    [[nodiscard]] long set_wait(unsigned wait) noexcept {
+        return dev_->control(iod::Control::SET_FLAGS, iod::READ | iod::LONG | wait);
+    }
 
     // Raises the driver's failure through global error handling (the task's
     // error() decides); the message is built without allocating.

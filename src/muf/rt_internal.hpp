@@ -96,7 +96,7 @@ class Dispatcher;
 
 namespace chimera::muf {
 
-struct RtpuScheduler::Impl {
+struct CHIMERA_LOCAL RtpuScheduler::Impl {
     explicit Impl(RtpuOptions o);
     ~Impl();
 

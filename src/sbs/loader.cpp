@@ -199,7 +199,7 @@ std::vector<std::string> default_module_dirs() {
     if (!ec && end == root.end()) {
         // The libraries are built in build/modules/NAME, their .rmod files
         // stay in the source's modules/NAME.
-        for (const fs::path tree : {root, fs::path(CHIMERA_SOURCE_ROOT)}) {
+        for (const fs::path& tree : {root, fs::path(CHIMERA_SOURCE_ROOT)}) {
             std::vector<std::string> found;
             for (fs::directory_iterator it(tree / "modules", ec), last; !ec && it != last; it.increment(ec))
                 if (it->is_directory(ec)) found.push_back(it->path().string());

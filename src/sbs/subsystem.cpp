@@ -318,7 +318,7 @@ TaskId Subsystem::spawn_combined(const std::vector<std::string>& rmod_paths, std
     for (const auto& v : t->out_consts) {
         const std::size_t ix = c.table.index_of(v);
         std::vector<std::byte> buf(c.table.var(ix).bytes());
-        c.table.read(ix, buf.data());
+        if (!svar::transferred(c.table.read(ix, buf.data()))) buf.clear();  // unknown: counted as changed
         before.emplace_back(ix, std::move(buf));
     }
     {
@@ -330,8 +330,8 @@ TaskId Subsystem::spawn_combined(const std::vector<std::string>& rmod_paths, std
     std::vector<std::string> changed;
     for (auto& [ix, old] : before) {
         std::vector<std::byte> now(old.size());
-        c.table.read(ix, now.data());
-        if (now != old) changed.emplace_back(c.table.var(ix).name());
+        const bool read = !old.empty() && svar::transferred(c.table.read(ix, now.data()));
+        if (!read || now != old) changed.emplace_back(c.table.var(ix).name());
     }
     if (!changed.empty()) {
         std::vector<detail::TaskCore*> readers;

@@ -21,7 +21,7 @@ std::atomic<bool> g_warned_no_privilege{false};
 // (the executive) ring, allocated at init so issuing a command never allocates.
 // It holds QUEUE commands plus one entry kept for wait()'s WAKEUP, so that
 // wait() always has room and never has to spin for it.
-struct Processor::Slot {
+struct CHIMERA_LOCAL Processor::Slot {
     explicit Slot(int i, int capacity)
         : index(i), capacity(static_cast<std::size_t>(capacity)), ring(this->capacity + 1) {}
     const int index;
@@ -411,9 +411,10 @@ int Spp::release() noexcept {
 void Spp::finish() noexcept {
     if (finished_) return;
     if (locked_) {
-        while (release() == -ENOSPC) wait();
+        // wait() fails only once finished (-EPIPE), which finish() sets below.
+        while (release() == -ENOSPC) (void)wait();
     }
-    wait();
+    (void)wait();  // drains this task's commands
     finished_ = true;
     Processor::Slot& s = *proc_->slots_[static_cast<std::size_t>(slot_)];
     std::lock_guard<ipc::PiMutex> lk(proc_->lock_mutex_);

@@ -86,7 +86,9 @@ void LocalTable::build(const std::vector<const std::vector<std::string>*>& lists
     for (const LocalVar& v : vars_)
         std::memcpy(buffer_.get() + v.local_offset,
                     global_->data_ + global_->desc_[v.global_index].data_offset, v.bytes);
-    global_->release(s);
+    if (global_->release(s) == Status::lock_lost)
+        throw Error("local table on " + global_->name() +
+                    ": the table lock was reset while its values were read");
 }
 
 VarSet LocalTable::set_of(const std::vector<std::string>& names, const char* list_name) const {

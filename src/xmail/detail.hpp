@@ -120,6 +120,14 @@ Status lock_object(ipc::LockWord& lock, std::uint32_t& recoveries, Repair&& repa
     return Status::ok;
 }
 
+/// Lets an XM object's lock go. ipc::unlock() is false only when the word no
+/// longer names this thread; XM locks are never reset blindly (no
+/// reset_on_timeout) and a live holder is never taken over, so that means
+/// another process overwrote the word: nothing this thread could undo, and
+/// the next locker takes a lock named after a dead or unknown thread over and
+/// repairs the object.
+inline void unlock_object(ipc::LockWord& lock) noexcept { (void)ipc::unlock(lock); }
+
 inline std::int64_t deadline_for(std::int64_t timeout_ns) noexcept {
     return timeout_ns < 0 ? -1 : ipc::now_ns() + timeout_ns;
 }

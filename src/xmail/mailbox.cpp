@@ -282,7 +282,7 @@ Mailbox::~Mailbox() {
         // The mailbox of an RTPU that died is nobody's: its last user frees it
         // (a restarted RTPU of that name has a new segment, which stays).
         auto release = [this](Peer& p) {
-            if (!p.loss_counted_ && !alive(p)) dead(p);
+            if (!p.loss_counted_ && !alive(p)) (void)dead(p);  // counts its unread records
             if (p.loss_counted_) p.segment_.detach_destroy_if_last();
         };
         for (auto& [name, p] : peers_) release(*p);
@@ -311,7 +311,7 @@ Peer& Mailbox::peer(std::string_view rtpu) {
     if (it != peers_.end()) {
         Peer& p = *it->second;
         if (p.header_->alive.load() != 0 && process_alive(p.header_->owner_pid.load())) return p;
-        dead_locked(p);  // died or restarted: count what it left unread, then look again
+        (void)dead_locked(p);  // died or restarted: count what it left unread, then look again
         retired_.push_back(std::move(it->second));
         peers_.erase(it);
     }
@@ -405,7 +405,7 @@ void Mailbox::check_peers() noexcept {
     std::lock_guard lock(peers_mutex_);
     for (auto& [name, p] : peers_) {
         std::lock_guard local(p->write_mutex_);
-        if (!p->loss_counted_ && !alive(*p)) dead(*p);
+        if (!p->loss_counted_ && !alive(*p)) (void)dead(*p);  // counts its unread records
     }
 }
 

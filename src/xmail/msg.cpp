@@ -60,7 +60,7 @@ Geometry geometry(const Params& p) {
 // The queue as this handle checked it: the segment, and the geometry kept in
 // the handle. Every offset read from the segment goes through head_ok() /
 // block_ok() before it is followed; a bad one becomes a Fault.
-struct Queue::Ops {
+struct CHIMERA_LOCAL Queue::Ops {
     QueueHeader* q;
     const Geometry& g;
 
@@ -455,7 +455,7 @@ Status Queue::lock() noexcept {
 // A refusal: the fault kept for fault_message(), the lock let go, nothing changed.
 Status Queue::refuse(const ipc::Fault& f) noexcept {
     fault_ = f;
-    ipc::unlock(q_->mutex);
+    unlock_object(q_->mutex);
     return Status::corrupt;
 }
 
@@ -483,7 +483,7 @@ Status Queue::send(const void* data, std::size_t size, std::uint32_t type, std::
             fail = Status::timed_out;
         else if (!(me = waiter_add(q->send_waiters, layout::kMaxWaiters, q->next_ticket, priority)))
             fail = Status::too_many_waiters;
-        ipc::unlock(q->mutex);
+        unlock_object(q->mutex);
         if (fail != Status::ok) return fail;
         waiter_sleep(*me, deadline, [&] { pass_on_dead(me); });
     }
@@ -551,7 +551,7 @@ Status Queue::send(const void* data, std::size_t size, std::uint32_t type, std::
 // receiver or the queue; the next sender), so nothing stays with the dead.
 Status Queue::unlock_and_wake(Waiter* w) noexcept {
     WaiterId id = w ? id_of(*w) : WaiterId{};
-    ipc::unlock(q_->mutex);
+    unlock_object(q_->mutex);
     while (w && !waiter_wake_checked(*w, id)) {
         if (lock() != Status::ok) break;  // the sleepers' slices pass it on
         Ops ops{q_, g_};
@@ -574,7 +574,7 @@ Status Queue::unlock_and_wake(Waiter* w) noexcept {
             if (f) return refuse(f);
             if (w) id = id_of(*w);
         }
-        ipc::unlock(q_->mutex);
+        unlock_object(q_->mutex);
     }
     return Status::ok;
 }
@@ -587,10 +587,12 @@ void Queue::pass_on_dead(const Waiter* self) noexcept {
         return;
     if (lock() != Status::ok) return;
     if (ipc::Fault f = Ops{q_, g_}.reclaim_dead_signalled()) {
-        refuse(f);
+        // A waiter's look has nobody to tell: the fault is kept for
+        // fault_message(), and the next send/receive meets it and refuses.
+        (void)refuse(f);
         return;
     }
-    ipc::unlock(q_->mutex);
+    unlock_object(q_->mutex);
 }
 
 Status Queue::receive(void* buffer, std::size_t capacity, Info* info, std::int64_t timeout_ns,
@@ -623,7 +625,7 @@ Status Queue::receive(void* buffer, std::size_t capacity, Info* info, std::int64
                     ipc::Fault f;
                     Waiter* next = ops.hand_or_queue(off, f);
                     if (f) return refuse(f);
-                    unlock_and_wake(next);
+                    if (const Status s = unlock_and_wake(next); s != Status::ok) return s;
                     return Status::too_big;
                 }
                 break;
@@ -638,7 +640,7 @@ Status Queue::receive(void* buffer, std::size_t capacity, Info* info, std::int64
             if (ipc::Fault f = ops.head_link("headused link", h->link)) return refuse(f);
             if (h->size > capacity) {
                 if (info) *info = Info{h->type, h->priority, h->size};
-                ipc::unlock(q->mutex);
+                unlock_object(q->mutex);
                 return Status::too_big;
             }
             if (ipc::Fault f = ops.chain(off)) return refuse(f);
@@ -655,7 +657,7 @@ Status Queue::receive(void* buffer, std::size_t capacity, Info* info, std::int64
         else if (!(me = waiter_add(q->recv_waiters, layout::kMaxWaiters, q->next_ticket,
                                    task_priority)))
             fail = Status::too_many_waiters;
-        ipc::unlock(q->mutex);
+        unlock_object(q->mutex);
         if (fail != Status::ok) return fail;
         waiter_sleep(*me, deadline, [&] { pass_on_dead(me); });
     }
@@ -794,7 +796,9 @@ void Queue::repair() noexcept {
             q->headfree = off;
             ++q->nfree_heads;
         } else if (h->state == layout::kHeadQueued) {
-            ops.enqueue(off);
+            // A link repair cannot follow is kept for fault_message(); the
+            // next send/receive checks the chain and refuses.
+            if (ipc::Fault f = ops.enqueue(off)) fault_ = f;
         } else {
             ++q->nhanded;
         }
@@ -820,7 +824,7 @@ Stats Queue::stats() noexcept {
     s.recoveries = q_->recoveries;
     s.reclaimed_waiters = q_->reclaimed_waiters;
     s.lock_recoveries = q_->mutex.recoveries.load();
-    ipc::unlock(q_->mutex);
+    unlock_object(q_->mutex);
     return s;
 }
 
@@ -839,7 +843,7 @@ std::string Queue::check() {
     if (err.empty())
         if (ipc::Fault f = validate(q, g_.total)) fail(ipc::describe(where_, f));
     if (!err.empty()) {
-        ipc::unlock(q->mutex);
+        unlock_object(q->mutex);
         return err;
     }
     const std::uint32_t n = g_.blknum;
@@ -897,7 +901,7 @@ std::string Queue::check() {
     if (q->nfree_blks + live_blocks != n)
         fail("blocks lost: " + std::to_string(q->nfree_blks) + " free + " + std::to_string(live_blocks) +
              " used != " + std::to_string(n));
-    ipc::unlock(q->mutex);
+    unlock_object(q->mutex);
     return err;
 }
 
@@ -912,7 +916,7 @@ std::string Queue::dump() {
         if (!out.empty()) out += ' ';
         out += std::to_string(h->priority) + ':' + std::to_string(h->type) + ':' + std::to_string(h->size);
     }
-    ipc::unlock(q_->mutex);
+    unlock_object(q_->mutex);
     return out;
 }
 

@@ -85,12 +85,12 @@ std::pair<std::string, std::string> split_name(std::string_view full) {
     return {std::string(rtpu), std::string(name)};
 }
 
-struct Rtpu::Pending {
+struct CHIMERA_LOCAL Rtpu::Pending {
     bool done = false;
     NsReply reply{};
 };
 
-struct Rtpu::Owned {
+struct CHIMERA_LOCAL Rtpu::Owned {
     ipc::ObjectType type;
     std::string segment;
     // Until then a new object may have no user yet (the requester attaches
@@ -303,7 +303,9 @@ void Rtpu::handle_request(const void* request) {
     }
     try {
         Peer& back = mailbox_.peer(get(req.reply_rtpu));
-        mailbox_.write(back, &reply, sizeof reply, 100'000'000);
+        // Not delivered (the requester died or its ring stayed full): it
+        // times out on its own (request_timeout_ns) and says so.
+        (void)mailbox_.write(back, &reply, sizeof reply, 100'000'000);
     } catch (const Error&) {
         // The requester is gone: nobody to answer.
     }

@@ -212,7 +212,7 @@ void Semaphore::pass_on_dead_grants(const Waiter* self) noexcept {
     if (!signalled_dead(h_->waiters, layout::kMaxWaiters, self)) return;
     if (lock() != Status::ok) return;
     reclaim_granted();
-    ipc::unlock(h_->mutex);
+    unlock_object(h_->mutex);
 }
 
 Status Semaphore::p(std::int64_t timeout_ns, std::int32_t priority) noexcept {
@@ -226,14 +226,14 @@ Status Semaphore::p(std::int64_t timeout_ns, std::int32_t priority) noexcept {
             waiter_free(*me);
             me = nullptr;
             if (granted) {
-                ipc::unlock(h_->mutex);
+                unlock_object(h_->mutex);
                 return Status::ok;
             }
         }
         if (h_->value <= 0) reclaim_granted();
         if (h_->value > 0) {
             --h_->value;
-            ipc::unlock(h_->mutex);
+            unlock_object(h_->mutex);
             return Status::ok;
         }
         Status fail = Status::ok;
@@ -243,7 +243,7 @@ Status Semaphore::p(std::int64_t timeout_ns, std::int32_t priority) noexcept {
             fail = Status::timed_out;
         else if (!(me = waiter_add(h_->waiters, layout::kMaxWaiters, h_->next_ticket, priority)))
             fail = Status::too_many_waiters;
-        ipc::unlock(h_->mutex);
+        unlock_object(h_->mutex);
         if (fail != Status::ok) return fail;
         waiter_sleep(*me, deadline, [&] { pass_on_dead_grants(me); });
     }
@@ -254,7 +254,7 @@ Status Semaphore::v() noexcept {
     if (const Status s = lock(); s != Status::ok) return s;
     Waiter* w = release_unit();
     WaiterId id = w ? id_of(*w) : WaiterId{};
-    ipc::unlock(h_->mutex);
+    unlock_object(h_->mutex);
     // No unit stays with a waiter that died (killed, reaped or not): when the
     // wake-up reaches nobody and the thread is gone, take the unit back and
     // pass it on, before V returns.
@@ -267,7 +267,7 @@ Status Semaphore::v() noexcept {
             ++h_->reclaimed_waiters;
             if ((w = release_unit())) id = id_of(*w);
         }
-        ipc::unlock(h_->mutex);
+        unlock_object(h_->mutex);
     }
     return Status::ok;
 }
@@ -276,14 +276,14 @@ std::int32_t Semaphore::value() noexcept {
     if (!h_ || lock() != Status::ok) return -1;
     reclaim_granted();  // a unit granted to a waiter that died is available
     const std::int32_t v = h_->value;
-    ipc::unlock(h_->mutex);
+    unlock_object(h_->mutex);
     return v;
 }
 
 std::uint32_t Semaphore::waiting() noexcept {
     if (!h_ || lock() != Status::ok) return 0;
     const std::uint32_t n = waiter_count(h_->waiters, layout::kMaxWaiters);
-    ipc::unlock(h_->mutex);
+    unlock_object(h_->mutex);
     return n;
 }
 

@@ -286,12 +286,12 @@ TEST(Fig610Feed, ASilentOperatorStopsTheArmWhereItIsAndIsWarnedOf) {
     auto table = chimera::svar::Table::attach(chimera::ipc::segment_name(sbs->name(), "svar"));
     const auto q_ref0 = [&] {
         double q[kDof];
-        table.read(table.index_of("Q_REF"), q);
+        EXPECT_EQ(table.read(table.index_of("Q_REF"), q), chimera::svar::Status::ok);
         return q[0];
     };
     Joints far = kBase;
     far[0] += 1.0;  // 5 s away at 0.2 rad/s
-    feed.write(far.data());
+    ASSERT_NE(feed.write(far.data()), chimera::tbuf::kCorrupt);
     const auto t0 = Clock::now();
     std::this_thread::sleep_for(std::chrono::milliseconds(900));
     const double stopped = q_ref0();
@@ -306,7 +306,7 @@ TEST(Fig610Feed, ASilentOperatorStopsTheArmWhereItIsAndIsWarnedOf) {
     EXPECT_GE(st.warnings, 1u);
     EXPECT_NE(st.warning.find("operator feed silent"), std::string::npos) << st.warning;
     // The operator speaks again: it moves on.
-    feed.write(far.data());
+    ASSERT_NE(feed.write(far.data()), chimera::tbuf::kCorrupt);
     std::this_thread::sleep_for(std::chrono::milliseconds(200));
     EXPECT_GT(q_ref0(), stopped + 0.01);
     table.detach();

@@ -96,7 +96,7 @@ TEST(SteadyState, Figure3_7TaskThreadsMakeNoAllocationNoPageFaultAndOneSystemCal
     const TaskId traj = sbs->spawn(fig3_7::rmod("jtraj"), "ctrl");
     const TaskId jpid = sbs->spawn(fig3_7::rmod("jpid"), "ctrl");
     const TaskId grav = sbs->spawn(fig3_7::rmod("grav_comp"), "ctrl");
-    sbs->reconfig({{robot, Control::on}, {grav, Control::on}, {traj, Control::on}, {jpid, Control::on}});
+    ASSERT_EQ(sbs->reconfig({{robot, Control::on}, {grav, Control::on}, {traj, Control::on}, {jpid, Control::on}}).message, "");
     std::this_thread::sleep_for(1s);  // warm-up: every page touched, every path taken once
 
     struct Counted {

@@ -382,7 +382,7 @@ TEST_P(MufFailures, AbortInsideACriticalSectionWaitsForLeaveAndFreesTheLock) {
     probe.lock = &table_lock;
     probe.action = FailureAction::abort_cycle;
     probe.act_on = Failure::deadline;
-    std::atomic<int> sections_done{0}, after_leave{0}, locked_ok{0};
+    std::atomic<int> sections_done{0}, after_leave{0}, locked_ok{0}, unlock_failed{0};
     RtTaskParams p = task("aborted", 60 * ms, 50 * ms, 10 * ms);
     p.maxexec_check = false;
     // The deadline passes while the table lock is held: the handler waits for
@@ -393,7 +393,7 @@ TEST_P(MufFailures, AbortInsideACriticalSectionWaitsForLeaveAndFreesTheLock) {
             enter_critical();
             if (chimera::ipc::holds(chimera::ipc::lock(table_lock))) locked_ok.fetch_add(1);
             burn_wall(20 * ms);
-            chimera::ipc::unlock(table_lock);
+            if (!chimera::ipc::unlock(table_lock)) unlock_failed.fetch_add(1);
             sections_done.fetch_add(1);
             leave_critical();
             after_leave.fetch_add(1);
@@ -407,6 +407,7 @@ TEST_P(MufFailures, AbortInsideACriticalSectionWaitsForLeaveAndFreesTheLock) {
     EXPECT_EQ(probe.lock_held_in_handler.load(), 0);   // held off until the section ended
     EXPECT_EQ(table_lock.owner.load(), 0u);             // no lock left held
     EXPECT_EQ(locked_ok.load(), sections_done.load());
+    EXPECT_EQ(unlock_failed.load(), 0);
     EXPECT_GE(st.aborted, 3u);
     EXPECT_GE(sch.watchdog_signals(), st.aborted);  // a job that never ends is the watchdog's
     // A cycle that got past leave_critical completed; the others were aborted

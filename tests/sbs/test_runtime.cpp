@@ -91,10 +91,12 @@ protected:
     }
     double get(const std::string& var) {
         double v = 0;
-        global_->read(global_->index_of(var), &v);
+        EXPECT_EQ(global_->read(global_->index_of(var), &v), chimera::svar::Status::ok) << var;
         return v;
     }
-    void put(const std::string& var, double v) { global_->write(global_->index_of(var), &v); }
+    void put(const std::string& var, double v) {
+        EXPECT_EQ(global_->write(global_->index_of(var), &v), chimera::svar::Status::ok) << var;
+    }
 
     static std::vector<std::string> log_of(const std::string& rmod) {
         std::lock_guard<std::mutex> lock(g_mu);

@@ -137,7 +137,7 @@ TEST_F(SbsSched, PeriodicTasksGetFifoPrioritiesInMufUrgencyOrder) {
     EXPECT_LT(ps, 80);  // below the dispatcher
     EXPECT_NE(s.status(fast).policy.find("CPU " + std::to_string(get_nprocs() - 1)), std::string::npos)
         << s.status(fast).policy;
-    s.reconfig({{fast, Control::off}, {slow, Control::off}, {mid, Control::off}});
+    EXPECT_EQ(s.reconfig({{fast, Control::off}, {slow, Control::off}, {mid, Control::off}}).message, "");
     // Off: out of the scheduler, back at the idle level, no longer released.
     EXPECT_EQ(fifo_priority_of(s.status(slow).tid), 9);
     const auto cycles = records("slow cycle");
@@ -157,7 +157,7 @@ TEST_F(SbsSched, OverloadOnlyTheTaskOutsideTheCriticalSetMisses) {
     // Under a second: the kernel lends starved SCHED_OTHER threads time after 0.95 s.
     std::this_thread::sleep_for(600ms);
     const TaskStatus sa = s.status(a), sb = s.status(b), sc = s.status(c);
-    s.reconfig({{c, Control::off}, {b, Control::off}, {a, Control::off}});
+    EXPECT_EQ(s.reconfig({{c, Control::off}, {b, Control::off}, {a, Control::off}}).message, "");
     EXPECT_EQ(sa.crit, 5);
     EXPECT_EQ(sb.crit, 5);
     EXPECT_EQ(sc.crit, 3);
@@ -225,7 +225,7 @@ TEST_P(SbsServer, ServesEventsWithinItsCapacity) {
     ASSERT_TRUE(eventually([&] { return s.status(srv).cycles >= 20; })) << s.status(srv).cycles;
     std::this_thread::sleep_for(150ms);
     const TaskStatus sp = s.status(p), ss = s.status(srv);
-    s.reconfig({{srv, Control::off}, {p, Control::off}});
+    EXPECT_EQ(s.reconfig({{srv, Control::off}, {p, Control::off}}).message, "");
     EXPECT_EQ(ss.cycles, 20u);
     EXPECT_GE(ss.maxexec_failures, 1u);   // the capacity was used up ...
     EXPECT_GE(ss.deadline_failures, 1u);  // ... and replenished

@@ -215,7 +215,7 @@ TEST_F(SvarLocal, TimeoutTransfersNothingAndIsCounted) {
         (void)ipc::lock(table.lock_word());
         held = 1;
         while (!release) std::this_thread::sleep_for(std::chrono::milliseconds(1));
-        ipc::unlock(table.lock_word());
+        EXPECT_TRUE(ipc::unlock(table.lock_word()));
     });
     while (!held) std::this_thread::yield();
     EXPECT_EQ(lt.write(q), Status::timed_out);
@@ -240,7 +240,7 @@ TEST_F(SvarLocal, ReentryFromTheLockHolderIsRefused) {
     EXPECT_EQ(lt.copy_from_global(set), Status::reentered);
     EXPECT_EQ(lt.copy_to_global(set), Status::reentered);
     EXPECT_EQ(q[0], 42.0f);  // nothing read
-    ipc::unlock(table.lock_word());
+    EXPECT_TRUE(ipc::unlock(table.lock_word()));
     float g[6];
     ASSERT_EQ(table.read(table.index_of("Q_REF"), g), Status::ok);
     EXPECT_EQ(g[0], 0.0f);  // nothing written

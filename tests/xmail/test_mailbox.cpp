@@ -151,7 +151,7 @@ TEST(Mailbox, InterruptsAreMultiplexedWithValues) {
     // A sleeping owner is woken by a sender in another thread.
     std::thread t([&] {
         std::this_thread::sleep_for(std::chrono::milliseconds(20));
-        a.mbox_send(to_b, 6, 9);
+        EXPECT_EQ(a.mbox_send(to_b, 6, 9), Status::ok);
     });
     EXPECT_EQ(b.wait_interrupts(2'000'000'000), 1u << 6);
     t.join();
@@ -170,7 +170,7 @@ TEST(Mailbox, WakeupBeforeBlockIsKeptAndBlockTimesOut) {
     EXPECT_EQ(a.wakeup(to_b, 99), Status::bad_argument);
     std::thread t([&] {
         std::this_thread::sleep_for(std::chrono::milliseconds(20));
-        a.wakeup(to_b, task);
+        EXPECT_EQ(a.wakeup(to_b, task), Status::ok);
     });
     EXPECT_EQ(b.block(task, 2'000'000'000), Status::ok);
     t.join();

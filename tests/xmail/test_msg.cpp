@@ -106,13 +106,13 @@ TEST(Msg, FifoLifoHpfOrder) {
 TEST(Msg, HpfKeepsHighestAtHeadWhileInterleaving) {
     Mem m(params(16, 8, Policy::hpf));
     Queue q = Queue::over(m.data(), m.size(), params(16, 8, Policy::hpf));
-    send_str(q, "p2", 2);
-    send_str(q, "p9", 9);
+    ASSERT_EQ(send_str(q, "p2", 2), Status::ok);
+    ASSERT_EQ(send_str(q, "p9", 9), Status::ok);
     EXPECT_EQ(q.dump(), "9:0:2 2:0:2");
     EXPECT_EQ(recv_str(q), "p9");
-    send_str(q, "p7", 7);
-    send_str(q, "p2b", 2);
-    send_str(q, "m1", -1);
+    ASSERT_EQ(send_str(q, "p7", 7), Status::ok);
+    ASSERT_EQ(send_str(q, "p2b", 2), Status::ok);
+    ASSERT_EQ(send_str(q, "m1", -1), Status::ok);
     EXPECT_EQ(q.dump(), "7:0:2 2:0:2 2:0:3 -1:0:2");
     EXPECT_EQ(recv_str(q), "p7");
     EXPECT_EQ(recv_str(q), "p2");
@@ -151,7 +151,7 @@ TEST(Msg, MultiBlockMessagesUpToBlksizeTimesBlknum) {
 TEST(Msg, ReceiveBufferTooSmallLeavesTheMessage) {
     Mem m(params(4, 16, Policy::fifo));
     Queue q = Queue::over(m.data(), m.size(), params(4, 16, Policy::fifo));
-    send_str(q, "0123456789");
+    ASSERT_EQ(send_str(q, "0123456789"), Status::ok);
     char buf[4];
     msg::Info info;
     EXPECT_EQ(q.receive(buf, sizeof buf, &info, 0), Status::too_big);
@@ -330,8 +330,8 @@ TEST(Msg, RepairRollsBackAnInterruptedReceive) {
     const auto p = params(4, 8, Policy::hpf);
     Mem m(p);
     Queue q = Queue::over(m.data(), m.size(), p);
-    send_str(q, "low", 1);
-    send_str(q, "high", 9);
+    ASSERT_EQ(send_str(q, "low", 1), Status::ok);
+    ASSERT_EQ(send_str(q, "high", 9), Status::ok);
     auto* h = q.header();
     // A receiver popped the head and was copying it when it died.
     const std::uint32_t off = h->headused;
@@ -351,7 +351,7 @@ TEST(Msg, RepairRollsBackAnInterruptedSend) {
     const auto p = params(4, 8, Policy::fifo);
     Mem m(p);
     Queue q = Queue::over(m.data(), m.size(), p);
-    send_str(q, "one");
+    ASSERT_EQ(send_str(q, "one"), Status::ok);
     auto* h = q.header();
     // A sender took a header and two blocks, then died before its commit.
     const std::uint32_t hoff = h->headfree;
@@ -378,8 +378,8 @@ TEST(Msg, RepairKeepsACommittedSendHalfInserted) {
     const auto p = params(4, 8, Policy::fifo);
     Mem m(p);
     Queue q = Queue::over(m.data(), m.size(), p);
-    send_str(q, "one");
-    send_str(q, "two");
+    ASSERT_EQ(send_str(q, "one"), Status::ok);
+    ASSERT_EQ(send_str(q, "two"), Status::ok);
     auto* h = q.header();
     // "two" was committed (QUEUED) but the sender died before linking it.
     auto* first = reinterpret_cast<msg::layout::MsgHead*>(reinterpret_cast<std::byte*>(h) + h->headused);
@@ -391,7 +391,7 @@ TEST(Msg, RepairKeepsACommittedSendHalfInserted) {
     EXPECT_EQ(recv_str(q), "one");
     EXPECT_EQ(recv_str(q), "two");
     // check() itself sees a broken list when nobody died.
-    send_str(q, "x");
+    ASSERT_EQ(send_str(q, "x"), Status::ok);
     h->nmsgs = 5;
     EXPECT_NE(q.check(), "");
 }
@@ -431,7 +431,7 @@ TEST(Msg, RepairUndoesAHalfDoneHandOff) {
     recv_str(q, 0, &st);
     EXPECT_EQ(st, Status::would_block);
     // check() names a slot that holds a header not handed to it.
-    send_str(q, "n");
+    ASSERT_EQ(send_str(q, "n"), Status::ok);
     w.state = 2;
     w.handed = (h->headused - h->off_heads) / sizeof(msg::layout::MsgHead) + 1;
     EXPECT_NE(q.check().find("not HANDED"), std::string::npos);

@@ -39,7 +39,7 @@ TEST(Sem, BinaryAndCountingValues) {
     EXPECT_EQ(c.try_p(), Status::ok);
     EXPECT_EQ(c.try_p(), Status::ok);
     EXPECT_EQ(c.try_p(), Status::would_block);
-    for (int i = 0; i < 3; ++i) c.v();
+    for (int i = 0; i < 3; ++i) EXPECT_EQ(c.v(), Status::ok);
     EXPECT_EQ(c.value(), 3);
     Semaphore again = Semaphore::bind(&m2);
     EXPECT_EQ(again.value(), 3);
@@ -99,7 +99,7 @@ TEST(Sem, WaitersAreServedHighestPriorityFirst) {
         while (s.waiting() < ts.size()) std::this_thread::yield();
     }
     for (int i = 0; i < 4; ++i) {
-        s.v();
+        EXPECT_EQ(s.v(), Status::ok);
         // Let the woken one record itself before the next V.
         while (true) {
             std::lock_guard lock(mu);
@@ -115,8 +115,7 @@ pid_t child_waiting_in_p(void* mem, Semaphore& s) {
     const pid_t child = fork();
     if (child == 0) {
         Semaphore c = Semaphore::bind(mem);
-        c.p(-1, 10);
-        _exit(0);
+        _exit(c.p(-1, 10) == Status::ok ? 0 : 2);
     }
     while (s.waiting() == 0) std::this_thread::yield();
     return child;
@@ -179,7 +178,7 @@ TEST(Sem, MutualExclusionAcrossProcesses) {
                 if (i % 64 == 0) sched_yield();
                 sh->counter = c + 1;
                 --sh->inside;
-                s.v();
+                if (s.v() != Status::ok) _exit(3);
             }
             _exit(0);
         }

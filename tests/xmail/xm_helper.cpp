@@ -47,7 +47,8 @@ int xm_echo(const std::string& sys, const std::string& rtpu, std::uint32_t bid) 
             const auto bar = m.find('|');
             if (bar == std::string::npos) continue;
             auto& back = mb.peer(m.substr(0, bar));
-            mb.write(back, buf.data() + bar + 1, info.length - bar - 1, 1'000'000'000);
+            const Status st = mb.write(back, buf.data() + bar + 1, info.length - bar - 1, 1'000'000'000);
+            if (st != Status::ok) std::fprintf(stderr, "xm_helper: echo not sent: %s\n", xm::to_string(st));
         }
     }
 }
@@ -230,8 +231,9 @@ int main(int argc, char** argv) {
         }
         if (cmd == "sem-v" && argc >= 7) {  // OBJ COUNT
             sem::Semaphore s = sem::Semaphore::attach(self, argv[5]);
-            for (int i = 0; i < std::atoi(argv[6]); ++i) s.v();
-            say("ok");
+            Status st = Status::ok;
+            for (int i = 0; i < std::atoi(argv[6]) && st == Status::ok; ++i) st = s.v();
+            say(st == Status::ok ? "ok" : xm::to_string(st));
             return 0;
         }
         if (cmd == "msg-recv" && argc >= 9) {  // OBJ PRIO COUNT TIMEOUT_MS

@@ -11,6 +11,8 @@
 // describe() turns into a message naming the segment, off the hot path.
 #pragma once
 
+#include "chimera/export.hpp"
+
 #include <cstdint>
 #include <string>
 #include <string_view>
@@ -20,7 +22,7 @@ namespace chimera::ipc {
 /// One broken bound. `field` is static text ("ring record length"), so
 /// recording a fault allocates nothing; `index` says which element of an
 /// array (ring, waiter, header), -1 for none.
-struct Fault {
+struct [[nodiscard]] Fault {
     const char* field = nullptr;  ///< nullptr: no fault
     std::int64_t index = -1;
     std::uint64_t value = 0;      ///< what was found
@@ -38,6 +40,6 @@ constexpr Fault fault_if(bool broken, const char* field, std::uint64_t value, st
 
 /// "segment /chimera.arm.xm.b: ring 3 record length 99999 (must be at most 4088)";
 /// "" for no fault.
-std::string describe(std::string_view segment, const Fault& fault);
+CHIMERA_API std::string describe(std::string_view segment, const Fault& fault);
 
 }  // namespace chimera::ipc

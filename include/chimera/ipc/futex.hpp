@@ -5,6 +5,8 @@
 // lives in a segment that several processes map, each at its own address.
 #pragma once
 
+#include "chimera/export.hpp"
+
 #include <atomic>
 #include <cstdint>
 
@@ -23,17 +25,17 @@ enum class FutexResult {
 
 /// Sleeps while `word` holds `expected`, at most `timeout_ns` (negative: no
 /// limit). A system call, by nature: for the blocking path only.
-FutexResult futex_wait(std::atomic<std::uint32_t>& word, std::uint32_t expected,
-                       std::int64_t timeout_ns = -1) noexcept;
+CHIMERA_API FutexResult futex_wait(std::atomic<std::uint32_t>& word, std::uint32_t expected,
+                                   std::int64_t timeout_ns = -1) noexcept;
 
 /// As futex_wait, but until an absolute CLOCK_MONOTONIC time (see now_ns()).
-FutexResult futex_wait_until(std::atomic<std::uint32_t>& word, std::uint32_t expected,
-                             std::int64_t deadline_ns) noexcept;
+CHIMERA_API FutexResult futex_wait_until(std::atomic<std::uint32_t>& word, std::uint32_t expected,
+                                         std::int64_t deadline_ns) noexcept;
 
 /// Wakes up to `count` waiters on `word`; returns how many were woken.
-int futex_wake(std::atomic<std::uint32_t>& word, int count = 1) noexcept;
+CHIMERA_API int futex_wake(std::atomic<std::uint32_t>& word, int count = 1) noexcept;
 
 /// Wakes every waiter on `word`.
-int futex_wake_all(std::atomic<std::uint32_t>& word) noexcept;
+CHIMERA_API int futex_wake_all(std::atomic<std::uint32_t>& word) noexcept;
 
 }  // namespace chimera::ipc

@@ -22,6 +22,8 @@
 // namespace; all users of one lock must share it (one machine, one container).
 #pragma once
 
+#include "chimera/export.hpp"
+
 #include <atomic>
 #include <cstdint>
 
@@ -40,7 +42,7 @@ struct alignas(64) LockWord {
 static_assert(sizeof(LockWord) == 64);
 static_assert(std::atomic<std::uint64_t>::is_always_lock_free);
 
-enum class LockStatus : int {
+enum class [[nodiscard]] LockStatus : int {
     acquired = 0,  ///< the caller holds the lock
     recovered,     ///< the caller holds the lock, taken over from a dead holder
     forced,        ///< the caller holds the lock, reset blindly after a timeout
@@ -53,7 +55,7 @@ enum class LockStatus : int {
 constexpr bool holds(LockStatus s) noexcept {
     return s == LockStatus::acquired || s == LockStatus::recovered || s == LockStatus::forced;
 }
-const char* to_string(LockStatus s) noexcept;
+CHIMERA_API const char* to_string(LockStatus s) noexcept;
 
 struct LockOptions {
     /// Total time to wait; negative waits forever (still recovering dead
@@ -83,15 +85,15 @@ using LockEventHandler = void (*)(const LockEvent& event, void* context) noexcep
 
 /// Installs a handler for every recovery/timeout/reset in this process (nullptr
 /// removes it). The handler runs in the thread that saw the event.
-void set_lock_event_handler(LockEventHandler handler, void* context = nullptr) noexcept;
+CHIMERA_API void set_lock_event_handler(LockEventHandler handler, void* context = nullptr) noexcept;
 
 namespace detail {
 /// This thread's owner word once known, else 0. Initial-exec TLS: reading it is
 /// one load relative to the thread pointer, also from inside the shared library
 /// (the general-dynamic model would call __tls_get_addr on every lock).
-[[gnu::tls_model("initial-exec")]] extern constinit thread_local std::uint64_t t_self_owner_id;
+[[gnu::tls_model("initial-exec")]] extern CHIMERA_API constinit thread_local std::uint64_t t_self_owner_id;
 /// Computes the owner word (getpid, gettid) and caches it.
-std::uint64_t self_owner_id_slow() noexcept;
+CHIMERA_API std::uint64_t self_owner_id_slow() noexcept;
 }  // namespace detail
 
 /// This thread's owner word (pid << 32 | tid), cached per thread and reset in a
@@ -110,7 +112,7 @@ constexpr std::int32_t owner_tid(std::uint64_t word) noexcept {
 
 /// True when the thread named by an owner word still exists (and is not a
 /// zombie). A system call: for slow paths only.
-bool owner_alive(std::uint64_t word) noexcept;
+CHIMERA_API bool owner_alive(std::uint64_t word) noexcept;
 
 /// One attempt; no waiting, no liveness check.
 inline LockStatus try_lock(LockWord& lock) noexcept {
@@ -126,14 +128,14 @@ inline LockStatus try_lock(LockWord& lock) noexcept {
 /// (self_owner_id(), never 0) at hand: one CAS from free to `self`. False, and
 /// nothing changed, when the lock was not free; lock() does the rest then
 /// (already held, spin, poll, recover, time out).
-inline bool lock_if_free(LockWord& lock, std::uint64_t self) noexcept {
+[[nodiscard]] inline bool lock_if_free(LockWord& lock, std::uint64_t self) noexcept {
     std::uint64_t expected = 0;
     return lock.owner.compare_exchange_strong(expected, self, std::memory_order_acquire,
                                               std::memory_order_relaxed);
 }
 
 /// The contended path of lock(); out of line.
-LockStatus lock_slow(LockWord& lock, const LockOptions& options) noexcept;
+CHIMERA_API LockStatus lock_slow(LockWord& lock, const LockOptions& options) noexcept;
 
 /// Acquires the lock: one CAS when free, else spin, poll, recover or time out.
 inline LockStatus lock(LockWord& lock, const LockOptions& options = {}) noexcept {
@@ -153,18 +155,18 @@ inline LockStatus lock(LockWord& lock, const LockOptions& options = {}) noexcept
 /// check and the store, the store frees the new holder's lock, and that holder
 /// learns it when its own unlock() returns false. The reset is reported as
 /// forced in any case, and forced already means "data may be torn".
-inline bool unlock(LockWord& lock, std::uint64_t self) noexcept {
+[[nodiscard]] inline bool unlock(LockWord& lock, std::uint64_t self) noexcept {
     if (lock.owner.load(std::memory_order_relaxed) != self) return false;
     lock.owner.store(0, std::memory_order_release);
     return true;
 }
 /// The same, `self` being the caller's owner word (self_owner_id()).
-inline bool unlock(LockWord& lock) noexcept { return unlock(lock, self_owner_id()); }
+[[nodiscard]] inline bool unlock(LockWord& lock) noexcept { return unlock(lock, self_owner_id()); }
 
 /// Takes the lock over from a holder known to be dead (CAS from its word);
 /// counts and reports the recovery. Exposed for services that find a dead
 /// owner by other means.
-LockStatus take_over(LockWord& lock, std::uint64_t dead_owner, std::int64_t waited_ns) noexcept;
+CHIMERA_API LockStatus take_over(LockWord& lock, std::uint64_t dead_owner, std::int64_t waited_ns) noexcept;
 
 /// RAII holder for set-up code (not for cycle code that must look at the status).
 class LockGuard {
@@ -172,7 +174,9 @@ public:
     explicit LockGuard(LockWord& lock, const LockOptions& options = {}) noexcept
         : lock_(lock), status_(ipc::lock(lock, options)) {}
     ~LockGuard() {
-        if (holds(status_)) unlock(lock_);
+        // A destructor cannot report a lock reset under its holder (possible only
+        // with reset_on_timeout): code that must know calls unlock() itself.
+        if (holds(status_)) (void)unlock(lock_);
     }
     LockGuard(const LockGuard&) = delete;
     LockGuard& operator=(const LockGuard&) = delete;

@@ -14,11 +14,13 @@
 // nothing; wait for a word with ipc::futex_wait instead.
 #pragma once
 
+#include "chimera/export.hpp"
+
 #include <pthread.h>
 
 namespace chimera::ipc {
 
-class PiMutex {
+class CHIMERA_API PiMutex {
 public:
     PiMutex() noexcept;
     ~PiMutex();

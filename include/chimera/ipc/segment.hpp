@@ -28,6 +28,8 @@
 // neither counts nor frees: only the process that attached releases.
 #pragma once
 
+#include "chimera/export.hpp"
+
 #include <sys/types.h>
 
 #include <atomic>
@@ -62,7 +64,7 @@ enum class ObjectType : std::uint32_t {
 };
 
 /// The name of an ObjectType for messages ("svar_table"), or "type N".
-std::string object_type_name(ObjectType type);
+CHIMERA_API std::string object_type_name(ObjectType type);
 
 /// State of a segment's header.
 enum class SegmentState : std::uint32_t {
@@ -109,7 +111,7 @@ constexpr std::size_t align_up(std::size_t n, std::size_t align) noexcept {
 }
 
 /// An error creating, attaching or validating a segment; what() names it.
-class SegmentError : public std::runtime_error {
+class CHIMERA_API SegmentError : public std::runtime_error {
 public:
     SegmentError(std::string name, std::string message, int error_number = 0);
     const std::string& name() const noexcept { return name_; }
@@ -123,7 +125,7 @@ private:
 
 /// "/chimera.<subsystem>.<object>"; throws SegmentError when either part is
 /// empty or holds '/', or the result is longer than NAME_MAX.
-std::string segment_name(std::string_view subsystem, std::string_view object);
+CHIMERA_API std::string segment_name(std::string_view subsystem, std::string_view object);
 
 /// What the attaching process expects to find.
 struct SegmentKind {
@@ -146,7 +148,7 @@ struct AttachOptions {
 
 /// One mapping of a segment (RAII). Move-only. Destruction detaches (and
 /// unlinks a segment that was created but never published).
-class Segment {
+class CHIMERA_API Segment {
 public:
     Segment() noexcept = default;
     Segment(Segment&& other) noexcept;
@@ -227,14 +229,14 @@ private:
 /// Checks a header against what a process expects; throws SegmentError with
 /// the mismatch named. Used by attach(), and by objects laid over
 /// caller-supplied memory.
-void validate_header(const std::string& name, const SegmentHeader& header, SegmentKind kind,
-                     std::size_t mapped_size);
+CHIMERA_API void validate_header(const std::string& name, const SegmentHeader& header, SegmentKind kind,
+                                 std::size_t mapped_size);
 
 /// The same checks as validate_header() as a pure function over an image of
 /// `size` bytes (what a fuzzer calls): the first bound broken, or none.
-Fault header_fault(const void* image, std::size_t size, SegmentKind kind) noexcept;
+CHIMERA_API Fault header_fault(const void* image, std::size_t size, SegmentKind kind) noexcept;
 
 /// Fills a header for a new object of `total_size` bytes (state: building).
-void init_header(SegmentHeader& header, SegmentKind kind, std::size_t total_size) noexcept;
+CHIMERA_API void init_header(SegmentHeader& header, SegmentKind kind, std::size_t total_size) noexcept;
 
 }  // namespace chimera::ipc

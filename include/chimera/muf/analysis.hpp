@@ -10,6 +10,8 @@
 // Times are in any consistent unit (the analysis only ever uses ratios).
 #pragma once
 
+#include "chimera/export.hpp"
+
 #include <cstddef>
 #include <cstdint>
 #include <optional>
@@ -23,9 +25,9 @@ namespace chimera::muf {
 /// The local scheduling policies of an RTPU (the .sbs SCHEDULER line).
 enum class Policy { rm, edf, muf };
 
-std::string_view to_string(Policy policy) noexcept;
+CHIMERA_API std::string_view to_string(Policy policy) noexcept;
 /// "rm", "edf", "muf" (also upper case, as .sbs files write them).
-std::optional<Policy> parse_policy(std::string_view text) noexcept;
+[[nodiscard]] CHIMERA_API std::optional<Policy> parse_policy(std::string_view text) noexcept;
 
 /// Criticality levels of §6.5.2 (1 lowest .. 6 highest).
 namespace crit {
@@ -59,13 +61,13 @@ struct Flow {
 };
 
 /// Eq. 8: U = sum of reserved()/T.
-double utilisation(std::span<const TaskSpec> tasks) noexcept;
+CHIMERA_API double utilisation(std::span<const TaskSpec> tasks) noexcept;
 
 /// Eq. 9: W_n = n (2^(1/n) - 1); W_0 is taken as 1.
-double rm_bound(std::size_t n) noexcept;
+CHIMERA_API double rm_bound(std::size_t n) noexcept;
 
 /// Indices from shortest to longest period (ties: shorter deadline, then file order).
-std::vector<std::size_t> rm_order(std::span<const TaskSpec> tasks);
+CHIMERA_API std::vector<std::size_t> rm_order(std::span<const TaskSpec> tasks);
 
 /// The critical set of a policy: the tasks guaranteed to meet every deadline,
 /// even in a transient overload.
@@ -80,13 +82,13 @@ struct CriticalSet {
     double utilisation = 0;     ///< of the members
     double bound = 0;           ///< the bound they were checked against
 };
-CriticalSet critical_set(std::span<const TaskSpec> tasks, Policy policy);
+CHIMERA_API CriticalSet critical_set(std::span<const TaskSpec> tasks, Policy policy);
 
 /// Unique user priorities 1..n (n highest) following the data flow: a producer
 /// ranks above its consumers; unrelated tasks in rm_order; a cycle is broken at
 /// its shortest-period task. Explicit TaskSpec::uprio values override.
-std::vector<int> data_flow_user_priorities(std::span<const TaskSpec> tasks,
-                                           std::span<const Flow> flows);
+CHIMERA_API std::vector<int> data_flow_user_priorities(std::span<const TaskSpec> tasks,
+                                                       std::span<const Flow> flows);
 
 /// The static part of every task's urgency under a policy (the MUF a-priori step).
 ///  - MUF: criticality 5 for the critical set, 3 for the rest (explicit CRIT wins).
@@ -101,8 +103,8 @@ struct Assignment {
     CriticalSet critical;
     bool uses_deadline = true;    ///< false for RM: the dynamic priority is not used
 };
-Assignment assign(std::span<const TaskSpec> tasks, Policy policy,
-                  std::span<const Flow> flows = {});
+CHIMERA_API Assignment assign(std::span<const TaskSpec> tasks, Policy policy,
+                              std::span<const Flow> flows = {});
 
 /// Figure 6.2: an urgency of c criticality bits, d dynamic-priority bits and u
 /// user-priority bits, criticality most significant. Defaults are Chimera's: 6
@@ -121,42 +123,42 @@ struct UrgencyEncoding {
 /// The dynamic priority: (2^d - 1) - ticks to the deadline, so the earliest
 /// deadline is the highest; no deadline, or one 2^d - 1 ticks or more away, is 0
 /// (infinity); a deadline already past is the maximum.
-std::uint64_t dynamic_priority(const UrgencyEncoding& enc,
-                               std::optional<std::int64_t> ticks_to_deadline) noexcept;
+CHIMERA_API std::uint64_t dynamic_priority(const UrgencyEncoding& enc,
+                                           std::optional<std::int64_t> ticks_to_deadline) noexcept;
 
 /// The encoded urgency; crit and uprio are clamped into their bit ranges.
-std::uint64_t urgency(const UrgencyEncoding& enc, int crit,
-                      std::optional<std::int64_t> ticks_to_deadline, int uprio) noexcept;
+CHIMERA_API std::uint64_t urgency(const UrgencyEncoding& enc, int crit,
+                                  std::optional<std::int64_t> ticks_to_deadline, int uprio) noexcept;
 
 /// §4.5.1: criticality from frequency, logarithmic between MINFREQ and MAXFREQ
 /// over the 62 values 1..62 (0 and 63 reserved). f <= minfreq -> 1,
 /// f > maxfreq -> 62; otherwise 1 + floor(61 log(f/minfreq) / log(maxfreq/minfreq)).
-int criticality_from_frequency(double freq, double minfreq, double maxfreq) noexcept;
+CHIMERA_API int criticality_from_frequency(double freq, double minfreq, double maxfreq) noexcept;
 
 // --- Aperiodic servers (§6.5, eq. 10–26) ------------------------------------
 
 enum class Server { rds, rss, mds, mss };
-std::string_view to_string(Server server) noexcept;
+CHIMERA_API std::string_view to_string(Server server) noexcept;
 
 /// Maximum server size U_s for a periodic critical set of utilisation u_p:
 /// RDS eq. 12, RSS eq. 15, MDS eq. 22, MSS eq. 25 (RM servers in the limit m -> inf).
-double server_max_size(Server server, double u_p) noexcept;
+CHIMERA_API double server_max_size(Server server, double u_p) noexcept;
 /// Highest periodic utilisation U_p that still meets all deadlines with a server
 /// of size u_s: RDS eq. 11, RSS eq. 14, MDS eq. 21, MSS eq. 24.
-double server_periodic_bound(Server server, double u_s) noexcept;
+CHIMERA_API double server_periodic_bound(Server server, double u_s) noexcept;
 /// Worst-case schedulable bound W = U_p + U_s as a function of the server size:
 /// W_rds, W_rss, eq. 23 (MDS), eq. 26 (MSS).
-double server_schedulable_bound(Server server, double u_s) noexcept;
+CHIMERA_API double server_schedulable_bound(Server server, double u_s) noexcept;
 /// The RM servers for m tasks in the critical set (server included), eq. 10 and 13.
-double rm_server_periodic_bound(Server server, double u_s, std::size_t m) noexcept;
+CHIMERA_API double rm_server_periodic_bound(Server server, double u_s, std::size_t m) noexcept;
 /// Inverse of rm_server_periodic_bound: the largest server for u_p and m tasks.
-double rm_server_max_size(Server server, double u_p, std::size_t m) noexcept;
+CHIMERA_API double rm_server_max_size(Server server, double u_p, std::size_t m) noexcept;
 
 // --- Soft real-time tasks (§6.4) --------------------------------------------
 
 /// A task execution profile as a histogram: counts[k] cycles took a time in
 /// (k * bin_width, (k + 1) * bin_width]. Psi(t) is the fraction of cycles done by t.
-struct ExecutionProfile {
+struct CHIMERA_API ExecutionProfile {
     double bin_width = 1;
     std::vector<std::uint64_t> counts;
 
@@ -171,10 +173,10 @@ struct ExecutionProfile {
 
 /// E from raw per-cycle execution times: the smallest sample s with at least a
 /// fraction `hardness` of the samples <= s. 0 for no samples.
-double effective_execution_time(std::span<const double> samples, double hardness);
+CHIMERA_API double effective_execution_time(std::span<const double> samples, double hardness);
 
 /// The one-in-n guarantee: the smallest n with C <= n E; a soft task reserved E
 /// completes at least one cycle in every n. 0 when E <= 0.
-unsigned guaranteed_one_in(double wcet, double effective) noexcept;
+CHIMERA_API unsigned guaranteed_one_in(double wcet, double effective) noexcept;
 
 }  // namespace chimera::muf

@@ -55,6 +55,8 @@
 // run (the jump skips them); such code should not call arm_abort().
 #pragma once
 
+#include "chimera/export.hpp"
+
 #include <atomic>
 #include <csetjmp>
 #include <cstdint>
@@ -69,12 +71,12 @@
 namespace chimera::muf {
 
 enum class Backend { fifo, deadline, other };
-std::string_view to_string(Backend backend) noexcept;
-std::optional<Backend> parse_backend(std::string_view text) noexcept;
+CHIMERA_API std::string_view to_string(Backend backend) noexcept;
+[[nodiscard]] CHIMERA_API std::optional<Backend> parse_backend(std::string_view text) noexcept;
 
 /// The three timing failures, numbered as in the thesis.
 enum class Failure : int { deadline = 1, maxexec = 2, minexec = 3 };
-std::string_view to_string(Failure kind) noexcept;
+CHIMERA_API std::string_view to_string(Failure kind) noexcept;
 
 /// What the runtime does after a handler returns.
 enum class FailureAction {
@@ -90,7 +92,7 @@ using FailureHandler = FailureAction (*)(Failure kind, void* user);
 
 /// Error from setting up a scheduler or task (admission refused, bad
 /// parameters). Never thrown on the real-time path.
-class SchedError : public std::runtime_error {
+class CHIMERA_API SchedError : public std::runtime_error {
 public:
     using std::runtime_error::runtime_error;
 };
@@ -160,7 +162,7 @@ struct RtTaskStatus {
     int tid = 0;
 };
 
-class RtpuScheduler {
+class CHIMERA_API RtpuScheduler {
 public:
     /// Starts the dispatcher (fifo and deadline backends). Throws SchedError.
     explicit RtpuScheduler(RtpuOptions options);
@@ -238,33 +240,33 @@ private:
 inline constexpr std::int64_t infinity = INT64_MAX;
 
 /// CLOCK_MONOTONIC now, in nanoseconds.
-std::int64_t clock_ns() noexcept;
+CHIMERA_API std::int64_t clock_ns() noexcept;
 
 /// Installs the failure handler and its default criticality (the handler
 /// priority: the task takes it while the handler runs, §6.3).
-void set_dfhandler(FailureHandler handler, int crit, void* user = nullptr) noexcept;
+CHIMERA_API void set_dfhandler(FailureHandler handler, int crit, void* user = nullptr) noexcept;
 /// Changes the calling task's criticality; the dispatcher re-ranks at once.
-void set_criticality(int crit) noexcept;
-int criticality() noexcept;
+CHIMERA_API void set_criticality(int crit) noexcept;
+CHIMERA_API int criticality() noexcept;
 /// Sets MINEXEC, MAXEXEC and the deadline relative to `start`, without pausing.
-void set_deadline(std::int64_t start_ns, std::int64_t min_c_ns, std::int64_t max_c_ns,
-                  std::int64_t deadline_ns) noexcept;
+CHIMERA_API void set_deadline(std::int64_t start_ns, std::int64_t min_c_ns, std::int64_t max_c_ns,
+                              std::int64_t deadline_ns) noexcept;
 /// Blocks until `restart_ns`, then set_deadline(restart, ...). A MINEXEC
 /// failure is raised when less than min_c is left before the deadline.
-void pause(std::int64_t restart_ns, std::int64_t min_c_ns, std::int64_t max_c_ns,
-           std::int64_t deadline_ns) noexcept;
+CHIMERA_API void pause(std::int64_t restart_ns, std::int64_t min_c_ns, std::int64_t max_c_ns,
+                       std::int64_t deadline_ns) noexcept;
 /// Marks the start of a piece of work; returns the time now (ns).
-std::int64_t execstart() noexcept;
+CHIMERA_API std::int64_t execstart() noexcept;
 /// The execstart() time plus the CPU time used since it, so execend() -
 /// execstart() is the execution time of the piece of work.
-std::int64_t execend() noexcept;
+CHIMERA_API std::int64_t execend() noexcept;
 /// MAXEXEC budget left (ns; infinity when none).
-std::int64_t execleft() noexcept;
+CHIMERA_API std::int64_t execleft() noexcept;
 
 /// Critical sections (table lock, queue operations): failure handlers are held
 /// off until the outermost leave_critical(), where pending ones run. A held-off
 /// handler with a higher criticality raises the task's at once (§6.3).
-void enter_critical() noexcept;
-void leave_critical() noexcept;
+CHIMERA_API void enter_critical() noexcept;
+CHIMERA_API void leave_critical() noexcept;
 
 }  // namespace chimera::muf

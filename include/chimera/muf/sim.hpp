@@ -8,6 +8,8 @@
 // assign() gives them. It is the reference the Linux backends are tested against.
 #pragma once
 
+#include "chimera/export.hpp"
+
 #include <cstddef>
 #include <cstdint>
 #include <span>
@@ -78,17 +80,17 @@ struct SimResult {
 
 /// Runs the task set. Throws std::invalid_argument for a non-positive period,
 /// a negative WCET or deadline, or until < 0.
-SimResult simulate(std::span<const SimTask> tasks, const SimOptions& options);
+CHIMERA_API SimResult simulate(std::span<const SimTask> tasks, const SimOptions& options);
 
 /// Convenience: assigns `policy` with assign() and simulates. Task times must be
 /// whole ticks (std::invalid_argument otherwise).
-SimResult simulate(std::span<const TaskSpec> tasks, Policy policy, LateJob late,
-                   std::int64_t until, std::span<const Flow> flows = {});
+CHIMERA_API SimResult simulate(std::span<const TaskSpec> tasks, Policy policy, LateJob late,
+                               std::int64_t until, std::span<const Flow> flows = {});
 
 /// A text Gantt chart, one row per task, one column per `tick_per_column` ticks:
 /// '#' running, '-' released and waiting, '!' the column of a missed deadline,
 /// '.' nothing to do. A time ruler every 10 columns on top.
-std::string gantt(std::span<const SimTask> tasks, const SimResult& result,
-                  std::int64_t ticks_per_column = 1);
+CHIMERA_API std::string gantt(std::span<const SimTask> tasks, const SimResult& result,
+                              std::int64_t ticks_per_column = 1);
 
 }  // namespace chimera::muf

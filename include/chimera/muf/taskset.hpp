@@ -11,6 +11,8 @@
 // the E of a soft task (§6.4). Errors are cfg::ParseError, "FILE:LINE: message".
 #pragma once
 
+#include "chimera/export.hpp"
+
 #include <string>
 #include <string_view>
 #include <vector>
@@ -26,8 +28,8 @@ struct TaskSet {
 };
 
 /// Reads a task-set file; throws cfg::ParseError naming the file and line.
-TaskSet read_task_set(const std::string& path);
+CHIMERA_API TaskSet read_task_set(const std::string& path);
 /// The same from text; `name` is used as FILE in errors.
-TaskSet parse_task_set(std::string_view text, const std::string& name);
+CHIMERA_API TaskSet parse_task_set(std::string_view text, const std::string& name);
 
 }  // namespace chimera::muf

@@ -178,14 +178,14 @@ protected:
     std::vector<T> get(const std::string& var) {
         const std::size_t ix = global_->index_of(var);
         std::vector<T> v(global_->var(ix).nelem());
-        global_->read(ix, v.data());
+        EXPECT_EQ(global_->read(ix, v.data()), chimera::svar::Status::ok);
         return v;
     }
     template <typename T>
     void put(const std::string& var, std::vector<T> v) {
         const std::size_t ix = global_->index_of(var);
         EXPECT_EQ(v.size(), global_->var(ix).nelem());
-        global_->write(ix, v.data());
+        EXPECT_EQ(global_->write(ix, v.data()), chimera::svar::Status::ok);
     }
     State state(TaskId id) { return sbs_->status(id).state; }
     std::uint64_t cycles(TaskId id) { return sbs_->status(id).cycles; }
