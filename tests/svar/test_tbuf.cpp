@@ -11,6 +11,7 @@
 
 #include "chimera/ipc/clock.hpp"
 #include "chimera/tbuf.hpp"
+#include "sanitizer.hpp"
 #include "segment_guard.hpp"
 #include "svar_test_util.hpp"
 
@@ -189,6 +190,7 @@ TEST(Tbuf, AttachByNameRefusesATable) {
 // an older item after a newer one, counters and missed counts add up, and the
 // reader ends holding the writer's newest item.
 TEST(Tbuf, StressAcrossProcesses) {
+    CHIMERA_NOT_UNDER_TSAN("a forked writer and reader");
     const std::string name = unique_name("tbs");
     Tbuf owner = Tbuf::create(name, sizeof(Item));
     struct Board {
@@ -322,6 +324,7 @@ int kill_reader(const std::string& name, KillBoard* b) {
 // (With the slot indices in two words, 300 writer kills gave 268 index
 // collisions and 593 794 torn items.)
 TEST(Tbuf, KillLoopWriterAndReaderStayConsistent) {
+    CHIMERA_NOT_UNDER_TSAN("forked writers and readers killed");
     const std::string name = unique_name("tbkill");
     const chimera::test::SegmentGuard cleanup(name.substr(1));
     Tbuf owner = Tbuf::create(name, sizeof(Item));

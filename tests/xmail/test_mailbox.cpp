@@ -1,4 +1,5 @@
 // Express mail: mailboxes, rings, interrupts, wakeups, alive status (§5.3.1).
+#include "sanitizer.hpp"
 #include "segment_guard.hpp"
 #include <gtest/gtest.h>
 #include <signal.h>
@@ -197,6 +198,7 @@ TEST(Mailbox, BadConfigurationsAreRefused) {
 }
 
 TEST(Mailbox, DeadRtpuIsNotAliveAndItsMailboxIsTakenOver) {
+    CHIMERA_NOT_UNDER_TSAN("a forked RTPU killed");
     const std::string sys = test_sys("dead");
     Mailbox a(sys, "a", 0, small());
     int ready[2];
@@ -233,6 +235,7 @@ TEST(Mailbox, DeadRtpuIsNotAliveAndItsMailboxIsTakenOver) {
 }
 
 TEST(Mailbox, TwoLiveRtpusWithTheSameBidAreRefused) {
+    CHIMERA_NOT_UNDER_TSAN("a forked RTPU");
     const std::string sys = test_sys("dupbid");
     const chimera::test::SegmentGuard cleanup("chimera." + sys + ".");  // the killed claimant's mailbox too
     Mailbox r(sys, "r", 0, small());
@@ -300,6 +303,7 @@ pid_t idle_rtpu(const std::string& sys, const std::string& name, std::uint32_t b
 }  // namespace
 
 TEST(Mailbox, MessagesADeadReceiverLeftUnreadAreCountedByTheSender) {
+    CHIMERA_NOT_UNDER_TSAN("a forked receiver killed");
     const std::string sys = test_sys("undeliv");
     const chimera::test::SegmentGuard cleanup("chimera." + sys + ".");
     Mailbox a(sys, "a", 0, small());
@@ -319,6 +323,7 @@ TEST(Mailbox, MessagesADeadReceiverLeftUnreadAreCountedByTheSender) {
 }
 
 TEST(Mailbox, CheckPeersCountsTheLossWithoutAnotherWrite) {
+    CHIMERA_NOT_UNDER_TSAN("a forked receiver killed");
     const std::string sys = test_sys("undeliv2");
     const chimera::test::SegmentGuard cleanup("chimera." + sys + ".");
     Mailbox a(sys, "a", 0, small());
@@ -335,6 +340,7 @@ TEST(Mailbox, CheckPeersCountsTheLossWithoutAnotherWrite) {
 }
 
 TEST(Mailbox, AnRtpuServerCountsLossesOfItsTasksWithin100ms) {
+    CHIMERA_NOT_UNDER_TSAN("a forked receiver killed");
     const std::string sys = test_sys("undeliv3");
     const chimera::test::SegmentGuard cleanup("chimera." + sys + ".");
     xm::Rtpu a(sys, "a", 0, small());
