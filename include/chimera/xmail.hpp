@@ -158,8 +158,8 @@ struct MailboxGeometry {
 /// lock, so a dead waiter or signaller is repaired from these fields.
 struct Waiter {
     std::atomic<std::uint32_t> word;  ///< 0: asleep, 1: signalled
-    std::uint32_t state;              ///< 0 free, 1 waiting, 2 signalled
-    std::int32_t pid, tid;            ///< the waiting thread
+    std::uint32_t state;              ///< 0 free, 1 waiting, 2 signalled (atomic stores: read without the lock)
+    std::int32_t pid, tid;            ///< the waiting thread (atomic stores: read without the lock)
     std::int32_t priority;            ///< higher is served first
     std::uint32_t ticket;             ///< arrival order among equal priorities
     std::uint32_t handed;             ///< MSG: message header handed over (index + 1)
