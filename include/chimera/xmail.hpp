@@ -201,8 +201,10 @@ private:
     layout::RingHeader* ring_ = nullptr;  // our ring in the peer's mailbox
     std::byte* buffer_ = nullptr;
     std::uint64_t in_ = 0;                // our ring's write position (the truth; mirrored in ring_->in)
-    std::int64_t last_probe_ns_ = 0;
-    bool probe_ok_ = false;
+    // The last liveness check, shared by this RTPU's tasks: write() and
+    // wakeup() update it outside write_mutex_, so atomic (relaxed: a cache).
+    std::atomic<std::int64_t> last_probe_ns_{0};
+    std::atomic<bool> probe_ok_{false};
     bool loss_counted_ = false;           // the receiver was found dead and its unread records counted
     std::uint64_t undelivered_ = 0;
     ipc::Fault fault_;

@@ -278,6 +278,49 @@ TEST(Mailbox, ResetDropsUnreadMessages) {
     EXPECT_EQ(c, '3');
 }
 
+// The tasks of one RTPU share its Peer of a receiver (one ring, a local lock):
+// writes and wake-ups from several threads at once, each re-checking that the
+// receiver lives, all arrive, in each task's order. Under ThreadSanitizer
+// (scripts/test.sh's tsan stage) this is the test of the Peer's liveness cache,
+// which write() and wakeup() update outside the ring's lock.
+TEST(Mailbox, TasksOfOneRtpuShareAPeer) {
+    const std::string sys = test_sys("share");
+    Mailbox a(sys, "a", 0, small(1024)), b(sys, "b", 1, small(1024));
+    a.set_probe_period(0);  // every call re-checks the receiver
+    auto& to_b = a.peer("b");
+    constexpr std::uint32_t kTasks = 3, kEach = 500;
+    std::vector<std::thread> tasks;
+    for (std::uint32_t t = 0; t < kTasks; ++t)
+        tasks.emplace_back([&, t] {
+            for (std::uint32_t i = 0; i < kEach; ++i) {
+                const std::uint32_t m = t << 16 | i;
+                ASSERT_EQ(a.write(to_b, &m, sizeof m, 5'000'000'000), Status::ok) << t << ":" << i;
+                ASSERT_EQ(a.wakeup(to_b, t), Status::ok);
+            }
+        });
+    std::vector<std::uint32_t> next(kTasks, 0);
+    std::uint32_t got = 0;
+    const std::int64_t deadline = ipc::now_ns() + 30'000'000'000;
+    while (got < kTasks * kEach && ipc::now_ns() < deadline) {
+        std::uint32_t m = 0;
+        xm::ReadInfo info;
+        const Status s = b.read(&m, sizeof m, &info);
+        if (s == Status::would_block) {
+            std::this_thread::yield();
+            continue;
+        }
+        ASSERT_EQ(s, Status::ok);
+        const std::uint32_t t = m >> 16;
+        ASSERT_LT(t, kTasks);
+        ASSERT_EQ(m & 0xffff, next[t]) << "task " << t;
+        ++next[t];
+        ++got;
+    }
+    for (auto& t : tasks) t.join();
+    EXPECT_EQ(got, kTasks * kEach);
+    EXPECT_EQ(to_b.undelivered(), 0u);
+}
+
 // --- lost with a dead receiver: reported, not silent (issue #15.2) ----------------
 
 namespace {
