@@ -20,6 +20,20 @@ inline constexpr bool kThreadSanitizer = false;
 inline constexpr bool kThreadSanitizer = false;
 #endif
 
+/// Built with AddressSanitizer or ThreadSanitizer: the runtime then leaves
+/// memory unlocked (src/muf/policy.cpp), and the tests that check locking know.
+#if defined(__SANITIZE_ADDRESS__)
+inline constexpr bool kSanitizer = true;
+#elif defined(__has_feature)
+#if __has_feature(address_sanitizer)
+inline constexpr bool kSanitizer = true;
+#else
+inline constexpr bool kSanitizer = kThreadSanitizer;
+#endif
+#else
+inline constexpr bool kSanitizer = kThreadSanitizer;
+#endif
+
 namespace detail {
 
 // Under ThreadSanitizer a fork (or a helper program started) in a test not
