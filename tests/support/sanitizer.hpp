@@ -6,33 +6,27 @@
 #include <gtest/gtest.h>
 #include <pthread.h>
 
+#if defined(__has_feature)  // clang; GCC defines __SANITIZE_*__
+#define CHIMERA_TEST_HAS_FEATURE(x) __has_feature(x)
+#else
+#define CHIMERA_TEST_HAS_FEATURE(x) 0
+#endif
+
 namespace chimera::test {
 
-#if defined(__SANITIZE_THREAD__)
-inline constexpr bool kThreadSanitizer = true;
-#elif defined(__has_feature)
-#if __has_feature(thread_sanitizer)
+#if defined(__SANITIZE_THREAD__) || CHIMERA_TEST_HAS_FEATURE(thread_sanitizer)
 inline constexpr bool kThreadSanitizer = true;
 #else
 inline constexpr bool kThreadSanitizer = false;
 #endif
+#if defined(__SANITIZE_ADDRESS__) || CHIMERA_TEST_HAS_FEATURE(address_sanitizer)
+inline constexpr bool kAddressSanitizer = true;
 #else
-inline constexpr bool kThreadSanitizer = false;
+inline constexpr bool kAddressSanitizer = false;
 #endif
-
 /// Built with AddressSanitizer or ThreadSanitizer: the runtime then leaves
 /// memory unlocked (src/muf/policy.cpp), and the tests that check locking know.
-#if defined(__SANITIZE_ADDRESS__)
-inline constexpr bool kSanitizer = true;
-#elif defined(__has_feature)
-#if __has_feature(address_sanitizer)
-inline constexpr bool kSanitizer = true;
-#else
-inline constexpr bool kSanitizer = kThreadSanitizer;
-#endif
-#else
-inline constexpr bool kSanitizer = kThreadSanitizer;
-#endif
+inline constexpr bool kSanitizer = kAddressSanitizer || kThreadSanitizer;
 
 namespace detail {
 
