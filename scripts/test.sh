@@ -1,9 +1,91 @@
 #!/usr/bin/env bash
-# The whole test suite: install what is needed, configure, build, run every test.
+# The whole test suite, as named stages run in order, each timed (CI: .ci/run).
+#   scripts/test.sh                        every stage
+#   scripts/test.sh --stage asan [--stage tsan]   only those (setup is not implied)
+#   scripts/test.sh --list                 the stages
+#   scripts/test.sh [--stage …] -- ARGS    ARGS to each stage's `meson test` (e.g. --suite svar)
+# What each stage does and its usual time: docs/testing.md.
 set -euo pipefail
 cd "$(dirname "$0")/.."
-scripts/setup-debian.sh
-if [ -d build ]; then meson setup --reconfigure build >/dev/null; else meson setup build; fi
-ninja -C build
-meson test -C build --print-errorlogs --num-processes 2 "$@"
-scripts/fuzz.sh  # stage: bounded fuzzing, its own clang build (docs/fuzzing.md)
+
+# Configures DIR with meson's OPTIONS (again, keeping them, when it exists).
+configure() {
+  local dir=$1; shift
+  if [ -d "$dir" ]; then meson setup --reconfigure "$dir" "$@" >/dev/null; else meson setup "$dir" "$@"; fi
+}
+
+# The sanitizer builds leave out what they do not test: benchmarks and the qemu
+# guest suite (it boots its own kernel; its programs are not the host's).
+sanitizer_options=(-Db_lundef=false -Dbenchmarks=disabled -Drt_guest_tests=disabled)
+
+stage_setup() { scripts/setup-debian.sh; }
+stage_build() {
+  configure build
+  ninja -C build
+}
+stage_suite() { meson test -C build --print-errorlogs --num-processes 2 "${meson_test_args[@]}"; }
+
+# AddressSanitizer + UndefinedBehaviorSanitizer over the host suite; any report
+# ends the program (-fno-sanitize-recover=all), so the test fails. Not the
+# install suite: it builds a user's program, uninstrumented, against the
+# installed library, which cannot load an instrumented one (the sanitizer's
+# runtime must come first); it runs in the suite stage.
+stage_asan() {
+  configure build-asan "${sanitizer_options[@]}" -Db_sanitize=address,undefined \
+    -Dcpp_args=-fno-sanitize-recover=all -Dcpp_link_args=-fno-sanitize-recover=all
+  timed asan-build ninja -C build-asan
+  timed asan-suite meson test -C build-asan --no-rebuild --print-errorlogs --num-processes 2 --no-suite install \
+    "${meson_test_args[@]}"
+}
+
+# ThreadSanitizer over the in-process lock-free parts (table lock, TBUF, mail
+# rings, MSG): `meson test` builds only these suites' programs. Their tests
+# that cross processes skip themselves (CHIMERA_NOT_UNDER_TSAN, with what they
+# cross); tests/tsan.supp holds the suppressions, each with its reason.
+stage_tsan() {
+  configure build-tsan "${sanitizer_options[@]}" -Db_sanitize=thread
+  meson test -C build-tsan --print-errorlogs --num-processes 2 --suite ipc --suite svar --suite xmail "${meson_test_args[@]}"
+}
+
+# Bounded fuzzing in its own clang build (docs/fuzzing.md).
+stage_fuzz() { scripts/fuzz.sh; }
+
+stages=(setup build suite asan tsan fuzz)
+
+# Runs a command and logs how long it took; a stage that fails ends the script
+# (set -e), and the log at exit says which was running.
+times_log=() running=()
+timed() {
+  local label=$1 start=$SECONDS; shift
+  echo "==> $label"
+  running+=("$label $start")
+  "$@"
+  unset 'running[-1]'
+  times_log+=("$(printf '%-11s %5d s' "$label" $((SECONDS - start)))")
+}
+print_times() {
+  local r
+  for r in "${running[@]}"; do times_log+=("$(printf '%-11s %5d s  FAILED' "${r% *}" $((SECONDS - ${r#* })))"); done
+  echo "== stage times (total $SECONDS s)"
+  printf '  %s\n' "${times_log[@]}"
+}
+
+selected=() meson_test_args=()
+while (($#)); do
+  case $1 in
+    --stage) selected+=("${2:?--stage needs a name}"); shift 2 ;;
+    --list) printf '%s\n' "${stages[@]}"; exit 0 ;;
+    --) shift; meson_test_args=("$@"); break ;;
+    *) meson_test_args+=("$1"); shift ;;  # as before stages: meson test's own options
+  esac
+done
+for s in "${selected[@]}"; do
+  [[ " ${stages[*]} " == *" $s "* ]] || { echo "test.sh: no stage '$s' (stages: ${stages[*]})" >&2; exit 2; }
+done
+((${#selected[@]})) || selected=("${stages[@]}")
+
+trap print_times EXIT
+
+for s in "${stages[@]}"; do
+  if [[ " ${selected[*]} " == *" $s "* ]]; then timed "$s" "stage_$s"; fi
+done

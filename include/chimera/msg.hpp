@@ -114,6 +114,8 @@ struct QueueHeader {
     char segname[64];             ///< "rtpu:name" (or a caller's label)
     std::uint32_t blknum, blksize, flags, block_stride;
     std::uint32_t headfree, headused, tailused, blkfree;
+    // nmsgs and nhanded are also read without the lock (an empty queue is
+    // polled without it), so they are written with atomic stores.
     std::uint32_t nmsgs, nfree_heads, nfree_blks, next_seq;
     std::uint32_t nhanded, recoveries, next_ticket, reclaimed_waiters;
     std::uint32_t off_heads, off_blocks, sends, receives;

@@ -161,8 +161,8 @@ struct MailboxGeometry {
 /// lock, so a dead waiter or signaller is repaired from these fields.
 struct Waiter {
     std::atomic<std::uint32_t> word;  ///< 0: asleep, 1: signalled
-    std::uint32_t state;              ///< 0 free, 1 waiting, 2 signalled
-    std::int32_t pid, tid;            ///< the waiting thread
+    std::uint32_t state;              ///< 0 free, 1 waiting, 2 signalled (atomic stores: read without the lock)
+    std::int32_t pid, tid;            ///< the waiting thread (atomic stores: read without the lock)
     std::int32_t priority;            ///< higher is served first
     std::uint32_t ticket;             ///< arrival order among equal priorities
     std::uint32_t handed;             ///< MSG: message header handed over (index + 1)
@@ -204,8 +204,10 @@ private:
     layout::RingHeader* ring_ = nullptr;  // our ring in the peer's mailbox
     std::byte* buffer_ = nullptr;
     std::uint64_t in_ = 0;                // our ring's write position (the truth; mirrored in ring_->in)
-    std::int64_t last_probe_ns_ = 0;
-    bool probe_ok_ = false;
+    // The last liveness check, shared by this RTPU's tasks: write() and
+    // wakeup() update it outside write_mutex_, so atomic (relaxed: a cache).
+    std::atomic<std::int64_t> last_probe_ns_{0};
+    std::atomic<bool> probe_ok_{false};
     bool loss_counted_ = false;           // the receiver was found dead and its unread records counted
     std::uint64_t undelivered_ = 0;
     ipc::Fault fault_;

@@ -20,8 +20,8 @@ namespace {
 constexpr ipc::SegmentKind kKind{ipc::ObjectType::prof_status, kStatusLayoutVersion};
 
 void copy_string(char* dst, std::size_t cap, std::string_view src) noexcept {
-    const std::size_t n = std::min(src.size(), cap - 1);
-    std::memcpy(dst, src.data(), n);
+    // Not memcpy: an empty view may have no data (nullptr), which memcpy must not get.
+    const std::size_t n = src.copy(dst, cap - 1);
     dst[n] = '\0';
 }
 

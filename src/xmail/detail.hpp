@@ -4,6 +4,7 @@
 #pragma once
 
 #include <string>
+#include <type_traits>
 
 #include "chimera/ipc/clock.hpp"
 #include "chimera/ipc/futex.hpp"
@@ -32,6 +33,22 @@ inline constexpr std::int64_t kObjectLockTimeout = 2'000'000'000;
 /// registers one for every thread), /proc only when those cannot tell.
 bool thread_alive(std::int32_t pid, std::int32_t tid) noexcept;
 
+/// A read of a field that other threads and processes write under the
+/// object's lock, without the lock: the look of a sleeper at the waiters, of
+/// a poller at the counts (a hint, re-checked under the lock). Every write of
+/// such a field is a poke(): both sides atomic, so the look is no data race
+/// (relaxed: it orders nothing; ThreadSanitizer holds the tests to it).
+inline std::uint32_t peek(const std::uint32_t& field) noexcept {
+    return __atomic_load_n(&field, __ATOMIC_RELAXED);
+}
+inline std::int32_t peek(const std::int32_t& field) noexcept {
+    return __atomic_load_n(&field, __ATOMIC_RELAXED);
+}
+template <typename T>
+inline void poke(T& field, std::type_identity_t<T> value) noexcept {
+    __atomic_store_n(&field, value, __ATOMIC_RELAXED);
+}
+
 /// Takes a free slot for the calling thread (under the object's lock).
 Waiter* waiter_add(Waiter* slots, std::uint32_t n, std::uint32_t& next_ticket,
                    std::int32_t priority) noexcept;
@@ -40,13 +57,14 @@ Waiter* waiter_add(Waiter* slots, std::uint32_t n, std::uint32_t& next_ticket,
 /// the wake-up reaches nobody (waiter_wake_checked()).
 Waiter* waiter_pick(Waiter* slots, std::uint32_t n) noexcept;
 inline void waiter_signal(Waiter& w) noexcept {
-    w.state = kSignaled;
+    poke(w.state, kSignaled);
     w.word.store(1, std::memory_order_release);
 }
 inline void waiter_free(Waiter& w) noexcept {
-    w.state = kFree;
+    poke(w.state, kFree);
     w.handed = 0;
-    w.pid = w.tid = 0;
+    poke(w.pid, 0);
+    poke(w.tid, 0);
     w.word.store(0, std::memory_order_relaxed);
 }
 inline void waiter_wake(Waiter& w) noexcept { ipc::futex_wake_all(w.word); }
@@ -70,15 +88,6 @@ inline bool still_signalled(const Waiter& w, const WaiterId& id) noexcept {
 /// back what it gave (under the lock, if still_signalled()) and passes it on.
 bool waiter_wake_checked(Waiter& w, const WaiterId& id) noexcept;
 
-/// A plain read of a waiter field that other processes write under the
-/// object's lock: for the lock-free look of a sleeper (a hint, re-checked
-/// under the lock).
-inline std::uint32_t peek(const std::uint32_t& field) noexcept {
-    return __atomic_load_n(&field, __ATOMIC_RELAXED);
-}
-inline std::int32_t peek(const std::int32_t& field) noexcept {
-    return __atomic_load_n(&field, __ATOMIC_RELAXED);
-}
 /// True when some slot other than `self` is signalled and its thread died
 /// (the look a sleeper takes every slice, without the lock).
 bool signalled_dead(const Waiter* slots, std::uint32_t n, const Waiter* self) noexcept;

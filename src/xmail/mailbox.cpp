@@ -353,8 +353,8 @@ Peer& Mailbox::peer(std::string_view rtpu) {
     if (const ipc::Fault f = unread_fault(p->in_, p->ring_->out.load(std::memory_order_acquire),
                                           p->geometry_.bufsize, bid_))
         throw Error(where + ": corrupt mailbox: " + ipc::describe(name, f));
-    p->probe_ok_ = true;
-    p->last_probe_ns_ = ipc::now_ns();
+    p->probe_ok_.store(true, std::memory_order_relaxed);
+    p->last_probe_ns_.store(ipc::now_ns(), std::memory_order_relaxed);
     Peer& ref = *p;
     peers_.emplace(std::string(rtpu), std::move(p));
     return ref;
@@ -363,8 +363,8 @@ Peer& Mailbox::peer(std::string_view rtpu) {
 bool Mailbox::alive(Peer& peer) noexcept {
     const bool ok = peer.header_->alive.load(std::memory_order_acquire) != 0 &&
                     process_alive(peer.header_->owner_pid.load(std::memory_order_relaxed));
-    peer.probe_ok_ = ok;
-    peer.last_probe_ns_ = ipc::now_ns();
+    peer.probe_ok_.store(ok, std::memory_order_relaxed);
+    peer.last_probe_ns_.store(ipc::now_ns(), std::memory_order_relaxed);
     return ok;
 }
 
@@ -372,7 +372,8 @@ bool Mailbox::alive(Peer& peer) noexcept {
 // process check at most once per probe period.
 bool Mailbox::probe(Peer& peer) noexcept {
     if (peer.header_->alive.load(std::memory_order_acquire) == 0) return false;
-    if (ipc::now_ns() - peer.last_probe_ns_ < probe_period_ns_) return peer.probe_ok_;
+    if (ipc::now_ns() - peer.last_probe_ns_.load(std::memory_order_relaxed) < probe_period_ns_)
+        return peer.probe_ok_.load(std::memory_order_relaxed);
     return alive(peer);
 }
 

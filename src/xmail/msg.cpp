@@ -179,7 +179,7 @@ struct CHIMERA_LOCAL Queue::Ops {
         if (ipc::Fault f = place(off, prev)) return f;
         head(off)->state = layout::kHeadQueued;
         link_after(prev, off);
-        ++q->nmsgs;
+        poke(q->nmsgs, q->nmsgs + 1);
         return {};
     }
 
@@ -193,7 +193,7 @@ struct CHIMERA_LOCAL Queue::Ops {
         }
         head(off)->state = layout::kHeadHanded;
         w->handed = head_index(off) + 1;
-        ++q->nhanded;
+        poke(q->nhanded, q->nhanded + 1);
         waiter_signal(*w);
         return w;
     }
@@ -209,7 +209,7 @@ struct CHIMERA_LOCAL Queue::Ops {
             ++q->reclaimed_waiters;
             if (handed == 0) continue;
             if (handed > g.blknum) return {"receive waiter's handed message", &w - q->recv_waiters, handed, g.blknum};
-            --q->nhanded;
+            poke(q->nhanded, q->nhanded - 1);
             ipc::Fault fault;
             if (Waiter* next = hand_or_queue(head_off(handed - 1), fault)) waiter_wake(*next);
             if (fault) return fault;
@@ -537,11 +537,11 @@ Status Queue::send(const void* data, std::size_t size, std::uint32_t type, std::
         // Hand the message straight to the highest-priority waiting receiver.
         h->state = layout::kHeadHanded;
         wake->handed = owner;
-        ++q->nhanded;
+        poke(q->nhanded, q->nhanded + 1);
         waiter_signal(*wake);
     } else {
         ops.link_after(prev, off);
-        ++q->nmsgs;
+        poke(q->nmsgs, q->nmsgs + 1);
     }
     return unlock_and_wake(wake);
 }
@@ -568,7 +568,7 @@ Status Queue::unlock_and_wake(Waiter* w) noexcept {
             } else if (handed > g_.blknum) {
                 f = {"receive waiter's handed message", dead - q_->recv_waiters, handed, g_.blknum};
             } else if (handed != 0) {
-                --q_->nhanded;
+                poke(q_->nhanded, q_->nhanded - 1);
                 w = ops.hand_or_queue(ops.head_off(handed - 1), f);
             }
             if (f) return refuse(f);
@@ -617,7 +617,7 @@ Status Queue::receive(void* buffer, std::size_t capacity, Info* info, std::int64
             me = nullptr;
             if (handed != 0) {
                 off = ops.head_off(handed - 1);
-                --q->nhanded;
+                poke(q->nhanded, q->nhanded - 1);
                 if (ops.head(off)->size > capacity) {
                     // Does not fit: back into the queue for someone who can take it.
                     const MsgHead* h = ops.head(off);
@@ -646,7 +646,7 @@ Status Queue::receive(void* buffer, std::size_t capacity, Info* info, std::int64
             if (ipc::Fault f = ops.chain(off)) return refuse(f);
             q->headused = h->link;
             if (q->headused == 0) q->tailused = 0;
-            --q->nmsgs;
+            poke(q->nmsgs, q->nmsgs - 1);
             break;
         }
         Status fail = Status::ok;
@@ -786,7 +786,9 @@ void Queue::repair() noexcept {
     }
     // Header lists, headused in policy order (every link just written here).
     q->headfree = q->headused = q->tailused = 0;
-    q->nfree_heads = q->nmsgs = q->nhanded = 0;
+    q->nfree_heads = 0;
+    poke(q->nmsgs, 0);
+    poke(q->nhanded, 0);
     for (std::uint32_t i = n; i-- > 0;) {
         const std::uint32_t off = ops.head_off(i);
         MsgHead* h = ops.head(off);
@@ -800,7 +802,7 @@ void Queue::repair() noexcept {
             // next send/receive checks the chain and refuses.
             if (ipc::Fault f = ops.enqueue(off)) fault_ = f;
         } else {
-            ++q->nhanded;
+            poke(q->nhanded, q->nhanded + 1);
         }
     }
     // Space or messages may have appeared for sleepers: let them re-check.

@@ -33,12 +33,12 @@ Waiter* waiter_add(Waiter* slots, std::uint32_t n, std::uint32_t& next_ticket,
         if (w.state != kFree) continue;
         const std::uint64_t me = ipc::self_owner_id();
         w.word.store(0, std::memory_order_relaxed);
-        w.pid = ipc::owner_pid(me);
-        w.tid = ipc::owner_tid(me);
+        poke(w.pid, ipc::owner_pid(me));
+        poke(w.tid, ipc::owner_tid(me));
         w.priority = priority;
         w.ticket = next_ticket++;
         w.handed = 0;
-        w.state = kWaiting;
+        poke(w.state, kWaiting);
         return &w;
     }
     // Full: free the slots of threads that were killed while waiting (a slot

@@ -2,6 +2,7 @@
 
 #include "chimera/ipc/clock.hpp"
 #include "chimera/ipc/futex.hpp"
+#include "sanitizer.hpp"
 #include "test_util.hpp"
 
 using namespace chimera::ipc;
@@ -20,6 +21,7 @@ TEST(IpcFutex, WaitTimesOutAndSeesChangedValue) {
 }
 
 TEST(IpcFutex, WakeAcrossProcesses) {
+    CHIMERA_NOT_UNDER_TSAN("a forked waiter");
     struct S {
         std::atomic<std::uint32_t> word{0};
         std::atomic<std::uint32_t> waiting{0};

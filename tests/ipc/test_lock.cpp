@@ -6,6 +6,7 @@
 
 #include "chimera/ipc/clock.hpp"
 #include "chimera/ipc/lock.hpp"
+#include "sanitizer.hpp"
 #include "test_util.hpp"
 
 using namespace chimera::ipc;
@@ -64,6 +65,7 @@ TEST_F(IpcLock, UncontendedLockUnlock) {
 }
 
 TEST_F(IpcLock, OwnerIdIsRefreshedInAForkedChild) {
+    CHIMERA_NOT_UNDER_TSAN("a forked child");
     const std::uint64_t parent = self_owner_id();
     auto* seen = shared_anon<std::atomic<std::uint64_t>>();
     const pid_t child = fork_child([&] {
@@ -76,6 +78,7 @@ TEST_F(IpcLock, OwnerIdIsRefreshedInAForkedChild) {
 }
 
 TEST_F(IpcLock, MutualExclusionAcrossProcesses) {
+    CHIMERA_NOT_UNDER_TSAN("forked lockers");
     auto* s = shared_anon<Shared>();
     constexpr int kProcs = 3, kIters = 20000;
     std::vector<pid_t> kids;
@@ -99,6 +102,7 @@ TEST_F(IpcLock, MutualExclusionAcrossProcesses) {
 }
 
 TEST_F(IpcLock, HolderKilledWithSigkillIsRecoveredAndReported) {
+    CHIMERA_NOT_UNDER_TSAN("a forked holder killed with SIGKILL");
     auto* s = shared_anon<Shared>();
     const pid_t child = fork_child([&] {
         if (lock(s->lock) != LockStatus::acquired) return 2;
@@ -123,6 +127,7 @@ TEST_F(IpcLock, HolderKilledWithSigkillIsRecoveredAndReported) {
 }
 
 TEST_F(IpcLock, ZombieHolderCountsAsDead) {
+    CHIMERA_NOT_UNDER_TSAN("a forked holder left a zombie");
     auto* s = shared_anon<Shared>();
     const pid_t child = fork_child([&] {
         if (lock(s->lock) != LockStatus::acquired) return 2;
@@ -149,6 +154,7 @@ TEST_F(IpcLock, HolderThreadThatExitedIsRecovered) {
 }
 
 TEST_F(IpcLock, TimeoutIsReportedAndBlindResetOnlyWhenAsked) {
+    CHIMERA_NOT_UNDER_TSAN("a forked holder");
     auto* s = shared_anon<Shared>();
     const pid_t child = fork_child([&] {
         if (lock(s->lock) != LockStatus::acquired) return 2;
@@ -173,6 +179,7 @@ TEST_F(IpcLock, TimeoutIsReportedAndBlindResetOnlyWhenAsked) {
 }
 
 TEST_F(IpcLock, WaiterGetsTheLockWhenTheHolderReleases) {
+    CHIMERA_NOT_UNDER_TSAN("a forked holder");
     auto* s = shared_anon<Shared>();
     const pid_t child = fork_child([&] {
         if (lock(s->lock) != LockStatus::acquired) return 2;

@@ -5,6 +5,7 @@
 #include <signal.h>
 
 #include "chimera/ipc/segment.hpp"
+#include "sanitizer.hpp"
 #include "test_util.hpp"
 
 using namespace chimera::ipc;
@@ -129,6 +130,7 @@ TEST(IpcSegment, UnpublishedCreationIsUnlinkedWhenAbandoned) {
 }
 
 TEST(IpcSegment, LastUserAcrossProcessesDestroys) {
+    CHIMERA_NOT_UNDER_TSAN("a forked user");
     const std::string name = unique_name("last");
     Segment a = make(name, 5);
     const pid_t child = fork_child([&] {
@@ -171,6 +173,7 @@ TEST(IpcSegment, OffsetsResolveInEveryMapping) {
 // kernel drops their locks), so the last live user frees the segment: the
 // attach counter of the header used to keep every killed user counted.
 TEST(IpcSegment, KilledUsersAreCountedOutAndTheLastLiveUserFrees) {
+    CHIMERA_NOT_UNDER_TSAN("forked users killed");
     const std::string name = unique_name("killed");
     Segment a = make(name, 1);
     auto* attached = shared_anon<std::atomic<int>>();
@@ -198,6 +201,7 @@ TEST(IpcSegment, KilledUsersAreCountedOutAndTheLastLiveUserFrees) {
 // The same when the killed process is still a zombie (not reaped): its
 // descriptors are closed when it dies, not when its parent waits for it.
 TEST(IpcSegment, AKilledUnreapedUserIsCountedOut) {
+    CHIMERA_NOT_UNDER_TSAN("a forked user killed");
     const std::string name = unique_name("zombie");
     Segment a = make(name, 1);
     auto* attached = shared_anon<std::atomic<int>>();
@@ -218,6 +222,7 @@ TEST(IpcSegment, AKilledUnreapedUserIsCountedOut) {
 
 // A user that is not the creator frees it when the creator was killed.
 TEST(IpcSegment, TheLastLiveUserFreesWhenTheCreatorWasKilled) {
+    CHIMERA_NOT_UNDER_TSAN("a forked creator killed");
     const std::string name = unique_name("orphan");
     auto* made = shared_anon<std::atomic<int>>();
     const pid_t creator = fork_child([&] {
@@ -240,6 +245,7 @@ TEST(IpcSegment, TheLastLiveUserFreesWhenTheCreatorWasKilled) {
 // A handle a child inherits through fork() is its parent's mapping: the
 // child's destructor neither frees the segment nor drops the parent's count.
 TEST(IpcSegment, AHandleCopiedByForkNeitherCountsNorFrees) {
+    CHIMERA_NOT_UNDER_TSAN("a forked copy of the handle");
     const std::string name = unique_name("forked");
     Segment a = make(name, 4);
     const pid_t kid = fork_child([&] { return a.detach_destroy_if_last() ? 1 : 0; });
@@ -253,6 +259,7 @@ TEST(IpcSegment, AHandleCopiedByForkNeitherCountsNorFrees) {
 // keeps the segment as a new user: never a mapping of a removed name that
 // counts as alive, never a leak.
 TEST(IpcSegment, AttachRacingWithTheLastDetachNeverLeaks) {
+    CHIMERA_NOT_UNDER_TSAN("forked attachers");
     for (int round = 0; round < 50; ++round) {
         const std::string name = unique_name("race" + std::to_string(round));
         Segment a = make(name, 5);

@@ -1,6 +1,8 @@
 // The allocation counter of alloc_counter.hpp: glibc's allocator entry points
 // interposed by the test program (an executable's symbols come first), each
 // counting and then calling glibc's own, exported for exactly this use.
+// Under a sanitizer the sanitizer's allocator must serve every block (it
+// checks each free against it), so there the counter is its malloc hook.
 #include "alloc_counter.hpp"
 
 #include <sys/syscall.h>
@@ -9,6 +11,7 @@
 #include <atomic>
 #include <cerrno>
 #include <cstddef>
+#include <cstdlib>
 
 extern "C" {
 void* __libc_malloc(std::size_t);
@@ -61,6 +64,27 @@ long alloc_count_now() noexcept { return g_count.load(); }
 
 }  // namespace chimera::test
 
+#if defined(__SANITIZE_ADDRESS__) || defined(__SANITIZE_THREAD__)
+
+// The sanitizer runtime's (GCC 12 ships no header declaring it): calls the
+// hook in the allocating thread for every malloc, calloc, realloc, memalign and
+// operator new it serves.
+extern "C" int __sanitizer_install_malloc_and_free_hooks(void (*on_malloc)(const volatile void*, std::size_t),
+                                                         void (*on_free)(const volatile void*));
+
+namespace {
+
+void on_malloc(const volatile void*, std::size_t) { count(); }
+void on_free(const volatile void*) {}  // the runtime takes the hooks in pairs
+
+[[gnu::constructor]] void install_hooks() {
+    if (__sanitizer_install_malloc_and_free_hooks(on_malloc, on_free) == 0) std::abort();
+}
+
+}  // namespace
+
+#else
+
 extern "C" {
 void* malloc(std::size_t n) {
     count();
@@ -90,3 +114,5 @@ int posix_memalign(void** out, std::size_t a, std::size_t n) {
     return 0;
 }
 }
+
+#endif

@@ -8,6 +8,7 @@
 #include "chimera/cfg.hpp"
 #include "chimera/svar.hpp"
 #include "layout.hpp"  // the segment layout, to corrupt it
+#include "sanitizer.hpp"
 #include "svar_test_util.hpp"
 
 using namespace chimera;
@@ -121,6 +122,7 @@ TEST(SvarTable, CreateTwiceFailsAndKeepsTheFirst) {
 }
 
 TEST(SvarTable, AttachFromAnotherProcessAndDestroyByTheLastUser) {
+    CHIMERA_NOT_UNDER_TSAN("a forked user");
     const std::string name = unique_name("procs");
     Table t = Table::create(name, parse_svar_string(kSmall, "small.svar"));
     const pid_t child = fork_child([&] {

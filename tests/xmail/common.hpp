@@ -10,6 +10,8 @@
 #include <string>
 #include <vector>
 
+#include "sanitizer.hpp"
+
 extern char** environ;
 
 /// A system name unique to this process and test, so parallel runs never meet.
@@ -20,6 +22,7 @@ inline std::string test_sys(const std::string& what) {
 /// fork + exec of the helper binary with `args`; stdout goes to `out_fd` if
 /// >= 0, stdin comes from `in_fd` if >= 0.
 inline pid_t spawn_helper(const std::vector<std::string>& args, int out_fd = -1, int in_fd = -1) {
+    chimera::test::detail::another_process_under_tsan();  // posix_spawn runs no fork handler
     std::vector<std::string> all{XM_HELPER};
     all.insert(all.end(), args.begin(), args.end());
     std::vector<char*> argv;

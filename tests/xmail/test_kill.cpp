@@ -28,6 +28,7 @@
 #include "chimera/xmail.hpp"
 #include "common.hpp"
 #include "kill_log.hpp"
+#include "sanitizer.hpp"
 #include "segment_guard.hpp"
 
 using namespace chimera;
@@ -39,6 +40,7 @@ void msg_kill_loop(const std::string& sys);
 }  // namespace
 
 TEST(Kill, RandomKillsNeverHangLoseOrDuplicate) {
+    CHIMERA_NOT_UNDER_TSAN("helper processes killed");
     const std::string sys = test_sys("kill");
     const chimera::test::SegmentGuard cleanup("chimera." + sys + ".");
     msg_kill_loop(sys);
@@ -214,6 +216,7 @@ private:
 // zombie left live waiters blocked: 27 timed out in 200 rounds, 68 of 200
 // P(-1) rounds blocked one > 2.5 s.)
 TEST(Kill, SemLoopHandsNoUnitToADeadWaiterAndStrandsNoLiveOne) {
+    CHIMERA_NOT_UNDER_TSAN("forked waiters killed");
     auto* board = static_cast<SemBoard*>(mmap(nullptr, sizeof(SemBoard), PROT_READ | PROT_WRITE,
                                               MAP_SHARED | MAP_ANONYMOUS, -1, 0));
     ASSERT_NE(board, MAP_FAILED);
@@ -302,6 +305,7 @@ TEST(Kill, SemLoopHandsNoUnitToADeadWaiterAndStrandsNoLiveOne) {
 // A segment still in /dev/shm a second after its users went is a leak. (A
 // killed user's attach stayed counted: 138 of 1 217 segments leaked.)
 TEST(Kill, ShmLoopTheLastLiveUserOrTheOwnerFreesEveryObject) {
+    CHIMERA_NOT_UNDER_TSAN("helper processes killed");
     const std::string sys = test_sys("shmk");
     const chimera::test::SegmentGuard cleanup("chimera." + sys + ".");
     int leaked = 0, wrong_survivor = 0, rounds = 0;
@@ -376,6 +380,7 @@ TEST(Kill, ShmLoopTheLastLiveUserOrTheOwnerFreesEveryObject) {
 // to the r that died): no unreported loss, no message twice, none damaged.
 // (About 4.6 messages per kill vanished while write() had returned ok.)
 TEST(Kill, MailboxLoopReportsEveryMessageLostWithADeadReceiver) {
+    CHIMERA_NOT_UNDER_TSAN("helper processes killed");
     const std::string sys = test_sys("mbk");
     const chimera::test::SegmentGuard cleanup("chimera." + sys + ".");
     const std::string log_name = ipc::segment_name(sys, "mlog");

@@ -16,6 +16,7 @@
 #include <vector>
 
 #include "chimera/xmail.hpp"
+#include "sanitizer.hpp"
 
 namespace {
 
@@ -126,6 +127,7 @@ TEST(LockFixModel, BrokenVariantsAreCaught) {
 }
 
 TEST(LockFix, StressAcrossProcessesAndThreads) {
+    CHIMERA_NOT_UNDER_TSAN("forked lockers");
     struct Shared {
         chimera::xm::LockFix lock;
         long counter;

@@ -1,5 +1,6 @@
 // Named objects across processes (fork + exec of xm_helper): the XM server
 // as name server, SHM, SEM, MSG, raw express mail between processes.
+#include "sanitizer.hpp"
 #include "segment_guard.hpp"
 #include <gtest/gtest.h>
 #include <signal.h>
@@ -116,6 +117,7 @@ TEST(NameServer, LayoutVersionMismatchNamesTheObject) {
 }
 
 TEST(Shm, CreateAttachAcrossProcessesAndLastUserFrees) {
+    CHIMERA_NOT_UNDER_TSAN("helper processes");
     const std::string sys = test_sys("shm");
     xm::Rtpu host(sys, "host", 0);
     shm::Segment seg = shm::Segment::create(host, "host:buf", 4096);
@@ -134,6 +136,7 @@ TEST(Shm, CreateAttachAcrossProcessesAndLastUserFrees) {
 }
 
 TEST(Shm, ObjectsLiveOnTheNamedRtpuAndItsServerResolvesThem) {
+    CHIMERA_NOT_UNDER_TSAN("helper processes");
     const std::string sys = test_sys("remote");
     const chimera::test::SegmentGuard cleanup("chimera." + sys + ".");  // killed users' segments too
     xm::Rtpu host(sys, "host", 0);
@@ -162,6 +165,7 @@ TEST(Shm, ObjectsLiveOnTheNamedRtpuAndItsServerResolvesThem) {
 }
 
 TEST(Sem, PAndVAcrossProcessesHighestPriorityFirst) {
+    CHIMERA_NOT_UNDER_TSAN("helper processes");
     const std::string sys = test_sys("semx");
     xm::Rtpu host(sys, "host", 0);
     sem::Semaphore s = sem::Semaphore::create(host, "host:go", sem::Kind::counting, 0);
@@ -201,6 +205,7 @@ TEST(Sem, PAndVAcrossProcessesHighestPriorityFirst) {
 }
 
 TEST(Msg, HpfAndMultiBlockAcrossProcesses) {
+    CHIMERA_NOT_UNDER_TSAN("helper processes");
     const std::string sys = test_sys("msgx");
     xm::Rtpu host(sys, "host", 0);
     msg::Params p;
@@ -232,6 +237,7 @@ TEST(Msg, HpfAndMultiBlockAcrossProcesses) {
 }
 
 TEST(Msg, WaitingReceiversInOtherProcessesServedByPriority) {
+    CHIMERA_NOT_UNDER_TSAN("helper processes");
     const std::string sys = test_sys("msgw");
     const chimera::test::SegmentGuard cleanup("chimera." + sys + ".");  // killed users' segments too
     xm::Rtpu host(sys, "host", 0);
@@ -256,6 +262,7 @@ TEST(Msg, WaitingReceiversInOtherProcessesServedByPriority) {
 }
 
 TEST(Mailbox, ExpressMailBetweenProcessesAndDeathDetected) {
+    CHIMERA_NOT_UNDER_TSAN("helper processes");
     const std::string sys = test_sys("xmx");
     const chimera::test::SegmentGuard cleanup("chimera." + sys + ".");  // killed users' segments too
     xm::Mailbox me(sys, "me", 0);

@@ -14,6 +14,7 @@
 
 #include "chimera/ipc/clock.hpp"
 #include "chimera/sem.hpp"
+#include "sanitizer.hpp"
 
 using namespace chimera;
 using sem::Kind;
@@ -122,6 +123,7 @@ pid_t child_waiting_in_p(void* mem, Semaphore& s) {
 }
 
 TEST(Sem, GrantToADeadWaiterIsPassedOn) {
+    CHIMERA_NOT_UNDER_TSAN("a forked waiter killed");
     // Shared memory so a child process can wait on it.
     void* mem = mmap(nullptr, Semaphore::memory_size(), PROT_READ | PROT_WRITE,
                      MAP_SHARED | MAP_ANONYMOUS, -1, 0);
@@ -137,6 +139,7 @@ TEST(Sem, GrantToADeadWaiterIsPassedOn) {
 }
 
 TEST(Sem, AUnitGrantedToAKilledUnreapedWaiterIsTakenBack) {
+    CHIMERA_NOT_UNDER_TSAN("a forked waiter killed");
     // As above, but the child is not reaped: a zombie passes tgkill's "does it
     // exist" test, so V may grant it the unit; the next P must take it back.
     void* mem = mmap(nullptr, Semaphore::memory_size(), PROT_READ | PROT_WRITE,
@@ -155,6 +158,7 @@ TEST(Sem, AUnitGrantedToAKilledUnreapedWaiterIsTakenBack) {
 }
 
 TEST(Sem, MutualExclusionAcrossProcesses) {
+    CHIMERA_NOT_UNDER_TSAN("forked lockers");
     struct Shared {
         alignas(64) unsigned char sem[Semaphore::memory_size()];
         long counter;
