@@ -2,12 +2,14 @@
 #include "chimera/ipc/segment.hpp"
 
 #include <fcntl.h>
+#include <pthread.h>
 #include <signal.h>
 #include <sys/mman.h>
 #include <sys/stat.h>
 #include <unistd.h>
 
 #include <algorithm>
+#include <atomic>
 #include <cerrno>
 #include <climits>
 #include <chrono>
@@ -101,6 +103,44 @@ std::uint32_t count_slot_locks(int probe, off_t first, off_t last) noexcept {
     const off_t hi = fl.l_len == 0 ? last : std::min(last, fl.l_start + fl.l_len - 1);
     return static_cast<std::uint32_t>(hi - lo + 1) + count_slot_locks(probe, first, lo - 1) +
            count_slot_locks(probe, hi + 1, last);
+}
+
+// The descriptors of this process's mappings. A child made by fork()
+// inherits them, and with them the open file descriptions that carry the
+// parent's user locks: while the child lived, the parent's locks would
+// outlive the parent's detach (a segment never freed), and a child attaching
+// to a segment its parent was destroying would wait for a lock it holds itself.
+// So the child closes them at once (pthread_atfork), keeping the mappings. A
+// fixed table of atomics: the child handler may take no lock.
+constexpr std::size_t kTrackedFds = 1024;
+std::atomic<int> g_segment_fds[kTrackedFds];
+
+void close_inherited_segment_fds() noexcept {
+    for (auto& slot : g_segment_fds) {
+        const int fd = slot.exchange(-1, std::memory_order_relaxed);
+        if (fd >= 0) close(fd);
+    }
+}
+
+const bool g_fork_handler = [] {
+    for (auto& slot : g_segment_fds) slot.store(-1, std::memory_order_relaxed);
+    return pthread_atfork(nullptr, nullptr, &close_inherited_segment_fds) == 0;
+}();
+
+void track_fd(int fd) noexcept {
+    (void)g_fork_handler;
+    for (auto& slot : g_segment_fds) {
+        int expected = -1;
+        if (slot.compare_exchange_strong(expected, fd, std::memory_order_relaxed)) return;
+    }
+    // More than kTrackedFds mappings: this one stays open in a forked child.
+}
+
+void untrack_fd(int fd) noexcept {
+    for (auto& slot : g_segment_fds) {
+        int expected = fd;
+        if (slot.compare_exchange_strong(expected, -1, std::memory_order_relaxed)) return;
+    }
 }
 
 // Same file (device and inode) as `fd`?
@@ -283,6 +323,7 @@ Segment Segment::create(const std::string& name, std::size_t size, SegmentKind k
         throw;
     }
     seg.fd_ = fd;
+    track_fd(fd);
     seg.owner_ = getpid();
     init_header(seg.header(), kind, size);
     return seg;
@@ -324,6 +365,7 @@ Segment Segment::attach(const std::string& name, SegmentKind kind, const AttachO
     Segment seg;  // from here its destructor unmaps and closes on a throw
     seg.name_ = name;
     seg.fd_ = fd;
+    track_fd(fd);
     seg.owner_ = getpid();
     seg.base_ = map_fd(name, fd, size, options.prefault, options.lock, seg.locked_);
     seg.size_ = size;
@@ -351,13 +393,19 @@ void Segment::publish() noexcept {
 }
 
 bool Segment::release(bool destroy_if_last) noexcept {
+    // A copy inherited through fork() is the parent's mapping, not a user of
+    // its own: its descriptor was closed in the child (close_inherited_segment_fds).
+    const bool mine = owner_ == getpid();
     if (!base_) {
-        if (fd_ >= 0) close(std::exchange(fd_, -1));  // attach() failed after opening
+        if (fd_ >= 0 && mine) {  // attach() failed after opening
+            untrack_fd(fd_);
+            close(fd_);
+        }
+        fd_ = -1;
         return false;
     }
     bool destroy = false;
-    // A copy inherited through fork() is the parent's mapping, not a user of its own.
-    if (owner_ == getpid()) {
+    if (mine) {
         if (creator_ && !published_) {
             destroy = true;  // a creation that failed half-way leaves nothing behind
         } else if (destroy_if_last && set_user_lock(fd_, F_WRLCK, false)) {
@@ -373,7 +421,10 @@ bool Segment::release(bool destroy_if_last) noexcept {
     if (locked_) munlock(base_, size_);
     munmap(base_, size_);
     if (destroy) shm_unlink(name_.c_str());
-    if (fd_ >= 0) close(fd_);  // drops this mapping's user lock
+    if (fd_ >= 0 && mine) {  // drops this mapping's user lock
+        untrack_fd(fd_);
+        close(fd_);
+    }
     base_ = nullptr;
     size_ = 0;
     fd_ = -1;
@@ -382,7 +433,7 @@ bool Segment::release(bool destroy_if_last) noexcept {
 }
 
 std::uint32_t Segment::users() const noexcept {
-    if (fd_ < 0) return 0;
+    if (fd_ < 0 || owner_ != getpid()) return 0;
     // A second open file description of the same file, whatever its name now.
     const std::string self = "/proc/self/fd/" + std::to_string(fd_);
     const int probe = open(self.c_str(), O_RDONLY | O_CLOEXEC);
