@@ -324,7 +324,9 @@ TEST(Kill, ShmLoopTheLastLiveUserOrTheOwnerFreesEveryObject) {
                 return "/chimera." + sys + ".obj." + rtpu + "." + object.substr(object.find(':') + 1);
             }();
             Child u1({"shm-hold", sys, "p1", "1", object}, true), u2({"shm-hold", sys, "p2", "2", object}, true);
-            if (u1.line() != "ready" || u2.line() != "ready") return ADD_FAILURE() << object << ": users not ready";
+            const std::string said1 = u1.line(), said2 = u2.line();
+            if (said1 != "ready" || said2 != "ready")
+                return ADD_FAILURE() << object << ": users not ready: p1 said '" << said1 << "', p2 said '" << said2 << "'";
             EXPECT_FALSE(creator.detach()) << object << ": the users still map it";
             const bool first = rng() % 2 == 0;
             Child& a = first ? u1 : u2;
