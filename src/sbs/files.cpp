@@ -431,17 +431,14 @@ SbsFile parse_sbs(cfg::Reader& r, const std::string& base_dir) {
         spec.name = rl.args[0];
         spec.line = rl.number;
         if (f.find_rtpu(spec.name)) r.fail(rl, "RTPU '" + spec.name + "' is defined twice");
-        if (rl.args.size() == 2) {
-            auto cpu = cfg::parse_int(rl.args[1]);
-            if (!cpu || *cpu < 0 || *cpu > 4095)
-                r.fail(rl, "RTPU " + spec.name + ": expected a CPU number, found '" + rl.args[1] + "'");
-            spec.cpu = static_cast<int>(*cpu);
-        } else {
-            auto cpu = spec.name.rfind("cpu", 0) == 0 ? cfg::parse_int(spec.name.substr(3)) : std::nullopt;
-            if (!cpu || *cpu < 0)
-                r.fail(rl, "RTPU " + spec.name + ": give the CPU it runs on (RTPU name CPU), or name it cpuN");
-            spec.cpu = static_cast<int>(*cpu);
-        }
+        // A CPU number is bounded like the kernel's CPU sets (4096), whether given or read from cpuN.
+        const bool named_cpu = rl.args.size() == 1;
+        auto cpu = !named_cpu ? cfg::parse_int(rl.args[1])
+                   : spec.name.rfind("cpu", 0) == 0 ? cfg::parse_int(spec.name.substr(3)) : std::nullopt;
+        if (!cpu || *cpu < 0 || *cpu > 4095)
+            r.fail(rl, named_cpu ? "RTPU " + spec.name + ": give the CPU it runs on (RTPU name CPU), or name it cpuN"
+                                 : "RTPU " + spec.name + ": expected a CPU number 0..4095, found '" + rl.args[1] + "'");
+        spec.cpu = static_cast<int>(*cpu);
 
         std::set<std::string> given;
         while (const cfg::Line* p = r.peek()) {

@@ -174,6 +174,16 @@ TEST(SbsFile, ACombinedTaskNamesEachRmodOnce) {
     EXPECT_EQ(sbs("SUBSYSTEM s\nSVARFILE t.svar\nRTPU cpu0\nTASK a+b\nEOF\n").tasks.at(0).rmods.size(), 2u);
 }
 
+// Found by fuzz/fuzz_sbs (CI): a cpuN name with a number past int wrapped to a negative CPU.
+// fuzz/corpus/sbs/cpu-number-overflow.sbs
+TEST(SbsFile, ACpuNumberPastTheKernelsCpuSetsIsRefused) {
+    EXPECT_EQ(error_of([] { sbs("SUBSYSTEM s\nSVARFILE t.svar\nRTPU cpu4294967296\nEOF\n"); }),
+              "sub.sbs:3: RTPU cpu4294967296: give the CPU it runs on (RTPU name CPU), or name it cpuN");
+    EXPECT_EQ(error_of([] { sbs("SUBSYSTEM s\nSVARFILE t.svar\nRTPU main 4096\nEOF\n"); }),
+              "sub.sbs:3: RTPU main: expected a CPU number 0..4095, found '4096'");
+    EXPECT_EQ(sbs("SUBSYSTEM s\nSVARFILE t.svar\nRTPU cpu4095\nEOF\n").rtpus.at(0).cpu, 4095);
+}
+
 TEST(SbsFile, Errors) {
     EXPECT_EQ(error_of([] { sbs("SUBSYSTEM s\nSVARFILE t.svar\nMASTER cpu9\nRTPU cpu0\nEOF\n"); }),
               "sub.sbs:3: MASTER names RTPU 'cpu9', which is not defined in this file");
