@@ -83,6 +83,10 @@ SubsystemCore::SubsystemCore(SbsFile f) : file(std::move(f)) {
     table = svar::Table::create(seg, file.svarfile);
     prof::StatusOptions so;
     so.rtpus = static_cast<std::uint32_t>(std::max<std::size_t>(1, file.rtpus.size()));
+    for (const auto& r : file.rtpus) {  // chimtop and `status` name RTPUs as the .sbs does
+        so.rtpu_names.push_back(r.name);
+        so.rtpu_cpus.push_back(r.cpu);
+    }
     try {
         status = prof::StatusSegment::create(file.subsystem, kMaxTasks, so);
         for (std::size_t i = 0; i < file.rtpus.size(); ++i)
