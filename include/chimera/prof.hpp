@@ -555,6 +555,11 @@ public:
     static StatusReader attach(std::string_view subsystem);
     /// Like attach(), nullopt if the segment does not exist (yet).
     [[nodiscard]] static std::optional<StatusReader> try_attach(std::string_view subsystem);
+    /// Like try_attach(), and says why not: `error_number` gets the errno of
+    /// the failure (ENOENT: no such subsystem; EACCES: this user may not open
+    /// its segment; 0: another reason, e.g. another layout) and `why` the message.
+    [[nodiscard]] static std::optional<StatusReader> try_attach(std::string_view subsystem, int& error_number,
+                                                                std::string& why);
 
     std::vector<TaskStatus> snapshot() const;
     std::vector<TaskStatus> snapshot(std::int64_t now_ns) const;
@@ -576,6 +581,8 @@ public:
     bool alive() const noexcept;
     /// Creation time of the attached segment (tells a restarted subsystem apart).
     std::int64_t created_ns() const noexcept;
+    /// The process that created the segment (the subsystem's master).
+    int creator_pid() const noexcept;
     const std::string& name() const noexcept { return segment_.name(); }
     std::string subsystem() const;
     std::uint32_t max_tasks() const noexcept;

@@ -721,6 +721,27 @@ std::optional<StatusReader> StatusReader::try_attach(std::string_view subsystem)
     }
 }
 
+std::optional<StatusReader> StatusReader::try_attach(std::string_view subsystem, int& error_number,
+                                                     std::string& why) {
+    error_number = 0;
+    why.clear();
+    try {
+        // No exists() first: it cannot tell a segment this user may not open from none.
+        ipc::AttachOptions ao;
+        ao.prefault = false;
+        ao.ready_timeout_ns = 100'000'000;
+        ipc::Segment seg = ipc::Segment::attach(ipc::segment_name(subsystem, "status"), kKind, ao);
+        validate_body(seg);
+        return StatusReader(std::move(seg));
+    } catch (const ipc::SegmentError& e) {
+        error_number = e.error_number();
+        why = e.what();
+    } catch (const StatusError& e) {
+        why = e.what();
+    }
+    return std::nullopt;
+}
+
 std::vector<TaskStatus> StatusReader::snapshot() const { return snapshot(ipc::now_ns()); }
 std::vector<TaskStatus> StatusReader::snapshot(std::int64_t now_ns) const {
     return snapshot_of(header_of(segment_), now_ns);
@@ -833,6 +854,10 @@ bool StatusReader::alive() const noexcept {
 
 std::int64_t StatusReader::created_ns() const noexcept {
     return segment_.valid() ? static_cast<std::int64_t>(segment_.header().created_ns) : 0;
+}
+
+int StatusReader::creator_pid() const noexcept {
+    return segment_.valid() ? segment_.header().creator_pid : 0;
 }
 
 std::string StatusReader::subsystem() const {

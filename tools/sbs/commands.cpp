@@ -1,7 +1,7 @@
 #include "commands.hpp"
 
 #include "command_line.hpp"
-#include "time_text.hpp"
+#include "status_text.hpp"
 
 #include <chimera/ipc/segment.hpp>
 
@@ -111,46 +111,24 @@ nlohmann::json field_value(const sbs::TaskStatus& t, std::string_view f) {
     if (f == "S") return std::string(1, t.type);
     if (f == "crit") return t.crit;
     if (f == "state") return std::string(to_string(t.state));
-    if (f == "cycle") return p ? p->cycle : t.cycles;
-    if (f == "miss") return p ? p->miss : t.misses;
     if (f == "refF") return t.ref_freq;
     if (f == "refT") return to_us(t.ref_period);
-    if (f == "mezF") return p ? p->mez_f : t.mez_freq;
-    if (f == "mezT") return to_us(p ? p->mez_t : t.mez_period);
-    if (f == "maxC") return to_us(p ? p->max_c : t.max_cycle_time);
-    if (f == "warn") return p ? p->warn : t.warnings;
     if (f == "policy") return t.policy;
     if (f == "cpu") return t.cpu;
     if (f == "module") return t.module;
-    if (!p) return nullptr;  // the rest exists only in the profile
-    if (f == "ptime") return to_us(p->ptime);
-    if (f == "totC") return to_us(p->tot_c);
-    if (f == "tick") return to_us(p->tick);
-    if (f == "minU") return p->min_u;
-    if (f == "maxU") return p->max_u;
-    if (f == "avgU") return p->avg_u;
-    if (f == "minC") return to_us(p->min_c);
-    if (f == "avgC") return to_us(p->avg_c);
-    using tools::Tail;
-    if (f == "cycP50") return tools::tail_json(tools::tail_us(p->cycle_time, Tail::p50));
-    if (f == "cycP99") return tools::tail_json(tools::tail_us(p->cycle_time, Tail::p99));
-    if (f == "cycMax") return tools::tail_json(tools::tail_us(p->cycle_time, Tail::max));
-    if (f == "latP50") return tools::tail_json(tools::tail_us(p->lateness, Tail::p50));
-    if (f == "latP99") return tools::tail_json(tools::tail_us(p->lateness, Tail::p99));
-    if (f == "latMax") return tools::tail_json(tools::tail_us(p->lateness, Tail::max));
-    return nullptr;
+    if (p) return tools::profile_value(*p, f);
+    if (f == "cycle") return t.cycles;
+    if (f == "miss") return t.misses;
+    if (f == "mezF") return t.mez_freq;
+    if (f == "mezT") return to_us(t.mez_period);
+    if (f == "maxC") return to_us(t.max_cycle_time);
+    if (f == "warn") return t.warnings;
+    return nullptr;  // the rest exists only in the profile
 }
 
 std::string field_text(const sbs::TaskStatus& r, std::string_view f) {
-    const auto v = field_value(r, f);
-    if (v.is_null()) return "-";
-    if (v.is_string()) return v.get<std::string>().empty() ? "-" : v.get<std::string>();
-    if (v.is_number_float()) {
-        const double d = v.get<double>();
-        if (const Field* fd = find_field(f); fd && fd->time) return tools::us_text(d);
-        return fmt("%.2f", d);  // frequencies, utilisations
-    }
-    return v.dump();
+    const Field* fd = find_field(f);
+    return tools::value_text(field_value(r, f), fd && fd->time);
 }
 
 std::string field_header(const std::string& name) {
