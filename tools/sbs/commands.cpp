@@ -1196,7 +1196,7 @@ std::vector<std::string> Interpreter::complete_locked(std::string_view line) {
             } else if (c == "status") {
                 if (index == 1) {
                     add(live_rmods());
-                    cand.insert({"all", "set"});
+                    cand.insert({"all", "reset", "set"});
                 } else if (words[1] == "set") {
                     add(status_field_names());
                     if (index == 2) cand.insert({"default", "all"});
