@@ -87,6 +87,7 @@
 #include "chimera/export.hpp"
 
 #include <array>
+#include <bit>
 #include <atomic>
 #include <cstddef>
 #include <cstdint>
@@ -174,8 +175,7 @@ inline constexpr std::size_t kTimeBuckets = kTimeOverflowBucket + 1;
 /// The bucket of a duration of `ns` nanoseconds.
 constexpr std::size_t time_bucket(std::uint64_t ns) noexcept {
     if (ns < kTimeSub) return static_cast<std::size_t>(ns);
-    unsigned e = 63;  // floor(log2(ns)), >= kTimeSubBits here
-    while ((ns >> e) == 0) --e;
+    const auto e = static_cast<unsigned>(std::bit_width(ns)) - 1;  // floor(log2(ns)): one instruction
     if (e >= kTimeMaxBits) return kTimeOverflowBucket;
     const unsigned shift = e - kTimeSubBits;
     return kTimeSub + (e - kTimeSubBits) * kTimeSub + static_cast<std::size_t>((ns >> shift) - kTimeSub);
