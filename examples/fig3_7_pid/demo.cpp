@@ -158,11 +158,13 @@ void print_status_legend() {
         "  crit   MUF criticality (higher runs first; the critical set is guaranteed its deadlines)\n"
         "  cycle  cycles run since the task was turned on;  miss  releases missed (late, skipped, aborted)\n"
         "  refF   frequency asked for (Hz);  mezF  frequency measured (Hz)\n"
-        "  minC avgC maxC  CPU time per cycle in microseconds (u = us);  avgU%%  share of the CPU it used\n"
+        "  minC avgC maxC  CPU time per cycle (us: every time is in microseconds);  avgU%%  share of the CPU\n"
+        "  latP99 release lateness, 99th percentile (us): how late the task woke after its release\n"
         "  warn   warnings since on;  policy  the Linux scheduling the thread really has\n"
         "  healthy: state ON, miss 0 (or a handful at turn-on on a busy machine), mezF within 1%% of refF,\n"
-        "  maxC far below the period (1/refF), policy SCHED_FIFO on the RTPU's CPU (SCHED_OTHER means\n"
-        "  no real-time privilege: run as root), tracking error a few hundredths of a degree\n");
+        "  maxC and latP99 far below the period (1/refF; latP99 grows on a loaded or non-PREEMPT_RT kernel),\n"
+        "  policy SCHED_FIFO on the RTPU's CPU (SCHED_OTHER means no real-time privilege: run as root),\n"
+        "  tracking error a few hundredths of a degree\n");
 }
 
 // Runs for `seconds`, looking at the table every 10 ms; every 0.5 s a line

@@ -25,6 +25,18 @@
 // its counters there (the reset is honoured by the writer, so it is lock-free
 // for the task). Until then readers already show the task as reset (zeros).
 // Warnings (count and first message) are reset by status resets only.
+//
+// Profiling windows per reader (issue 16.4): within an epoch every counter
+// and histogram of a slot only grows, so a reader never needs to reset what
+// the others see. A StatusWindow keeps, in the reader's own memory, a copy of
+// each slot's counters at the moment it (re)started, and shows the difference:
+// `status` at the sbs prompt, a network peer's `status` and each chimtop have
+// their own window. An epoch change (the explicit `status reset`, which is the
+// thesis's reset-on-status for everyone, a task turned on, an accounting
+// change) ends every window of that RTPU: readers then show the counts since
+// that reset. The minimum and maximum of a sum cannot be subtracted, so minC,
+// maxC, minU and maxU are always since the RTPU's last reset, for every
+// reader; the per-window tails are the window's own percentiles (below).
 // The first cycle completed after a reset is counted in `cycle` but its CPU
 // time is dropped from totC/minC/maxC/avgC, exactly as §6.7 does. A task
 // turned on calls TaskProfiler::start(), which restarts profiling on its RTPU
@@ -50,6 +62,16 @@
 // fallback reads CLOCK_THREAD_CPUTIME_ID at both ends (two system calls per
 // cycle); the status says which source is in force (TaskStatus::cpu_clock).
 //
+// Release lateness and cycle time (issue 14.11): next to the CPU time, each
+// cycle adds one count to two log-linear histograms of its slot (a few
+// increments on the task thread, no system call): `lateness`, the wake-up
+// time minus the release instant the job serves (periodic tasks; skipped
+// releases are counted in `miss`), and `cycle_time`, the wall-clock time from
+// the wake-up to the end of the cycle (out-vars written) — what LinuxCNC HAL
+// reports as a thread's time. Buckets are exact below 16 ns and 1/16 of an
+// octave wide above (a percentile is at most 6.25 % above the true value,
+// never below), up to 2^32 ns; TimeHistogram::percentile_ns() gives p50, p99.
+//
 // Half-tick accounting (§6.7): with Accounting::half_tick and a tick T, each
 // cycle's CPU time c is quantised as Chimera's kernel did for a cycle that
 // starts on a clock tick: every whole tick counts 2 half-ticks, a final
@@ -65,6 +87,7 @@
 #include "chimera/export.hpp"
 
 #include <array>
+#include <bit>
 #include <atomic>
 #include <cstddef>
 #include <cstdint>
@@ -131,7 +154,7 @@ constexpr std::uint64_t half_ticks(std::uint64_t cpu_ns, std::uint64_t tick_ns) 
 // only; sizes checked below. Strings are NUL-terminated, truncated to fit.
 // ---------------------------------------------------------------------------
 
-inline constexpr std::uint32_t kStatusLayoutVersion = 1;
+inline constexpr std::uint32_t kStatusLayoutVersion = 2;
 inline constexpr std::size_t kNameMax = 32;      ///< rmod name (incl. NUL)
 inline constexpr std::size_t kPolicyMax = 48;    ///< policy text (incl. NUL)
 inline constexpr std::size_t kMessageMax = 160;  ///< WARNING>/ERROR> text (incl. NUL)
@@ -140,8 +163,40 @@ inline constexpr std::size_t kSubsystemMax = 64;
 inline constexpr std::size_t kHistogramBuckets = 64;  ///< last bucket collects overflow
 inline constexpr std::uint32_t kMaxRtpus = 64;
 
+/// Log-linear time buckets: values below 2^kTimeSubBits ns have a bucket each;
+/// above, every octave [2^e, 2^(e+1)) is cut into 2^kTimeSubBits equal buckets;
+/// from 2^kTimeMaxBits ns on, one overflow bucket.
+inline constexpr unsigned kTimeSubBits = 4;
+inline constexpr unsigned kTimeMaxBits = 32;  ///< 2^32 ns = 4.29 s
+inline constexpr std::size_t kTimeSub = std::size_t{1} << kTimeSubBits;
+inline constexpr std::size_t kTimeOverflowBucket = kTimeSub + (kTimeMaxBits - kTimeSubBits) * kTimeSub;
+inline constexpr std::size_t kTimeBuckets = kTimeOverflowBucket + 1;
+
+/// The bucket of a duration of `ns` nanoseconds.
+constexpr std::size_t time_bucket(std::uint64_t ns) noexcept {
+    if (ns < kTimeSub) return static_cast<std::size_t>(ns);
+    const auto e = static_cast<unsigned>(std::bit_width(ns)) - 1;  // floor(log2(ns)): one instruction
+    if (e >= kTimeMaxBits) return kTimeOverflowBucket;
+    const unsigned shift = e - kTimeSubBits;
+    return kTimeSub + (e - kTimeSubBits) * kTimeSub + static_cast<std::size_t>((ns >> shift) - kTimeSub);
+}
+/// Smallest and largest duration (ns, inclusive) of bucket `b`; the overflow
+/// bucket's largest is UINT64_MAX.
+constexpr std::uint64_t time_bucket_low(std::size_t b) noexcept {
+    if (b < kTimeSub) return b;
+    if (b >= kTimeOverflowBucket) return std::uint64_t{1} << kTimeMaxBits;
+    const std::size_t k = b - kTimeSub;
+    const unsigned shift = static_cast<unsigned>(k / kTimeSub);
+    return static_cast<std::uint64_t>(kTimeSub + k % kTimeSub) << shift;
+}
+constexpr std::uint64_t time_bucket_high(std::size_t b) noexcept {
+    if (b >= kTimeOverflowBucket) return UINT64_MAX;
+    return b + 1 < kTimeSub ? b : time_bucket_low(b + 1) - 1;
+}
+
 /// Per-RTPU profiling epoch. Written under the header lock (seq odd while
-/// writing); read lock-free by tasks and readers.
+/// writing); read lock-free by tasks and readers. `name` and `cpu` are set
+/// at creation (the .sbs's RTPU name and CPU) and never change.
 struct alignas(64) RtpuBlock {
     std::atomic<std::uint32_t> seq;
     std::atomic<std::uint32_t> epoch;       ///< bumped by every reset
@@ -151,9 +206,11 @@ struct alignas(64) RtpuBlock {
     /// Bumped by status resets only (reset_all/reset_rtpu), not by a task
     /// starting: warnings are "since the last status command" (§4.4.1).
     std::atomic<std::uint32_t> status_epoch;
-    std::uint8_t reserved[32];
+    std::int32_t cpu;                       ///< -1: not given
+    char name[kNameMax];                    ///< "" when not given (shown as its number)
+    std::uint8_t reserved[28];
 };
-static_assert(sizeof(RtpuBlock) == 64);
+static_assert(sizeof(RtpuBlock) == 128);
 
 /// The profile group of a slot: written only by the task's TaskProfiler.
 struct ProfileData {
@@ -174,6 +231,8 @@ struct ProfileData {
     std::atomic<std::int64_t> last_end_ns;   ///< CLOCK_MONOTONIC of the last cycle_end
     std::atomic<std::uint64_t> hist_width_ns;///< 0: histogram off
     std::atomic<std::uint32_t> hist[kHistogramBuckets];  ///< per-cycle CPU time, ns buckets
+    std::atomic<std::uint64_t> lateness[kTimeBuckets];    ///< wake-up minus release, per cycle
+    std::atomic<std::uint64_t> cycle_time[kTimeBuckets];  ///< wake-up to end of cycle, wall clock
 };
 
 /// The info group of a slot.
@@ -227,6 +286,22 @@ static_assert(std::atomic<std::int64_t>::is_always_lock_free);
 // Derived status (§4.4.1), as readers see it
 // ---------------------------------------------------------------------------
 
+/// Counts of durations in the time buckets above (release lateness, cycle time).
+struct CHIMERA_API TimeHistogram {
+    std::array<std::uint64_t, kTimeBuckets> counts{};
+
+    std::uint64_t total() const noexcept;
+    /// The nearest-rank percentile: the largest value of the bucket that holds
+    /// the ceil(ppm/1e6 * n)-th smallest sample (ppm in parts per million:
+    /// 500000 is p50, 990000 p99; 0 counts as the first sample). nullopt when
+    /// empty; UINT64_MAX when that sample is in the overflow bucket.
+    [[nodiscard]] std::optional<std::uint64_t> percentile_ns(std::uint32_t ppm) const noexcept;
+    /// Largest value of the highest non-empty bucket (nullopt when empty).
+    [[nodiscard]] std::optional<std::uint64_t> max_ns() const noexcept;
+    /// Counts of `now` that are not in `base` (bucket by bucket).
+    static TimeHistogram since(const TimeHistogram& now, const TimeHistogram& base) noexcept;
+};
+
 /// Per-cycle CPU-time histogram: bucket i counts cycles with
 /// i*width <= c < (i+1)*width; the last bucket also holds everything above.
 struct CHIMERA_API Histogram {
@@ -278,7 +353,13 @@ struct TaskStatus {
     std::uint64_t switched = 0;  ///< cycles preempted or blocked part-way
     double last_c = 0;           ///< CPU time of the last cycle
     Histogram histogram;
+    TimeHistogram lateness;      ///< release lateness per cycle (periodic tasks)
+    TimeHistogram cycle_time;    ///< wake-up to end of cycle per cycle (wall clock)
+    std::string rtpu_name;       ///< the RTPU's name in the .sbs ("" when not given)
     bool consistent = true;      ///< see RawSlot::consistent
+    /// Set by StatusWindow: the counts are since this reader's window began
+    /// (false: since the RTPU's last reset).
+    bool windowed = false;
 };
 
 /// Raw, consistent copies of one slot (what the seqlocks protect).
@@ -305,6 +386,7 @@ struct RawSlot {
                   q_max = 0, q_last = 0, switched = 0;
     std::int64_t last_end_ns = 0;
     Histogram histogram;
+    TimeHistogram lateness, cycle_time;
     /// False when a group could not be read consistently within the reader's
     /// timeout (its writer died, or stayed preempted, inside its window).
     bool consistent = true;
@@ -317,11 +399,23 @@ struct RtpuEpoch {
     std::int64_t start_ns = 0;
     std::int64_t tick_ns = 1;
     Accounting accounting = Accounting::nanoseconds;
+    std::string name;  ///< as in the .sbs ("" when not given)
+    int cpu = -1;
 };
 
 /// The §4.4.1 / §6.7 derivation, a pure function (exact tests use it with a
 /// chosen `now_ns`). ptime = now − start (whole ticks in half-tick mode).
 CHIMERA_API TaskStatus derive(const RawSlot& raw, const RtpuEpoch& rtpu, std::int64_t now_ns);
+
+/// One reader's window, a pure function: the status of `now` counted since
+/// `base` (the same slot's copy taken at `base_ns`). When `base` is null, is
+/// another task (generation) or another profiling epoch, or the task has not
+/// yet seen the RTPU's current epoch, the window is the RTPU's epoch: the
+/// result is derive(now, rtpu, now_ns). Otherwise every counter, the warning
+/// count and the histograms are differences, ptime runs from base_ns, and
+/// minC/maxC stay the epoch's (see the top of this file).
+CHIMERA_API TaskStatus derive_window(const RawSlot& now, const RawSlot* base, std::int64_t base_ns,
+                                     const RtpuEpoch& rtpu, std::int64_t now_ns);
 
 // ---------------------------------------------------------------------------
 // Errors
@@ -398,6 +492,10 @@ struct StatusOptions {
     /// Unlink a segment of the same name left by a process that died.
     bool replace_stale = true;
     mode_t mode = 0600;
+    /// The RTPUs' names and CPUs as in the .sbs (index = RTPU number); shorter
+    /// lists leave the rest unnamed. A name is cut to kNameMax - 1 characters.
+    std::vector<std::string> rtpu_names;
+    std::vector<int> rtpu_cpus;
 };
 
 /// The status segment of one subsystem (owned by the master). Move-only.
@@ -457,6 +555,11 @@ public:
     static StatusReader attach(std::string_view subsystem);
     /// Like attach(), nullopt if the segment does not exist (yet).
     [[nodiscard]] static std::optional<StatusReader> try_attach(std::string_view subsystem);
+    /// Like try_attach(), and says why not: `error_number` gets the errno of
+    /// the failure (ENOENT: no such subsystem; EACCES: this user may not open
+    /// its segment; 0: another reason, e.g. another layout) and `why` the message.
+    [[nodiscard]] static std::optional<StatusReader> try_attach(std::string_view subsystem, int& error_number,
+                                                                std::string& why);
 
     std::vector<TaskStatus> snapshot() const;
     std::vector<TaskStatus> snapshot(std::int64_t now_ns) const;
@@ -464,7 +567,9 @@ public:
     [[nodiscard]] std::optional<RawSlot> raw(std::uint32_t index) const;
     RtpuEpoch rtpu_epoch(int rtpu) const;
 
-    /// The master's status command: snapshot, then reset every RTPU.
+    /// The explicit reset of the thesis (`status reset`): snapshot, then
+    /// reset every RTPU — every reader's counts restart. A reader that only
+    /// wants its own "since the last status" uses a StatusWindow.
     std::vector<TaskStatus> status_and_reset();
     void reset_all();
     void reset_rtpu(int rtpu);
@@ -476,6 +581,8 @@ public:
     bool alive() const noexcept;
     /// Creation time of the attached segment (tells a restarted subsystem apart).
     std::int64_t created_ns() const noexcept;
+    /// The process that created the segment (the subsystem's master).
+    int creator_pid() const noexcept;
     const std::string& name() const noexcept { return segment_.name(); }
     std::string subsystem() const;
     std::uint32_t max_tasks() const noexcept;
@@ -485,6 +592,31 @@ public:
 private:
     explicit StatusReader(ipc::Segment segment) noexcept : segment_(std::move(segment)) {}
     ipc::Segment segment_;
+};
+
+/// One reader's profiling window (issue 16.4): counts since this window
+/// began, without touching what other readers see. Lives in the reader's own
+/// memory; restart() takes the current counters of every slot as its
+/// baseline. A window never started shows the counts since each RTPU's last
+/// reset. Not thread-safe (one per reader).
+class CHIMERA_API StatusWindow {
+public:
+    /// The status of every task counted over this window (now: CLOCK_MONOTONIC
+    /// unless given).
+    std::vector<TaskStatus> snapshot(const StatusReader& reader) const;
+    std::vector<TaskStatus> snapshot(const StatusReader& reader, std::int64_t now_ns) const;
+    /// Starts the window again now.
+    void restart(const StatusReader& reader);
+    void restart(const StatusReader& reader, std::int64_t now_ns);
+    /// The thesis's "since the last status command", for this reader only:
+    /// the snapshot of the window, which then restarts at the same instant.
+    std::vector<TaskStatus> take(const StatusReader& reader);
+    /// When the window last restarted (0: never).
+    std::int64_t started_ns() const noexcept { return started_ns_; }
+
+private:
+    std::vector<std::optional<RawSlot>> base_;  // by slot index
+    std::int64_t started_ns_ = 0;
 };
 
 /// The task's own profiler. Construct it IN the task thread (it opens the
@@ -510,6 +642,10 @@ public:
 
     /// Start of a cycle (or event): right after the wake-up.
     void cycle_begin() noexcept;
+    /// The same, for a job released at `release_ns` (CLOCK_MONOTONIC): its
+    /// lateness (the wake-up minus the release) goes to the lateness
+    /// histogram. 0: no release instant (aperiodic, synchronous).
+    void cycle_begin(std::int64_t release_ns) noexcept;
     /// End of the cycle: accounts its CPU time and publishes the counters.
     void cycle_end() noexcept;
     /// `n` missed cycles (from the deadline-failure path). Safe to call from
@@ -553,6 +689,7 @@ private:
     std::uint64_t begin_count_ = 0;   ///< counter at cycle_begin (or at the switch-in before it)
     std::int64_t begin_wall_ = 0;
     std::int64_t begin_cpu_ = 0;      ///< thread_cputime fallback
+    std::int64_t begin_release_ = 0;  ///< the job's release instant (0: none)
     std::uint64_t last_cycle_ns_ = 0;
     // publication nesting: a miss reported by a signal handler that
     // interrupted a publication is folded in when the publication ends

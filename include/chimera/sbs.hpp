@@ -179,7 +179,8 @@ struct TaskStatus {
 };
 
 /// "rmod rtpu tid S crit state cycle miss refF mezF ..." in one line, plus
-/// WARNING> / ERROR> lines as §4.4.1 prints them.
+/// WARNING> / ERROR> lines as §4.4.1 prints them. Times in µs (the header
+/// says "[us]"), with the release lateness's 99th percentile (latP99).
 CHIMERA_API std::string format_status(const TaskStatus& s);
 /// The column header matching format_status().
 CHIMERA_API std::string format_status_header();

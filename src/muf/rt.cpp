@@ -615,6 +615,11 @@ RtTaskStatus RtpuScheduler::status(TaskHandle h) const noexcept {
     return st;
 }
 
+std::int64_t RtpuScheduler::job_release_ns(TaskHandle h) const noexcept {
+    const TaskSlot* s = impl_->slot(h);
+    return s ? s->job_release_ns.load(std::memory_order_relaxed) : 0;
+}
+
 Assignment RtpuScheduler::assignment() const {
     std::lock_guard<std::mutex> lock(impl_->mutex);
     return impl_->current_assignment;

@@ -6,6 +6,7 @@
 #include <sys/syscall.h>
 #include <unistd.h>
 
+#include <algorithm>
 #include <cerrno>
 #include <cstring>
 #include <ctime>
@@ -57,6 +58,12 @@ int open_task_clock() noexcept {
             syscall(SYS_perf_event_open, &attr, 0, -1, -1, PERF_FLAG_FD_CLOEXEC));
     }
     return fd;
+}
+
+// The task is a cell's only writer: a plain increment, published by the seqlock.
+template <typename T>
+inline void count_one(std::atomic<T>& cell) noexcept {
+    cell.store(cell.load(std::memory_order_relaxed) + 1, std::memory_order_relaxed);
 }
 
 }  // namespace
@@ -127,6 +134,7 @@ TaskProfiler& TaskProfiler::operator=(TaskProfiler&& o) noexcept {
     begin_count_ = o.begin_count_;
     begin_wall_ = o.begin_wall_;
     begin_cpu_ = o.begin_cpu_;
+    begin_release_ = o.begin_release_;
     anchor_valid_ = o.anchor_valid_;
     anchor_seq_ = o.anchor_seq_;
     anchor_count_ = o.anchor_count_;
@@ -195,7 +203,10 @@ void TaskProfiler::take_anchor() noexcept {
     anchor_wall_ = before.wall;  // the count is taken just after this, in the call
 }
 
-void TaskProfiler::cycle_begin() noexcept {
+void TaskProfiler::cycle_begin() noexcept { cycle_begin(0); }
+
+void TaskProfiler::cycle_begin(std::int64_t release_ns) noexcept {
+    begin_release_ = release_ns;
     if (clock_ == CpuClock::perf_switch) {
         const PageRead r = read_page(static_cast<const perf_event_mmap_page*>(perf_page_));
         begin_seq_ = r.seq;
@@ -268,10 +279,14 @@ void TaskProfiler::cycle_end() noexcept {
         if (hist_width_ns_ != 0) {
             std::uint64_t b = c / hist_width_ns_;
             if (b >= kHistogramBuckets) b = kHistogramBuckets - 1;
-            auto& cell = slot_.data()->profile.hist[b];
-            cell.store(cell.load(std::memory_order_relaxed) + 1, std::memory_order_relaxed);
+            count_one(slot_.data()->profile.hist[b]);
         }
     }
+    // Issue 14.11: every cycle, the first after a reset too (it is a real wake-up).
+    ProfileData& p = slot_.data()->profile;
+    count_one(p.cycle_time[time_bucket(static_cast<std::uint64_t>(std::max<std::int64_t>(wall - begin_wall_, 0)))]);
+    if (begin_release_ > 0)
+        count_one(p.lateness[time_bucket(static_cast<std::uint64_t>(std::max<std::int64_t>(begin_wall_ - begin_release_, 0)))]);
     slot_.data()->profile.last_end_ns.store(wall, std::memory_order_relaxed);
     publish_end();
     CHIMERA_TRACE_CYCLE_END(slot_.data()->rmod, slot_.index(), cycles_, c, switched ? 1 : 0);
@@ -354,6 +369,8 @@ void TaskProfiler::check_epoch() noexcept {
     p.unit_num.store(accounting_ == Accounting::half_tick ? tick_ns_ : 1, std::memory_order_relaxed);
     p.unit_den.store(accounting_ == Accounting::half_tick ? 2 : 1, std::memory_order_relaxed);
     for (auto& cell : p.hist) cell.store(0, std::memory_order_relaxed);
+    for (auto& cell : p.lateness) cell.store(0, std::memory_order_relaxed);
+    for (auto& cell : p.cycle_time) cell.store(0, std::memory_order_relaxed);
 }
 
 }  // namespace chimera::prof

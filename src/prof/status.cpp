@@ -57,6 +57,9 @@ RtpuEpoch read_rtpu(const StatusHeader* h, int rtpu) noexcept {
         e.accounting = static_cast<Accounting>(b->accounting.load(std::memory_order_relaxed));
     });
     if (e.tick_ns <= 0) e.tick_ns = 1;
+    // Set before the segment was published, never changed.
+    e.name = read_string(b->name, kNameMax);
+    e.cpu = b->cpu;
     return e;
 }
 
@@ -155,6 +158,10 @@ std::optional<RawSlot> read_slot(const StatusHeader* h, std::uint32_t index) {
             r.histogram.bucket_width_ns = p.hist_width_ns.load(std::memory_order_relaxed);
             for (std::size_t b = 0; b < kHistogramBuckets; ++b)
                 r.histogram.counts[b] = p.hist[b].load(std::memory_order_relaxed);
+            for (std::size_t b = 0; b < kTimeBuckets; ++b) {
+                r.lateness.counts[b] = p.lateness[b].load(std::memory_order_relaxed);
+                r.cycle_time.counts[b] = p.cycle_time[b].load(std::memory_order_relaxed);
+            }
         });
         r.consistent = info_ok && prof_ok;
         std::atomic_thread_fence(std::memory_order_acquire);
@@ -252,6 +259,44 @@ std::optional<std::uint64_t> Histogram::effective_ns(double hardness) const noex
     return std::nullopt;
 }
 
+// ------------------------------------------------------------ TimeHistogram
+
+std::uint64_t TimeHistogram::total() const noexcept {
+    std::uint64_t n = 0;
+    for (auto c : counts) n += c;
+    return n;
+}
+
+std::optional<std::uint64_t> TimeHistogram::percentile_ns(std::uint32_t ppm) const noexcept {
+    const std::uint64_t n = total();
+    if (n == 0) return std::nullopt;
+    // rank = ceil(ppm * n / 1e6) in integers (exact: no 0.99 * 100 = 99.000001),
+    // split so that nothing overflows for any n.
+    constexpr std::uint64_t kMillion = 1'000'000;
+    const std::uint64_t q = std::min<std::uint64_t>(ppm, kMillion);
+    std::uint64_t rank = n / kMillion * q + (n % kMillion * q + kMillion - 1) / kMillion;
+    if (rank == 0) rank = 1;
+    std::uint64_t seen = 0;
+    for (std::size_t b = 0; b < kTimeBuckets; ++b) {
+        seen += counts[b];
+        if (seen >= rank) return time_bucket_high(b);
+    }
+    return std::nullopt;  // unreachable: seen reaches n >= rank
+}
+
+std::optional<std::uint64_t> TimeHistogram::max_ns() const noexcept {
+    for (std::size_t b = kTimeBuckets; b-- > 0;)
+        if (counts[b] != 0) return time_bucket_high(b);
+    return std::nullopt;
+}
+
+TimeHistogram TimeHistogram::since(const TimeHistogram& now, const TimeHistogram& base) noexcept {
+    TimeHistogram d;
+    for (std::size_t b = 0; b < kTimeBuckets; ++b)
+        d.counts[b] = now.counts[b] >= base.counts[b] ? now.counts[b] - base.counts[b] : 0;
+    return d;
+}
+
 // ------------------------------------------------------------------ derive
 
 TaskStatus derive(const RawSlot& raw, const RtpuEpoch& rtpu, std::int64_t now_ns) {
@@ -291,6 +336,7 @@ TaskStatus derive(const RawSlot& raw, const RtpuEpoch& rtpu, std::int64_t now_ns
     t.ptime = static_cast<double>(q_total_res) * t.tick;
 
     t.histogram.bucket_width_ns = raw.histogram.bucket_width_ns;
+    t.rtpu_name = rtpu.name;
     if (t.reset_pending) return t;
 
     t.cycle = raw.cycles;
@@ -298,6 +344,8 @@ TaskStatus derive(const RawSlot& raw, const RtpuEpoch& rtpu, std::int64_t now_ns
     t.accounted = raw.accounted;
     t.switched = raw.switched;
     t.histogram = raw.histogram;
+    t.lateness = raw.lateness;
+    t.cycle_time = raw.cycle_time;
 
     const double unit_s = static_cast<double>(raw.unit_num) /
                           static_cast<double>(raw.unit_den > 0 ? raw.unit_den : 1) * 1e-9;
@@ -327,6 +375,45 @@ TaskStatus derive(const RawSlot& raw, const RtpuEpoch& rtpu, std::int64_t now_ns
         t.max_u = t.max_c / period * 100.0;
         t.avg_u = t.avg_c / period * 100.0;
     }
+    return t;
+}
+
+namespace {
+
+// Whether `base` starts a window of `now`: the same task, the same epoch, and
+// nothing went backwards (which a reset would do).
+bool window_base_usable(const RawSlot& now, const RawSlot& base, const RtpuEpoch& rtpu) noexcept {
+    return base.generation == now.generation && base.epoch_seen == now.epoch_seen &&
+           now.epoch_seen == rtpu.epoch && base.cycles <= now.cycles && base.misses <= now.misses &&
+           base.accounted <= now.accounted && base.q_total <= now.q_total;
+}
+
+}  // namespace
+
+TaskStatus derive_window(const RawSlot& now, const RawSlot* base, std::int64_t base_ns,
+                         const RtpuEpoch& rtpu, std::int64_t now_ns) {
+    if (base == nullptr || !window_base_usable(now, *base, rtpu)) return derive(now, rtpu, now_ns);
+    RawSlot d = now;
+    d.cycles -= base->cycles;
+    d.misses -= base->misses;
+    d.accounted -= base->accounted;
+    d.q_total -= base->q_total;
+    d.switched = d.switched >= base->switched ? d.switched - base->switched : 0;
+    if (base->warn_epoch == now.warn_epoch) {
+        d.warnings = now.warnings >= base->warnings ? now.warnings - base->warnings : 0;
+        if (d.warnings == 0) d.warning.clear();
+    }
+    if (base->histogram.bucket_width_ns == now.histogram.bucket_width_ns)
+        for (std::size_t b = 0; b < kHistogramBuckets; ++b)
+            d.histogram.counts[b] = now.histogram.counts[b] >= base->histogram.counts[b]
+                                        ? now.histogram.counts[b] - base->histogram.counts[b]
+                                        : 0;
+    d.lateness = TimeHistogram::since(now.lateness, base->lateness);
+    d.cycle_time = TimeHistogram::since(now.cycle_time, base->cycle_time);
+    RtpuEpoch window = rtpu;
+    window.start_ns = std::max(rtpu.start_ns, base_ns);
+    TaskStatus t = derive(d, window, now_ns);
+    t.windowed = true;
     return t;
 }
 
@@ -497,6 +584,8 @@ StatusSegment StatusSegment::create(std::string_view subsystem, std::uint32_t ma
                          std::memory_order_relaxed);
         b->accounting.store(static_cast<std::uint32_t>(options.accounting),
                             std::memory_order_relaxed);
+        b->cpu = r < options.rtpu_cpus.size() ? options.rtpu_cpus[r] : -1;
+        copy_string(b->name, kNameMax, r < options.rtpu_names.size() ? options.rtpu_names[r] : "");
     }
     seg.publish();
     return StatusSegment(std::move(seg));
@@ -563,6 +652,8 @@ TaskSlot StatusSegment::claim(const TaskIdentity& id) {
         p.last_end_ns.store(0, std::memory_order_relaxed);
         p.hist_width_ns.store(0, std::memory_order_relaxed);
         for (auto& b : p.hist) b.store(0, std::memory_order_relaxed);
+        for (auto& b : p.lateness) b.store(0, std::memory_order_relaxed);
+        for (auto& b : p.cycle_time) b.store(0, std::memory_order_relaxed);
         detail::write_end(p.seq);
 
         s->in_use.store(1, std::memory_order_release);
@@ -630,6 +721,27 @@ std::optional<StatusReader> StatusReader::try_attach(std::string_view subsystem)
     }
 }
 
+std::optional<StatusReader> StatusReader::try_attach(std::string_view subsystem, int& error_number,
+                                                     std::string& why) {
+    error_number = 0;
+    why.clear();
+    try {
+        // No exists() first: it cannot tell a segment this user may not open from none.
+        ipc::AttachOptions ao;
+        ao.prefault = false;
+        ao.ready_timeout_ns = 100'000'000;
+        ipc::Segment seg = ipc::Segment::attach(ipc::segment_name(subsystem, "status"), kKind, ao);
+        validate_body(seg);
+        return StatusReader(std::move(seg));
+    } catch (const ipc::SegmentError& e) {
+        error_number = e.error_number();
+        why = e.what();
+    } catch (const StatusError& e) {
+        why = e.what();
+    }
+    return std::nullopt;
+}
+
 std::vector<TaskStatus> StatusReader::snapshot() const { return snapshot(ipc::now_ns()); }
 std::vector<TaskStatus> StatusReader::snapshot(std::int64_t now_ns) const {
     return snapshot_of(header_of(segment_), now_ns);
@@ -670,6 +782,66 @@ void StatusReader::set_accounting(int rtpu, Accounting accounting, std::int64_t 
     set_rtpu_accounting(header_of(segment_), name(), rtpu, accounting, tick_ns);
 }
 
+// ------------------------------------------------------------- StatusWindow
+
+namespace {
+
+// Every RTPU's epoch, then every slot (free slots nullopt). The epochs first:
+// a slot read after a reset shows the reset (its epoch moved past the one
+// read here) rather than a window across it.
+struct Reading {
+    std::vector<RtpuEpoch> epochs;
+    std::vector<std::optional<RawSlot>> slots;
+};
+
+Reading read_all(const StatusReader& reader) {
+    Reading g;
+    g.epochs.resize(reader.rtpus());
+    for (std::uint32_t r = 0; r < g.epochs.size(); ++r) g.epochs[r] = reader.rtpu_epoch(static_cast<int>(r));
+    g.slots.resize(reader.max_tasks());
+    for (std::uint32_t i = 0; i < g.slots.size(); ++i) g.slots[i] = reader.raw(i);
+    return g;
+}
+
+std::vector<TaskStatus> derive_all(const Reading& g, const std::vector<std::optional<RawSlot>>& base,
+                                   std::int64_t base_ns, std::int64_t now_ns) {
+    std::vector<TaskStatus> out;
+    for (std::uint32_t i = 0; i < g.slots.size(); ++i) {
+        if (!g.slots[i]) continue;
+        const auto r = static_cast<std::uint32_t>(g.slots[i]->rtpu);
+        const RawSlot* b = i < base.size() && base[i] ? &*base[i] : nullptr;
+        out.push_back(derive_window(*g.slots[i], b, base_ns, r < g.epochs.size() ? g.epochs[r] : RtpuEpoch{}, now_ns));
+    }
+    return out;
+}
+
+}  // namespace
+
+std::vector<TaskStatus> StatusWindow::snapshot(const StatusReader& reader) const {
+    return snapshot(reader, ipc::now_ns());
+}
+
+std::vector<TaskStatus> StatusWindow::snapshot(const StatusReader& reader, std::int64_t now_ns) const {
+    return derive_all(read_all(reader), base_, started_ns_, now_ns);
+}
+
+void StatusWindow::restart(const StatusReader& reader) { restart(reader, ipc::now_ns()); }
+
+void StatusWindow::restart(const StatusReader& reader, std::int64_t now_ns) {
+    base_ = read_all(reader).slots;
+    started_ns_ = now_ns;
+}
+
+std::vector<TaskStatus> StatusWindow::take(const StatusReader& reader) {
+    // One reading serves both: a cycle is in the window shown or in the next, never lost.
+    const std::int64_t now = ipc::now_ns();
+    Reading g = read_all(reader);
+    std::vector<TaskStatus> shown = derive_all(g, base_, started_ns_, now);
+    base_ = std::move(g.slots);
+    started_ns_ = now;
+    return shown;
+}
+
 bool StatusReader::alive() const noexcept {
     if (!segment_.valid()) return false;
     const auto& hdr = segment_.header();
@@ -682,6 +854,10 @@ bool StatusReader::alive() const noexcept {
 
 std::int64_t StatusReader::created_ns() const noexcept {
     return segment_.valid() ? static_cast<std::int64_t>(segment_.header().created_ns) : 0;
+}
+
+int StatusReader::creator_pid() const noexcept {
+    return segment_.valid() ? segment_.header().creator_pid : 0;
 }
 
 std::string StatusReader::subsystem() const {

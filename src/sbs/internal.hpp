@@ -75,6 +75,9 @@ public:
     virtual sigjmp_buf* cycle_mark() noexcept = 0;
     virtual void arm_abort() noexcept = 0;
     virtual void disarm_abort() noexcept = 0;
+    /// The release instant of the job wait() just released (CLOCK_MONOTONIC
+    /// ns); 0 for aperiodic and synchronous tasks (no release instant).
+    virtual std::int64_t release_ns() const noexcept = 0;
     /// After the cycle's out-vars: the job is complete (deadline disarmed).
     virtual void cycle_done() noexcept = 0;
     /// Aperiodic servers: around the service of one event.

@@ -191,6 +191,10 @@ public:
     }
     void arm_abort() noexcept override { sched_.arm_abort(handle_.load(std::memory_order_relaxed)); }
     void disarm_abort() noexcept override { sched_.disarm_abort(handle_.load(std::memory_order_relaxed)); }
+    std::int64_t release_ns() const noexcept override {
+        const muf::TaskHandle h = handle_.load(std::memory_order_relaxed);
+        return h >= 0 && task_.type == TaskType::periodic ? sched_.job_release_ns(h) : 0;
+    }
     void cycle_done() noexcept override {
         // A server's deadline is its replenishment time: only periodic jobs complete.
         const muf::TaskHandle h = handle_.load(std::memory_order_relaxed);

@@ -83,6 +83,10 @@ SubsystemCore::SubsystemCore(SbsFile f) : file(std::move(f)) {
     table = svar::Table::create(seg, file.svarfile);
     prof::StatusOptions so;
     so.rtpus = static_cast<std::uint32_t>(std::max<std::size_t>(1, file.rtpus.size()));
+    for (const auto& r : file.rtpus) {  // chimtop and `status` name RTPUs as the .sbs does
+        so.rtpu_names.push_back(r.name);
+        so.rtpu_cpus.push_back(r.cpu);
+    }
     try {
         status = prof::StatusSegment::create(file.subsystem, kMaxTasks, so);
         for (std::size_t i = 0; i < file.rtpus.size(); ++i)
@@ -761,22 +765,27 @@ void Subsystem::finish() {
 }
 
 std::string format_status_header() {
+    // Every time in µs, as chimtop and the sbs prompt show them.
     char buf[256];
-    std::snprintf(buf, sizeof buf, "%-12s %-6s %7s %s %4s %-11s %9s %6s %8s %8s %9s %9s %9s %6s %4s  %s", "rmod",
-                  "rtpu", "tid", "S", "crit", "state", "cycle", "miss", "refF", "mezF", "minC", "avgC", "maxC",
-                  "avgU%", "warn", "policy");
+    std::snprintf(buf, sizeof buf, "%-12s %-6s %7s %s %4s %-11s %9s %6s %8s %8s %9s %9s %9s %10s %6s %4s  %s", "rmod",
+                  "rtpu", "tid", "S", "crit", "state", "cycle", "miss", "refF", "mezF", "minC[us]", "avgC[us]",
+                  "maxC[us]", "latP99[us]", "avgU%", "warn", "policy");
     return buf;
 }
 
 std::string format_status(const TaskStatus& s) {
-    // §4.4.1's columns; CPU times from the profile, in microseconds.
+    // §4.4.1's columns; CPU times from the profile and the lateness
+    // percentile from its histogram (issue 14.11), in microseconds.
     const prof::TaskStatus& p = s.profile;
+    char late[24] = "-";
+    if (const auto ns = p.lateness.percentile_ns(990'000); ns && *ns != UINT64_MAX)
+        std::snprintf(late, sizeof late, "%.1f", static_cast<double>(*ns) * 1e-3);
     char buf[512];
     std::snprintf(buf, sizeof buf,
-                  "%-12s %-6s %7ld %c %4d %-11s %9llu %6llu %8.2f %8.2f %8.1fu %8.1fu %8.1fu %6.2f %4u  %s",
+                  "%-12s %-6s %7ld %c %4d %-11s %9llu %6llu %8.2f %8.2f %9.1f %9.1f %9.1f %10s %6.2f %4u  %s",
                   s.rmod.c_str(), s.rtpu.c_str(), s.tid, s.type, s.crit, std::string(to_string(s.state)).c_str(),
                   static_cast<unsigned long long>(s.cycles), static_cast<unsigned long long>(s.misses), s.ref_freq,
-                  s.mez_freq, p.min_c * 1e6, p.avg_c * 1e6, p.max_c * 1e6, p.avg_u, s.warnings, s.policy.c_str());
+                  s.mez_freq, p.min_c * 1e6, p.avg_c * 1e6, p.max_c * 1e6, late, p.avg_u, s.warnings, s.policy.c_str());
     std::string out = buf;
     if (!s.warning.empty()) out += "\nWARNING> " + s.warning;
     if (s.state == State::ERROR) out += "\nERROR> " + s.error;

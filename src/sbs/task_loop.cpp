@@ -576,7 +576,7 @@ void TaskLoop::aperiodic_release(std::uint32_t seen) {
 
 // One job of Figure 3.10's ON state: read in-vars, cycle, write out-vars.
 void TaskLoop::job() {
-    if (t_.profiler) t_.profiler->cycle_begin();
+    if (t_.profiler) t_.profiler->cycle_begin(t_.pacer->release_ns());
     const std::int64_t t0 = ipc::now_ns();
     t_.last_release_ns.store(t0, std::memory_order_relaxed);
     Outcome r = read_in_vars();

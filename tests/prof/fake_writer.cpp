@@ -1,8 +1,8 @@
 // A stand-in subsystem for the chimtop tests: it publishes a status segment
 // (and an SVAR table when the svar service is built) with the real writer API
 // — StatusSegment, TaskSlot, TaskProfiler — from three task threads:
-//   servo    periodic 100 Hz, RTPU 0, reads Q_REF, writes TAU
-//   planner  periodic 20 Hz, RTPU 1, misses every other cycle, one warning
+//   servo    periodic 100 Hz, RTPU 0 (ctrl), reads Q_REF, writes TAU
+//   planner  periodic 20 Hz, RTPU 1 (plan), misses every other cycle, one warning
 //   logger   sporadic, RTPU 0, in ERROR with a message
 // Usage: fake_writer SUBSYSTEM [SECONDS]   (runs until SIGTERM or SECONDS)
 #include <signal.h>
@@ -51,7 +51,7 @@ void periodic(TaskSlot slot, double hz, std::int64_t work_ns, int miss_every) {
         next += period;
         const timespec ts = chimera::ipc::to_timespec(next);
         clock_nanosleep(CLOCK_MONOTONIC, TIMER_ABSTIME, &ts, nullptr);
-        prof.cycle_begin();
+        prof.cycle_begin(next);  // the release instant: its lateness is measured
         burn(work_ns);
         prof.cycle_end();
         if (miss_every > 0 && n % static_cast<std::uint64_t>(miss_every) == 0) prof.missed(1);
@@ -83,6 +83,8 @@ int main(int argc, char** argv) {
 
     StatusOptions opt;
     opt.rtpus = 2;
+    opt.rtpu_names = {"ctrl", "plan"};
+    opt.rtpu_cpus = {0, 1};
     StatusSegment seg = StatusSegment::create(sub, 8, opt);
     TaskSlot servo = seg.claim({"servo", 0, 0, TaskType::periodic, 100.0, 5, "Q_REF", "TAU"});
     TaskSlot planner = seg.claim({"planner", 1, 1, TaskType::periodic, 20.0, 3, "", ""});

@@ -2,7 +2,10 @@
 # chimtop against a live status segment published by fake_writer (the real
 # writer API): --once, --json, field choice and sorting, then the ncurses view
 # driven in tmux (send-keys / capture-pane): columns, rows, WARNING>/ERROR>
-# lines, the SVAR pane, sorting, and surviving the subsystem's restart.
+# lines, the SVAR pane, sorting, the help screen, the field picker, search and
+# filter, the RTPU summary lines, `z` restarting only this chimtop's window,
+# the list of running subsystems, "permission denied" for another user, and
+# surviving the subsystem's restart.
 set -u
 CHIMTOP=$1
 WRITER=$2
@@ -14,6 +17,10 @@ check() {  # check "description" command...
     if "$@"; then echo "ok   - $what"; else echo "FAIL - $what"; fail=1; fi
 }
 has() { grep -q -- "$2" <<<"$1"; }
+header_of() { grep -m1 -vE '^(subsystem|RTPU) ' <<<"$1"; }      # --once: the column header
+rows_of() { awk 'h { print } !h && !/^(subsystem|RTPU) / { h = 1 }' <<<"$1"; }  # --once: the lines after it
+screen() { tmux -L "$SOCK" capture-pane -p; }
+keys() { tmux -L "$SOCK" send-keys "$@"; sleep 0.4; }
 writer_pid=
 start_writer() {
     "$WRITER" "$SUB" 60 > /tmp/$SUB.writer.log 2>&1 &
@@ -46,9 +53,15 @@ sleep 0.6
 
 out=$("$CHIMTOP" "$SUB" --once)
 echo "$out"
-for f in rmod rtpu tid S crit state cycle miss refF mezF mezT ptime minC maxC avgC avgU warn policy; do
-    check "--once header has $f" has "$(sed -n 2p <<<"$out")" " *$f"
+for f in rmod rtpu tid S crit state cycle miss mezF 'avgC\[us\]' 'maxC\[us\]' 'cycP99\[us\]' 'latP99\[us\]' avgU warn policy; do
+    check "--once header has $f" has "$(header_of "$out")" " *$f"
 done
+check "--once says the unit" has "$(head -1 <<<"$out")" "(times in us)"
+check "--once: a summary line per RTPU, named as in the .sbs" \
+    grep -qE "^RTPU ctrl +cpu 0 +2 tasks +1 ON .*1 in ERROR" <<<"$out"
+check "--once: ...the second RTPU" grep -qE "^RTPU plan +cpu 1 +1 task +1 ON +CPU +[0-9.]+% +miss [1-9]" <<<"$out"
+check "--once: the rtpu column names the RTPU" grep -qE "^servo +ctrl " <<<"$out"
+
 check "--once has servo row" has "$out" "^servo "
 check "--once has planner row" has "$out" "^planner "
 check "--once has logger row in ERROR" grep -qE "^logger .* ERROR" <<<"$out"
@@ -56,12 +69,12 @@ check "ERROR> line" has "$out" "^ERROR> logger: disk full"
 check "WARNING> line, first warning kept" has "$out" "^WARNING> planner: trajectory clipped$"
 
 out=$("$CHIMTOP" "$SUB" --once --fields rmod,miss,cycle --sort miss --reverse)
-first=$(sed -n 3p <<<"$out" | awk '{print $1}')
+first=$(rows_of "$out" | head -1 | awk '{print $1}')
 check "sort by miss, descending: planner first" test "$first" = planner
-check "chosen fields only" test "$(sed -n 2p <<<"$out" | xargs)" = "rmod miss cycle"
+check "chosen fields only" test "$(header_of "$out" | xargs)" = "rmod miss cycle"
 out=$("$CHIMTOP" "$SUB" --once --fields cycle,rmod --sort rmod)
 check "sort by rmod ascending: logger, planner, servo" \
-    test "$(sed -n '3,$p' <<<"$out" | grep -vE '^(WARNING|ERROR)>' | awk '{print $2}' | xargs)" = "logger planner servo"
+    test "$(rows_of "$out" | grep -vE '^(WARNING|ERROR)>' | awk '{print $2}' | xargs)" = "logger planner servo"
 
 json=$("$CHIMTOP" "$SUB" --json --svar)
 check "--json parses, 3 tasks, servo cycling at ~100 Hz, logger error" python3 -c '
@@ -70,10 +83,19 @@ j = json.loads(sys.argv[1])
 t = {x["rmod"]: x for x in j["tasks"]}
 assert j["subsystem"] == sys.argv[2] and len(t) == 3, t.keys()
 s = t["servo"]
+assert j["time_unit"] == "us"
 assert s["cycle"] > 10 and 60 < s["mezF"] < 140, s
-assert s["refF"] == 100 and abs(s["refT"] - 0.01) < 1e-12
-assert 0.0004 < s["avgC"] < 0.004, s["avgC"]
+assert s["refF"] == 100 and abs(s["refT"] - 10000) < 1e-6      # us
+assert 400 < s["avgC"] < 4000, s["avgC"]                        # 0.5 ms of work, in us
 assert s["clock"] in ("perf-page", "thread-cputime")
+assert s["rtpu"] == 0 and s["rtpu_name"] == "ctrl" and t["planner"]["rtpu_name"] == "plan"
+# 14.11: the percentiles of the real histograms; cycle time >= the work done
+assert 400 <= s["cycP50"] <= s["cycP99"] <= s["cycMax"], s
+assert 0 <= s["latP50"] <= s["latP99"] <= s["latMax"], s
+assert t["logger"]["cycP50"] is None and t["logger"]["latP99"] is None   # no cycle yet
+r = {x["name"]: x for x in j["rtpus"]}
+assert r["ctrl"]["tasks"] == 2 and r["ctrl"]["on"] == 1 and r["ctrl"]["errors"] == 1, r
+assert r["plan"]["cpu"] == 1 and r["plan"]["latP99"] == t["planner"]["latP99"], r
 assert t["planner"]["miss"] >= 1 and t["planner"]["warn"] == 2
 assert t["logger"]["state"] == "ERROR" and t["logger"]["error"] == "disk full"
 sv = s["svar"]
@@ -110,13 +132,70 @@ if ! has "$screen" "built without the svar service"; then
     check "tui: SVAR pane shows TAU values" grep -qE "out TAU .*7 8" <<<"$screen"
 fi
 
-tmux -L "$SOCK" send-keys f
+keys v  # the pane off again
+
+# ---- 16.6: the help screen, from h, ? and F1; any key goes back
+for k in h '?' F1; do
+    keys "$k"
+    s=$(screen)
+    check "tui: '$k' shows the help screen" has "$s" "this help (any key: back)"
+    check "tui: ...which explains the window and the unit" has "$s" "Every time is in microseconds (us)"
+    keys x
+    check "tui: ...and any key goes back to the table" has "$(screen)" "chimtop  subsystem $SUB"
+done
+
+# ---- the field picker lists every field; space shows/hides, [ ] move, Enter closes
+keys f
+s=$(screen)
+echo "$s"
+nfields=$("$CHIMTOP" --list-fields | wc -l)
+check "tui: 'f' lists every field ($nfields)" test "$(grep -cE '^\[[x ]\] ' <<<"$s")" -eq "$nfields"
+check "tui: ...shown ones first, marked" test "$(grep -E '^\[x\] ' <<<"$s" | awk '{print $2}' | xargs)" = "rmod state cycle miss warn"
+check "tui: ...with a unit for times" grep -qE '^\[ \] latP99\[us\] +release lateness' <<<"$s"
+# order: rmod state cycle miss warn | rtpu tid S crit ...: crit is the 9th line
+keys j j j j j j j j Space '['   # show crit, then one earlier: before warn
+keys Up Up Up Space             # hide state (the cursor is on it)
+keys Enter
+s=$(screen)
+check "tui: fields chosen in the picker, in its order" grep -qE "rmod +cycle +miss +crit +warn" <<<"$s"
+check "tui: ...state hidden" bash -c '! grep -qE "rmod +state" <<<"$1"' _ "$s"
+
+# ---- RTPU summary lines and names; the unit in the header
+check "tui: summary line of RTPU ctrl" grep -qE "^RTPU ctrl +cpu 0 +2 tasks +1 ON" <<<"$s"
+check "tui: summary line of RTPU plan" grep -qE "^RTPU plan +cpu 1 +1 task " <<<"$s"
+check "tui: title says the unit" has "$s" "times in us"
+
+# ---- filter (\ or F4) hides; Esc shows all again
+keys -l '\'; keys p l a n Enter
+s=$(screen)
+check "tui: filter 'plan' leaves the planner only" test "$(grep -cE '^(servo|planner|logger) ' <<<"$s")" -eq 1
+check "tui: ...planner" grep -qE '^planner ' <<<"$s"
+check "tui: ...and the title says so" has "$s" "filter 'plan'"
+keys Escape
+check "tui: Esc clears the filter" test "$(grep -cE '^(servo|planner|logger) ' <<<"$(screen)")" -eq 3
+keys F4 e r r Enter
+check "tui: F4 filters too (by state: ERROR)" test "$(grep -cE '^(servo|planner|logger) ' <<<"$(screen)" | xargs)" -eq 1
+keys Escape
+
+# ---- search (/ or F3) selects the next match: the SVAR pane follows the selection
+keys / p l a n Enter v
+check "tui: search 'plan' selects the planner" has "$(screen)" "SVAR of planner"
+keys v F3 l o g Enter v
+check "tui: F3 searches too (logger selected)" has "$(screen)" "SVAR of logger"
+keys v
+
+# ---- z restarts THIS chimtop's window only: another reader's counts do not fall
+cyc() { "$CHIMTOP" "$SUB" --json | python3 -c 'import json,sys; print({t["rmod"]: t["cycle"] for t in json.load(sys.stdin)["tasks"]}["servo"])'; }
+before=$(cyc)
+keys z
 sleep 0.3
-tmux -L "$SOCK" send-keys "rmod,crit,policy" Enter
-sleep 0.5
-screen=$(tmux -L "$SOCK" capture-pane -p)
-check "tui: 'f' chooses and orders fields" grep -qE "rmod +crit +policy" <<<"$screen"
-check "tui: policy column shown" has "$screen" "SCHED_OTHER (test)"
+after=$(cyc)
+check "tui: z leaves another reader's counts alone ($before -> $after)" test "$after" -ge "$before"
+s=$(screen)
+check "tui: z says what it did" has "$s" "window restarted"
+check "tui: ...the title shows the window's length" grep -qE "window [0-9]+\.[0-9] s" <<<"$s"
+servo_cycles=$(grep -E '^servo ' <<<"$s" | awk '{print $2}')  # rmod cycle miss crit warn
+check "tui: ...and its own counts restart ($servo_cycles < $after)" test "$servo_cycles" -lt "$after"
 
 # The subsystem stops ...
 kill "$writer_pid"; wait "$writer_pid" 2>/dev/null; writer_pid=
@@ -134,4 +213,37 @@ check "tui: says it re-attached" has "$screen" "(re-attached)"
 tmux -L "$SOCK" send-keys q
 sleep 0.4
 check "tui: 'q' quits" bash -c "! tmux -L $SOCK has-session 2>/dev/null"
+
+# ---- started without a subsystem: the running ones, to choose from
+out=$("$CHIMTOP" --once)
+check "--once without a name lists the running subsystems" grep -qE "^$SUB +running \(pid $writer_pid\) +3 tasks" <<<"$out"
+tmux -L "$SOCK" new-session -d -x 160 -y 40 "$CHIMTOP --rate 10"
+sleep 0.8
+s=$(screen)
+echo "$s"
+check "tui: no name -> the list of subsystems" has "$s" "Chimera subsystems on this machine"
+line=$(grep -nE "^$SUB " <<<"$s" | cut -d: -f1)
+check "tui: ...ours is listed" test -n "$line"
+for _ in $(seq $((line - 3))); do tmux -L "$SOCK" send-keys Down; done
+keys Enter
+sleep 0.5
+check "tui: Enter watches the chosen one" has "$(screen)" "chimtop  subsystem $SUB "
+tmux -L "$SOCK" kill-server 2>/dev/null
+
+# ---- a subsystem this user may not read: "permission denied" and what to do
+if command -v setpriv >/dev/null && [ "$(id -u)" = 0 ]; then
+    as_nobody() { setpriv --reuid=nobody --regid=nogroup --clear-groups "$@"; }
+    out=$(as_nobody "$CHIMTOP" "$SUB" --once 2>&1); rc=$?
+    check "another user: exit 1" test $rc -eq 1
+    check "...'permission denied', not 'not found'" has "$out" "permission denied: /dev/shm/chimera.$SUB.status is root's (mode 0600)"
+    check "...and what to do" has "$out" "sudo chimtop $SUB"
+    out=$(as_nobody "$CHIMTOP" --once 2>&1)
+    check "another user's list says so too" grep -qE "^$SUB +permission denied" <<<"$out"
+    tmux -L "$SOCK" new-session -d -x 200 -y 20 "setpriv --reuid=nobody --regid=nogroup --clear-groups $CHIMTOP $SUB"
+    sleep 0.8
+    check "tui: another user sees 'permission denied'" has "$(screen)" "permission denied: /dev/shm/chimera.$SUB.status"
+    tmux -L "$SOCK" kill-server 2>/dev/null
+else
+    echo "skip - permission test: needs root and setpriv (util-linux)"
+fi
 exit $fail

@@ -61,6 +61,17 @@ TaskIdentity id(std::string_view rmod, int rtpu, double ref_freq = 0) {
     return t;
 }
 
+RtpuEpoch make_epoch(std::uint32_t epoch, std::uint32_t status_epoch, std::int64_t start_ns,
+                     std::int64_t tick_ns, Accounting accounting) {
+    RtpuEpoch e;
+    e.epoch = epoch;
+    e.status_epoch = status_epoch;
+    e.start_ns = start_ns;
+    e.tick_ns = tick_ns;
+    e.accounting = accounting;
+    return e;
+}
+
 StatusOptions one_rtpu() {
     StatusOptions o;
     o.rtpus = 1;
@@ -101,7 +112,7 @@ TEST(Derive, NanosecondModeExact) {
     // 400 Hz task, profiled for exactly 1 s: 400 cycles, the first dropped.
     RawSlot r = raw_with(400, 0, 399 * 500'000ull, 400'000, 700'000);
     r.ref_f = 400;
-    RtpuEpoch e{7, 1, 1'000'000'000, 1, Accounting::nanoseconds};
+    const RtpuEpoch e = make_epoch(7, 1, 1'000'000'000, 1, Accounting::nanoseconds);
     const TaskStatus t = derive(r, e, 2'000'000'000);
     EXPECT_FALSE(t.reset_pending);
     EXPECT_EQ(t.cycle, 400u);
@@ -127,7 +138,7 @@ TEST(Derive, HalfTickModeReproducesThesisQuantisation) {
     r.unit_num = 1'000'000;
     r.unit_den = 2;
     r.ref_f = 400;
-    RtpuEpoch e{7, 1, 0, 1'000'000, Accounting::half_tick};
+    const RtpuEpoch e = make_epoch(7, 1, 0, 1'000'000, Accounting::half_tick);
     const TaskStatus t = derive(r, e, 1'000'400'000);  // 1000.4 ticks elapsed: Q_total = 1000
     EXPECT_DOUBLE_EQ(t.tick, 0.001);
     EXPECT_DOUBLE_EQ(t.ptime, 1.0);
@@ -153,7 +164,7 @@ TEST(Derive, HalfTickModeReproducesThesisQuantisation) {
 TEST(Derive, MissesLowerTheMeasuredFrequencyButNotThePeriod) {
     RawSlot r = raw_with(90, 10, 0, UINT64_MAX, 0);
     r.ref_f = 100;
-    RtpuEpoch e{7, 1, 0, 1, Accounting::nanoseconds};
+    const RtpuEpoch e = make_epoch(7, 1, 0, 1, Accounting::nanoseconds);
     const TaskStatus t = derive(r, e, 1'000'000'000);
     EXPECT_DOUBLE_EQ(t.mez_f, 90.0);
     EXPECT_DOUBLE_EQ(t.mez_t, 0.01);  // ptime / (n_c + n_m)
@@ -165,7 +176,7 @@ TEST(Derive, PendingResetShowsZeroCountersAndNoWarning) {
     r.warn_epoch = 7;
     r.warnings = 2;
     r.warning = "w";
-    RtpuEpoch e{8, 8, 0, 1, Accounting::nanoseconds};
+    const RtpuEpoch e = make_epoch(8, 8, 0, 1, Accounting::nanoseconds);
     const TaskStatus t = derive(r, e, 1'000);
     EXPECT_TRUE(t.reset_pending);
     EXPECT_EQ(t.cycle, 0u);
@@ -177,7 +188,7 @@ TEST(Derive, PendingResetShowsZeroCountersAndNoWarning) {
 
 TEST(Derive, AperiodicUtilisationUsesTheMeasuredMeanPeriod) {
     RawSlot r = raw_with(11, 0, 10 * 1'000'000ull, 1'000'000, 1'000'000);  // 1 ms each
-    RtpuEpoch e{7, 1, 0, 1, Accounting::nanoseconds};
+    const RtpuEpoch e = make_epoch(7, 1, 0, 1, Accounting::nanoseconds);
     const TaskStatus t = derive(r, e, 110'000'000);  // 11 events in 110 ms
     EXPECT_DOUBLE_EQ(t.ref_f, 0.0);
     EXPECT_NEAR(t.avg_u, 10.0, 1e-9);
@@ -198,6 +209,208 @@ TEST(HistogramTest, EffectiveExecutionTimeForAHardness) {
     h.counts[kHistogramBuckets - 1] = 100;  // half the cycles beyond the range
     EXPECT_FALSE(h.effective_ns(1.0).has_value());
     EXPECT_FALSE(Histogram{}.effective_ns(0.5).has_value());
+}
+
+// ------------------------------------------- lateness and cycle time (14.11)
+
+TEST(TimeBuckets, ExactBelowSixteenThenSixteenPerOctave) {
+    for (std::uint64_t v = 0; v < 16; ++v) {
+        EXPECT_EQ(time_bucket(v), v);
+        EXPECT_EQ(time_bucket_low(v), v);
+        EXPECT_EQ(time_bucket_high(v), v);
+    }
+    // [16, 32): still one value per bucket; [32, 64): two; [1024, 2048): 64.
+    EXPECT_EQ(time_bucket(16), 16u);
+    EXPECT_EQ(time_bucket(31), 31u);
+    EXPECT_EQ(time_bucket(32), 32u);
+    EXPECT_EQ(time_bucket(33), 32u);
+    EXPECT_EQ(time_bucket(34), 33u);
+    EXPECT_EQ(time_bucket_low(32), 32u);
+    EXPECT_EQ(time_bucket_high(32), 33u);
+    EXPECT_EQ(time_bucket(1024), 16u + 6 * 16);
+    EXPECT_EQ(time_bucket_low(16 + 6 * 16), 1024u);
+    EXPECT_EQ(time_bucket_high(16 + 6 * 16), 1087u);
+    EXPECT_EQ(time_bucket((1ull << 32) - 1), kTimeOverflowBucket - 1);
+    EXPECT_EQ(time_bucket(1ull << 32), kTimeOverflowBucket);
+    EXPECT_EQ(time_bucket(UINT64_MAX), kTimeOverflowBucket);
+    EXPECT_EQ(time_bucket_high(kTimeOverflowBucket), UINT64_MAX);
+    // The buckets tile [0, 2^32) without gaps or overlaps, each at most 1/16 of its low edge wide.
+    for (std::size_t b = 0; b + 1 < kTimeOverflowBucket; ++b) {
+        ASSERT_EQ(time_bucket_low(b + 1), time_bucket_high(b) + 1) << b;
+        ASSERT_EQ(time_bucket(time_bucket_low(b)), b) << b;
+        ASSERT_EQ(time_bucket(time_bucket_high(b)), b) << b;
+        ASSERT_LE((time_bucket_high(b) - time_bucket_low(b) + 1) * 16, std::max<std::uint64_t>(time_bucket_low(b), 16)) << b;
+    }
+}
+
+TEST(TimeHistogramTest, NearestRankPercentilesExact) {
+    TimeHistogram h;
+    EXPECT_FALSE(h.percentile_ns(500'000).has_value());
+    EXPECT_FALSE(h.max_ns().has_value());
+    for (std::uint64_t v = 1; v <= 100; ++v) ++h.counts[time_bucket(v)];
+    EXPECT_EQ(h.total(), 100u);
+    EXPECT_EQ(h.percentile_ns(0), 1u);          // the first sample
+    EXPECT_EQ(h.percentile_ns(10'000), 1u);     // p1: rank 1
+    EXPECT_EQ(h.percentile_ns(500'000), 51u);   // rank 50: 50 in [50, 51]
+    EXPECT_EQ(h.percentile_ns(990'000), 99u);   // rank 99 exactly (not 100): [98, 99]
+    EXPECT_EQ(h.percentile_ns(990'001), 103u);  // rank 100: [100, 103]
+    EXPECT_EQ(h.percentile_ns(1'000'000), 103u);
+    EXPECT_EQ(h.max_ns(), 103u);
+    // 1000 samples of 1 us and 10 of 1 ms: p99 is still 1 us's bucket, p99.5 is 1 ms's.
+    TimeHistogram t;
+    t.counts[time_bucket(1000)] = 1000;
+    t.counts[time_bucket(1'000'000)] = 10;
+    EXPECT_EQ(t.percentile_ns(500'000), time_bucket_high(time_bucket(1000)));
+    EXPECT_EQ(t.percentile_ns(990'000), time_bucket_high(time_bucket(1000)));  // rank 1000 of 1010
+    EXPECT_EQ(t.percentile_ns(995'000), time_bucket_high(time_bucket(1'000'000)));
+    EXPECT_GE(*t.percentile_ns(995'000), 1'000'000u);
+    EXPECT_LE(*t.percentile_ns(995'000), 1'000'000u + 1'000'000u / 16);
+    // A sample beyond the range: UINT64_MAX, never a made-up number.
+    t.counts[kTimeOverflowBucket] = 1000;
+    EXPECT_EQ(t.percentile_ns(990'000), UINT64_MAX);
+    // Window differences, bucket by bucket.
+    TimeHistogram base;
+    base.counts[time_bucket(1000)] = 400;
+    const TimeHistogram d = TimeHistogram::since(t, base);
+    EXPECT_EQ(d.counts[time_bucket(1000)], 600u);
+    EXPECT_EQ(d.counts[kTimeOverflowBucket], 1000u);
+    EXPECT_EQ(d.total(), 1610u);
+}
+
+TEST(Profiler, RecordsLatenessAndCycleTimeOfEveryCycle) {
+    auto seg = StatusSegment::create(unique_subsystem("lat"), 1, one_rtpu());
+    TaskSlot slot = seg.claim(id("l", 0, 100));
+    TaskProfiler p(slot);
+    for (int i = 0; i < 7; ++i) {
+        // Released 5 ms ago: a lateness of at least 5 ms (how much more depends on the machine).
+        p.cycle_begin(ipc::now_ns() - 5'000'000);
+        burn_cpu(200'000);
+        p.cycle_end();
+    }
+    p.cycle_begin();  // no release instant (aperiodic): cycle time only
+    p.cycle_end();
+    const TaskStatus t = seg.snapshot()[0];
+    EXPECT_EQ(t.cycle, 8u);
+    EXPECT_EQ(t.cycle_time.total(), 8u) << "every cycle, the first after a reset too";
+    EXPECT_EQ(t.lateness.total(), 7u) << "only cycles with a release instant";
+    EXPECT_GE(*t.lateness.percentile_ns(0), 5'000'000u);
+    EXPECT_GE(*t.cycle_time.percentile_ns(1'000'000), 200'000u) << "wall time >= the CPU time burnt";
+    seg.reset_all();
+    p.cycle_begin(ipc::now_ns());
+    p.cycle_end();
+    const TaskStatus after = seg.snapshot()[0];
+    EXPECT_EQ(after.cycle_time.total(), 1u) << "a reset empties the histograms";
+    EXPECT_EQ(after.lateness.total(), 1u);
+}
+
+// ---------------------------------------------- profiling windows per reader (16.4)
+
+TEST(Window, DerivesTheDifferenceSinceTheBaseline) {
+    RawSlot base = raw_with(100, 2, 99 * 1000, 500, 9000);
+    base.generation = 4;
+    base.warn_epoch = 1;
+    base.warnings = 3;
+    base.warning = "first";
+    base.lateness.counts[time_bucket(2000)] = 90;
+    base.cycle_time.counts[time_bucket(5000)] = 100;
+    RawSlot now = raw_with(300, 5, 299 * 1000 + 200 * 10, 500, 9000);
+    now.generation = 4;
+    now.ref_f = 100;
+    now.warn_epoch = 1;
+    now.warnings = 3;
+    now.warning = "first";
+    now.lateness.counts[time_bucket(2000)] = 250;
+    now.lateness.counts[time_bucket(80'000)] = 10;
+    now.cycle_time.counts[time_bucket(5000)] = 300;
+    const RtpuEpoch e = make_epoch(7, 1, 0, 1, Accounting::nanoseconds);
+    // The window began at 1 s, the epoch at 0; now is 3 s.
+    const TaskStatus t = derive_window(now, &base, 1'000'000'000, e, 3'000'000'000);
+    EXPECT_TRUE(t.windowed);
+    EXPECT_EQ(t.cycle, 200u);
+    EXPECT_EQ(t.miss, 3u);
+    EXPECT_EQ(t.accounted, 200u);
+    EXPECT_DOUBLE_EQ(t.ptime, 2.0);
+    EXPECT_DOUBLE_EQ(t.mez_f, 100.0);
+    EXPECT_NEAR(t.avg_c, 1010e-9, 1e-15);  // (200 * 1000 + 200 * 10) ns over 200 cycles
+    EXPECT_NEAR(t.max_c, 9000e-9, 1e-15) << "min/max stay the epoch's";
+    EXPECT_EQ(t.warn, 0u);
+    EXPECT_EQ(t.warning, "") << "no warning in this window";
+    EXPECT_EQ(t.lateness.total(), 170u);
+    EXPECT_EQ(t.lateness.counts[time_bucket(2000)], 160u);
+    EXPECT_EQ(t.lateness.percentile_ns(990'000), time_bucket_high(time_bucket(80'000)));
+    EXPECT_EQ(t.cycle_time.total(), 200u);
+
+    // Not a window of this task, or across a reset: the counts since the reset.
+    EXPECT_FALSE(derive_window(now, nullptr, 1'000'000'000, e, 3'000'000'000).windowed);
+    RawSlot other = base;
+    other.generation = 6;  // the slot was released and claimed by another task
+    EXPECT_EQ(derive_window(now, &other, 1'000'000'000, e, 3'000'000'000).cycle, 300u);
+    RawSlot old_epoch = base;
+    old_epoch.epoch_seen = 6;
+    EXPECT_EQ(derive_window(now, &old_epoch, 1'000'000'000, e, 3'000'000'000).cycle, 300u);
+    const TaskStatus pending = derive_window(now, &base, 1'000'000'000, make_epoch(8, 2, 0, 1, Accounting::nanoseconds),
+                                             3'000'000'000);
+    EXPECT_FALSE(pending.windowed);
+    EXPECT_TRUE(pending.reset_pending) << "the task has not seen `status reset` yet: zeros, not a window";
+    EXPECT_EQ(pending.cycle, 0u);
+}
+
+TEST(Window, OneReaderRestartingItsWindowNeverLowersAnothersCounts) {
+    const std::string sub = unique_subsystem("window");
+    auto seg = StatusSegment::create(sub, 2, one_rtpu());
+    TaskSlot slot = seg.claim(id("w", 0, 100));
+    TaskProfiler p(slot);
+    auto cycles = [&](int n) {
+        for (int i = 0; i < n; ++i) {
+            p.cycle_begin(ipc::now_ns());
+            p.cycle_end();
+        }
+    };
+    StatusReader chimtop = StatusReader::attach(sub);
+    StatusReader prompt = StatusReader::attach(sub);
+    StatusWindow chimtop_window, prompt_window;  // never restarted: since the reset
+    cycles(10);
+    EXPECT_EQ(chimtop_window.snapshot(chimtop)[0].cycle, 10u);
+    // The prompt's `status`: shows its window and restarts it, for itself only.
+    EXPECT_EQ(prompt_window.take(prompt)[0].cycle, 10u);
+    cycles(5);
+    EXPECT_EQ(prompt_window.snapshot(prompt)[0].cycle, 5u);
+    EXPECT_EQ(prompt_window.snapshot(prompt)[0].cycle_time.total(), 5u);
+    EXPECT_EQ(prompt_window.snapshot(prompt)[0].lateness.total(), 5u);
+    const TaskStatus seen = chimtop_window.snapshot(chimtop)[0];
+    EXPECT_EQ(seen.cycle, 15u) << "the other reader's counts did not fall";
+    EXPECT_EQ(seen.cycle_time.total(), 15u);
+    EXPECT_EQ(seen.lateness.total(), 15u);
+    // chimtop's `z`: its own window only.
+    chimtop_window.restart(chimtop);
+    cycles(2);
+    EXPECT_EQ(chimtop_window.snapshot(chimtop)[0].cycle, 2u);
+    EXPECT_EQ(prompt_window.snapshot(prompt)[0].cycle, 7u);
+    EXPECT_EQ(StatusWindow{}.snapshot(chimtop)[0].cycle, 17u);
+    // `status reset`, the thesis's reset for everyone: every window shows since the reset.
+    prompt.reset_all();
+    cycles(3);
+    EXPECT_EQ(chimtop_window.snapshot(chimtop)[0].cycle, 3u);
+    EXPECT_EQ(prompt_window.snapshot(prompt)[0].cycle, 3u);
+    EXPECT_FALSE(prompt_window.snapshot(prompt)[0].windowed);
+}
+
+TEST(Window, RtpuNamesAndCpusFromTheOptions) {
+    const std::string sub = unique_subsystem("names");
+    StatusOptions o;
+    o.rtpus = 3;
+    o.rtpu_names = {"ctrl", "robot"};
+    o.rtpu_cpus = {1, 0};
+    auto seg = StatusSegment::create(sub, 2, o);
+    const TaskSlot a = seg.claim(id("pid", 1));
+    EXPECT_EQ(a.rtpu(), 1);
+    StatusReader r = StatusReader::attach(sub);
+    EXPECT_EQ(r.rtpu_epoch(0).name, "ctrl");
+    EXPECT_EQ(r.rtpu_epoch(0).cpu, 1);
+    EXPECT_EQ(r.rtpu_epoch(1).name, "robot");
+    EXPECT_EQ(r.rtpu_epoch(2).name, "");
+    EXPECT_EQ(r.rtpu_epoch(2).cpu, -1);
+    EXPECT_EQ(r.snapshot()[0].rtpu_name, "robot");
 }
 
 // --------------------------------------------------------------- the segment

@@ -66,13 +66,16 @@ TEST(SbsCli, SpawnOnStatusDisplayWithJson) {
     EXPECT_EQ((*ramp)["S"], "P");
     EXPECT_EQ((*ramp)["rtpu"], "cpu0");
     EXPECT_DOUBLE_EQ((*ramp)["refF"].get<double>(), 200.0);
-    EXPECT_DOUBLE_EQ((*ramp)["refT"].get<double>(), 0.005);
+    EXPECT_DOUBLE_EQ((*ramp)["refT"].get<double>(), 5000.0);  // every time in µs
+    EXPECT_EQ(status["data"]["time_unit"], "us");
     EXPECT_GT((*ramp)["cycle"].get<std::uint64_t>(), 5u);
     EXPECT_GT((*ramp)["tid"].get<long>(), 0);
     // The text form has the header of the chosen fields and one line per task.
     const std::string text = status["text"];
     EXPECT_NE(text.find("rmod"), std::string::npos);
     EXPECT_NE(text.find("refF"), std::string::npos);
+    EXPECT_NE(text.find("(times in us)"), std::string::npos) << text;
+    EXPECT_NE(text.find("maxC[us]"), std::string::npos) << text;
 
     // display: the SVARs a task reads and writes, with units; values move.
     const auto& d = r[6]["data"]["vars"];

@@ -3,6 +3,7 @@
 // a peer that disconnects mid-command, exclusive control, TCP with a token,
 // passing control from the prompt and back, attaching from a second `sbs`.
 #include "client.hpp"
+#include "chimera/prof.hpp"
 #include "sbs_harness.hpp"
 
 #include <gtest/gtest.h>
@@ -78,6 +79,55 @@ NetworkClient connect(const Workspace& ws) {
 }
 
 }  // namespace
+
+// Issue 16.4: a peer's `status` restarts its own window, never another
+// reader's (chimtop's "cycle 4132" no longer falls to 1); `status reset` is the
+// thesis's reset for everyone. Issue 14.11: the running task's status carries
+// its lateness and cycle-time percentiles, in µs.
+TEST(SbsNetwork, StatusWindowsPerReaderPercentilesAndTheExplicitReset) {
+    Workspace ws;
+    Master m(ws, {"--serve", "-c", "spawn ramp; on ramp"});
+    auto c = connect(ws);
+    ASSERT_TRUE(c.hello().value("ok", false)) << c.hello().dump();
+    auto other = chimera::prof::StatusReader::attach(ws.subsystem());  // as chimtop reads
+    chimera::prof::StatusWindow others_window;                         // never restarted
+    auto chosen = c.request("status set rmod cycle cycP50 cycP99 latP50 latP99", 10000);
+    ASSERT_TRUE(chosen["ok"].get<bool>()) << chosen.dump();
+    std::this_thread::sleep_for(std::chrono::milliseconds(300));
+
+    auto first = c.request("status", 10000);
+    ASSERT_TRUE(first["ok"].get<bool>()) << first.dump();
+    EXPECT_EQ(first["data"]["time_unit"], "us");
+    const auto& t = first["data"]["tasks"][0];
+    ASSERT_GT(t["cycle"].get<std::uint64_t>(), 3u) << t.dump();
+    for (const char* f : {"cycP50", "cycP99", "latP50", "latP99"}) ASSERT_TRUE(t[f].is_number()) << f << " " << t.dump();
+    EXPECT_GT(t["cycP50"].get<double>(), 0.0);
+    EXPECT_LE(t["cycP50"].get<double>(), t["cycP99"].get<double>());
+    EXPECT_LE(t["latP50"].get<double>(), t["latP99"].get<double>());
+    const std::string text = first["text"];
+    EXPECT_NE(text.find("(times in us)"), std::string::npos) << text;
+    EXPECT_NE(text.find("cycP99[us]"), std::string::npos) << text;
+    EXPECT_NE(text.find("latP50[us]"), std::string::npos) << text;
+
+    const std::uint64_t before = others_window.snapshot(other)[0].cycle;
+    std::this_thread::sleep_for(std::chrono::milliseconds(200));
+    auto second = c.request("status", 10000);
+    const std::uint64_t peer = second["data"]["tasks"][0]["cycle"];
+    const chimera::prof::TaskStatus seen = others_window.snapshot(other)[0];
+    EXPECT_GE(seen.cycle, before) << "another reader's status lowered this reader's counts";
+    EXPECT_LT(peer, seen.cycle) << "the peer's window restarted at its first status";
+    EXPECT_GE(seen.cycle_time.total(), seen.cycle);
+
+    const std::uint32_t epoch = other.rtpu_epoch(0).epoch;
+    auto reset = c.request("status reset", 10000);
+    ASSERT_TRUE(reset["ok"].get<bool>()) << reset.dump();
+    EXPECT_TRUE(reset["data"]["reset"].get<bool>());
+    EXPECT_NE(reset["text"].get<std::string>().find("profiling reset on every RTPU"), std::string::npos);
+    EXPECT_GT(other.rtpu_epoch(0).epoch, epoch) << "the explicit reset restarts every reader's counts";
+    EXPECT_LT(others_window.snapshot(other)[0].cycle, seen.cycle);
+    c.request("finish", 10000);
+    EXPECT_EQ(m.wait(), 0) << m.err_text();
+}
 
 TEST(SbsNetwork, CommandsOverTheUnixSocket) {
     Workspace ws;

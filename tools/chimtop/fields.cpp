@@ -1,20 +1,18 @@
 #include "fields.hpp"
 
 #include <algorithm>
+#include <cctype>
 #include <cstdio>
 #include <stdexcept>
+
+#include "status_text.hpp"
 
 namespace chimtop {
 
 using chimera::prof::TaskStatus;
+namespace tools = chimera::tools;
 
 namespace {
-
-std::string fmt(const char* f, double v) {
-    char buf[64];
-    std::snprintf(buf, sizeof buf, f, v);
-    return buf;
-}
 
 std::string pad(const std::string& s, int width, bool right) {
     if (static_cast<int>(s.size()) >= width) return s;
@@ -22,48 +20,83 @@ std::string pad(const std::string& s, int width, bool right) {
     return right ? fill + s : s + fill;
 }
 
+std::string rtpu_text(const TaskStatus& t) { return t.rtpu_name.empty() ? std::to_string(t.rtpu) : t.rtpu_name; }
+
+// The value of a field as JSON (numbers as numbers, times in µs).
+nlohmann::json field_value(const TaskStatus& t, std::string_view f) {
+    if (f == "rmod") return t.rmod;
+    if (f == "rtpu") return rtpu_text(t);
+    if (f == "tid") return t.tid;
+    if (f == "S") return std::string(1, t.type);
+    if (f == "crit") return t.crit;
+    if (f == "state") return chimera::prof::to_string(t.state);
+    if (f == "refF") return t.ref_f;
+    if (f == "policy") return t.policy;
+    if (f == "clock") return chimera::prof::to_string(t.cpu_clock);
+    if (f == "cpu") return t.cpu;
+    return tools::profile_value(t, f);
+}
+
+bool contains_nocase(std::string_view hay, std::string_view needle) {
+    return std::search(hay.begin(), hay.end(), needle.begin(), needle.end(), [](char a, char b) {
+               return std::tolower(static_cast<unsigned char>(a)) == std::tolower(static_cast<unsigned char>(b));
+           }) != hay.end();
+}
+
 }  // namespace
 
 const std::vector<Field>& all_fields() {
     static const std::vector<Field> fields = {
-        {"rmod", 12, false, "RMOD name of the task"},
-        {"rtpu", 4, true, "RTPU the task runs on"},
-        {"tid", 7, true, "thread id"},
-        {"S", 1, false, "type: P periodic, Y synchronous, S sporadic, D deferrable, B background"},
-        {"crit", 4, true, "criticality"},
-        {"state", 11, false, "task state"},
-        {"cycle", 8, true, "cycles since the last status reset"},
-        {"miss", 6, true, "missed cycles since the last status reset"},
-        {"refF", 9, true, "reference frequency (Hz)"},
-        {"refT", 9, true, "reference period (s)"},
-        {"mezF", 9, true, "measured frequency (Hz)"},
-        {"mezT", 9, true, "measured period (s), rounded to the tick"},
-        {"ptime", 8, true, "profiling time (s)"},
-        {"totC", 9, true, "total CPU time in ptime (s)"},
-        {"tick", 9, true, "resolution of the profile (s)"},
-        {"minU", 6, true, "minimum CPU utilisation in one cycle (%)"},
-        {"maxU", 6, true, "maximum CPU utilisation in one cycle (%)"},
-        {"avgU", 6, true, "average CPU utilisation per cycle (%)"},
-        {"minC", 9, true, "minimum CPU time of one cycle (s)"},
-        {"maxC", 9, true, "maximum CPU time of one cycle (s)"},
-        {"avgC", 9, true, "average CPU time of one cycle (s)"},
-        {"warn", 4, true, "warnings since the last status reset"},
-        {"policy", 22, false, "scheduling policy in force"},
-        {"clock", 14, false, "source of the CPU times"},
-        {"cpu", 3, true, "CPU the task is pinned to"},
+        {"rmod", 12, false, false, "RMOD name of the task"},
+        {"rtpu", 8, false, false, "RTPU the task runs on, named as in the .sbs"},
+        {"tid", 7, true, false, "thread id"},
+        {"S", 1, false, false, "type: P periodic, Y synchronous, S sporadic, D deferrable, B background"},
+        {"crit", 4, true, false, "criticality"},
+        {"state", 11, false, false, "task state"},
+        {"cycle", 8, true, false, "cycles in this window (since z, or the RTPU's last reset)"},
+        {"miss", 6, true, false, "missed cycles in this window"},
+        {"refF", 9, true, false, "reference frequency (Hz)"},
+        {"refT", 10, true, true, "reference period (us)"},
+        {"mezF", 9, true, false, "measured frequency in this window (Hz)"},
+        {"mezT", 10, true, true, "measured period (us), rounded to the tick"},
+        {"ptime", 12, true, true, "profiling time: length of this window (us)"},
+        {"totC", 10, true, true, "total CPU time in this window (us)"},
+        {"tick", 9, true, true, "resolution of the profile (us)"},
+        {"minU", 6, true, false, "minimum CPU utilisation of one cycle since the RTPU's reset (%)"},
+        {"maxU", 6, true, false, "maximum CPU utilisation of one cycle since the RTPU's reset (%)"},
+        {"avgU", 6, true, false, "average CPU utilisation per cycle in this window (%)"},
+        {"minC", 10, true, true, "minimum CPU time of one cycle since the RTPU's reset (us)"},
+        {"maxC", 10, true, true, "maximum CPU time of one cycle since the RTPU's reset (us)"},
+        {"avgC", 10, true, true, "average CPU time of one cycle in this window (us)"},
+        {"warn", 4, true, false, "warnings in this window"},
+        {"policy", 22, false, false, "scheduling policy in force"},
+        {"clock", 14, false, false, "source of the CPU times"},
+        {"cpu", 3, true, false, "CPU the task is pinned to"},
+        {"cycP50", 10, true, true, "cycle time (wake-up to end of cycle, wall clock), median in this window (us)"},
+        {"cycP99", 10, true, true, "cycle time, 99th percentile in this window (us)"},
+        {"cycMax", 10, true, true, "cycle time, highest in this window (us, within 6.25%)"},
+        {"latP50", 10, true, true, "release lateness (wake-up minus release), median in this window (us)"},
+        {"latP99", 10, true, true, "release lateness, 99th percentile in this window (us)"},
+        {"latMax", 10, true, true, "release lateness, highest in this window (us, within 6.25%)"},
     };
     return fields;
 }
 
 std::vector<std::string> default_fields() {
-    return {"rmod", "rtpu", "tid",  "S",    "crit", "state", "cycle", "miss", "refF", "mezF",
-            "mezT", "ptime", "minC", "maxC", "avgC", "avgU", "warn", "policy"};
+    // 153 columns: an htop-sized terminal; f adds the rest.
+    return {"rmod", "rtpu", "tid",  "S",      "crit",   "state", "cycle", "miss",
+            "mezF", "avgC", "maxC", "cycP99", "latP99", "avgU",  "warn",  "policy"};
 }
 
 const Field* find_field(std::string_view name) {
     for (const auto& f : all_fields())
         if (name == f.name) return &f;
     return nullptr;
+}
+
+std::string field_header(std::string_view name) {
+    const Field* f = find_field(name);
+    return f && f->time ? tools::time_header(std::string(name)) : std::string(name);
 }
 
 std::vector<std::string> parse_fields(std::string_view list) {
@@ -89,56 +122,17 @@ std::vector<std::string> parse_fields(std::string_view list) {
 }
 
 std::string field_text(const TaskStatus& t, std::string_view f) {
-    if (f == "rmod") return t.rmod;
-    if (f == "rtpu") return std::to_string(t.rtpu);
-    if (f == "tid") return std::to_string(t.tid);
-    if (f == "S") return std::string(1, t.type);
-    if (f == "crit") return std::to_string(t.crit);
-    if (f == "state") return chimera::prof::to_string(t.state);
-    if (f == "cycle") return std::to_string(t.cycle);
-    if (f == "miss") return std::to_string(t.miss);
-    if (f == "refF") return fmt("%.2f", t.ref_f);
-    if (f == "refT") return fmt("%.6f", t.ref_t);
-    if (f == "mezF") return fmt("%.2f", t.mez_f);
-    if (f == "mezT") return fmt("%.6f", t.mez_t);
-    if (f == "ptime") return fmt("%.3f", t.ptime);
-    if (f == "totC") return fmt("%.6f", t.tot_c);
-    if (f == "tick") return fmt("%.0e", t.tick);
-    if (f == "minU") return fmt("%.2f", t.min_u);
-    if (f == "maxU") return fmt("%.2f", t.max_u);
-    if (f == "avgU") return fmt("%.2f", t.avg_u);
-    if (f == "minC") return fmt("%.6f", t.min_c);
-    if (f == "maxC") return fmt("%.6f", t.max_c);
-    if (f == "avgC") return fmt("%.6f", t.avg_c);
-    if (f == "warn") return std::to_string(t.warn);
-    if (f == "policy") return t.policy.empty() ? "-" : t.policy;
-    if (f == "clock") return chimera::prof::to_string(t.cpu_clock);
-    if (f == "cpu") return std::to_string(t.cpu);
-    return "?";
+    const Field* fd = find_field(f);
+    if (!fd) return "?";
+    return tools::value_text(field_value(t, f), fd->time);
 }
 
 double field_number(const TaskStatus& t, std::string_view f) {
-    if (f == "rtpu") return t.rtpu;
-    if (f == "tid") return t.tid;
-    if (f == "crit") return t.crit;
-    if (f == "cycle") return static_cast<double>(t.cycle);
-    if (f == "miss") return static_cast<double>(t.miss);
-    if (f == "refF") return t.ref_f;
-    if (f == "refT") return t.ref_t;
-    if (f == "mezF") return t.mez_f;
-    if (f == "mezT") return t.mez_t;
-    if (f == "ptime") return t.ptime;
-    if (f == "totC") return t.tot_c;
-    if (f == "tick") return t.tick;
-    if (f == "minU") return t.min_u;
-    if (f == "maxU") return t.max_u;
-    if (f == "avgU") return t.avg_u;
-    if (f == "minC") return t.min_c;
-    if (f == "maxC") return t.max_c;
-    if (f == "avgC") return t.avg_c;
-    if (f == "warn") return t.warn;
-    if (f == "cpu") return t.cpu;
-    return 0;
+    if (f == "rtpu") return t.rtpu;  // by number, as the .sbs lists them
+    const nlohmann::json v = field_value(t, f);
+    if (v.is_number()) return v.get<double>();
+    if (v.is_string() && !v.get<std::string>().empty() && v.get<std::string>()[0] == '>') return 1e300;  // overflow
+    return -1;  // no sample: first
 }
 
 void sort_tasks(std::vector<TaskStatus>& tasks, std::string_view field, bool descending) {
@@ -156,12 +150,19 @@ void sort_tasks(std::vector<TaskStatus>& tasks, std::string_view field, bool des
     });
 }
 
+bool matches(const TaskStatus& t, std::string_view text) {
+    if (text.empty()) return true;
+    for (const std::string& s : {t.rmod, rtpu_text(t), std::string(chimera::prof::to_string(t.state)), t.policy})
+        if (contains_nocase(s, text)) return true;
+    return false;
+}
+
 std::string header_line(const std::vector<std::string>& fields) {
     std::string line;
     for (const auto& name : fields) {
         const Field* f = find_field(name);
         if (!line.empty()) line += ' ';
-        line += pad(name, f ? f->width : 8, f && f->numeric);
+        line += pad(field_header(name), f ? f->width : 8, f && f->numeric);
     }
     return line;
 }
@@ -171,7 +172,12 @@ std::string task_line(const TaskStatus& t, const std::vector<std::string>& field
     for (const auto& name : fields) {
         const Field* f = find_field(name);
         if (!line.empty()) line += ' ';
-        line += pad(field_text(t, name), f ? f->width : 8, f && f->numeric);
+        std::string text = field_text(t, name);
+        // The last column may run on; the others are cut to keep the columns
+        // under their headers (a long policy text).
+        if (f && !f->numeric && &name != &fields.back() && static_cast<int>(text.size()) > f->width)
+            text = text.substr(0, static_cast<std::size_t>(f->width - 1)) + "~";
+        line += pad(text, f ? f->width : 8, f && f->numeric);
     }
     return line;
 }
@@ -184,10 +190,51 @@ std::vector<std::string> message_lines(const TaskStatus& t) {
     return out;
 }
 
-std::string plain_text(std::string_view subsystem, const std::vector<TaskStatus>& tasks,
-                       const std::vector<std::string>& fields) {
+std::vector<RtpuSummary> summarise(const std::vector<chimera::prof::RtpuEpoch>& rtpus,
+                                   const std::vector<TaskStatus>& tasks) {
+    std::vector<RtpuSummary> out(rtpus.size());
+    for (std::size_t r = 0; r < rtpus.size(); ++r) {
+        out[r].index = static_cast<int>(r);
+        out[r].name = rtpus[r].name.empty() ? std::to_string(r) : rtpus[r].name;
+        out[r].cpu = rtpus[r].cpu;
+    }
+    auto worse = [](std::optional<double>& worst, std::optional<double> v) {
+        if (v && (!worst || *v > *worst)) worst = v;
+    };
+    for (const auto& t : tasks) {
+        if (t.rtpu < 0 || static_cast<std::size_t>(t.rtpu) >= out.size()) continue;
+        RtpuSummary& s = out[static_cast<std::size_t>(t.rtpu)];
+        ++s.tasks;
+        s.miss += t.miss;
+        if (t.state == chimera::prof::TaskState::error) ++s.errors;
+        if (t.state != chimera::prof::TaskState::on) continue;
+        ++s.on;
+        s.util += t.avg_u;
+        worse(s.lat_p99_us, tools::tail_us(t.lateness, tools::Tail::p99));
+        worse(s.cyc_p99_us, tools::tail_us(t.cycle_time, tools::Tail::p99));
+    }
+    return out;
+}
+
+std::string summary_line(const RtpuSummary& s) {
+    char head[96];
+    std::snprintf(head, sizeof head, "RTPU %-8s cpu %-3s %2d task%s %2d ON", s.name.c_str(),
+                  s.cpu >= 0 ? std::to_string(s.cpu).c_str() : "-", s.tasks, s.tasks == 1 ? " " : "s", s.on);
+    std::string line = head;
+    char util[32];
+    std::snprintf(util, sizeof util, "  CPU %5.1f%%", s.util);
+    line += util;
+    line += "  miss " + std::to_string(s.miss);
+    line += "  worst latP99 " + tools::tail_text(s.lat_p99_us) + "us  cycP99 " + tools::tail_text(s.cyc_p99_us) + "us";
+    if (s.errors > 0) line += "  " + std::to_string(s.errors) + " in ERROR";
+    return line;
+}
+
+std::string plain_text(std::string_view subsystem, const std::vector<chimera::prof::RtpuEpoch>& rtpus,
+                       const std::vector<TaskStatus>& tasks, const std::vector<std::string>& fields) {
     std::string out = "subsystem " + std::string(subsystem) + ": " + std::to_string(tasks.size()) +
-                      (tasks.size() == 1 ? " task\n" : " tasks\n");
+                      (tasks.size() == 1 ? " task" : " tasks") + " (times in " + tools::kTimeUnit + ")\n";
+    for (const auto& s : summarise(rtpus, tasks)) out += summary_line(s) + "\n";
     out += header_line(fields) + "\n";
     for (const auto& t : tasks) {
         out += task_line(t, fields) + "\n";
@@ -196,52 +243,36 @@ std::string plain_text(std::string_view subsystem, const std::vector<TaskStatus>
     return out;
 }
 
-nlohmann::json to_json(std::string_view subsystem, const std::vector<TaskStatus>& tasks) {
+nlohmann::json to_json(std::string_view subsystem, const std::vector<chimera::prof::RtpuEpoch>& rtpus,
+                       const std::vector<TaskStatus>& tasks) {
     nlohmann::json arr = nlohmann::json::array();
     for (const auto& t : tasks) {
         nlohmann::json j;
+        for (const auto& f : all_fields()) j[f.name] = field_value(t, f.name);
         j["slot"] = t.slot;
-        j["rmod"] = t.rmod;
-        j["rtpu"] = t.rtpu;
-        j["cpu"] = t.cpu;
-        j["tid"] = t.tid;
-        j["S"] = std::string(1, t.type);
-        j["crit"] = t.crit;
-        j["state"] = chimera::prof::to_string(t.state);
-        j["cycle"] = t.cycle;
-        j["miss"] = t.miss;
-        j["refF"] = t.ref_f;
-        j["refT"] = t.ref_t;
-        j["mezF"] = t.mez_f;
-        j["mezT"] = t.mez_t;
-        j["ptime"] = t.ptime;
-        j["totC"] = t.tot_c;
-        j["tick"] = t.tick;
-        j["minU"] = t.min_u;
-        j["maxU"] = t.max_u;
-        j["avgU"] = t.avg_u;
-        j["minC"] = t.min_c;
-        j["maxC"] = t.max_c;
-        j["avgC"] = t.avg_c;
-        j["warn"] = t.warn;
+        j["rtpu"] = t.rtpu;  // the number; the name is rtpu_name
+        j["rtpu_name"] = rtpu_text(t);
         j["warning"] = t.warning;
         j["error"] = t.error;
-        j["policy"] = t.policy;
-        j["clock"] = chimera::prof::to_string(t.cpu_clock);
         j["accounting"] = chimera::prof::to_string(t.accounting);
         j["accounted"] = t.accounted;
         j["switched"] = t.switched;
         j["reset_pending"] = t.reset_pending;
+        j["windowed"] = t.windowed;
         j["consistent"] = t.consistent;
         j["inputs"] = t.inputs;
         j["outputs"] = t.outputs;
-        if (t.histogram.bucket_width_ns != 0) {
-            j["histogram"] = {{"bucket_width_ns", t.histogram.bucket_width_ns},
-                              {"counts", t.histogram.counts}};
-        }
+        if (t.histogram.bucket_width_ns != 0)
+            j["histogram"] = {{"bucket_width_ns", t.histogram.bucket_width_ns}, {"counts", t.histogram.counts}};
         arr.push_back(std::move(j));
     }
-    return {{"subsystem", std::string(subsystem)}, {"tasks", std::move(arr)}};
+    nlohmann::json jr = nlohmann::json::array();
+    for (const auto& s : summarise(rtpus, tasks))
+        jr.push_back({{"rtpu", s.index}, {"name", s.name}, {"cpu", s.cpu}, {"tasks", s.tasks}, {"on", s.on},
+                      {"errors", s.errors}, {"miss", s.miss}, {"util", s.util},
+                      {"latP99", tools::tail_json(s.lat_p99_us)}, {"cycP99", tools::tail_json(s.cyc_p99_us)}});
+    return {{"subsystem", std::string(subsystem)}, {"time_unit", tools::kTimeUnit}, {"rtpus", std::move(jr)},
+            {"tasks", std::move(arr)}};
 }
 
 }  // namespace chimtop

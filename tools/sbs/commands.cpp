@@ -1,6 +1,7 @@
 #include "commands.hpp"
 
 #include "command_line.hpp"
+#include "status_text.hpp"
 
 #include <chimera/ipc/segment.hpp>
 
@@ -64,18 +65,23 @@ struct Field {
     const char* name;
     std::size_t width;
     bool numeric;
+    bool time;  ///< shown in µs, the header says "[us]"
 };
 
 const std::vector<Field>& fields() {
     // §4.4.1 in its order, then what the Linux port adds.
     static const std::vector<Field> f = {
-        {"rmod", 12, false}, {"rtpu", 6, false},  {"tid", 7, true},    {"S", 1, false},
-        {"crit", 4, true},   {"state", 11, false}, {"cycle", 8, true},  {"miss", 6, true},
-        {"refF", 9, true},   {"refT", 9, true},   {"mezF", 9, true},   {"mezT", 9, true},
-        {"ptime", 8, true},  {"totC", 9, true},   {"tick", 7, true},   {"minU", 6, true},
-        {"maxU", 6, true},   {"avgU", 6, true},   {"minC", 9, true},   {"maxC", 9, true},
-        {"avgC", 9, true},   {"warn", 4, true},   {"policy", 24, false}, {"cpu", 3, true},
-        {"module", 10, false},
+        {"rmod", 12, false, false},  {"rtpu", 6, false, false},   {"tid", 7, true, false},
+        {"S", 1, false, false},      {"crit", 4, true, false},    {"state", 11, false, false},
+        {"cycle", 8, true, false},   {"miss", 6, true, false},    {"refF", 9, true, false},
+        {"refT", 10, true, true},    {"mezF", 9, true, false},    {"mezT", 10, true, true},
+        {"ptime", 11, true, true},   {"totC", 10, true, true},    {"tick", 9, true, true},
+        {"minU", 6, true, false},    {"maxU", 6, true, false},    {"avgU", 6, true, false},
+        {"minC", 10, true, true},    {"maxC", 10, true, true},    {"avgC", 10, true, true},
+        {"warn", 4, true, false},    {"policy", 24, false, false}, {"cpu", 3, true, false},
+        {"module", 10, false, false}, {"cycP50", 12, true, true}, {"cycP99", 12, true, true},
+        {"cycMax", 12, true, true},  {"latP50", 12, true, true},  {"latP99", 12, true, true},
+        {"latMax", 12, true, true},
     };
     return f;
 }
@@ -93,9 +99,11 @@ const std::vector<std::string> kDefaultFields = {"rmod", "rtpu", "tid",  "S",   
 /// published one for it.
 const prof::TaskStatus* profile_of(const sbs::TaskStatus& t) { return t.profile.rmod.empty() ? nullptr : &t.profile; }
 
-// Counters run "since the last status command" (§4.4.1) when the profile is
-// there; otherwise they are the master's own, since the task was turned on.
+// Counters run "since this interface's last status command" (§4.4.1, a window
+// per interface, issue 16.4) when the profile is there; otherwise they are the
+// master's own, since the task was turned on. Times in µs.
 nlohmann::json field_value(const sbs::TaskStatus& t, std::string_view f) {
+    using tools::to_us;
     const auto* p = profile_of(t);
     if (f == "rmod") return t.rmod;
     if (f == "rtpu") return t.rtpu;
@@ -103,42 +111,29 @@ nlohmann::json field_value(const sbs::TaskStatus& t, std::string_view f) {
     if (f == "S") return std::string(1, t.type);
     if (f == "crit") return t.crit;
     if (f == "state") return std::string(to_string(t.state));
-    if (f == "cycle") return p ? p->cycle : t.cycles;
-    if (f == "miss") return p ? p->miss : t.misses;
     if (f == "refF") return t.ref_freq;
-    if (f == "refT") return t.ref_period;
-    if (f == "mezF") return p ? p->mez_f : t.mez_freq;
-    if (f == "mezT") return p ? p->mez_t : t.mez_period;
-    if (f == "maxC") return p ? p->max_c : t.max_cycle_time;
-    if (f == "warn") return p ? p->warn : t.warnings;
+    if (f == "refT") return to_us(t.ref_period);
     if (f == "policy") return t.policy;
     if (f == "cpu") return t.cpu;
     if (f == "module") return t.module;
-    if (!p) return nullptr;  // the rest exists only in the profile
-    if (f == "ptime") return p->ptime;
-    if (f == "totC") return p->tot_c;
-    if (f == "tick") return p->tick;
-    if (f == "minU") return p->min_u;
-    if (f == "maxU") return p->max_u;
-    if (f == "avgU") return p->avg_u;
-    if (f == "minC") return p->min_c;
-    if (f == "avgC") return p->avg_c;
-    return nullptr;
+    if (p) return tools::profile_value(*p, f);
+    if (f == "cycle") return t.cycles;
+    if (f == "miss") return t.misses;
+    if (f == "mezF") return t.mez_freq;
+    if (f == "mezT") return to_us(t.mez_period);
+    if (f == "maxC") return to_us(t.max_cycle_time);
+    if (f == "warn") return t.warnings;
+    return nullptr;  // the rest exists only in the profile
 }
 
 std::string field_text(const sbs::TaskStatus& r, std::string_view f) {
-    const auto v = field_value(r, f);
-    if (v.is_null()) return "-";
-    if (v.is_string()) return v.get<std::string>().empty() ? "-" : v.get<std::string>();
-    if (v.is_number_float()) {
-        const double d = v.get<double>();
-        if (f == "refF" || f == "mezF") return fmt("%.2f", d);
-        if (f == "ptime") return fmt("%.3f", d);
-        if (f == "tick") return fmt("%.0e", d);
-        if (f == "minU" || f == "maxU" || f == "avgU") return fmt("%.2f", d);
-        return fmt("%.6f", d);
-    }
-    return v.dump();
+    const Field* fd = find_field(f);
+    return tools::value_text(field_value(r, f), fd && fd->time);
+}
+
+std::string field_header(const std::string& name) {
+    const Field* fd = find_field(name);
+    return fd->time ? tools::time_header(name) : name;
 }
 
 // ----------------------------------------------------------------- svar values
@@ -240,7 +235,7 @@ const std::vector<CommandInfo>& command_table() {
         {"show", "show rtpu|svar [NAME...]", "show the RTPUs (CPU, policy, scheduler, tasks, planned utilisation) or the variables with producers and consumers (halcmd show thread / show sig)"},
         {"sleep", "sleep SECONDS", "pause (lets the tasks run between the commands of a script; at most 60 s)"},
         {"spawn", "spawn RMOD[+RMOD...] [RTPU]", "create a task from RMOD.rmod on an RTPU (default: the MASTER RTPU); a+b+c: one combined task (§3.8.1), methods in that order"},
-        {"status", "status [RMOD|all] | status set [FIELD...|default|all]", "show the status of the tasks; `status set` picks the fields"},
+        {"status", "status [RMOD|all] | status reset | status set [FIELD...|default|all]", "show the status of the tasks, counted since this interface's last `status` (the prompt and a network peer each have their own; chimtop never changes it); times in us; `status reset` shows it and restarts profiling on every RTPU for every reader (the thesis's reset); `status set` picks the fields"},
     };
     return table;
 }
@@ -653,23 +648,34 @@ Reply Interpreter::cmd_status(const Words& w) {
         r.data = {{"fields", fields_}, {"available", status_field_names()}};
         return r;
     }
-    if (w.size() > 2) throw CommandError("usage: status [RMOD|all] | status set [FIELD...]");
+    if (w.size() > 2) throw CommandError("usage: status [RMOD|all] | status reset | status set [FIELD...]");
+    const bool reset = w.size() == 2 && w[1] == "reset" && !is_task("reset");
     std::vector<sbs::TaskStatus> tasks;
-    if (w.size() == 2 && w[1] != "all") {
+    if (w.size() == 2 && w[1] != "all" && !reset) {
         tasks.push_back(sbs_.status(task_of(w[1])));
     } else {
         tasks = sbs_.status_all();
     }
-    // "Since the last status command" (§4.4.1): profiling restarts now.
+    // "Since the last status command" (§4.4.1), per interface: this one's
+    // window is shown and restarts; nobody else's counts move (issue 16.4).
     if (!prof_) prof_ = prof::StatusReader::try_attach(sbs_.name());
-    if (prof_) prof_->reset_all();
+    if (prof_) {
+        const std::vector<prof::TaskStatus> window = windows_[origin_ == Origin::network ? 1 : 0].take(*prof_);
+        for (auto& row : tasks) {
+            if (!profile_of(row)) continue;
+            for (const auto& p : window)
+                if (p.slot == row.profile.slot) row.profile = p;
+        }
+        if (reset) prof_->reset_all();  // the thesis's reset, for every reader
+    }
     const auto& rows = tasks;
     std::string text = "subsystem " + sbs_.name() + ": " + std::to_string(rows.size()) +
-                       (rows.size() == 1 ? " task" : " tasks");
+                       (rows.size() == 1 ? " task" : " tasks") + " (times in " + tools::kTimeUnit + ")";
+    if (reset) text += "\nprofiling reset on every RTPU: every reader's counts start again";
     std::string header;
     for (const auto& f : fields_) {
         const Field* fd = find_field(f);
-        header += (header.empty() ? "" : " ") + pad(f, fd->width, fd->numeric);
+        header += (header.empty() ? "" : " ") + pad(field_header(f), fd->width, fd->numeric);
     }
     text += "\n" + header;
     nlohmann::json jtasks = nlohmann::json::array();
@@ -692,7 +698,8 @@ Reply Interpreter::cmd_status(const Words& w) {
         jtasks.push_back(std::move(j));
     }
     r.text = text;
-    r.data = {{"subsystem", sbs_.name()}, {"fields", fields_}, {"tasks", jtasks}};
+    r.data = {{"subsystem", sbs_.name()}, {"fields", fields_}, {"tasks", jtasks}, {"time_unit", tools::kTimeUnit},
+              {"reset", reset}};
     return r;
 }
 
@@ -1189,7 +1196,7 @@ std::vector<std::string> Interpreter::complete_locked(std::string_view line) {
             } else if (c == "status") {
                 if (index == 1) {
                     add(live_rmods());
-                    cand.insert({"all", "set"});
+                    cand.insert({"all", "reset", "set"});
                 } else if (words[1] == "set") {
                     add(status_field_names());
                     if (index == 2) cand.insert({"default", "all"});

@@ -114,6 +114,9 @@ private:
     std::map<std::string, std::vector<std::string>> files_of_;  // rmod name -> the .rmod paths it was spawned from
     std::optional<svar::Table> table_;
     std::optional<prof::StatusReader> prof_;
+    /// "Since the last status" per interface (issue 16.4): [0] the prompt and
+    /// -c scripts, [1] the network peer in control.
+    prof::StatusWindow windows_[2];
     Origin origin_ = Origin::local;  // of the command being executed
     std::mutex mutex_;  // one command at a time, whichever interface sent it
 };

@@ -216,6 +216,9 @@ public:
     /// "SCHED_DEADLINE 2000000/10000000", "SCHED_OTHER (no privilege)".
     std::string policy_of(TaskHandle h) const;
     RtTaskStatus status(TaskHandle h) const noexcept;
+    /// The release instant (CLOCK_MONOTONIC ns) of the task's current or last
+    /// job — the one a released wait_release() returned for; 0 before the first.
+    std::int64_t job_release_ns(TaskHandle h) const noexcept;
     /// The assignment in force (per added task, in handle order).
     Assignment assignment() const;
     /// Dispatcher counters: urgency recomputations and priority changes made.
