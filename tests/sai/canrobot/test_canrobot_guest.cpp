@@ -370,10 +370,16 @@ TEST(CanRobotGuest, ThePidSubsystemHoldsPositionOverCanAsInSimulation) {
     }
     std::printf("hold error after 1 s: over CAN %.5f rad, in-process simulation %.5f rad\n", over_can.max_error,
                 in_process.max_error);
-    // The same subsystem holds the arm through either robot interface. The
-    // bound is loose: TCG runs the tasks late and irregularly.
-    EXPECT_LT(over_can.max_error, 0.02);
-    EXPECT_LT(in_process.max_error, 0.02);
+    // The same subsystem holds the arm through either robot interface: no
+    // runaway after the first second, and settled in the last half second.
+    // The bounds are loose: TCG runs the tasks late and irregularly, more so
+    // with the host loaded (the in-process robot's forward dynamics is the
+    // heaviest task: 0.0205 rad at 1-1.5 s in a loaded run, 0.0002 at the end).
+    for (const HoldResult* h : {&over_can, &in_process}) {
+        EXPECT_LT(h->max_error, 0.05);
+        ASSERT_FALSE(h->window_errors.empty());
+        EXPECT_LT(h->window_errors.back(), 0.005);
+    }
 }
 
 TEST(CanRobotGuest, PositionModeHoldsWithTheDrivesOwnLoop) {
