@@ -477,13 +477,6 @@ void run_drive_bus(DriveSim& sim, const std::string& interface, const std::atomi
         while (bus.receive(f, arrived)) {
             sim.receive(f, arrived, out);
             bus.send(out);
-            // A master sending faster than this process answers (TCG, a loaded
-            // host) would keep it in this loop: the timers (heartbeats, event
-            // TPDOs, RPDO watchdogs) still fire on time, as a drive's would.
-            if (const std::int64_t t = monotonic_ns(); t >= sim.next_timer()) {
-                sim.tick(t, out);
-                bus.send(out);
-            }
         }
         sim.tick(monotonic_ns(), out);
         bus.send(out);
