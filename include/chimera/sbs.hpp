@@ -185,6 +185,21 @@ CHIMERA_API std::string format_status(const TaskStatus& s);
 /// The column header matching format_status().
 CHIMERA_API std::string format_status_header();
 
+/// How an RTPU's scheduler ranks its tasks, and the work that costs (docs/muf.md,
+/// "Static ranking" / "Dynamic ranking"): under dynamic ranking (non-harmonic
+/// periods, deadlines shorter than periods) the dispatcher re-ranks at each
+/// release and changes the priorities that move — counted here, apart from the
+/// tasks' own system calls.
+struct RtpuRanking {
+    std::string rtpu;
+    /// "none" (no task spawned there yet), "static" (one SCHED_FIFO priority per
+    /// task for good), "dynamic" (re-ranked at each release) or "best-effort"
+    /// (backend other, or no real-time privilege: no priorities at all).
+    std::string mode = "none";
+    std::uint64_t reschedules = 0;       ///< urgency recomputations by the dispatcher
+    std::uint64_t priority_changes = 0;  ///< priorities it changed
+};
+
 /// A signal received by sig_wait().
 struct SignalEvent {
     int signal = -1;
@@ -276,6 +291,8 @@ public:
     /// The task's state alone (status() also hands over its first warning).
     State state(TaskId task) const;
     std::vector<TaskStatus> status_all() const;
+    /// Each RTPU of the .sbs in file order: its ranking mode and dispatcher counts.
+    std::vector<RtpuRanking> rtpu_ranking() const;
 
     /// Signal masks: bits set are the signals the master catches. A task whose
     /// own mask was never set uses the subsystem-wide mask (initially ALL).

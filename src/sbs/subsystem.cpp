@@ -668,6 +668,25 @@ TaskStatus Subsystem::status_without_profile(TaskId id) const {
     return s;
 }
 
+std::vector<RtpuRanking> Subsystem::rtpu_ranking() const {
+    std::vector<RtpuRanking> out;
+    std::lock_guard<std::mutex> lock(core_->schedulers_mu);
+    for (std::size_t i = 0; i < core_->file.rtpus.size(); ++i) {
+        RtpuRanking r;
+        r.rtpu = core_->file.rtpus[i].name;
+        if (i < core_->schedulers.size() && core_->schedulers[i]) {
+            const muf::RtpuScheduler& s = *core_->schedulers[i];
+            r.mode = s.options().backend == muf::Backend::other || !s.privileged() ? "best-effort"
+                     : s.static_ranking()                                            ? "static"
+                                                                                     : "dynamic";
+            r.reschedules = s.reschedules();
+            r.priority_changes = s.priority_changes();
+        }
+        out.push_back(std::move(r));
+    }
+    return out;
+}
+
 std::vector<TaskStatus> Subsystem::status_all() const {
     std::vector<TaskId> ids;
     {

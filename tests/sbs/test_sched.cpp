@@ -258,3 +258,36 @@ TEST_F(SbsSched, BackendOtherRunsBestEffortAndStillCatchesDeadlines) {
 }
 
 }  // namespace
+
+// Issue 14.1: an RTPU's ranking mode and the dispatcher's priority changes are
+// reported apart from the tasks' own counts. Harmonic periods keep one
+// priority per task ("static"); a period that divides neither way makes the
+// MUF order move between releases ("dynamic"), and the changes are counted.
+TEST_F(SbsSched, RankingIsStaticForHarmonicPeriodsAndDynamicWithCountedChangesOtherwise) {
+    Subsystem& s = init();
+    EXPECT_EQ(s.rtpu_ranking().at(0).mode, "none");  // no task spawned yet
+    const TaskId a = s.spawn(rmod("ha", "", "periodic", "PERIOD 0.01\n", "BUSY_US 300\n"), "rt");
+    const TaskId b = s.spawn(rmod("hb", "", "periodic", "PERIOD 0.02\n", "BUSY_US 300\n"), "rt");
+    ASSERT_TRUE(s.reconfig({{a, Control::on}, {b, Control::on}}));
+    if (!fifo(a)) GTEST_SKIP() << "no SCHED_FIFO here: " << s.status(a).policy;
+    // The priorities set when the set changed (on) count once; releases add none.
+    std::this_thread::sleep_for(100ms);
+    auto r = s.rtpu_ranking().at(0);
+    EXPECT_EQ(r.rtpu, "rt");
+    EXPECT_EQ(r.mode, "static");
+    std::this_thread::sleep_for(200ms);  // 20 releases of ha, 10 of hb
+    EXPECT_EQ(s.rtpu_ranking().at(0).priority_changes, r.priority_changes);
+
+    // A 25 ms job that runs 17 ms is still pending at 20 ms, when ha's next job
+    // arrives with a later deadline (30 > 25): hc must now go before ha, which
+    // it did not at 10 ms (20 < 25). Only pending jobs compete, so it takes a
+    // long job to make the order move. U = 0.03 + 0.015 + 0.68.
+    const TaskId c = s.spawn(rmod("hc", "", "periodic", "PERIOD 0.025\n", "BUSY_US 17000\n"), "rt");
+    ASSERT_TRUE(s.reconfig({{c, Control::on}}));
+    const std::uint64_t at_on = s.rtpu_ranking().at(0).priority_changes;
+    EXPECT_TRUE(eventually([&] { return s.rtpu_ranking().at(0).priority_changes >= at_on + 4; }));
+    r = s.rtpu_ranking().at(0);
+    EXPECT_EQ(r.mode, "dynamic");
+    EXPECT_GT(r.reschedules, 0u);
+    EXPECT_EQ(s.reconfig({{a, Control::off}, {b, Control::off}, {c, Control::off}}).message, "");
+}

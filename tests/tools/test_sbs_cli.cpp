@@ -247,6 +247,7 @@ TEST(SbsCli, SetvarShowSvarShowRtpu) {
     EXPECT_EQ(rtpus[0]["backend"], "other");
     EXPECT_EQ(rtpus[0]["scheduler"], "MUF");
     EXPECT_EQ(rtpus[0]["tasks"], nlohmann::json::array({"follow", "ramp"}));
+    EXPECT_EQ(rtpus[0]["ranking"], "best-effort");  // backend other: no priorities
     EXPECT_EQ(r[8]["data"]["forced"], true);
 
     EXPECT_NE(failing(ws, "setvar LIMITS[2] 4").find("LIMITS[2]: 4 is outside the .svar range [0, 3]"), std::string::npos);

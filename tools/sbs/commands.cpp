@@ -824,10 +824,18 @@ Reply Interpreter::cmd_show(const Words& w) {
     if (w[1] == "rtpu") {
         static constexpr const char* kSched[] = {"RM", "EDF", "MUF"};
         static constexpr const char* kBackend[] = {"fifo", "deadline", "other"};
-        std::string text = "RTPU         CPU  SCHED BACKEND  USAGE      U(plan)  TASKS";
+        std::string text = "RTPU         CPU  SCHED BACKEND  USAGE      U(plan)  RANKING              TASKS";
         nlohmann::json rtpus = nlohmann::json::array();
-        for (const auto& spec : sbs_.file().rtpus) {
+        const std::vector<sbs::RtpuRanking> rankings = sbs_.rtpu_ranking();
+        for (std::size_t ri = 0; ri < sbs_.file().rtpus.size(); ++ri) {
+            const RtpuSpec& spec = sbs_.file().rtpus[ri];
             if (!wanted(spec.name)) continue;
+            const sbs::RtpuRanking& rk = rankings.at(ri);
+            // Static: each task keeps one priority. Dynamic: re-ranked at each
+            // release; "prio N" counts the priority changes that needed.
+            const std::string ranking =
+                rk.mode == "dynamic" ? fmt("dynamic prio %llu", static_cast<unsigned long long>(rk.priority_changes))
+                                     : rk.mode;
             std::vector<std::string> tasks;
             double planned = 0;  // sum of WCET x frequency: the analysis's C/T (0 for a task without WCET)
             for (const auto& [task, rtpu] : rtpu_of_) {
@@ -841,13 +849,17 @@ Reply Interpreter::cmd_show(const Words& w) {
             const std::string usage = spec.usage == Usage::exclusive ? "exclusive" : "shared";
             text += "\n" + pad(spec.name, 12) + " " + pad(std::to_string(spec.cpu), 4) + " " + pad(sched, 5) + " " +
                     pad(backend, 8) + " " + pad(usage, 10) + " " + pad(fmt("%.1f%%", planned * 100), 8) + " " +
-                    (tasks.empty() ? std::string("-") : join(tasks));
+                    pad(ranking, 20) + " " + (tasks.empty() ? std::string("-") : join(tasks));
             rtpus.push_back({{"name", spec.name}, {"cpu", spec.cpu}, {"scheduler", sched}, {"backend", backend},
                              {"usage", usage}, {"minfreq", spec.minfreq}, {"maxfreq", spec.maxfreq},
                              {"master", spec.name == sbs_.file().master}, {"tasks", tasks},
-                             {"planned_utilisation", planned}});
+                             {"planned_utilisation", planned},
+                             {"ranking", rk.mode},
+                             {"reschedules", rk.reschedules}, {"priority_changes", rk.priority_changes}});
         }
-        text += "\n(U(plan): sum of WCET x FREQ of the tasks' .rmod files; measured CPU times are in `status`)";
+        text += "\n(U(plan): sum of WCET x FREQ of the tasks' .rmod files; measured CPU times are in `status`."
+                "\n RANKING: static, each task keeps one priority; dynamic, re-ranked at every release, with the"
+                "\n priority changes that took so far; best-effort, no real-time priorities: docs/muf.md)";
         r.text = text;
         r.data = {{"rtpus", rtpus}};
         return r;
