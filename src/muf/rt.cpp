@@ -443,7 +443,12 @@ void RtpuScheduler::attach_current_thread(TaskHandle h) {
             const int rc = detail::set_fifo(0, m.options.fifo_low);
             if (rc == 0) {
                 pacing = Pacing::dispatched;
-                s.fifo_prio.store(m.options.fifo_low);
+                // Runs at the bottom of the band until ranked, but counts as
+                // not placed (0): the ranking keeps placed priorities where it
+                // can, and a task kept at fifo_low would sit below every other
+                // real-time thread of the machine (threaded IRQs are at 50 on
+                // PREEMPT_RT) for good. Unplaced, it is placed from the top.
+                s.fifo_prio.store(0);
             } else {
                 warn_no_privilege(m.options, rc);
                 note += std::string(" (SCHED_FIFO refused: ") + std::strerror(rc) + ")";

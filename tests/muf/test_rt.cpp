@@ -421,10 +421,13 @@ TEST_P(MufFailures, AbortInsideACriticalSectionWaitsForLeaveAndFreesTheLock) {
     EXPECT_EQ(static_cast<std::uint64_t>(after_leave.load()), st.cycles);
     EXPECT_EQ(st.cycles + st.aborted, static_cast<std::uint64_t>(r.started_cycles()));
     EXPECT_GE(st.missed, st.aborted);
-    // A cycle that reached the section with its deadline ahead was aborted at
-    // leave. Only one woken after its deadline (a loaded host, TCG in the
-    // PREEMPT_RT guest) may complete: the watchdog saw no job running in time.
-    EXPECT_EQ(early_and_completed.load(), 0);
+    // Under SCHED_FIFO a cycle that reached the section with its deadline
+    // ahead was aborted at leave. Only one woken after its deadline (a loaded
+    // host, TCG in the PREEMPT_RT guest) may complete: the watchdog saw no job
+    // running in time. Best effort (other) gives the watchdog no such edge.
+    if (GetParam() == Backend::fifo) {
+        EXPECT_EQ(early_and_completed.load(), 0);
+    }
 }
 
 TEST_P(MufFailures, AbortOutsideASectionJumpsToTheMark) {
@@ -630,6 +633,32 @@ TEST(MufFifo, OverloadOnlyTheNonCriticalTaskMisses) {
     EXPECT_EQ(sb.deadline_failures, 0u);
     EXPECT_GT(sc.missed + sc.deadline_failures, 0u);
     EXPECT_GT(sch.reschedules(), 0u);
+}
+
+// The ranking keeps placed priorities where it can (fewer changes), but a task
+// just attached is not placed: a lone task, and the most urgent of a set, go to
+// the top of the band, never left at fifo_low below every other real-time
+// thread of the machine (threaded IRQs run at 50 on PREEMPT_RT). A 1 kHz chain
+// of one combined task ran at SCHED_FIFO 10 for good before.
+TEST(MufFifo, TheMostUrgentTaskIsPlacedAtTheTopOfTheBand) {
+    for (const bool harmonic : {true, false}) {
+        SCOPED_TRACE(harmonic ? "static ranking" : "dynamic ranking");
+        RtpuScheduler sch(options(Backend::fifo));
+        if (!sch.privileged()) GTEST_SKIP() << "SCHED_FIFO refused on this machine";
+        std::vector<std::unique_ptr<Runner>> runners;
+        runners.push_back(std::make_unique<Runner>(sch, task("lone", 10 * ms, 0), [] {}));
+        ASSERT_TRUE(runners[0]->start()) << runners[0]->error();
+        ASSERT_TRUE(eventually([&] { return sch.status(runners[0]->handle()).cycles >= 2; }));
+        EXPECT_EQ(fifo_priority_of(runners[0]->tid()), sch.options().fifo_high - 1);
+        // A second, less urgent (longer period; non-harmonic: dynamic ranking).
+        runners.push_back(std::make_unique<Runner>(sch, task("second", harmonic ? 20 * ms : 15 * ms, 0), [] {}));
+        ASSERT_TRUE(runners[1]->start()) << runners[1]->error();
+        ASSERT_TRUE(eventually([&] { return sch.status(runners[1]->handle()).cycles >= 2; }));
+        EXPECT_EQ(sch.static_ranking(), harmonic);
+        EXPECT_EQ(fifo_priority_of(runners[0]->tid()), sch.options().fifo_high - 1);
+        EXPECT_GT(fifo_priority_of(runners[1]->tid()), sch.options().fifo_low);
+        EXPECT_LT(fifo_priority_of(runners[1]->tid()), fifo_priority_of(runners[0]->tid()));
+    }
 }
 
 TEST(MufFifo, DispatcherPrioritiesFollowTheUrgencyOrder) {
