@@ -46,6 +46,8 @@ export RTAPI_FIFO_PATH="$WORK/rtapi/.rtapi_fifo" RTAPI_UID="$(id -u nobody)"
 
 # Sum of the first schedstat field (ns on CPU) over every thread of PID.
 cpu_ns() { cat /proc/"$1"/task/*/schedstat 2>/dev/null | awk '{s += $1} END {printf "%d", s}'; }
+# "tid comm ns" per thread of PID, for the per-thread breakdown.
+thread_ns() { for t in /proc/"$1"/task/*; do echo "${t##*/} $(cat "$t/comm") $(cut -d' ' -f1 "$t/schedstat")"; done 2>/dev/null; }
 
 hal_pid() { ps -C rtapi_app -o pid=,stat= --sort=start_time | awk '$2 !~ /^Z/ {print $1; exit}'; }
 
@@ -59,8 +61,13 @@ hal_round() {
     sleep "$WARM"
     local policy; policy=$(ps -L -o cls=,rtprio=,psr= -p "$pid" | awk '$1 == "FF" {print "SCHED_FIFO " $2 " CPU " $3; exit}')
     local a b; a=$(cpu_ns "$pid")
+    thread_ns "$pid" >"$WORK/hal-threads-0.txt"
     sleep "$DUR"
     b=$(cpu_ns "$pid")
+    thread_ns "$pid" >"$WORK/hal-threads-1.txt"
+    # Per thread, ns per cycle (to set beside bench_chain's breakdown).
+    awk -v c=$((DUR * 1000)) 'NR == FNR {a[$1] = $3; next} {d = $3 - a[$1]; if (d > 0) printf "  hal thread %s %s %.0f ns/cycle\n", $1, $2, d / c}' \
+        "$WORK/hal-threads-0.txt" "$WORK/hal-threads-1.txt" >>"$WORK/hal-breakdown.txt"
     halcmd show thread >"$WORK/hal-thread.txt" 2>&1
     { halcmd stop; halcmd unloadrt all; $REALTIME stop; } >>"$WORK/hal.log" 2>&1
     echo "RESULT mode=hal cycles=$((DUR * 1000)) process_cpu_ns_per_cycle=$(( (b - a) / (DUR * 1000) )) policy=\"${policy:-not SCHED_FIFO}\""

@@ -173,6 +173,17 @@ private:
     std::map<std::uint32_t, std::uint64_t> count_;
 };
 
+// What the bus carried per node, for a failure message: did the drives stop
+// sending, or did the master stop reading?
+std::string bus_summary(const Sniffer& bus) {
+    std::ostringstream s;
+    s << "frames seen on the bus by a sniffer, per node (heartbeat/TPDO1/TPDO2/RPDO1):";
+    for (int n = 1; n <= 6; ++n)
+        s << " " << n << ":" << bus.count(cob_id(kHeartbeat, n)) << "/" << bus.count(cob_id(kTpdo1, n)) << "/"
+          << bus.count(cob_id(kTpdo2, n)) << "/" << bus.count(cob_id(kRpdo1, n));
+    return s.str();
+}
+
 // The simulated drives, as their own process.
 class DriveProcess {
 public:
@@ -326,7 +337,7 @@ TEST(CanRobotGuest, ThePidSubsystemHoldsPositionOverCanAsInSimulation) {
         over_can = run.hold(1.0, 3.0, [&] { bus.drain(); });
         for (int n = 1; n <= 6; ++n)
             EXPECT_EQ(static_cast<std::int16_t>(bus.u16(cob_id(kTpdo1, n), 2)), kModeCst) << "node " << n;
-        EXPECT_EQ(over_can.robot_state, chimera::State::ON) << over_can.robot_error;
+        EXPECT_EQ(over_can.robot_state, chimera::State::ON) << over_can.robot_error << "\n" << bus_summary(bus);
         EXPECT_GT(over_can.robot_cycles, 50u);
         EXPECT_GT(bus.count(kSync), 50u);
         EXPECT_GT(bus.count(cob_id(kTpdo2, 6)), 50u);
@@ -395,7 +406,7 @@ TEST(CanRobotGuest, PositionModeHoldsWithTheDrivesOwnLoop) {
     ASSERT_TRUE(bus.wait_for([&] { return bus.seen(cob_id(kTpdo1, 1)); }, 2s));
     EXPECT_EQ(static_cast<std::int16_t>(bus.u16(cob_id(kTpdo1, 1), 2)), kModeCsp);
     const HoldResult r = run.hold(1.0, 2.0, [&] { bus.drain(); });
-    EXPECT_EQ(r.robot_state, chimera::State::ON) << r.robot_error;
+    EXPECT_EQ(r.robot_state, chimera::State::ON) << r.robot_error << "\n" << bus_summary(bus);
     EXPECT_LT(r.max_error, 0.02);
     EXPECT_GT(bus.count(cob_id(kRpdo2, 3)), 20u);  // targets went out in RPDO2
 }
