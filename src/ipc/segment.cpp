@@ -74,6 +74,28 @@ bool set_user_lock(int fd, short type, bool wait) noexcept {
     }
 }
 
+// The shared user lock for an attach. A last user holds the exclusive lock
+// only for the few system calls that unlink the name, so this polls instead of
+// blocking (F_OFD_SETLKW): the exclusive lock may outlive its holder's detach
+// when a child made by fork() keeps the holder's mapping — a mapping holds its
+// open file description, and its locks, as long as it exists — and that child
+// may be this very attacher, which would then wait for itself. While it waits,
+// it reads the segment's state through the descriptor: a segment marked
+// destroyed is given up at once (ESHUTDOWN). 0 or an errno.
+int wait_for_user_lock(int fd) noexcept {
+    const std::int64_t give_up = now_ns() + 10'000'000'000;  // a holder that never lets go
+    for (;;) {
+        if (set_user_lock(fd, F_RDLCK, false)) return 0;
+        if (errno != EAGAIN && errno != EACCES) return errno;
+        std::uint32_t state = 0;
+        if (pread(fd, &state, sizeof state, offsetof(SegmentHeader, state)) == sizeof state &&
+            state == static_cast<std::uint32_t>(SegmentState::destroyed))
+            return ESHUTDOWN;
+        if (now_ns() > give_up) return EDEADLK;
+        std::this_thread::sleep_for(std::chrono::microseconds(100));
+    }
+}
+
 // Each mapping also holds an exclusive lock on one byte of its own in
 // [1, kUserSlots]: users() counts those locks exactly with F_OFD_GETLK
 // (/proc/locks cannot: it is read a page at a time, and locks that come and go
@@ -350,12 +372,11 @@ Segment Segment::attach(const std::string& name, SegmentKind kind, const AttachO
     }
     // Count ourselves in first: from here a detach_destroy_if_last() of
     // another user cannot remove the segment, and one that removed it before
-    // has marked it destroyed, which we see below. (Waits only while a last
-    // user holds the exclusive lock to unlink the name: a few system calls.)
-    if (!set_user_lock(fd, F_RDLCK, true)) {
-        const int err = errno;
+    // has marked it destroyed, which we see below.
+    if (const int err = wait_for_user_lock(fd); err != 0) {
         close(fd);
-        fail_errno(name, "fcntl(F_OFD_SETLKW)", err);
+        if (err == ESHUTDOWN) throw SegmentError(name, "is being destroyed");
+        fail_errno(name, "fcntl(F_OFD_SETLK)", err);
     }
     if (!lock_one_free_slot(fd)) {
         const int err = errno;
