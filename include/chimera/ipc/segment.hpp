@@ -178,7 +178,10 @@ public:
     bool detach_destroy_if_last() noexcept;
     /// Live mappings of this segment, this one included: each holds a lock
     /// on a byte of its own, counted with about two fcntl calls per user (a
-    /// slow path, for status and tests). 0 when not attached.
+    /// slow path, for status and tests). 0 when not attached. A child made by
+    /// fork() that still has its parent's mapping keeps the parent's lock, so
+    /// the parent counts (and blocks a destroy) until that child exits or
+    /// execs: the kernel ties a lock to the open file, which a mapping holds.
     std::uint32_t users() const noexcept;
     /// True when some live process maps the segment `name` (one fcntl probe).
     static bool in_use(const std::string& name) noexcept;
