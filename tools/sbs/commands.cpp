@@ -2,6 +2,7 @@
 
 #include "command_line.hpp"
 #include "status_text.hpp"
+#include "svar_values.hpp"
 
 #include <chimera/ipc/segment.hpp>
 
@@ -138,61 +139,8 @@ std::string field_header(const std::string& name) {
 
 // ----------------------------------------------------------------- svar values
 
-std::vector<double> numbers_of(const svar::VarInfo& v, const std::vector<unsigned char>& buf) {
-    std::vector<double> out;
-    for (std::size_t k = 0; k < v.nelem(); ++k) {
-        const unsigned char* p = buf.data() + k * v.elem_size();
-        switch (v.type()) {
-            case svar::Type::byte_: out.push_back(*p); break;
-            case svar::Type::char_: out.push_back(static_cast<signed char>(*p)); break;
-            case svar::Type::word: { std::uint16_t x; std::memcpy(&x, p, 2); out.push_back(x); break; }
-            case svar::Type::short_: { std::int16_t x; std::memcpy(&x, p, 2); out.push_back(x); break; }
-            case svar::Type::unsigned_: { std::uint32_t x; std::memcpy(&x, p, 4); out.push_back(x); break; }
-            case svar::Type::int_: { std::int32_t x; std::memcpy(&x, p, 4); out.push_back(x); break; }
-            case svar::Type::float_: { float x; std::memcpy(&x, p, 4); out.push_back(x); break; }
-            case svar::Type::double_: { double x; std::memcpy(&x, p, 8); out.push_back(x); break; }
-            case svar::Type::struct_: return {};
-        }
-    }
-    return out;
-}
-
-// Stores `x` as element k of `buf` in the variable's type (integers rounded).
-void store_number(const svar::VarInfo& v, std::vector<unsigned char>& buf, std::size_t k, double x) {
-    unsigned char* p = buf.data() + k * v.elem_size();
-    auto put = [p](auto value) { std::memcpy(p, &value, sizeof value); };
-    switch (v.type()) {
-        case svar::Type::byte_: put(static_cast<std::uint8_t>(std::llround(x))); break;
-        case svar::Type::char_: put(static_cast<std::int8_t>(std::llround(x))); break;
-        case svar::Type::word: put(static_cast<std::uint16_t>(std::llround(x))); break;
-        case svar::Type::short_: put(static_cast<std::int16_t>(std::llround(x))); break;
-        case svar::Type::unsigned_: put(static_cast<std::uint32_t>(std::llround(x))); break;
-        case svar::Type::int_: put(static_cast<std::int32_t>(std::llround(x))); break;
-        case svar::Type::float_: put(static_cast<float>(x)); break;
-        case svar::Type::double_: put(x); break;
-        case svar::Type::struct_: break;
-    }
-}
-
-// The numeric limits of an element of the variable's type ([lo, hi]).
-std::pair<double, double> type_limits(svar::Type t) {
-    switch (t) {
-        case svar::Type::byte_: return {0, 255};
-        case svar::Type::char_: return {-128, 127};
-        case svar::Type::word: return {0, 65535};
-        case svar::Type::short_: return {-32768, 32767};
-        case svar::Type::unsigned_: return {0, 4294967295.0};
-        case svar::Type::int_: return {-2147483648.0, 2147483647.0};
-        case svar::Type::float_: return {-3.4028234663852886e38, 3.4028234663852886e38};
-        default: return {-HUGE_VAL, HUGE_VAL};
-    }
-}
-
-std::string type_text(const svar::VarInfo& v) {
-    std::string t = svar::type_spelling(v.type(), v.elem_size());
-    if (v.nelem() > 1) t += "[" + std::to_string(v.nelem()) + "]";
-    return t;
-}
+using tools::numbers_of;
+using tools::type_text;
 
 /// Every module (.so) and .rmod file in `dirs`: name -> path, first found wins.
 void scan_dirs(const std::vector<std::string>& dirs, std::map<std::string, std::string>& modules,
@@ -786,7 +734,7 @@ Reply Interpreter::cmd_display(const Words& w) {
             values = "(" + std::to_string(info.bytes()) + " bytes)";
             jv["values"] = nullptr;
         } else {
-            const auto nums = numbers_of(info, buf);
+            const auto nums = numbers_of(info, buf.data());
             for (double x : nums) values += (values.empty() ? "" : " ") + fmt("%.6g", x);
             jv["values"] = nums;
         }
@@ -922,7 +870,6 @@ Reply Interpreter::cmd_setvar(const Words& w) {
     std::vector<unsigned char> buf(info.bytes());
     if (!svar::transferred(t.read(*ix, buf.data()))) throw CommandError("setvar: reading " + name + " failed");
     const std::size_t n = (!index && count == 1) ? info.nelem() : count;
-    const auto [lo, hi] = type_limits(info.type());
     for (std::size_t j = 0; j < n; ++j) {
         const std::string& text = args[1 + (count == 1 ? 0 : j)];
         const std::size_t k = first + j;
@@ -930,16 +877,12 @@ Reply Interpreter::cmd_setvar(const Words& w) {
         const double x = std::strtod(text.c_str(), &end);
         if (end == text.c_str() || *end != '\0' || !std::isfinite(x))
             throw CommandError("setvar: " + name + "[" + std::to_string(k) + "]: '" + text + "' is not a number");
-        if (x < lo || x > hi)
-            throw CommandError("setvar: " + name + "[" + std::to_string(k) + "]: " + text + " does not fit type " +
-                               type_text(info));
-        if (info.has_range() && (x < info.min(k) || x > info.max(k)))
-            throw CommandError("setvar: " + name + "[" + std::to_string(k) + "]: " + text + " is outside the .svar range [" +
-                               fmt("%g", info.min(k)) + ", " + fmt("%g", info.max(k)) + "]");
-        store_number(info, buf, k, x);
+        if (const std::string why = tools::value_refusal(info, k, x); !why.empty())
+            throw CommandError("setvar: " + name + "[" + std::to_string(k) + "]: " + text + " " + why);
+        tools::store_number(info, buf.data(), k, x);
     }
     if (!svar::transferred(t.write(*ix, buf.data()))) throw CommandError("setvar: writing " + name + " failed");
-    const auto now = numbers_of(info, buf);
+    const auto now = numbers_of(info, buf.data());
     std::string values;
     for (double x : now) values += (values.empty() ? "" : " ") + fmt("%.6g", x);
     Reply r;
