@@ -143,10 +143,9 @@ class Master:
             raise ValueError("set(rmod, key, value...): no value")
         self._do("set", rmod, key, *values)
 
-    def get(self, rmod: str, key: str) -> Any:
-        """A LOCAL key's value as the task runs with it."""
-        data = self._do("set", rmod, key).get("data", {})
-        return data.get("value", data)
+    def get(self, rmod: str, key: str) -> str:
+        """A LOCAL key's value as the task runs with it, as text (as the .rmod writes it)."""
+        return str(self._do("set", rmod, key).get("data", {}).get("value", ""))
 
     def freq(self, rmod: str, hz: Optional[float] = None) -> float:
         """The task's frequency in Hz; with HZ, change it first (from the next release)."""

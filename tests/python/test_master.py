@@ -1,0 +1,71 @@
+"""The master as a client object over its JSON socket (issue #18.3), errors with the master's words."""
+
+import time
+
+import pytest
+
+import chimera
+
+
+def test_session_spawn_on_off_kill_and_status(subsystem):
+    with subsystem.master() as m:
+        assert m.subsystem == subsystem.name and m.pid == subsystem.process.pid
+        data = m.spawn("ramp")
+        assert data["rmod"] == "ramp" and data["state"] == "OFF"
+        m.on("ramp")
+        (row,) = m.status("ramp")
+        assert (row["rmod"], row["state"]) == ("ramp", "ON")
+        m.off("ramp")
+        assert [t["state"] for t in m.status()] == ["OFF"]
+        m.kill("ramp")
+        assert m.status() == []
+
+
+def test_refusals_raise_with_the_masters_message(subsystem):
+    with subsystem.master() as m:
+        with pytest.raises(chimera.MasterError) as e:
+            m.on("nosuch")
+        assert str(e.value) == "no task nosuch in subsystem %s (no task spawned)" % subsystem.name
+        assert e.value.command == "on" and e.value.reply["ok"] is False
+        m.spawn("ramp")
+        with pytest.raises(chimera.MasterError, match=r"^clear refused for task ramp: it is not in ERROR \(state OFF\)$"):
+            m.clear("ramp")
+        m.kill("ramp")
+
+
+def test_reconfig_set_get_freq_and_clear(subsystem):
+    with subsystem.master() as m:
+        m.spawn("ramp")
+        m.spawn("follow")
+        assert m.reconfig([("on", "ramp"), ("on", "follow")]) == {"applied": ["on ramp", "on follow"]}
+        with pytest.raises(chimera.MasterError, match=r"^reconfig stopped at item 1 \(clear ramp\): clear refused for task ramp: "
+                           r"it is not in ERROR \(state ON\) \(1 of 2 items applied\)$"):
+            m.reconfig([("off", "follow"), ("clear", "ramp")])
+        assert m.freq("ramp") == 200.0
+        assert m.freq("ramp", 50) == 50.0 and m.freq("ramp") == 50.0
+        assert m.get("ramp", "STEP") == "1"  # LOCAL values are text, as in the .rmod
+        m.set("ramp", "STEP", 2.5)
+        assert float(m.get("ramp", "STEP")) == 2.5
+        with pytest.raises(chimera.MasterError, match="out of range"):
+            m.set("ramp", "STEP", 1e9)
+        m.set("ramp", "FAIL", 1)  # the next cycle fails: the task goes to ERROR
+        deadline = time.monotonic() + 5
+        while m.status("ramp")[0]["state"] != "ERROR":
+            assert time.monotonic() < deadline
+            time.sleep(0.01)
+        m.set("ramp", "FAIL", 0)
+        m.clear("ramp")
+        assert m.status("ramp")[0]["state"] == "OFF"
+        m.kill("ramp")
+        m.kill("follow")
+
+
+def test_one_peer_at_a_time(subsystem):
+    with subsystem.master():
+        with pytest.raises(chimera.MasterError, match="another network peer has control of subsystem " + subsystem.name):
+            subsystem.master()
+
+
+def test_no_master_listening(tmp_path):
+    with pytest.raises(chimera.MasterError, match="cannot reach the master of nobody at .*nobody.sock"):
+        chimera.Master("nobody", socket_path=str(tmp_path / "nobody.sock"))
