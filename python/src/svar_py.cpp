@@ -225,10 +225,19 @@ py::dict PyTable::stats() const {
 // ------------------------------------------------------------------ Reader
 
 namespace {
+// The local table of `names`, made with the GIL released: making it takes the
+// table lock once (it starts from the table's current values).
 svar::LocalTable checked_local(PyTable& t, const std::vector<std::string>& names) {
     if (names.empty()) throw py::value_error("no variable named");
     for (const auto& n : names) (void)t.index_of(n);  // a KeyError naming the table and the variable
-    return svar::LocalTable(t.table(), names);
+    try {
+        py::gil_scoped_release nogil;
+        return svar::LocalTable(t.table(), names);
+    } catch (const svar::Error& e) {
+        if (std::string_view(e.what()).find(svar::to_string(svar::Status::timed_out)) != std::string_view::npos)
+            throw_if_not_transferred(svar::Status::timed_out, t.table().name(), "read");
+        throw;
+    }
 }
 }  // namespace
 
