@@ -33,11 +33,12 @@ from ._core import (  # noqa: F401  (re-exported)
     segment_name,
 )
 from .master import Master, MasterError  # noqa: F401
+from .serve import ServedSubsystem, serve  # noqa: F401
 
 __all__ = [
     "attach", "status", "to_dataframe", "segment_name",
     "Table", "VarInfo", "Reader", "Writer", "Tbuf", "TbufItem", "StatusReader", "TaskStatus",
-    "Master", "MasterError", "ChimeraError", "SvarError", "LockTimeout", "ProducerConflict", "TbufError",
+    "Master", "MasterError", "serve", "ServedSubsystem", "ChimeraError", "SvarError", "LockTimeout", "ProducerConflict", "TbufError",
     "TASK_STATUS_FIELDS",
 ]
 
