@@ -31,21 +31,28 @@ class ServedSubsystem:
         exe = sbs_exe or os.environ.get("SBS_EXE") or shutil.which("sbs")
         if not exe:
             raise FileNotFoundError("no sbs program: set SBS_EXE or put sbs on PATH (meson install, or build/tools/sbs)")
+        if os.sep in exe:
+            exe = os.path.abspath(exe)
         self._folder = tempfile.mkdtemp(prefix="chimera-serve-")
         self.socket = os.path.join(self._folder, "sbs.sock")
         self._log = open(os.path.join(self._folder, "sbs.log"), "w+")
         args: List[str] = [exe, sbs_file, "--serve", "--no-attach", "--socket", self.socket]
         for folder in module_path:
-            args += ["--module-path", folder]
+            args += ["--module-path", os.path.abspath(folder)]
         if script:
             args += ["-c", script]
-        self.process = subprocess.Popen(args, stdout=self._log, stderr=subprocess.STDOUT,
+        # The master runs in the .sbs's folder: relative module folders are made absolute first.
+        env = dict(os.environ)
+        if env.get("CHIMERA_MODULE_PATH"):
+            env["CHIMERA_MODULE_PATH"] = ":".join(os.path.abspath(p) for p in env["CHIMERA_MODULE_PATH"].split(":") if p)
+        self.process = subprocess.Popen(args, stdout=self._log, stderr=subprocess.STDOUT, env=env,
                                         cwd=os.path.dirname(os.path.abspath(sbs_file)))
         deadline = time.monotonic() + timeout
         while not os.path.exists(self.socket):
             if self.process.poll() is not None or time.monotonic() > deadline:
+                printed = self.output()
                 self.stop()
-                raise RuntimeError("sbs %s did not start:\n%s" % (sbs_file, self.output()))
+                raise RuntimeError("sbs %s did not start:\n%s" % (sbs_file, printed))
             time.sleep(0.02)
         with self.master() as m:
             self.name: str = m.subsystem

@@ -79,23 +79,31 @@ private:
 /// A fixed set of variables read together, one lock per read, into a private
 /// local table whose numpy views are refreshed in place (the thesis's local
 /// table: no allocation per read).
-class Reader : public std::enable_shared_from_this<Reader> {
+class Reader {
 public:
     Reader(std::shared_ptr<PyTable> table, std::vector<std::string> names);
     virtual ~Reader() = default;
     void read();
     const std::vector<std::string>& names() const { return names_; }
     std::size_t size() const { return names_.size(); }
-    py::array view(std::size_t i, bool writeable);
-    py::array copy_of(std::size_t i);
-    py::dict views(bool writeable);
+    /// {name: view into the local table}, made once: read() refreshes them in place.
+    const py::dict& views(bool writeable);
+    /// A new array holding variable i's values in the local table now.
+    py::array copy_of(std::size_t i) const;
     std::string last_status() const { return svar::to_string(last_); }
 
 protected:
+    // What the views point into: kept alive by the views themselves, so an
+    // array outlives its Reader safely (and no reference cycle holds either).
+    struct Storage {
+        svar::LocalTable local;
+        svar::VarSet set;
+    };
+    py::array view(std::size_t i, bool writeable) const;
     std::shared_ptr<PyTable> table_;
     std::vector<std::string> names_;
-    svar::LocalTable local_;
-    svar::VarSet set_;
+    std::shared_ptr<Storage> store_;
+    py::dict read_only_, writeable_;
     svar::Status last_ = svar::Status::ok;
 };
 

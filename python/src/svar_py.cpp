@@ -171,14 +171,14 @@ std::vector<std::string> PyTable::names() const {
 
 py::object PyTable::read(const py::object& names) {
     if (py::isinstance<py::str>(names)) {
-        auto r = std::make_shared<Reader>(shared_from_this(), std::vector<std::string>{names.cast<std::string>()});
-        r->read();
-        return r->copy_of(0);
+        Reader r(shared_from_this(), std::vector<std::string>{names.cast<std::string>()});
+        r.read();
+        return r.copy_of(0);
     }
-    auto r = std::make_shared<Reader>(shared_from_this(), names.cast<std::vector<std::string>>());
-    r->read();
+    Reader r(shared_from_this(), names.cast<std::vector<std::string>>());
+    r.read();
     py::dict out;
-    for (std::size_t i = 0; i < r->size(); ++i) out[py::str(r->names()[i])] = r->copy_of(i);
+    for (std::size_t i = 0; i < r.size(); ++i) out[py::str(r.names()[i])] = r.copy_of(i);
     return out;
 }
 
@@ -242,35 +242,40 @@ svar::LocalTable checked_local(PyTable& t, const std::vector<std::string>& names
 }  // namespace
 
 Reader::Reader(std::shared_ptr<PyTable> table, std::vector<std::string> names)
-    : table_(std::move(table)), names_(std::move(names)), local_(checked_local(*table_, names_)),
-      set_(local_.make_set(names_)) {}
+    : table_(std::move(table)), names_(std::move(names)) {
+    svar::LocalTable local = checked_local(*table_, names_);
+    svar::VarSet set = local.make_set(names_);
+    store_ = std::make_shared<Storage>(Storage{std::move(local), std::move(set)});
+}
 
 void Reader::read() {
     svar::Status st;
     {
         py::gil_scoped_release nogil;
-        st = local_.copy_from_global(set_);
+        st = store_->local.copy_from_global(store_->set);
     }
     throw_if_not_transferred(st, table_->table().name(), "read");
     last_ = st;
 }
 
-py::array Reader::view(std::size_t i, bool writeable) {
+py::array Reader::view(std::size_t i, bool writeable) const {
     const svar::VarInfo v = table_->table().var(names_[i]);
-    // The capsule keeps this Reader (and through it the table mapping) alive
-    // as long as any view of its local table is.
-    auto* keep = new std::shared_ptr<Reader>(shared_from_this());
-    py::capsule base(keep, [](void* p) { delete static_cast<std::shared_ptr<Reader>*>(p); });
-    py::array a(py::dtype(numpy_name(v.type())), shape_of(v), {}, local_.translate_any(names_[i]), base);
-    if (!writeable) a.attr("setflags")(py::arg("write") = false);
+    auto* keep = new std::shared_ptr<Storage>(store_);
+    py::capsule base(keep, [](void* p) { delete static_cast<std::shared_ptr<Storage>*>(p); });
+    py::array a(py::dtype(numpy_name(v.type())), shape_of(v), {}, store_->local.translate_any(names_[i]), base);
+    if (!writeable) py::detail::array_proxy(a.ptr())->flags &= ~py::detail::npy_api::NPY_ARRAY_WRITEABLE_;
     return a;
 }
 
-py::array Reader::copy_of(std::size_t i) { return view(i, false).attr("copy")(); }
+py::array Reader::copy_of(std::size_t i) const {
+    const svar::VarInfo v = table_->table().var(names_[i]);
+    return py::array(py::dtype(numpy_name(v.type())), shape_of(v), {}, store_->local.translate_any(names_[i]));  // no base: copied
+}
 
-py::dict Reader::views(bool writeable) {
-    py::dict d;
-    for (std::size_t i = 0; i < names_.size(); ++i) d[py::str(names_[i])] = view(i, writeable);
+const py::dict& Reader::views(bool writeable) {
+    py::dict& d = writeable ? writeable_ : read_only_;
+    if (d.empty())
+        for (std::size_t i = 0; i < names_.size(); ++i) d[py::str(names_[i])] = view(i, writeable);
     return d;
 }
 
@@ -282,7 +287,7 @@ Writer::Writer(std::shared_ptr<PyTable> table, std::vector<std::string> names, b
 void Writer::fill(std::size_t i, const py::object& value) {
     const std::string& name = names()[i];
     const svar::VarInfo v = table_->table().var(name);
-    auto* dst = static_cast<unsigned char*>(local_.translate_any(name));
+    auto* dst = static_cast<unsigned char*>(store_->local.translate_any(name));
     if (v.type() == svar::Type::struct_) {
         const py::buffer_info b = py::buffer(value).request();
         if (static_cast<std::size_t>(b.size * b.itemsize) != v.bytes())
@@ -309,7 +314,7 @@ void Writer::fill(std::size_t i, const py::object& value) {
 void Writer::check_local() {
     for (const auto& name : names()) {
         const svar::VarInfo v = table_->table().var(name);
-        const auto values = tools::numbers_of(v, static_cast<const unsigned char*>(local_.translate_any(name)));
+        const auto values = tools::numbers_of(v, static_cast<const unsigned char*>(store_->local.translate_any(name)));
         for (std::size_t k = 0; k < values.size(); ++k)
             if (const std::string why = tools::value_refusal(v, k, values[k]); !why.empty())
                 throw py::value_error(table_->table().name() + ": " + name + "[" + std::to_string(k) + "]: " +
@@ -323,7 +328,7 @@ void Writer::write() {
     svar::Status st;
     {
         py::gil_scoped_release nogil;
-        st = local_.copy_to_global(set_);
+        st = store_->local.copy_to_global(store_->set);
     }
     throw_if_not_transferred(st, table_->table().name(), "write");
     last_ = st;

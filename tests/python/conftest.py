@@ -15,7 +15,7 @@ import pytest
 import chimera
 
 DATA = os.environ.get("PY_TEST_DATA", os.path.join(os.path.dirname(__file__), "data"))
-TOOLS_DATA = os.path.join(os.environ.get("CHIMERA_SOURCE_ROOT", ""), "tests", "tools", "data")
+TOOLS_DATA = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "tools", "data")
 
 
 def start_subsystem(name, folder, script=""):
