@@ -5,9 +5,11 @@
 #include <pybind11/pybind11.h>
 #include <pybind11/stl.h>
 
+#include <chimera/ipc/segment.hpp>
 #include <chimera/prof.hpp>
 #include <chimera/svar.hpp>
 
+#include <map>
 #include <memory>
 #include <optional>
 #include <stdexcept>
@@ -69,9 +71,16 @@ private:
     };
     // From the status segment: each task's out-vars and in-vars.
     Users users_of(const std::string& name) const;
+    // Every variable's users, read again only when a task was spawned or
+    // killed since (the segment's generation moved): a write's producer check
+    // is then one load, not a status snapshot.
+    const std::map<std::string, Users>& all_users() const;
 
     svar::Table table_;
     std::optional<prof::StatusReader> status_;
+    ipc::Segment status_map_;  // the same segment, for its header's generation word
+    mutable std::optional<std::uint32_t> users_generation_;
+    mutable std::map<std::string, Users> users_;
     std::string subsystem_;
     bool owner_ = false;
 };

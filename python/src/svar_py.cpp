@@ -41,10 +41,6 @@ std::vector<py::ssize_t> shape_of(const svar::VarInfo& v) {
     return {static_cast<py::ssize_t>(v.nelem())};
 }
 
-bool contains(const std::vector<std::string>& v, const std::string& x) {
-    return std::find(v.begin(), v.end(), x) != v.end();
-}
-
 py::object values_or_none(const svar::VarInfo& v, bool present, double (svar::VarInfo::*at)(std::size_t) const) {
     if (!present || v.type() == svar::Type::struct_) return py::none();
     py::array_t<double> a(static_cast<py::ssize_t>(v.nelem()));
@@ -87,6 +83,12 @@ std::shared_ptr<PyTable> PyTable::attach(const std::string& subsystem, double lo
         throw SvarError("attaching to subsystem " + subsystem + ": " + e.what());
     }
     t->status_ = prof::StatusReader::try_attach(subsystem);
+    if (t->status_) {
+        ipc::AttachOptions read_only_use;
+        read_only_use.prefault = false;
+        t->status_map_ = ipc::Segment::attach(t->status_->name(),
+                                              {ipc::ObjectType::prof_status, prof::kStatusLayoutVersion}, read_only_use);
+    }
     t->set_lock_timeout(lock_timeout_s);
     return t;
 }
@@ -126,14 +128,24 @@ std::size_t PyTable::index_of(const std::string& name) const {
     return *ix;
 }
 
-PyTable::Users PyTable::users_of(const std::string& name) const {
-    Users u;
-    if (!status_) return u;
+const std::map<std::string, PyTable::Users>& PyTable::all_users() const {
+    if (!status_) return users_;
+    const auto* hdr = static_cast<const prof::StatusHeader*>(status_map_.base());
+    const std::uint32_t generation = hdr->generation.load(std::memory_order_acquire);
+    if (users_generation_ == generation) return users_;
+    users_.clear();
     for (const auto& task : status_->snapshot()) {
-        if (contains(split_names(task.outputs), name)) u.producers.push_back(task.rmod);
-        if (contains(split_names(task.inputs), name)) u.consumers.push_back(task.rmod);
+        for (const auto& v : split_names(task.outputs)) users_[v].producers.push_back(task.rmod);
+        for (const auto& v : split_names(task.inputs)) users_[v].consumers.push_back(task.rmod);
     }
-    return u;
+    users_generation_ = generation;  // a claim during the snapshot moves it again: read anew next time
+    return users_;
+}
+
+PyTable::Users PyTable::users_of(const std::string& name) const {
+    const auto& all = all_users();
+    const auto it = all.find(name);
+    return it == all.end() ? Users{} : it->second;
 }
 
 VarRecord PyTable::info(const std::string& name) const {
@@ -202,9 +214,11 @@ void PyTable::write(const py::object& what, const py::object& values, bool force
 }
 
 void PyTable::check_producers(const std::vector<std::string>& names) const {
+    const auto& all = all_users();
     for (const auto& name : names) {
-        const Users u = users_of(name);
-        if (u.producers.empty()) continue;
+        const auto it = all.find(name);
+        if (it == all.end() || it->second.producers.empty()) continue;
+        const Users& u = it->second;
         std::string who;
         for (const auto& p : u.producers) who += (who.empty() ? "" : ", ") + p;
         throw ProducerConflict(table_.name() + ": " + name + " is produced by " + who +

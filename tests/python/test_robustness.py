@@ -28,8 +28,9 @@ while True:
 def stop_inside_the_lock(child, table):
     """SIGSTOP the child until it is stopped holding the table lock (a read then times out)."""
     probe = table.reader(["MODE"])
-    for _ in range(50):
+    for _ in range(200):
         os.kill(child.pid, signal.SIGSTOP)
+        os.waitpid(child.pid, os.WUNTRACED)  # stopped now, wherever it was
         try:
             probe.read()
         except chimera.LockTimeout:

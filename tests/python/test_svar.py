@@ -152,3 +152,17 @@ def test_a_set_is_read_whole_while_another_process_writes_it(table, subsystem):
     finally:
         child.kill()
         child.wait()
+
+
+def test_producers_follow_spawn_and_kill(table, subsystem):
+    table.write("Y", 1.0, force=True)
+    with pytest.raises(chimera.ProducerConflict, match="Y is produced by follow"):
+        table.write("Y", 2.0)
+    with subsystem.master() as m:
+        m.kill("follow")
+        table.write("Y", 2.0)  # nobody produces it now
+        assert table.info("Y").producers == [] and table.info("X").consumers == []
+        m.spawn("follow")
+    with pytest.raises(chimera.ProducerConflict, match="Y is produced by follow"):
+        table.write("Y", 3.0)
+    assert table.read("Y").tolist() == [2.0]
