@@ -137,6 +137,10 @@ class Master:
         line = ", ".join("%s %s" % (signal, rmod) for signal, rmod in items)
         return self._do("reconfig", line).get("data", {})
 
+    def event(self, rmod: str, count: int = 1) -> None:
+        """Wake an aperiodic task (sporadic, deferrable or background server) that is ON: COUNT cycles."""
+        self._do("event", rmod, int(count))
+
     def set(self, rmod: str, key: str, *values: Word) -> None:
         """Change a LOCAL key of a running task (checked against the module's declaration)."""
         if not values:

@@ -25,6 +25,7 @@ def start_subsystem(name, folder, script=""):
     shutil.copy(os.path.join(DATA, "py.svar"), folder)
     for rmod in ("ramp.rmod", "follow.rmod"):
         shutil.copy(os.path.join(TOOLS_DATA, rmod), folder)
+    shutil.copy(os.path.join(DATA, "tick.rmod"), folder)
     return chimera.serve(os.path.join(folder, name + ".sbs"), script)
 
 

@@ -60,6 +60,32 @@ def test_reconfig_set_get_freq_and_clear(subsystem):
         m.kill("follow")
 
 
+def test_events_to_an_aperiodic_server(subsystem):
+    table = chimera.attach(subsystem.name)
+    with subsystem.master() as m:
+        m.spawn("tick")
+        with pytest.raises(chimera.MasterError, match=r"^event refused for task tick: it is not ON \(state OFF\)$"):
+            m.event("tick")
+        m.on("tick")
+        before = table.read("TICKS")[0]
+        m.event("tick")
+        m.event("tick", 4)
+        deadline = time.monotonic() + 5
+        while table.read("TICKS")[0] < before + 5:
+            assert time.monotonic() < deadline, "the events were not served"
+            time.sleep(0.01)
+        time.sleep(0.05)
+        assert table.read("TICKS")[0] == before + 5  # one cycle per event, no more
+        m.spawn("ramp")
+        with pytest.raises(chimera.MasterError, match=r"^event refused for task ramp: it is periodic; events go to "
+                                                      r"aperiodic tasks \(TASKTYPE sporadic, deferrable or background\)$"):
+            m.event("ramp")
+        with pytest.raises(chimera.MasterError, match=r"^event: '0' is not a count of events \(1 to 1000\)$"):
+            m.event("tick", 0)
+        m.kill("ramp")
+        m.kill("tick")
+
+
 def test_one_peer_at_a_time(subsystem):
     with subsystem.master():
         with pytest.raises(chimera.MasterError, match="another network peer has control of subsystem " + subsystem.name):

@@ -167,6 +167,7 @@ const std::vector<CommandInfo>& command_table() {
         {"clear", "clear [RMOD]", "send the clear-error signal to a task in ERROR"},
         {"complete", "complete LINE", "the TAB completions of LINE (what an attached prompt asks the master)"},
         {"display", "display [RMOD|all] [VAR...]", "show SVAR values (what the task reads and writes; VAR may use * ?)"},
+        {"event", "event [RMOD] [COUNT]", "wake an aperiodic task (sporadic, deferrable or background server) that is ON: one cycle per event (default 1, at most 1000)"},
         {"finish", "finish", "turn every task off, kill them and end the subsystem"},
         {"freq", "freq [RMOD] [HZ]", "show or change the frequency of a task"},
         {"help", "help [COMMAND]", "list the commands, or explain one"},
@@ -283,6 +284,7 @@ Reply Interpreter::run(const Words& w) {
     if (c == "module") return cmd_module(w);
     if (c == "reconfig") return cmd_reconfig(w);
     if (c == "freq") return cmd_freq(w);
+    if (c == "event") return cmd_event(w);
     if (c == "help") return cmd_help(w);
     if (c == "show") return cmd_show(w);
     if (c == "setvar") return cmd_setvar(w);
@@ -1060,6 +1062,38 @@ Reply Interpreter::cmd_reconfig(const Words& w) {
     return r;
 }
 
+// Events to aperiodic servers (Subsystem::event): refused, naming the task,
+// for a task the runtime would not serve them to, so none is silently dropped.
+Reply Interpreter::cmd_event(const Words& w) {
+    if (w.size() > 3) throw CommandError("usage: event [RMOD] [COUNT]");
+    std::string rmod;
+    std::string count_text = "1";
+    if (w.size() == 3) {
+        rmod = w[1];
+        count_text = w[2];
+    } else if (w.size() == 2) {
+        (is_task(w[1]) ? rmod : count_text) = w[1];
+    }
+    const sbs::TaskId id = task_of(rmod);
+    char* end = nullptr;
+    const long count = std::strtol(count_text.c_str(), &end, 10);
+    if (end == count_text.c_str() || *end != '\0' || count < 1 || count > 1000)
+        throw CommandError("event: '" + count_text + "' is not a count of events (1 to 1000)");
+    const auto file = rmods_.find(default_rmod_);
+    if (file != rmods_.end() && !is_aperiodic(file->second.type))
+        throw CommandError("event refused for task " + default_rmod_ + ": it is " +
+                           std::string(to_string(file->second.type)) +
+                           "; events go to aperiodic tasks (TASKTYPE sporadic, deferrable or background)");
+    if (const State st = sbs_.state(id); st != State::ON)
+        throw CommandError("event refused for task " + default_rmod_ + ": it is not ON (state " +
+                           std::string(to_string(st)) + ")");
+    for (long k = 0; k < count; ++k) sbs_.event(id);
+    Reply r;
+    r.text = default_rmod_ + ": " + std::to_string(count) + (count == 1 ? " event" : " events");
+    r.data = {{"rmod", default_rmod_}, {"events", count}};
+    return r;
+}
+
 Reply Interpreter::cmd_freq(const Words& w) {
     if (w.size() > 3) throw CommandError("usage: freq [RMOD] [HZ]");
     std::string rmod;
@@ -1146,7 +1180,7 @@ std::vector<std::string> Interpreter::complete_locked(std::string_view line) {
             const std::string& c = words[0];
             if (c == "help" && index == 1) {
                 for (const auto& x : command_table()) cand.insert(x.name);
-            } else if ((c == "on" || c == "off" || c == "kill" || c == "clear" || c == "freq") && index == 1) {
+            } else if ((c == "on" || c == "off" || c == "kill" || c == "clear" || c == "freq" || c == "event") && index == 1) {
                 add(live_rmods());
             } else if (c == "status") {
                 if (index == 1) {
