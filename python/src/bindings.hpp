@@ -9,6 +9,7 @@
 #include <chimera/prof.hpp>
 #include <chimera/svar.hpp>
 
+#include <atomic>
 #include <map>
 #include <memory>
 #include <optional>
@@ -114,6 +115,16 @@ protected:
     std::shared_ptr<Storage> store_;
     py::dict read_only_, writeable_;
     svar::Status last_ = svar::Status::ok;
+    // Set while a transfer runs with the GIL released: a local table is one
+    // thread's (as a task's), so a second thread is refused, not let race.
+    std::atomic<bool> busy_{false};
+    class Busy {
+    public:
+        explicit Busy(Reader& r);
+        ~Busy() { flag_.store(false, std::memory_order_release); }
+    private:
+        std::atomic<bool>& flag_;
+    };
 };
 
 /// A fixed set of variables written together: fill the views (or fill()),

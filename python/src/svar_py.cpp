@@ -262,7 +262,14 @@ Reader::Reader(std::shared_ptr<PyTable> table, std::vector<std::string> names)
     store_ = std::make_shared<Storage>(Storage{std::move(local), std::move(set)});
 }
 
+Reader::Busy::Busy(Reader& r) : flag_(r.busy_) {
+    if (flag_.exchange(true, std::memory_order_acquire))
+        throw SvarError(r.table_->table().name() + ": a Reader or Writer is one thread's at a time (another thread "
+                        "is transferring through this one now): make one per thread");
+}
+
 void Reader::read() {
+    const Busy busy(*this);
     svar::Status st;
     {
         py::gil_scoped_release nogil;
@@ -337,6 +344,7 @@ void Writer::check_local() {
 }
 
 void Writer::write() {
+    const Busy busy(*this);
     if (!force_) table_->check_producers(names());
     check_local();
     svar::Status st;

@@ -42,6 +42,8 @@ def stop_inside_the_lock(child, table):
 
 def test_a_call_waiting_for_the_lock_releases_the_gil(subsystem):
     table = chimera.attach(subsystem.name, lock_timeout=0.02)
+    # Made before the lock is held: making a reader takes the lock once.
+    waiting = chimera.attach(subsystem.name, lock_timeout=3).reader(["J1"])
     child = run_python(READ_LOOP, subsystem.name)
     try:
         assert child.stdout.readline().strip() == "ready"
@@ -49,9 +51,8 @@ def test_a_call_waiting_for_the_lock_releases_the_gil(subsystem):
         with pytest.raises(chimera.LockTimeout, match=r"^/chimera.%s.svar: read: the table lock was not obtained in time "
                                                       r"\(nothing transferred\)$" % subsystem.name):
             table.read("MODE")
-        waiting = chimera.attach(subsystem.name, lock_timeout=3)
         result = {}
-        thread = threading.Thread(target=lambda: result.setdefault("J1", waiting.read("J1")))
+        thread = threading.Thread(target=lambda: result.setdefault("J1", waiting.read()["J1"].copy()))
         thread.start()
         # While that thread waits for the lock, this one keeps running Python code.
         spins, until = 0, time.monotonic() + 0.3
@@ -59,6 +60,9 @@ def test_a_call_waiting_for_the_lock_releases_the_gil(subsystem):
             spins += 1
         assert thread.is_alive() and not result, "the read did not wait for the held lock"
         assert spins > 1000, "Python code did not run while a read waited for the lock (the GIL was held)"
+        # The waiting reader's local table is that thread's: another thread is refused, not let race.
+        with pytest.raises(chimera.SvarError, match="a Reader or Writer is one thread's at a time"):
+            waiting.read()
         os.kill(child.pid, signal.SIGCONT)
         thread.join(10)
         assert result["J1"].shape == (6,)
