@@ -27,7 +27,9 @@ class ServedSubsystem:
     """A master process serving its socket; stop() (or the with block's end) finishes it."""
 
     def __init__(self, sbs_file: str, script: str = "", *, sbs_exe: Optional[str] = None,
-                 module_path: Sequence[str] = (), timeout: float = 20.0):
+                 module_path: Sequence[str] = (), options: Sequence[str] = (), token: Optional[str] = None,
+                 timeout: float = 20.0):
+        self._token = token  # the master's token (--token-file in OPTIONS): it asks every peer for it
         exe = sbs_exe or os.environ.get("SBS_EXE") or shutil.which("sbs")
         if not exe:
             raise FileNotFoundError("no sbs program: set SBS_EXE or put sbs on PATH (meson install, or build/tools/sbs)")
@@ -39,6 +41,7 @@ class ServedSubsystem:
         args: List[str] = [exe, sbs_file, "--serve", "--no-attach", "--socket", self.socket]
         for folder in module_path:
             args += ["--module-path", os.path.abspath(folder)]
+        args += list(options)  # more of sbs's options, e.g. ["--tcp", "127.0.0.1:0", "--token-file", F]
         if script:
             args += ["-c", script]
         # The master runs in the .sbs's folder: relative module folders are made absolute first.
@@ -59,7 +62,7 @@ class ServedSubsystem:
 
     def master(self) -> Master:
         """A client of this master (one at a time has control)."""
-        return Master(socket_path=self.socket)
+        return Master(socket_path=self.socket, token=self._token)
 
     def output(self) -> str:
         """What the master printed so far."""

@@ -92,6 +92,29 @@ def test_one_peer_at_a_time(subsystem):
             subsystem.master()
 
 
+def test_tcp_with_a_token(tmp_path):
+    import os
+    import re
+    import shutil
+    from conftest import DATA, TOOLS_DATA
+
+    shutil.copy(os.path.join(DATA, "py.svar"), tmp_path)
+    shutil.copy(os.path.join(TOOLS_DATA, "ramp.rmod"), tmp_path)
+    (tmp_path / "tcp.sbs").write_text("SUBSYSTEM pytcp%d\nSVARFILE py.svar\nRTPU cpu0\nBACKEND other\nEOF\n" % os.getpid())
+    token = tmp_path / "token"
+    token.write_text("s3cret\n")
+    token.chmod(0o600)
+    with chimera.serve(str(tmp_path / "tcp.sbs"), "spawn ramp",
+                       options=["--tcp", "127.0.0.1:0", "--token-file", str(token)], token="s3cret") as sub:
+        port = int(re.search(r"TCP 127.0.0.1:(\d+)", sub.output()).group(1))
+        with pytest.raises(chimera.MasterError, match=r"^the master asks for a token"):
+            chimera.Master(tcp=("127.0.0.1", port))
+        with pytest.raises(chimera.MasterError, match="^wrong token$"):
+            chimera.Master(tcp=("127.0.0.1", port), token="guess")
+        with chimera.Master(tcp=("127.0.0.1", port), token="s3cret") as m:
+            assert m.status("ramp")[0]["state"] == "OFF"
+
+
 def test_no_master_listening(tmp_path):
     with pytest.raises(chimera.MasterError, match="cannot reach the master of nobody at .*nobody.sock"):
         chimera.Master("nobody", socket_path=str(tmp_path / "nobody.sock"))
