@@ -77,9 +77,13 @@ private:
     // is then one load, not a status snapshot.
     const std::map<std::string, Users>& all_users() const;
 
+    bool attach_status() const;
+
     svar::Table table_;
-    std::optional<prof::StatusReader> status_;
-    ipc::Segment status_map_;  // the same segment, for its header's generation word
+    bool needs_status_ = false;  // attached to a master's table: its status names the producers
+    mutable std::optional<prof::StatusReader> status_;
+    mutable std::string status_error_;
+    mutable ipc::Segment status_map_;  // the same segment, for its header's generation word
     mutable std::optional<std::uint32_t> users_generation_;
     mutable std::map<std::string, Users> users_;
     std::string subsystem_;

@@ -82,15 +82,31 @@ std::shared_ptr<PyTable> PyTable::attach(const std::string& subsystem, double lo
             throw SvarError("no subsystem " + subsystem + " is running (no segment " + segment + ")");
         throw SvarError("attaching to subsystem " + subsystem + ": " + e.what());
     }
-    t->status_ = prof::StatusReader::try_attach(subsystem);
-    if (t->status_) {
-        ipc::AttachOptions read_only_use;
-        read_only_use.prefault = false;
-        t->status_map_ = ipc::Segment::attach(t->status_->name(),
-                                              {ipc::ObjectType::prof_status, prof::kStatusLayoutVersion}, read_only_use);
-    }
+    t->needs_status_ = true;
+    t->attach_status();
     t->set_lock_timeout(lock_timeout_s);
     return t;
+}
+
+// The status segment tells who produces what. The master makes it just after
+// the table, so a failure is tried again at the next use, and a write is
+// refused while the producer rule cannot be checked (status_error_).
+bool PyTable::attach_status() const {
+    if (status_ || !needs_status_) return true;
+    int error_number = 0;
+    status_ = prof::StatusReader::try_attach(subsystem_, error_number, status_error_);
+    if (!status_) return false;
+    try {
+        ipc::AttachOptions read_only_use;
+        read_only_use.prefault = false;
+        status_map_ = ipc::Segment::attach(status_->name(), {ipc::ObjectType::prof_status, prof::kStatusLayoutVersion},
+                                           read_only_use);
+    } catch (const ipc::SegmentError& e) {
+        status_.reset();
+        status_error_ = e.what();
+        return false;
+    }
+    return true;
 }
 
 std::shared_ptr<PyTable> PyTable::create(const std::string& subsystem, const std::string& svar_file,
@@ -129,7 +145,7 @@ std::size_t PyTable::index_of(const std::string& name) const {
 }
 
 const std::map<std::string, PyTable::Users>& PyTable::all_users() const {
-    if (!status_) return users_;
+    if (!attach_status() || !status_) return users_;  // none known: a table made here, or see attach_status()
     const auto* hdr = static_cast<const prof::StatusHeader*>(status_map_.base());
     const std::uint32_t generation = hdr->generation.load(std::memory_order_acquire);
     if (users_generation_ == generation) return users_;
@@ -214,6 +230,10 @@ void PyTable::write(const py::object& what, const py::object& values, bool force
 }
 
 void PyTable::check_producers(const std::vector<std::string>& names) const {
+    if (!attach_status())
+        throw ProducerConflict(table_.name() + ": cannot tell which tasks produce " + names.front() +
+                               " (status of subsystem " + subsystem_ + ": " + status_error_ +
+                               "); write(..., force=True) writes anyway");
     const auto& all = all_users();
     for (const auto& name : names) {
         const auto it = all.find(name);

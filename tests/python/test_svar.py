@@ -166,3 +166,20 @@ def test_producers_follow_spawn_and_kill(table, subsystem):
     with pytest.raises(chimera.ProducerConflict, match="Y is produced by follow"):
         table.write("Y", 3.0)
     assert table.read("Y").tolist() == [2.0]
+
+
+def test_without_a_status_segment_the_producer_rule_refuses(tmp_path):
+    """A master's table whose producers cannot be read is not written unchecked."""
+    import os
+    from conftest import DATA
+
+    name = "pynostatus%d" % os.getpid()
+    owner = chimera.Table.create(name, os.path.join(DATA, "py.svar"))  # a table with no master, no status
+    owner.write("LIMITS", 1)  # made here: nobody can produce it
+    attached = chimera.attach(name)  # as if a master's: its status names the producers
+    with pytest.raises(chimera.ProducerConflict,
+                       match=r"^/chimera.%s.svar: cannot tell which tasks produce LIMITS \(status of subsystem %s: .+\); "
+                             r"write\(..., force=True\) writes anyway$" % (name, name)):
+        attached.write("LIMITS", 2)
+    attached.write("LIMITS", 2, force=True)
+    assert owner.read("LIMITS").tolist() == [2, 2, 2]
