@@ -18,6 +18,9 @@ packages=(
   strace                                         # the no-system-call check of the SVAR hot path (test)
   clang libclang-rt-14-dev                       # scripts/fuzz.sh: libFuzzer (-fsanitize=fuzzer needs the runtime, only recommended by clang)
   abigail-tools                                  # abidw/abidiff: the ABI check against abi/libchimera.abi (tests/abi)
+  pybind11-dev python3-dev python3-numpy         # the Python bindings, import chimera (optional: -Dpython)
+  python3-pytest mypy python3-pandas             # their tests: pytest, the stubs checked by mypy, to_dataframe()
+  python3-matplotlib                             # examples/python/step_response.py's plot
 )
 missing=()
 for p in "${packages[@]}"; do

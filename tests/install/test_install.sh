@@ -92,4 +92,13 @@ chimcfg=$(find "$destdir" -type f -name chimcfg | head -1)
 out=$("$chimcfg" check "$here/data/controller.svar")
 [ "$out" = "$here/data/controller.svar: ok, svar, 3 variables, 76 bytes of data" ] || fail "installed chimcfg check printed: $out"
 echo "installed chimcfg: $out"
+# 4. The Python package, when the bindings are built (-Dpython): the staged
+# package and extension import with the staged libchimera.
+core=$(find "$destdir" -name '_core*.so' -path '*/chimera/*' | head -1)
+if [ -n "$core" ]; then
+    pydir=$(dirname "$(dirname "$core")")
+    echo "== PYTHONPATH=$pydir /usr/bin/python3 -c 'import chimera'"
+    PYTHONPATH="$pydir" /usr/bin/python3 "$here/python_check.py" "$here/data/controller.svar" "pyinstall$$" "$pydir/chimera/" ||
+        fail "the installed Python package does not import and run"
+fi
 echo "== install test passed"

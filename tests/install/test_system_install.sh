@@ -59,5 +59,10 @@ unshare -m -- bash -euo pipefail -c '
         sbs "$skel/skel.sbs" --no-attach -c "spawn skel; on; sleep 0.2; status skel" > "$skel/out.txt" ||
         { cat "$skel/out.txt"; exit 1; }
     grep -E "^skel +main .* ON " "$skel/out.txt" || { echo "the skeleton does not run:"; cat "$skel/out.txt"; exit 1; }
+    if meson introspect "$build" --install-plan | grep -q "_core.*\\.so"; then
+        echo "== /usr/bin/python3 -c \"import chimera\", no environment: the package is on Debian'"'"'s sys.path"
+        env -i PATH=/usr/bin:/bin /usr/bin/python3 "$source/tests/install/python_check.py" \
+            "$source/tests/install/data/controller.svar" "sysinstallpy$$" /usr/local/lib/python3
+    fi
     echo "== system install test passed"
 ' bash "$build" "$source" "$work"

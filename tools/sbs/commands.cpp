@@ -2,6 +2,7 @@
 
 #include "command_line.hpp"
 #include "status_text.hpp"
+#include "svar_values.hpp"
 
 #include <chimera/ipc/segment.hpp>
 
@@ -138,61 +139,8 @@ std::string field_header(const std::string& name) {
 
 // ----------------------------------------------------------------- svar values
 
-std::vector<double> numbers_of(const svar::VarInfo& v, const std::vector<unsigned char>& buf) {
-    std::vector<double> out;
-    for (std::size_t k = 0; k < v.nelem(); ++k) {
-        const unsigned char* p = buf.data() + k * v.elem_size();
-        switch (v.type()) {
-            case svar::Type::byte_: out.push_back(*p); break;
-            case svar::Type::char_: out.push_back(static_cast<signed char>(*p)); break;
-            case svar::Type::word: { std::uint16_t x; std::memcpy(&x, p, 2); out.push_back(x); break; }
-            case svar::Type::short_: { std::int16_t x; std::memcpy(&x, p, 2); out.push_back(x); break; }
-            case svar::Type::unsigned_: { std::uint32_t x; std::memcpy(&x, p, 4); out.push_back(x); break; }
-            case svar::Type::int_: { std::int32_t x; std::memcpy(&x, p, 4); out.push_back(x); break; }
-            case svar::Type::float_: { float x; std::memcpy(&x, p, 4); out.push_back(x); break; }
-            case svar::Type::double_: { double x; std::memcpy(&x, p, 8); out.push_back(x); break; }
-            case svar::Type::struct_: return {};
-        }
-    }
-    return out;
-}
-
-// Stores `x` as element k of `buf` in the variable's type (integers rounded).
-void store_number(const svar::VarInfo& v, std::vector<unsigned char>& buf, std::size_t k, double x) {
-    unsigned char* p = buf.data() + k * v.elem_size();
-    auto put = [p](auto value) { std::memcpy(p, &value, sizeof value); };
-    switch (v.type()) {
-        case svar::Type::byte_: put(static_cast<std::uint8_t>(std::llround(x))); break;
-        case svar::Type::char_: put(static_cast<std::int8_t>(std::llround(x))); break;
-        case svar::Type::word: put(static_cast<std::uint16_t>(std::llround(x))); break;
-        case svar::Type::short_: put(static_cast<std::int16_t>(std::llround(x))); break;
-        case svar::Type::unsigned_: put(static_cast<std::uint32_t>(std::llround(x))); break;
-        case svar::Type::int_: put(static_cast<std::int32_t>(std::llround(x))); break;
-        case svar::Type::float_: put(static_cast<float>(x)); break;
-        case svar::Type::double_: put(x); break;
-        case svar::Type::struct_: break;
-    }
-}
-
-// The numeric limits of an element of the variable's type ([lo, hi]).
-std::pair<double, double> type_limits(svar::Type t) {
-    switch (t) {
-        case svar::Type::byte_: return {0, 255};
-        case svar::Type::char_: return {-128, 127};
-        case svar::Type::word: return {0, 65535};
-        case svar::Type::short_: return {-32768, 32767};
-        case svar::Type::unsigned_: return {0, 4294967295.0};
-        case svar::Type::int_: return {-2147483648.0, 2147483647.0};
-        case svar::Type::float_: return {-3.4028234663852886e38, 3.4028234663852886e38};
-        default: return {-HUGE_VAL, HUGE_VAL};
-    }
-}
-
-std::string type_text(const svar::VarInfo& v) {
-    std::string t = svar::type_spelling(v.type(), v.elem_size());
-    if (v.nelem() > 1) t += "[" + std::to_string(v.nelem()) + "]";
-    return t;
-}
+using tools::numbers_of;
+using tools::type_text;
 
 /// Every module (.so) and .rmod file in `dirs`: name -> path, first found wins.
 void scan_dirs(const std::vector<std::string>& dirs, std::map<std::string, std::string>& modules,
@@ -219,6 +167,7 @@ const std::vector<CommandInfo>& command_table() {
         {"clear", "clear [RMOD]", "send the clear-error signal to a task in ERROR"},
         {"complete", "complete LINE", "the TAB completions of LINE (what an attached prompt asks the master)"},
         {"display", "display [RMOD|all] [VAR...]", "show SVAR values (what the task reads and writes; VAR may use * ?)"},
+        {"event", "event [RMOD] [COUNT]", "wake an aperiodic task (sporadic, deferrable or background server) that is ON: one cycle per event (default 1, at most 1000)"},
         {"finish", "finish", "turn every task off, kill them and end the subsystem"},
         {"freq", "freq [RMOD] [HZ]", "show or change the frequency of a task"},
         {"help", "help [COMMAND]", "list the commands, or explain one"},
@@ -335,6 +284,7 @@ Reply Interpreter::run(const Words& w) {
     if (c == "module") return cmd_module(w);
     if (c == "reconfig") return cmd_reconfig(w);
     if (c == "freq") return cmd_freq(w);
+    if (c == "event") return cmd_event(w);
     if (c == "help") return cmd_help(w);
     if (c == "show") return cmd_show(w);
     if (c == "setvar") return cmd_setvar(w);
@@ -786,7 +736,7 @@ Reply Interpreter::cmd_display(const Words& w) {
             values = "(" + std::to_string(info.bytes()) + " bytes)";
             jv["values"] = nullptr;
         } else {
-            const auto nums = numbers_of(info, buf);
+            const auto nums = numbers_of(info, buf.data());
             for (double x : nums) values += (values.empty() ? "" : " ") + fmt("%.6g", x);
             jv["values"] = nums;
         }
@@ -922,7 +872,6 @@ Reply Interpreter::cmd_setvar(const Words& w) {
     std::vector<unsigned char> buf(info.bytes());
     if (!svar::transferred(t.read(*ix, buf.data()))) throw CommandError("setvar: reading " + name + " failed");
     const std::size_t n = (!index && count == 1) ? info.nelem() : count;
-    const auto [lo, hi] = type_limits(info.type());
     for (std::size_t j = 0; j < n; ++j) {
         const std::string& text = args[1 + (count == 1 ? 0 : j)];
         const std::size_t k = first + j;
@@ -930,16 +879,12 @@ Reply Interpreter::cmd_setvar(const Words& w) {
         const double x = std::strtod(text.c_str(), &end);
         if (end == text.c_str() || *end != '\0' || !std::isfinite(x))
             throw CommandError("setvar: " + name + "[" + std::to_string(k) + "]: '" + text + "' is not a number");
-        if (x < lo || x > hi)
-            throw CommandError("setvar: " + name + "[" + std::to_string(k) + "]: " + text + " does not fit type " +
-                               type_text(info));
-        if (info.has_range() && (x < info.min(k) || x > info.max(k)))
-            throw CommandError("setvar: " + name + "[" + std::to_string(k) + "]: " + text + " is outside the .svar range [" +
-                               fmt("%g", info.min(k)) + ", " + fmt("%g", info.max(k)) + "]");
-        store_number(info, buf, k, x);
+        if (const std::string why = tools::value_refusal(info, k, x); !why.empty())
+            throw CommandError("setvar: " + name + "[" + std::to_string(k) + "]: " + text + " " + why);
+        tools::store_number(info, buf.data(), k, x);
     }
     if (!svar::transferred(t.write(*ix, buf.data()))) throw CommandError("setvar: writing " + name + " failed");
-    const auto now = numbers_of(info, buf);
+    const auto now = numbers_of(info, buf.data());
     std::string values;
     for (double x : now) values += (values.empty() ? "" : " ") + fmt("%.6g", x);
     Reply r;
@@ -1117,6 +1062,38 @@ Reply Interpreter::cmd_reconfig(const Words& w) {
     return r;
 }
 
+// Events to aperiodic servers (Subsystem::event): refused, naming the task,
+// for a task the runtime would not serve them to, so none is silently dropped.
+Reply Interpreter::cmd_event(const Words& w) {
+    if (w.size() > 3) throw CommandError("usage: event [RMOD] [COUNT]");
+    std::string rmod;
+    std::string count_text = "1";
+    if (w.size() == 3) {
+        rmod = w[1];
+        count_text = w[2];
+    } else if (w.size() == 2) {
+        (is_task(w[1]) ? rmod : count_text) = w[1];
+    }
+    const sbs::TaskId id = task_of(rmod);
+    char* end = nullptr;
+    const long count = std::strtol(count_text.c_str(), &end, 10);
+    if (end == count_text.c_str() || *end != '\0' || count < 1 || count > 1000)
+        throw CommandError("event: '" + count_text + "' is not a count of events (1 to 1000)");
+    const auto file = rmods_.find(default_rmod_);
+    if (file != rmods_.end() && !is_aperiodic(file->second.type))
+        throw CommandError("event refused for task " + default_rmod_ + ": it is " +
+                           std::string(to_string(file->second.type)) +
+                           "; events go to aperiodic tasks (TASKTYPE sporadic, deferrable or background)");
+    if (const State st = sbs_.state(id); st != State::ON)
+        throw CommandError("event refused for task " + default_rmod_ + ": it is not ON (state " +
+                           std::string(to_string(st)) + ")");
+    for (long k = 0; k < count; ++k) sbs_.event(id);
+    Reply r;
+    r.text = default_rmod_ + ": " + std::to_string(count) + (count == 1 ? " event" : " events");
+    r.data = {{"rmod", default_rmod_}, {"events", count}};
+    return r;
+}
+
 Reply Interpreter::cmd_freq(const Words& w) {
     if (w.size() > 3) throw CommandError("usage: freq [RMOD] [HZ]");
     std::string rmod;
@@ -1203,7 +1180,7 @@ std::vector<std::string> Interpreter::complete_locked(std::string_view line) {
             const std::string& c = words[0];
             if (c == "help" && index == 1) {
                 for (const auto& x : command_table()) cand.insert(x.name);
-            } else if ((c == "on" || c == "off" || c == "kill" || c == "clear" || c == "freq") && index == 1) {
+            } else if ((c == "on" || c == "off" || c == "kill" || c == "clear" || c == "freq" || c == "event") && index == 1) {
                 add(live_rmods());
             } else if (c == "status") {
                 if (index == 1) {

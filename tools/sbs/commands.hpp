@@ -83,6 +83,7 @@ private:
     Reply cmd_module(const Words& w);
     Reply cmd_reconfig(const Words& w);
     Reply cmd_freq(const Words& w);
+    Reply cmd_event(const Words& w);
     Reply cmd_help(const Words& w);
 
     /// The task named `rmod` (or the default one when empty); throws

@@ -1,0 +1,61 @@
+"""Chimera for Linux from Python: the host-workstation side (thesis §5.3.2).
+
+    import chimera
+    table = chimera.attach("fig3_7")              # the running subsystem's SVAR table
+    q = table.read(["Q_REF", "Q_MEZ"])            # one consistent set, one table lock
+    table.write("Q_REF", [0, 0.8, 3.1, 0, 0.8, 0])  # range- and producer-checked
+    for t in chimera.status("fig3_7"): print(t.rmod, t.state, t.mez_f)
+    with chimera.Master("fig3_7") as m: m.on("jpid")  # the master over its socket
+
+Nothing here runs on a real-time thread: every call that may wait for the table
+lock releases the GIL, and no Python code runs while the lock is held.
+"""
+
+from __future__ import annotations
+
+from typing import Iterable, List, Optional
+
+from ._core import (  # noqa: F401  (re-exported)
+    TASK_STATUS_FIELDS,
+    ChimeraError,
+    LockTimeout,
+    ProducerConflict,
+    Reader,
+    StatusReader,
+    SvarError,
+    Table,
+    TaskStatus,
+    Tbuf,
+    TbufError,
+    TbufItem,
+    VarInfo,
+    Writer,
+    segment_name,
+)
+from .master import Master, MasterError  # noqa: F401
+from .serve import ServedSubsystem, serve  # noqa: F401
+
+__all__ = [
+    "attach", "status", "to_dataframe", "segment_name",
+    "Table", "VarInfo", "Reader", "Writer", "Tbuf", "TbufItem", "StatusReader", "TaskStatus",
+    "Master", "MasterError", "serve", "ServedSubsystem", "ChimeraError", "SvarError", "LockTimeout", "ProducerConflict", "TbufError",
+    "TASK_STATUS_FIELDS",
+]
+
+
+def attach(subsystem: str, lock_timeout: float = 0.1) -> Table:
+    """The global state-variable table of the running subsystem SUBSYSTEM."""
+    return Table.attach(subsystem, lock_timeout)
+
+
+def status(subsystem: str) -> List[TaskStatus]:
+    """Every task's status (§4.4.1), counted since its RTPU's last reset."""
+    return StatusReader(subsystem).snapshot()
+
+
+def to_dataframe(records: Iterable[TaskStatus], index: Optional[str] = "rmod"):
+    """Task status records as a pandas DataFrame, one row per task (ImportError without pandas)."""
+    import pandas  # optional: only this function needs it
+
+    frame = pandas.DataFrame([r.to_dict() for r in records], columns=list(TASK_STATUS_FIELDS))
+    return frame.set_index(index) if index else frame

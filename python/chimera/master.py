@@ -1,0 +1,181 @@
+"""The subsystem's master as a client object over its JSON socket (docs/cli.md).
+
+A master started with ``sbs FILE.sbs --serve`` (or ``--listen`` and ``network``
+at its prompt) takes one command per line and answers one JSON object per line.
+Master wraps that protocol: one method per command, replies as dicts, and every
+refusal raised as MasterError carrying the master's own message.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import socket
+from typing import Any, Dict, Iterable, List, Optional, Sequence, Tuple, Union
+
+
+class MasterError(RuntimeError):
+    """A command the master refused or failed; str() is the master's message."""
+
+    def __init__(self, command: str, message: str, reply: Dict[str, Any]):
+        super().__init__(message)
+        self.command = command
+        self.message = message
+        self.reply = reply
+
+
+def default_socket_path(subsystem: str) -> str:
+    """Where ``sbs --listen`` opens its socket (tools/sbs/server.cpp's default_socket_path)."""
+    xdg = os.environ.get("XDG_RUNTIME_DIR", "")
+    folder = xdg + "/chimera" if xdg.startswith("/") else "/tmp/chimera-%d" % os.getuid()
+    return os.path.join(folder, subsystem + ".sock")
+
+
+Word = Union[str, int, float]
+
+
+class Master:
+    """A network peer of the master of SUBSYSTEM (Unix socket; or TCP with a token).
+
+    Only one peer has control of a master at a time: close() (or leaving the
+    ``with`` block) hands control back, and the master keeps running.
+    """
+
+    def __init__(self, subsystem: Optional[str] = None, *, socket_path: Optional[str] = None,
+                 tcp: Optional[Tuple[str, int]] = None, token: Optional[str] = None,
+                 timeout: float = 30.0):
+        if tcp is not None:
+            self._sock = socket.create_connection(tcp, timeout=timeout)
+        else:
+            path = socket_path or default_socket_path(_required(subsystem))
+            self._sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+            self._sock.settimeout(timeout)
+            try:
+                self._sock.connect(path)
+            except OSError as e:
+                self._sock.close()
+                raise MasterError("hello", "cannot reach the master of %s at %s: %s (is it running with "
+                                  "--listen or --serve?)" % (subsystem, path, e.strerror), {}) from None
+        self._file = self._sock.makefile("rb")
+        self._next_id = 1
+        self.hello = self._receive(None)
+        if not self.hello.get("ok"):
+            self.close()
+            raise MasterError("hello", self.hello.get("error", "refused"), self.hello)
+        self.subsystem: str = self.hello.get("subsystem", subsystem or "")
+        self.pid: int = self.hello.get("pid", 0)
+        if self.hello.get("auth") == "token":
+            if token is None:
+                self.close()
+                raise MasterError("token", "the master asks for a token (Master(..., token=...))", self.hello)
+            self.command("token " + token)
+
+    # -- the protocol -------------------------------------------------------
+
+    def command(self, line: str) -> Dict[str, Any]:
+        """Send one command line; return the reply, or raise MasterError with the master's message."""
+        request_id = self._next_id
+        self._next_id += 1
+        data = json.dumps({"cmd": line, "id": request_id}).encode() + b"\n"
+        self._sock.sendall(data)
+        reply = self._receive(request_id)
+        if not reply.get("ok"):
+            raise MasterError(reply.get("cmd", line.split(" ")[0]), reply.get("error", "failed"), reply)
+        return reply
+
+    def _receive(self, request_id: Optional[int]) -> Dict[str, Any]:
+        while True:
+            line = self._file.readline()
+            if not line:
+                raise MasterError("", "the master closed the connection", {})
+            reply = json.loads(line)
+            if request_id is None or reply.get("id") in (request_id, None):
+                return reply
+
+    def close(self) -> None:
+        """Leave the session (`quit`): control goes back to the master; it runs on."""
+        if self._sock is None:
+            return
+        try:
+            self._sock.sendall(b"quit\n")
+        except OSError:
+            pass
+        self._file.close()
+        self._sock.close()
+        self._sock = None  # type: ignore[assignment]
+
+    def __enter__(self) -> "Master":
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    # -- one method per command ---------------------------------------------
+
+    def _do(self, *words: Word) -> Dict[str, Any]:
+        return self.command(" ".join(str(w) for w in words if w is not None))
+
+    def spawn(self, rmod: Union[str, Sequence[str]], rtpu: Optional[str] = None) -> Dict[str, Any]:
+        """Create a task from RMOD.rmod (a list: one combined task) on RTPU; it ends OFF."""
+        name = rmod if isinstance(rmod, str) else "+".join(rmod)
+        return self._do("spawn", name, rtpu).get("data", {})
+
+    def on(self, rmod: str) -> None:
+        self._do("on", rmod)
+
+    def off(self, rmod: str) -> None:
+        self._do("off", rmod)
+
+    def kill(self, rmod: str) -> None:
+        self._do("kill", rmod)
+
+    def clear(self, rmod: str) -> None:
+        self._do("clear", rmod)
+
+    def reconfig(self, items: Iterable[Tuple[str, str]]) -> Dict[str, Any]:
+        """One ordered list of (signal, rmod), verified as a whole and applied in order (§4.4.1)."""
+        line = ", ".join("%s %s" % (signal, rmod) for signal, rmod in items)
+        return self._do("reconfig", line).get("data", {})
+
+    def event(self, rmod: str, count: int = 1) -> None:
+        """Wake an aperiodic task (sporadic, deferrable or background server) that is ON: COUNT cycles."""
+        self._do("event", rmod, int(count))
+
+    def set(self, rmod: str, key: str, *values: Word) -> None:
+        """Change a LOCAL key of a running task (checked against the module's declaration)."""
+        if not values:
+            raise ValueError("set(rmod, key, value...): no value")
+        self._do("set", rmod, key, *values)
+
+    def get(self, rmod: str, key: str) -> str:
+        """A LOCAL key's value as the task runs with it, as text (as the .rmod writes it)."""
+        return str(self._do("set", rmod, key).get("data", {}).get("value", ""))
+
+    def freq(self, rmod: str, hz: Optional[float] = None) -> float:
+        """The task's frequency in Hz; with HZ, change it first (from the next release)."""
+        reply = self._do("freq", rmod, None if hz is None else repr(float(hz)))
+        return float(reply.get("data", {}).get("freq", hz or 0.0))
+
+    def status(self, rmod: Optional[str] = None) -> List[Dict[str, Any]]:
+        """The tasks' status fields as the master shows them (times in µs), counted since this peer's last status."""
+        return self._do("status", rmod or "all").get("data", {}).get("tasks", [])
+
+    def setvar(self, name: str, *values: Word, force: bool = False) -> Dict[str, Any]:
+        return self._do("setvar", name, *values, "--force" if force else None).get("data", {})
+
+    def display(self, rmod: str = "all", *names: str) -> List[Dict[str, Any]]:
+        return self._do("display", rmod, *names).get("data", {}).get("vars", [])
+
+    def finish(self) -> None:
+        """Turn every task off, kill them, and end the subsystem (the master exits)."""
+        try:
+            self._do("finish")
+        except MasterError as e:
+            if "closed the connection" not in e.message:
+                raise
+
+
+def _required(subsystem: Optional[str]) -> str:
+    if not subsystem:
+        raise ValueError("Master(subsystem) or Master(socket_path=...) or Master(tcp=(host, port), token=...)")
+    return subsystem
