@@ -8,6 +8,8 @@
 #include <cstdlib>
 #include <fstream>
 #include <string>
+#include <utility>
+#include <vector>
 
 #include "chimera/muf.hpp"
 
@@ -107,6 +109,58 @@ TEST(Chimsched, SimulateJsonMissesAsInFigure6_1) {
     }
 }
 
+// Issue #20.6: with no options, simulate draws Figure 6.1: RM, EDF and MUF over
+// one hyperperiod (60), a late job aborted at its deadline. The misses are the
+// figure's: RM tau3 and tau4, EDF tau1 and tau2 (tasks of the critical set),
+// MUF only tau4 (outside it).
+const std::vector<std::pair<const char*, std::vector<int>>> kFigure6_1Misses = {
+    {"rm", {0, 0, 2, 4}}, {"edf", {4, 4, 0, 0}}, {"muf", {0, 0, 0, 4}}};
+
+TEST(Chimsched, SimulateDefaultsDrawFigure6_1) {
+    const Outcome r = run("simulate --json " + fig6_1());
+    ASSERT_EQ(r.status, 0) << r.err;
+    const json all = json::parse(r.out);
+    ASSERT_EQ(all.size(), 3u) << r.out;
+    for (std::size_t p = 0; p < 3; ++p) {
+        const json& j = all[p];
+        EXPECT_EQ(j["policy"], kFigure6_1Misses[p].first);
+        EXPECT_EQ(j["until"], 60.0);
+        EXPECT_EQ(j["late"], "abort");
+        std::vector<int> got;
+        for (const auto& t : j["tasks"]) got.push_back(t["misses"].get<int>());
+        EXPECT_EQ(got, kFigure6_1Misses[p].second) << j["policy"];
+    }
+    const Outcome text = run("simulate " + fig6_1());
+    ASSERT_EQ(text.status, 0) << text.err;
+    for (const char* policy : {"rm schedule", "edf schedule", "muf schedule"})
+        EXPECT_NE(text.out.find(std::string(policy) + " of " + fig6_1() + " over [0, 60), late jobs aborted at their "
+                                "deadline (as Figure 6.1; --late finish: run on)"),
+                  std::string::npos)
+            << text.out;
+    // --late finish says which option draws the figure; under EDF the overload
+    // then spreads to every task (the domino Figure 6.1 does not draw).
+    const Outcome finish = run("simulate --json --policy edf --late finish " + fig6_1());
+    ASSERT_EQ(finish.status, 0) << finish.err;
+    const json finish_json = json::parse(finish.out);
+    for (const auto& t : finish_json["tasks"]) EXPECT_GT(t["misses"].get<int>(), 0) << t;
+    EXPECT_NE(run("simulate --policy edf --late finish " + fig6_1()).out.find("Figure 6.1 aborts them: --late abort"),
+              std::string::npos);
+}
+
+TEST(Chimsched, SimulateWithoutAHyperperiodAsksForUntil) {
+    const std::string f = write_file("nohyper.tasks",
+                                     "TASK A PERIOD 999.983 WCET 1\n"
+                                     "TASK B PERIOD 1000.003 WCET 1\n"
+                                     "EOF\n");
+    const Outcome r = run("simulate --policy rm " + f);
+    EXPECT_EQ(r.status, 1);
+    EXPECT_NE(r.err.find(f + ": the periods have no hyperperiod of at most a million ticks; give --until"),
+              std::string::npos)
+        << r.err;
+    EXPECT_EQ(run("simulate --policy rm --until 3000 " + f).status, 0);
+    std::remove(f.c_str());
+}
+
 TEST(Chimsched, SimulateTextGantt) {
     const std::string f = write_file("g.tasks",
                                      "TASK A PERIOD 4 WCET 1\n"
@@ -169,6 +223,6 @@ TEST(Chimsched, ErrorsNameFileAndLine) {
 
 TEST(Chimsched, UsageErrors) {
     EXPECT_NE(run("simulate " + fig6_1() + " --policy lifo --until 10").status, 0);
-    EXPECT_NE(run("simulate " + fig6_1() + " --policy rm").status, 0);  // --until required
+    EXPECT_NE(run("simulate " + fig6_1() + " --policy rm --late sometimes").status, 0);
     EXPECT_NE(run("").status, 0);
 }

@@ -1,14 +1,25 @@
 // chimsched — schedulability analysis and simulation of a task-set file (thesis ch. 6).
 //
 //   chimsched analyze FILE [--policy rm|edf|muf] [--json]
-//   chimsched simulate FILE --policy rm|edf|muf --until T [--late finish|abort]
+//   chimsched simulate FILE [--policy rm|edf|muf] [--until T] [--late abort|finish]
 //                          [--columns N] [--json]
+//
+// simulate's defaults reproduce Figure 6.1 (§6.2.2): without --policy the three
+// schedules RM, EDF and MUF one after another, as the figure's (a), (b), (c);
+// without --until one hyperperiod (the least common multiple of the periods);
+// a job still running at its deadline is aborted there (--late abort), as the
+// figure draws it: its task's next job starts fresh. With --late finish the
+// late job runs on, and under EDF's overload the lateness then spreads to every
+// task after the first 30 time units (a domino the figure does not show).
 #include "tool_cli.hpp"
 
 #include <CLI/CLI.hpp>
 #include <nlohmann/json.hpp>
 
 #include <cmath>
+#include <cstdint>
+#include <iterator>
+#include <numeric>
 #include <cstdio>
 #include <iostream>
 #include <sstream>
@@ -164,6 +175,21 @@ double tick_scale(const muf::TaskSet& set, double until) {
     return 0;
 }
 
+// The least common multiple of the periods, in the file's time unit; 0 when it
+// is not a whole number of ticks or above a million of them (give --until).
+double hyperperiod(const muf::TaskSet& set) {
+    const double scale = tick_scale(set, 0);
+    if (scale == 0 || set.tasks.empty()) return 0;
+    std::int64_t lcm = 1;
+    for (const auto& t : set.tasks) {
+        const auto p = static_cast<std::int64_t>(std::llround(t.period * scale));
+        if (p <= 0) return 0;
+        lcm = std::lcm(lcm, p);
+        if (lcm > 1'000'000) return 0;
+    }
+    return static_cast<double>(lcm) / scale;
+}
+
 int simulate(const muf::TaskSet& set, muf::Policy policy, double until, muf::LateJob late,
              std::size_t columns, bool as_json) {
     const double scale = tick_scale(set, until);
@@ -231,7 +257,9 @@ int simulate(const muf::TaskSet& set, muf::Policy policy, double until, muf::Lat
         columns == 0 ? 1 : std::max<std::int64_t>(1, (o.until + static_cast<std::int64_t>(columns) - 1) /
                                                          static_cast<std::int64_t>(columns));
     std::cout << muf::to_string(policy) << " schedule of " << set.file << " over [0, "
-              << fmt_time(until) << "), late jobs " << (late == muf::LateJob::abort ? "aborted" : "finish late")
+              << fmt_time(until) << "), late jobs "
+              << (late == muf::LateJob::abort ? "aborted at their deadline (as Figure 6.1; --late finish: run on)"
+                                              : "finish late (--late finish; Figure 6.1 aborts them: --late abort)")
               << "; one column = " << fmt_time(t_of(per_column))
               << "  (# running, - waiting, ! missed deadline)\n";
     std::cout << muf::gantt(sim, r, per_column) << "\n";
@@ -251,6 +279,29 @@ int simulate(const muf::TaskSet& set, muf::Policy policy, double until, muf::Lat
     return 0;
 }
 
+// Figure 6.1's three schedules: text one after the other, JSON as one array.
+int simulate_all(const muf::TaskSet& set, double until, muf::LateJob late, std::size_t columns, bool as_json) {
+    const muf::Policy all[] = {muf::Policy::rm, muf::Policy::edf, muf::Policy::muf};
+    if (!as_json) {
+        for (std::size_t i = 0; i < std::size(all); ++i) {
+            if (i) std::cout << "\n";
+            if (const int status = simulate(set, all[i], until, late, columns, false)) return status;
+        }
+        return 0;
+    }
+    json out = json::array();
+    for (const muf::Policy p : all) {
+        std::ostringstream one;
+        std::streambuf* saved = std::cout.rdbuf(one.rdbuf());
+        const int status = simulate(set, p, until, late, columns, true);
+        std::cout.rdbuf(saved);
+        if (status) return status;
+        out.push_back(json::parse(one.str()));
+    }
+    std::cout << out.dump(2) << "\n";
+    return 0;
+}
+
 }  // namespace
 
 int main(int argc, char** argv) {
@@ -261,7 +312,7 @@ int main(int argc, char** argv) {
     std::string policy_name = "muf";
     bool as_json = false;
     double until = 0;
-    std::string late_name = "finish";
+    std::string late_name = "abort";
     std::size_t columns = 100;
 
     const auto policy_check = CLI::IsMember({"rm", "edf", "muf", "RM", "EDF", "MUF"});
@@ -273,9 +324,11 @@ int main(int argc, char** argv) {
 
     auto* sim = app.add_subcommand("simulate", "simulate the task set and print a Gantt chart");
     sim->add_option("FILE", file, "task-set file")->required();
-    sim->add_option("--policy", policy_name, "rm, edf or muf")->required()->check(policy_check);
-    sim->add_option("--until", until, "simulate [0, T)")->required()->check(CLI::PositiveNumber);
-    sim->add_option("--late", late_name, "a job at its deadline: finish (late) or abort")
+    auto* sim_policy = sim->add_option("--policy", policy_name, "rm, edf or muf (default: all three, as Figure 6.1)")
+                           ->check(policy_check);
+    sim->add_option("--until", until, "simulate [0, T) (default: one hyperperiod)")->check(CLI::PositiveNumber);
+    sim->add_option("--late", late_name,
+                    "a job at its deadline: abort (default, as Figure 6.1 draws it) or finish (run on late)")
         ->check(CLI::IsMember({"finish", "abort"}));
     sim->add_option("--columns", columns, "widest Gantt chart (0: one column per tick)");
     sim->add_flag("--json", as_json, "machine-readable output");
@@ -287,9 +340,15 @@ int main(int argc, char** argv) {
         const muf::TaskSet set = muf::read_task_set(file);
         const muf::Policy policy = *muf::parse_policy(policy_name);
         if (app.got_subcommand(an)) return analyze(set, policy, as_json);
-        return simulate(set, policy, until,
-                        late_name == "abort" ? muf::LateJob::abort : muf::LateJob::finish, columns,
-                        as_json);
+        if (until == 0) until = hyperperiod(set);
+        if (until == 0) {
+            std::cerr << "chimsched: " << set.file
+                      << ": the periods have no hyperperiod of at most a million ticks; give --until\n";
+            return 1;
+        }
+        const muf::LateJob late = late_name == "abort" ? muf::LateJob::abort : muf::LateJob::finish;
+        if (sim_policy->count() > 0) return simulate(set, policy, until, late, columns, as_json);
+        return simulate_all(set, until, late, columns, as_json);
     } catch (const chimera::cfg::ParseError& e) {
         std::cerr << e.what() << "\n";
         return 1;
