@@ -19,8 +19,12 @@
 #include <array>
 #include <atomic>
 #include <chrono>
+#include <cstdio>
+#include <cstdlib>
 #include <fstream>
 #include <functional>
+#include <memory>
+#include <stdexcept>
 #include <string>
 #include <thread>
 #include <vector>
@@ -1027,3 +1031,103 @@ TEST(MufStatic, DataFlowOrdersTasksOfOneRateInEveryPeriod) {
     }
     EXPECT_GE(periods, 50);
 }
+
+// ------------------------------------------------------------------ Figure 6.1 on threads
+
+// Issue #20.6: Figure 6.1's task set (tools/chimsched/examples/fig6_1.tasks,
+// what `chimsched simulate` draws) on real SCHED_FIFO threads on one CPU, one
+// time unit = 10 ms, for one hyperperiod (60 units): the tasks miss what the
+// simulator says (RM: tau3 2, tau4 4; EDF: tau1 4, tau2 4; MUF: tau4 4 only).
+// As the figure draws it, a job still running at its deadline is aborted there
+// (its failure handler returns abort_cycle); each job burns its WCET of CPU
+// time less 0.1 ms, the room for the dispatcher and the abort themselves, so a
+// job the simulator finishes exactly at its deadline is not failed by overhead
+// (and 25 jobs save less than a unit between them). The misses are events,
+// counted; no time is asserted.
+class Figure6_1OnThreads : public ::testing::TestWithParam<Policy> {};
+
+// One hyperperiod of `set` on threads under `policy`: the jobs of each task not
+// completed by its end (deadline = period, so every job of [0, 60) is due by 60).
+std::vector<std::uint64_t> figure6_1_misses_on_threads(const TaskSet& set, Policy policy, std::int64_t unit,
+                                                       std::int64_t hyperperiod) {
+    RtpuScheduler sch(options(Backend::fifo, policy));
+    const std::int64_t start = clock_ns() + 30 * ms;
+    std::vector<std::unique_ptr<Probe>> probes;  // outlive the runners
+    std::vector<std::unique_ptr<Runner>> runners;
+    for (const TaskSpec& t : set.tasks) {
+        probes.push_back(std::make_unique<Probe>());
+        probes.back()->action = FailureAction::abort_cycle;  // at its deadline a job is dropped
+        RtTaskParams p = task(t.name.c_str(), static_cast<std::int64_t>(t.period) * unit,
+                              static_cast<std::int64_t>(t.wcet) * unit);
+        p.maxexec_check = false;  // the tasks run to their WCET by design
+        p.first_release_ns = start;
+        const std::int64_t burn = p.wcet_ns - ms / 10;
+        runners.push_back(std::make_unique<Runner>(sch, p, [burn] { burn_cpu(burn); }, probes.back().get()));
+    }
+    for (auto& r : runners)
+        if (!r->start()) throw std::runtime_error(r->error());
+    // The look is half a unit after the end, before any job released at the
+    // end can complete (the shortest takes 2 units).
+    std::this_thread::sleep_until(std::chrono::steady_clock::time_point(std::chrono::nanoseconds(start)) +
+                                  std::chrono::nanoseconds(hyperperiod * unit + unit / 2));
+    std::vector<std::uint64_t> cycles;
+    for (auto& r : runners) cycles.push_back(sch.status(r->handle()).cycles);
+    for (auto& r : runners) r->stop();
+    std::vector<std::uint64_t> missed;
+    for (std::size_t i = 0; i < set.tasks.size(); ++i) {
+        const auto released = static_cast<std::uint64_t>(hyperperiod / set.tasks[i].period);
+        missed.push_back(released - std::min(released, cycles[i]));
+    }
+    return missed;
+}
+
+TEST_P(Figure6_1OnThreads, MissesWhatTheSimulatorMisses) {
+    const Policy policy = GetParam();
+    if (!RtpuScheduler(options(Backend::fifo, policy)).privileged())
+        GTEST_SKIP() << "SCHED_FIFO refused on this machine: Figure 6.1 needs real-time threads on one CPU";
+    const char* root = std::getenv("CHIMERA_SOURCE_ROOT");
+    ASSERT_NE(root, nullptr) << "CHIMERA_SOURCE_ROOT is not set (meson test sets it)";
+    const TaskSet set = read_task_set(std::string(root) + "/tools/chimsched/examples/fig6_1.tasks");
+    constexpr std::int64_t unit = 10 * ms, hyperperiod = 60;
+    const SimResult sim = simulate(set.tasks, policy, LateJob::abort, hyperperiod);
+    std::vector<std::uint64_t> want;
+    for (const auto& s : sim.stats) want.push_back(s.missed);
+    // RM and MUF: the counts are the simulator's exactly (fixed ranks, and
+    // MUF's critical set). EDF: the tasks that miss are the simulator's, tau1
+    // and tau2, but not always as often: under EDF's overload whole jobs hang
+    // on ties between equal deadlines (all four tasks have one at 30 and at
+    // 60), which the simulator breaks first-come-first-served and the
+    // dispatcher in the order it sees the releases; measured runs missed 3 or
+    // 4 of tau1's 10 jobs where the simulator misses 4 — the unpredictability
+    // under overload that §6.2.2 holds against EDF.
+    const auto failing = [](const std::vector<std::uint64_t>& m) {
+        std::vector<bool> f;
+        for (auto x : m) f.push_back(x > 0);
+        return f;
+    };
+    const auto agrees = [&](const std::vector<std::uint64_t>& got) {
+        return policy == Policy::edf ? failing(got) == failing(want) : got == want;
+    };
+    // The CPU is shared with the other engineers' real-time tests, and MUF's
+    // critical set needs 59 of the 60 units: a run that lost more than one
+    // unit (1.7 %) to another thread misses more. Up to five runs, a pause
+    // between them; one must agree (a scheduler that ranked the tasks
+    // otherwise fails every run).
+    std::vector<std::uint64_t> got;
+    for (int attempt = 1; attempt <= 5; ++attempt) {
+        if (attempt > 1) std::this_thread::sleep_for(200ms);
+        got = figure6_1_misses_on_threads(set, policy, unit, hyperperiod);
+        std::string line;
+        for (std::size_t i = 0; i < got.size(); ++i)
+            line += " " + set.tasks[i].name + " " + std::to_string(got[i]) + "/" + std::to_string(want[i]);
+        std::printf("%s run %d, missed on threads/simulated:%s\n", to_string(policy).data(), attempt, line.c_str());
+        if (agrees(got)) break;
+    }
+    if (policy == Policy::edf)
+        EXPECT_EQ(failing(got), failing(want));
+    else
+        EXPECT_EQ(got, want);
+}
+
+INSTANTIATE_TEST_SUITE_P(Policies, Figure6_1OnThreads, ::testing::Values(Policy::rm, Policy::edf, Policy::muf),
+                         [](const auto& info) { return std::string(to_string(info.param)); });
