@@ -80,10 +80,15 @@ public:
         core_->table.destroy();
     }
 
-    /// A task of these objects, initialised and turned on.
+    /// A task of these objects, initialised and turned on. A TBUF named in
+    /// LOCAL (jteleop's operator feed) gets a name of this process's own.
     TaskCore& make(const std::vector<std::string>& rmods) {
         std::vector<RmodFile> files;
-        for (const auto& p : rmods) files.push_back(read_rmod(p));
+        for (const auto& p : rmods) {
+            files.push_back(read_rmod(p));
+            if (files.back().local.has("TBUF"))
+                files.back().local.set("TBUF", {"bench_modules" + std::to_string(::getpid())});
+        }
         auto t = std::make_unique<TaskCore>(*core_, static_cast<int>(tasks_.size()), core_->file.rtpus[0],
                                             std::move(files));
         auto copied = [](svar::Status s, const char* what) {
@@ -126,16 +131,50 @@ void run_cycle(benchmark::State& state, TaskCore& t, bool with_transfer) {
     }
 }
 
-void register_module(const std::string& label, std::vector<std::string> rmods) {
-    TaskCore* task = nullptr;
+// One direction of a task's transfer alone (Table 1's "CPU time for
+// transferring in-vars / out-vars"): the copy with its table lock.
+void run_transfer(benchmark::State& state, TaskCore& t, bool in) {
+    for (auto _ : state) {
+        const svar::Status st = in ? t.local->copy_from_global(t.set_in_vars) : t.local->copy_to_global(t.set_out_vars);
+        if (!svar::transferred(st)) [[unlikely]] {
+            state.SkipWithError("transfer failed");
+            break;
+        }
+        benchmark::ClobberMemory();
+    }
+}
+
+TaskCore* make_or_exit(const std::string& label, const std::vector<std::string>& rmods) {
     try {
-        task = &bench().make(rmods);
+        return &bench().make(rmods);
     } catch (const std::exception& e) {
         std::fprintf(stderr, "bench_modules: %s: %s\n", label.c_str(), e.what());
         std::exit(1);
     }
+}
+
+void register_module(const std::string& label, std::vector<std::string> rmods) {
+    TaskCore* task = make_or_exit(label, rmods);
     benchmark::RegisterBenchmark((label + "/cycle").c_str(), [task](benchmark::State& s) { run_cycle(s, *task, false); });
     benchmark::RegisterBenchmark((label + "/task").c_str(), [task](benchmark::State& s) { run_cycle(s, *task, true); });
+}
+
+// Table 1 (§6.6.1): a module of Figure 6.10 with its in-vars and out-vars
+// transfers apart and the whole task; the counters say how many variables
+// each direction moves (the table's N in-var, N out-var).
+void register_table1(const std::string& label, const std::string& rmod) {
+    TaskCore* task = make_or_exit(label, {rmod});
+    const auto with_counts = [task](auto body) {
+        return [task, body](benchmark::State& s) {
+            body(s, *task);
+            s.counters["n_in"] = static_cast<double>(task->objects.front().rmod.in_vars.size());
+            s.counters["n_out"] = static_cast<double>(task->objects.front().rmod.out_vars.size());
+        };
+    };
+    const std::string l = "table1/" + label;
+    benchmark::RegisterBenchmark((l + "/in").c_str(), with_counts([](auto& s, TaskCore& t) { run_transfer(s, t, true); }));
+    benchmark::RegisterBenchmark((l + "/out").c_str(), with_counts([](auto& s, TaskCore& t) { run_transfer(s, t, false); }));
+    benchmark::RegisterBenchmark((l + "/task").c_str(), with_counts([](auto& s, TaskCore& t) { run_cycle(s, t, true); }));
 }
 
 }  // namespace
@@ -164,6 +203,12 @@ int main(int argc, char** argv) {
     // simple functions per joint (signal generator, differentiator, PID with
     // its limiter), no rigid-body dynamics.
     register_module("combined_6joint_nograv", {here("c_traj.rmod"), here("c_diff.rmod"), here("c_pid_nograv.rmod")});
+    // Table 1: the modules of Figure 6.10 (examples/fig6_10_teleop), jteleop
+    // standing for jtball (its operator feed a triple buffer, not a serial port).
+    register_table1("puma_pidg", rmod_path("robotsim/puma_pidg.rmod"));
+    register_table1("grav_comp", rmod_path("dyn/grav_comp.rmod"));
+    register_table1("diff", rmod_path("diff/qrdiff.rmod"));
+    register_table1("jtball", rmod_path("teleop/jteleop.rmod"));
     benchmark::Initialize(&argc, argv);
     benchmark::RunSpecifiedBenchmarks();
     benchmark::Shutdown();
