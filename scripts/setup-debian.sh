@@ -20,7 +20,7 @@ packages=(
   abigail-tools                                  # abidw/abidiff: the ABI check against abi/libchimera.abi (tests/abi)
   pybind11-dev python3-dev python3-numpy         # the Python bindings, import chimera (optional: -Dpython)
   python3-pytest mypy python3-pandas             # their tests: pytest, the stubs checked by mypy, to_dataframe()
-  python3-matplotlib                             # examples/python/step_response.py's plot
+  python3-matplotlib                             # examples/python/step_response.py's plot; docs/thesis_plots.py (the thesis's figures)
 )
 missing=()
 for p in "${packages[@]}"; do
