@@ -520,7 +520,7 @@ TEST(Profiler, CountsCyclesAndDropsTheFirstAfterAReset) {
         TaskProfiler p(slot);
         EXPECT_NE(p.clock(), CpuClock::none);
         p.cycle_begin();
-        burn_cpu(8'000'000);  // the first cycle: long, must not reach maxC
+        burn_cpu(40'000'000);  // the first cycle: long, must not reach maxC
         p.cycle_end();
         for (int i = 0; i < 5; ++i) {
             p.cycle_begin();
@@ -535,10 +535,14 @@ TEST(Profiler, CountsCyclesAndDropsTheFirstAfterAReset) {
     EXPECT_EQ(s[0].cycle, 6u);
     EXPECT_EQ(s[0].accounted, 5u);
     EXPECT_EQ(s[0].miss, 2u);
+    // Each cycle burns 2 ms of its thread's CPU time: at least that is counted
+    // (the CPU-time clock of the profiler may add the switches around it, many
+    // on a loaded machine: bounds far from the 40 ms first cycle, not equalities).
     EXPECT_GE(s[0].min_c, 0.0019);
-    EXPECT_LT(s[0].max_c, 0.004) << "the 8 ms first cycle was not dropped";
-    EXPECT_NEAR(s[0].avg_c, 0.002, 0.0005);
-    EXPECT_NEAR(s[0].tot_c, 0.010, 0.0025);
+    EXPECT_LT(s[0].max_c, 0.020) << "the 40 ms first cycle was not dropped";
+    EXPECT_GE(s[0].avg_c, 0.0019);
+    EXPECT_GE(s[0].tot_c, 5 * 0.0019);
+    EXPECT_LT(s[0].tot_c, 0.040) << "the first cycle is not in totC";
     EXPECT_NE(s[0].tid, 0);
 
     seg.reset_all();
