@@ -90,11 +90,13 @@ std::uint64_t detail::self_owner_id_slow() noexcept {
 bool owner_alive(std::uint64_t word) noexcept {
     const std::int32_t pid = owner_pid(word);
     const std::int32_t tid = owner_tid(word);
-    if (pid <= 0 || tid <= 0) return false;
-    if (syscall(SYS_tgkill, pid, tid, 0) != 0 && errno == ESRCH) return false;
+    if (pid < 0 || tid <= 0) return false;
+    // A pid half of 0: a holder between clearing it and FUTEX_UNLOCK_PI; ask by TID alone.
+    const long rc = pid > 0 ? syscall(SYS_tgkill, pid, tid, 0) : syscall(SYS_tkill, tid, 0);
+    if (rc != 0 && errno == ESRCH) return false;
     // tgkill succeeds on a zombie (killed, not yet reaped): look at its state.
     char path[64];
-    std::snprintf(path, sizeof path, "/proc/%d/task/%d/stat", pid, tid);
+    std::snprintf(path, sizeof path, "/proc/%d/task/%d/stat", pid > 0 ? pid : tid, tid);
     const int fd = open(path, O_RDONLY | O_CLOEXEC);
     if (fd < 0) return errno != ENOENT;  // without /proc, trust tgkill
     char buf[512];
@@ -172,14 +174,38 @@ LockStatus refuse_corrupt(LockWord& lock, std::uint64_t seen, std::int64_t waite
     return LockStatus::corrupt;
 }
 
-// A word no holder can have written: FUTEX_OWNER_DIED (never set here) or a pid
-// half naming no process that has the thread of the TID half. A pid half of 0
-// is a holder between clearing it and FUTEX_UNLOCK_PI, or a new owner about to
-// claim(): not suspicious.
+// A word no holder can have written: a pid half naming no process that has the
+// thread of the TID half. A pid half of 0 is a holder between clearing it and
+// FUTEX_UNLOCK_PI, or a new owner about to claim(): not suspicious. (A word
+// naming no thread at all is a dead holder: the kernel answers ESRCH.)
 bool implausible(std::uint64_t word) noexcept {
-    if (word & kFutexOwnerDied) return true;
-    if (owner_pid(word) == 0) return false;
+    if (owner_pid(word) == 0 || (word & kFutexTidMask) == 0) return false;
     return !owner_alive(word);
+}
+
+// A holder died while waiters were queued: its exit left the kernel's PI state
+// without an owner, and the kernel refuses (EINVAL) the word that still names
+// the dead thread until the waiter it woke takes over — which that waiter may
+// never do (killed too) or only late (a busy machine). The kernel's own answer
+// to this is the robust list's mark: TID 0 and FUTEX_OWNER_DIED, which lets the
+// next locker attach to the ownerless state or take the word. This lock has no
+// robust list, so a waiter that finds the word's thread gone marks it so; the
+// pid half is kept, so the next owner knows it is a recovery (claim()).
+bool mark_owner_died(LockWord& lock, std::uint64_t word) noexcept {
+    // By TID alone: the kernel refuses the word for that thread, whatever its pid half says.
+    if ((word & kFutexTidMask) == 0 || owner_alive(word & kFutexTidMask)) return false;
+    const std::uint64_t marked = (word & ~std::uint64_t{0xffffffffu}) | kFutexOwnerDied | kFutexWaiters;
+    return lock.owner.compare_exchange_strong(word, marked, std::memory_order_relaxed, std::memory_order_relaxed);
+}
+
+// A pause between looks at a word the kernel refused (see lock_slow): short
+// against the time a woken waiter needs to take the lock over.
+constexpr std::int64_t kRefusedNapNs = 20'000;
+constexpr std::int64_t kRefusedBoundNs = 50'000'000;
+void nap_ns(std::int64_t ns) noexcept {
+    timespec ts = to_timespec(ns);
+    while (nanosleep(&ts, &ts) != 0 && errno == EINTR) {
+    }
 }
 
 // The spin phase: true with the lock taken when it came free.
@@ -225,6 +251,8 @@ LockStatus lock_slow(LockWord& lock, const LockOptions& options) noexcept {
     const std::int64_t deadline = options.timeout_ns < 0 ? INT64_MAX : start + options.timeout_ns;
     const std::int64_t period = options.liveness_check_ns > 0 ? options.liveness_check_ns : 1'000'000;
     std::uint64_t suspect = 0;  // an implausible word seen at the end of the last wait
+    std::uint64_t refused_word = 0;  // the word the kernel last refused, and since when
+    std::int64_t refused_since = 0;
     for (;;) {
         std::uint64_t seen = lock.owner.load(std::memory_order_relaxed);
         if (seen == 0) {
@@ -234,7 +262,6 @@ LockStatus lock_slow(LockWord& lock, const LockOptions& options) noexcept {
             }
             continue;
         }
-        if (seen & kFutexOwnerDied) return refuse_corrupt(lock, seen, now_ns() - start);
         const std::int64_t now = now_ns();
         const int rc = futex_lock_pi(lock, std::min(deadline, now + period));
         if (rc == 0) return claim(lock, me, now_ns() - start);
@@ -254,7 +281,20 @@ LockStatus lock_slow(LockWord& lock, const LockOptions& options) noexcept {
             case ETIMEDOUT:
                 break;
             default:  // EINVAL, EPERM, EFAULT: the kernel refuses the word
-                return refuse_corrupt(lock, after, now_ns() - start);
+                // Also after a holder died with waiters queued (see
+                // mark_owner_died), and while the waiter the kernel woke has not
+                // yet run to write its TID: nap and look again; refuse a word
+                // refused for kRefusedBoundNs (or until the timeout).
+                if (after == 0 || mark_owner_died(lock, after)) continue;
+                if (after != refused_word) {
+                    refused_word = after;
+                    refused_since = now_ns();
+                } else if (now_ns() - refused_since >= std::max(period, kRefusedBoundNs) ||
+                           now_ns() >= deadline) {
+                    return refuse_corrupt(lock, after, now_ns() - start);
+                }
+                nap_ns(kRefusedNapNs);
+                continue;
         }
         const std::int64_t waited = now_ns() - start;
         if (implausible(after)) {

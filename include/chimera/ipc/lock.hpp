@@ -34,16 +34,24 @@
 // that holder never released it. No robust list is used (glibc owns the
 // thread's robust list head).
 //
+// A holder that dies while waiters are queued leaves the kernel's PI state
+// without an owner, and until the waiter its exit woke has run, the kernel
+// refuses (EINVAL) the word naming the dead thread; that waiter may never run
+// (killed too). The kernel's remedy is the robust list's mark (TID 0 plus
+// FUTEX_OWNER_DIED): a waiter refused a word whose TID is gone writes that
+// mark (keeping the pid half) and tries again, and the kernel gives it the
+// lock; FUTEX_OWNER_DIED or a pid half left in the word makes it a recovery.
+//
 // Corruption. Another process may overwrite the word. A word naming no thread
-// is a dead holder (taken over, recovered, reported); a word the kernel
-// refuses (EINVAL: inconsistent with its PI state, EPERM: a kernel thread,
-// EFAULT), or carrying FUTEX_OWNER_DIED (which this lock never sets), or whose
-// pid half names no process that has the thread of its TID half, seen so twice
-// one liveness period apart, is reported as LockStatus::corrupt: the caller
-// gets an error (the SVAR table names itself, "lock word corrupt"), the word is
-// left alone, and no waiter blocks on it past one liveness period — even with
-// an infinite timeout. A word copied from a live holder elsewhere cannot be
-// told from a holder and waits for the timeout (finite on every task path).
+// is a dead holder (taken over, recovered, reported). A word the kernel keeps
+// refusing (EINVAL: inconsistent with its PI state, EPERM: a kernel thread,
+// EFAULT) for 50 ms (or until the timeout), or whose pid half names no process
+// that has the thread of its TID half, seen so twice one liveness period
+// apart, is reported as LockStatus::corrupt: the caller gets an error (the
+// SVAR table's "the SVAR table's lock word is corrupt"), the word is left
+// alone, and no waiter blocks on it past that bound — even with an infinite
+// timeout. A word copied from a live holder elsewhere cannot be told from a
+// holder and waits for the timeout (finite on every task path).
 //
 // A timeout is reported (LockStatus::timed_out) and the lock is left alone;
 // only a caller that asks for it (LockOptions::reset_on_timeout) gets the
