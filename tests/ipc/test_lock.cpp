@@ -51,6 +51,17 @@ protected:
     Events events;
 };
 
+// A child process that takes the lock and holds it until killed; its pid once
+// it holds it, -1 if it did not get there.
+pid_t fork_holder(Shared& s) {
+    const pid_t child = fork_child([&] {
+        if (lock(s.lock) != LockStatus::acquired) return 2;
+        s.holding = 1;
+        for (;;) pause();
+    });
+    return wait_for([&] { return s.holding.load() == 1; }) ? child : -1;
+}
+
 }  // namespace
 
 TEST_F(IpcLock, UncontendedLockUnlock) {
@@ -108,12 +119,8 @@ TEST_F(IpcLock, MutualExclusionAcrossProcesses) {
 TEST_F(IpcLock, HolderKilledWithSigkillIsRecoveredAndReported) {
     CHIMERA_NOT_UNDER_TSAN("a forked holder killed with SIGKILL");
     auto* s = shared_anon<Shared>();
-    const pid_t child = fork_child([&] {
-        if (lock(s->lock) != LockStatus::acquired) return 2;
-        s->holding = 1;
-        for (;;) pause();
-    });
-    ASSERT_TRUE(wait_for([&] { return s->holding.load() == 1; }));
+    const pid_t child = fork_holder(*s);
+    ASSERT_GT(child, 0);
     EXPECT_EQ(try_lock(s->lock), LockStatus::busy);
     // Alive holder: a short wait times out, the lock is left alone.
     EXPECT_EQ(lock(s->lock, LockOptions{.timeout_ns = 2'000'000}), LockStatus::timed_out);
@@ -206,12 +213,8 @@ TEST_F(IpcLock, WaiterGetsTheLockWhenTheHolderReleases) {
 TEST_F(IpcLock, HolderKilledWhileAWaiterBlocksInTheKernelIsRecovered) {
     CHIMERA_NOT_UNDER_TSAN("a forked holder killed with SIGKILL");
     auto* s = shared_anon<Shared>();
-    const pid_t child = fork_child([&] {
-        if (lock(s->lock) != LockStatus::acquired) return 2;
-        s->holding = 1;
-        for (;;) pause();
-    });
-    ASSERT_TRUE(wait_for([&] { return s->holding.load() == 1; }));
+    const pid_t child = fork_holder(*s);
+    ASSERT_GT(child, 0);
     LockStatus got = LockStatus::busy;
     bool released = false;
     std::thread waiter([&] {
