@@ -57,8 +57,16 @@
 // carries on. The cycle's out-vars are not written unless error() says CONTINUE,
 // and a cycle that failed is not counted. The other tasks run on. The ERROR>
 // line goes through the subsystem's report ring and is printed by its reporter
-// thread, never from the task thread. Throwing allocates (the exception object)
-// and unwinds: it is an error path, not a way to return from a cycle.
+// thread, never from the task thread. The runtime's part of this path — the
+// catch, the message (cut at 255 bytes), the record for status, the ERROR>
+// line, the state change and its idle scheduling policy, the signal —
+// allocates nothing and throws nothing on the task thread, for a throw as for
+// a cycle that returns ERROR (tests/sbs/test_task_io.cpp counts it: 0
+// allocations for ERROR; for `throw std::runtime_error("...")` exactly the 2
+// the C++ runtime makes for the module's own throw, the exception object and
+// the runtime_error's copy of its message). Throwing still allocates those and
+// unwinds: it is an error path, not a way to return from a cycle. A module's
+// error() that throws counts as answering ERROR.
 // Task::warning() is real-time safe: no allocation, no stdio, no wait.
 //
 // Timing failures (thesis §6.3, ARCHITECTURE §6). The scheduler watches every

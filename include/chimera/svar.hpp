@@ -165,6 +165,9 @@ enum class [[nodiscard]] Status : int {
     timed_out,    ///< nothing transferred: the lock was not obtained in time
     reentered,    ///< nothing transferred: this thread holds the table lock already
     bad_argument, ///< nothing transferred: unknown pointer or index
+    lock_corrupt, ///< nothing transferred: the table lock's word names no thread
+                  ///< that could hold it (overwritten by another process); the
+                  ///< word is left alone (see chimera/ipc/lock.hpp)
 };
 CHIMERA_API const char* to_string(Status s) noexcept;
 /// True when data was transferred (ok, recovered, forced, lock_lost).

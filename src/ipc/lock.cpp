@@ -1,11 +1,16 @@
-// The table lock's slow path: spin, poll, detect dead holders, time out.
+// The table lock's slow paths: spin, block in FUTEX_LOCK_PI (the holder inherits
+// the waiter's priority), take over dead holders, refuse corrupt words, time out;
+// hand over to a waiter through FUTEX_UNLOCK_PI.
 #include "chimera/ipc/lock.hpp"
 
 #include <fcntl.h>
+#include <linux/futex.h>
 #include <pthread.h>
 #include <sys/syscall.h>
 #include <unistd.h>
 
+#include <algorithm>
+#include <bit>
 #include <cerrno>
 #include <cstdio>
 #include <cstring>
@@ -53,12 +58,6 @@ void report(LockEvent::Kind kind, const LockWord& lock, std::uint64_t previous,
     }
 }
 
-void sleep_ns(std::int64_t ns) noexcept {
-    timespec ts = to_timespec(ns);
-    while (nanosleep(&ts, &ts) != 0 && errno == EINTR) {
-    }
-}
-
 }  // namespace
 
 const char* to_string(LockStatus s) noexcept {
@@ -69,6 +68,7 @@ const char* to_string(LockStatus s) noexcept {
         case LockStatus::busy: return "busy";
         case LockStatus::timed_out: return "timed out";
         case LockStatus::already_held: return "already held by this thread";
+        case LockStatus::corrupt: return "lock word corrupt (names no thread that can hold it)";
     }
     return "unknown";
 }
@@ -90,11 +90,13 @@ std::uint64_t detail::self_owner_id_slow() noexcept {
 bool owner_alive(std::uint64_t word) noexcept {
     const std::int32_t pid = owner_pid(word);
     const std::int32_t tid = owner_tid(word);
-    if (pid <= 0 || tid <= 0) return false;
-    if (syscall(SYS_tgkill, pid, tid, 0) != 0 && errno == ESRCH) return false;
+    if (pid < 0 || tid <= 0) return false;
+    // A pid half of 0: a holder between clearing it and FUTEX_UNLOCK_PI; ask by TID alone.
+    const long rc = pid > 0 ? syscall(SYS_tgkill, pid, tid, 0) : syscall(SYS_tkill, tid, 0);
+    if (rc != 0 && errno == ESRCH) return false;
     // tgkill succeeds on a zombie (killed, not yet reaped): look at its state.
     char path[64];
-    std::snprintf(path, sizeof path, "/proc/%d/task/%d/stat", pid, tid);
+    std::snprintf(path, sizeof path, "/proc/%d/task/%d/stat", pid > 0 ? pid : tid, tid);
     const int fd = open(path, O_RDONLY | O_CLOEXEC);
     if (fd < 0) return errno != ENOENT;  // without /proc, trust tgkill
     char buf[512];
@@ -113,77 +115,213 @@ LockStatus take_over(LockWord& lock, std::uint64_t dead_owner, std::int64_t wait
     std::uint64_t expected = dead_owner;
     if (!lock.owner.compare_exchange_strong(expected, self_owner_id(), std::memory_order_acquire,
                                             std::memory_order_relaxed))
-        return expected == self_owner_id() ? LockStatus::already_held : LockStatus::busy;
+        return owner_of(expected) == self_owner_id() ? LockStatus::already_held : LockStatus::busy;
     lock.recoveries.fetch_add(1, std::memory_order_relaxed);
     lock.acquisitions.fetch_add(1, std::memory_order_relaxed);
     report(LockEvent::Kind::recovered, lock, dead_owner, waited_ns);
     return LockStatus::recovered;
 }
 
-LockStatus lock_slow(LockWord& lock, const LockOptions& options) noexcept {
-    const std::uint64_t me = self_owner_id();
-    std::uint64_t seen = lock.owner.load(std::memory_order_relaxed);
-    if (seen == me) return LockStatus::already_held;
+namespace {
 
-    // Phase 1: bounded spin (test-and-test-and-set) with the polling pause.
-    for (std::uint32_t i = 0; i < options.spin_count; ++i) {
+// The futex half of the word: the low 32 bits, wherever the byte order puts them.
+std::uint32_t* futex_half(LockWord& lock) noexcept {
+    auto* p = reinterpret_cast<std::uint32_t*>(&lock.owner);
+    return std::endian::native == std::endian::little ? p : p + 1;
+}
+
+// FUTEX_LOCK_PI2 (Linux 5.14) takes a CLOCK_MONOTONIC deadline; FUTEX_LOCK_PI
+// only CLOCK_REALTIME, converted here for older kernels.
+constexpr int kFutexLockPi2 = 13;
+std::atomic<bool> g_lock_pi2{true};
+
+// One wait in the kernel until `until_ns` (monotonic): 0 when the caller got the
+// lock, else the errno.
+int futex_lock_pi(LockWord& lock, std::int64_t until_ns) noexcept {
+    if (g_lock_pi2.load(std::memory_order_relaxed)) {
+        const timespec ts = to_timespec(until_ns);
+        if (syscall(SYS_futex, futex_half(lock), kFutexLockPi2, 0, &ts, nullptr, 0) == 0) return 0;
+        if (errno != ENOSYS) return errno;
+        g_lock_pi2.store(false, std::memory_order_relaxed);
+    }
+    timespec real{};
+    clock_gettime(CLOCK_REALTIME, &real);
+    const timespec ts = to_timespec(until_ns - now_ns() + real.tv_sec * 1'000'000'000LL + real.tv_nsec);
+    return syscall(SYS_futex, futex_half(lock), FUTEX_LOCK_PI, 0, &ts, nullptr, 0) == 0 ? 0 : errno;
+}
+
+// The kernel made the caller the owner (its TID in the futex half): writes the
+// caller's pid into the other half. A pid still there is the previous holder's,
+// who never released (it died; the kernel handed the lock on at its exit).
+LockStatus claim(LockWord& lock, std::uint64_t me, std::int64_t waited) noexcept {
+    std::uint64_t seen = lock.owner.load(std::memory_order_relaxed);
+    for (;;) {
+        const std::uint64_t mine = (me & ~std::uint64_t{0xffffffffu}) | (seen & 0xffffffffu & ~kFutexOwnerDied);
+        if (lock.owner.compare_exchange_weak(seen, mine, std::memory_order_acquire, std::memory_order_relaxed))
+            break;
+    }
+    lock.acquisitions.fetch_add(1, std::memory_order_relaxed);
+    const std::uint64_t previous_pid = seen >> 32;
+    if (previous_pid == 0 && (seen & kFutexOwnerDied) == 0) return LockStatus::acquired;
+    lock.recoveries.fetch_add(1, std::memory_order_relaxed);
+    report(LockEvent::Kind::recovered, lock, seen & ~std::uint64_t{0xffffffffu}, waited);
+    return LockStatus::recovered;
+}
+
+LockStatus refuse_corrupt(LockWord& lock, std::uint64_t seen, std::int64_t waited) noexcept {
+    lock.corruptions.fetch_add(1, std::memory_order_relaxed);
+    report(LockEvent::Kind::corrupt, lock, seen, waited);
+    return LockStatus::corrupt;
+}
+
+// A word no holder can have written: a pid half naming no process that has the
+// thread of the TID half. A pid half of 0 is a holder between clearing it and
+// FUTEX_UNLOCK_PI, or a new owner about to claim(): not suspicious. (A word
+// naming no thread at all is a dead holder: the kernel answers ESRCH.)
+bool implausible(std::uint64_t word) noexcept {
+    if (owner_pid(word) == 0 || (word & kFutexTidMask) == 0) return false;
+    return !owner_alive(word);
+}
+
+// A holder died while waiters were queued: its exit left the kernel's PI state
+// without an owner, and the kernel refuses (EINVAL) the word that still names
+// the dead thread until the waiter it woke takes over — which that waiter may
+// never do (killed too) or only late (a busy machine). The kernel's own answer
+// to this is the robust list's mark: TID 0 and FUTEX_OWNER_DIED, which lets the
+// next locker attach to the ownerless state or take the word. This lock has no
+// robust list, so a waiter that finds the word's thread gone marks it so; the
+// pid half is kept, so the next owner knows it is a recovery (claim()).
+bool mark_owner_died(LockWord& lock, std::uint64_t word) noexcept {
+    // By TID alone: the kernel refuses the word for that thread, whatever its pid half says.
+    if ((word & kFutexTidMask) == 0 || owner_alive(word & kFutexTidMask)) return false;
+    const std::uint64_t marked = (word & ~std::uint64_t{0xffffffffu}) | kFutexOwnerDied | kFutexWaiters;
+    return lock.owner.compare_exchange_strong(word, marked, std::memory_order_relaxed, std::memory_order_relaxed);
+}
+
+// A pause between looks at a word the kernel refused (see lock_slow): short
+// against the time a woken waiter needs to take the lock over.
+constexpr std::int64_t kRefusedNapNs = 20'000;
+constexpr std::int64_t kRefusedBoundNs = 50'000'000;
+void nap_ns(std::int64_t ns) noexcept {
+    timespec ts = to_timespec(ns);
+    while (nanosleep(&ts, &ts) != 0 && errno == EINTR) {
+    }
+}
+
+// The spin phase: true with the lock taken when it came free.
+bool spin(LockWord& lock, std::uint64_t me, std::uint32_t count) noexcept {
+    for (std::uint32_t i = 0; i < count; ++i) {
         cpu_pause();
-        seen = lock.owner.load(std::memory_order_relaxed);
-        if (seen == 0) {
-            if (lock.owner.compare_exchange_weak(seen, me, std::memory_order_acquire,
-                                                 std::memory_order_relaxed)) {
-                lock.acquisitions.fetch_add(1, std::memory_order_relaxed);
-                return LockStatus::acquired;
-            }
+        std::uint64_t seen = lock.owner.load(std::memory_order_relaxed);
+        if (seen == 0 && lock.owner.compare_exchange_weak(seen, me, std::memory_order_acquire,
+                                                          std::memory_order_relaxed)) {
+            lock.acquisitions.fetch_add(1, std::memory_order_relaxed);
+            return true;
         }
     }
+    return false;
+}
 
-    // Phase 2: poll with short sleeps; check the holder's liveness now and then.
+LockStatus on_timeout(LockWord& lock, std::uint64_t me, std::uint64_t seen, const LockOptions& options,
+                      std::int64_t waited, bool& retry) noexcept {
+    retry = false;
+    if (options.reset_on_timeout) {
+        if (lock.owner.compare_exchange_strong(seen, me, std::memory_order_acquire, std::memory_order_relaxed)) {
+            lock.forced.fetch_add(1, std::memory_order_relaxed);
+            lock.acquisitions.fetch_add(1, std::memory_order_relaxed);
+            report(LockEvent::Kind::forced, lock, seen, waited);
+            return LockStatus::forced;
+        }
+        retry = true;
+        return LockStatus::busy;
+    }
+    lock.timeouts.fetch_add(1, std::memory_order_relaxed);
+    report(LockEvent::Kind::timed_out, lock, seen, waited);
+    return LockStatus::timed_out;
+}
+
+}  // namespace
+
+LockStatus lock_slow(LockWord& lock, const LockOptions& options) noexcept {
+    const std::uint64_t me = self_owner_id();
+    if (owner_of(lock.owner.load(std::memory_order_relaxed)) == me) return LockStatus::already_held;
+    if (spin(lock, me, options.spin_count)) return LockStatus::acquired;
+
     const std::int64_t start = now_ns();
     const std::int64_t deadline = options.timeout_ns < 0 ? INT64_MAX : start + options.timeout_ns;
-    std::int64_t next_check = start;  // check at once: the holder may be long dead
-    std::int64_t sleep = options.min_sleep_ns > 0 ? options.min_sleep_ns : 1000;
+    const std::int64_t period = options.liveness_check_ns > 0 ? options.liveness_check_ns : 1'000'000;
+    std::uint64_t suspect = 0;  // an implausible word seen at the end of the last wait
+    std::uint64_t refused_word = 0;  // the word the kernel last refused, and since when
+    std::int64_t refused_since = 0;
     for (;;) {
-        seen = lock.owner.load(std::memory_order_relaxed);
+        std::uint64_t seen = lock.owner.load(std::memory_order_relaxed);
         if (seen == 0) {
-            if (lock.owner.compare_exchange_strong(seen, me, std::memory_order_acquire,
-                                                   std::memory_order_relaxed)) {
+            if (lock.owner.compare_exchange_strong(seen, me, std::memory_order_acquire, std::memory_order_relaxed)) {
                 lock.acquisitions.fetch_add(1, std::memory_order_relaxed);
                 return LockStatus::acquired;
             }
             continue;
         }
         const std::int64_t now = now_ns();
-        if (now >= next_check) {
-            if (!owner_alive(seen)) {
-                const LockStatus s = take_over(lock, seen, now - start);
-                if (s == LockStatus::recovered) return s;
-                continue;  // someone else took it over first: keep polling
-            }
-            next_check = now + options.liveness_check_ns;
-        }
-        if (now >= deadline) {
-            if (options.reset_on_timeout) {
-                std::uint64_t expected = seen;
-                if (lock.owner.compare_exchange_strong(expected, me, std::memory_order_acquire,
-                                                       std::memory_order_relaxed)) {
-                    lock.forced.fetch_add(1, std::memory_order_relaxed);
-                    lock.acquisitions.fetch_add(1, std::memory_order_relaxed);
-                    report(LockEvent::Kind::forced, lock, seen, now - start);
-                    return LockStatus::forced;
+        const int rc = futex_lock_pi(lock, std::min(deadline, now + period));
+        if (rc == 0) return claim(lock, me, now_ns() - start);
+        const std::uint64_t after = lock.owner.load(std::memory_order_relaxed);
+        switch (rc) {
+            case EINTR:
+            case EAGAIN:  // the holder is exiting, or the word changed under the kernel: look again
+                continue;
+            case ESRCH:  // the TID in the word names no live thread: its holder died
+                if (owner_tid(after) == owner_tid(seen) && after != 0) {
+                    const LockStatus s = take_over(lock, after, now_ns() - start);
+                    if (s != LockStatus::busy) return s;
                 }
                 continue;
-            }
-            lock.timeouts.fetch_add(1, std::memory_order_relaxed);
-            report(LockEvent::Kind::timed_out, lock, seen, now - start);
-            return LockStatus::timed_out;
+            case EDEADLK:
+                return LockStatus::already_held;
+            case ETIMEDOUT:
+                break;
+            default:  // EINVAL, EPERM, EFAULT: the kernel refuses the word
+                // Also after a holder died with waiters queued (see
+                // mark_owner_died), and while the waiter the kernel woke has not
+                // yet run to write its TID: nap and look again; refuse a word
+                // refused for kRefusedBoundNs (or until the timeout).
+                if (after == 0 || mark_owner_died(lock, after)) continue;
+                if (after != refused_word) {
+                    refused_word = after;
+                    refused_since = now_ns();
+                } else if (now_ns() - refused_since >= std::max(period, kRefusedBoundNs) ||
+                           now_ns() >= deadline) {
+                    return refuse_corrupt(lock, after, now_ns() - start);
+                }
+                nap_ns(kRefusedNapNs);
+                continue;
         }
-        std::int64_t nap = sleep;
-        if (nap > deadline - now) nap = deadline - now;
-        sleep_ns(nap);
-        if (sleep < options.max_sleep_ns) sleep *= 2;
-        if (sleep > options.max_sleep_ns) sleep = options.max_sleep_ns;
+        const std::int64_t waited = now_ns() - start;
+        if (implausible(after)) {
+            if (after == suspect) return refuse_corrupt(lock, after, waited);
+            suspect = after;
+        } else {
+            suspect = 0;
+        }
+        if (now_ns() >= deadline) {
+            bool retry = false;
+            const LockStatus s = on_timeout(lock, me, after, options, waited, retry);
+            if (!retry) return s;
+        }
     }
+}
+
+bool unlock_slow(LockWord& lock, std::uint64_t self, std::uint64_t seen) noexcept {
+    // The kernel has waiters (FUTEX_WAITERS): clear the pid half first, which
+    // tells the next owner this hand-over is a release, then let the kernel
+    // hand the lock to the highest-priority waiter.
+    for (;;) {
+        if (owner_of(seen) != self) return false;
+        if (lock.owner.compare_exchange_weak(seen, seen & 0xffffffffu, std::memory_order_release,
+                                             std::memory_order_relaxed))
+            break;
+    }
+    return syscall(SYS_futex, futex_half(lock), FUTEX_UNLOCK_PI, 0, nullptr, nullptr, 0) == 0;
 }
 
 }  // namespace chimera::ipc

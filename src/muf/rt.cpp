@@ -304,7 +304,7 @@ TaskHandle RtpuScheduler::add_task(const RtTaskParams& p) {
     const std::int64_t deadline = p.deadline_ns > 0 ? p.deadline_ns : p.period_ns;
     if (p.minexec_ns > deadline)
         throw SchedError(who + "MINEXEC " + ms(p.minexec_ns) + " exceeds the deadline " + ms(deadline));
-    std::lock_guard<std::mutex> lock(m.mutex);
+    std::lock_guard<ipc::PiMutex> lock(m.mutex);
     int live = 0;
     for (int h = 0; h < m.slot_count_seen.load(); ++h) {
         const SlotState st = m.slots[static_cast<std::size_t>(h)].state.load();
@@ -352,7 +352,7 @@ TaskHandle RtpuScheduler::add_task(const RtTaskParams& p) {
 
 void RtpuScheduler::remove_task(TaskHandle h) {
     Impl& m = *impl_;
-    std::lock_guard<std::mutex> lock(m.mutex);
+    std::lock_guard<ipc::PiMutex> lock(m.mutex);
     TaskSlot& s = m.checked_slot(h, "remove_task");
     s.state.store(SlotState::removed, std::memory_order_release);
     s.phase.store(Phase::detached, std::memory_order_release);
@@ -364,7 +364,7 @@ void RtpuScheduler::remove_task(TaskHandle h) {
 
 void RtpuScheduler::set_period(TaskHandle h, std::int64_t period_ns) {
     Impl& m = *impl_;
-    std::lock_guard<std::mutex> lock(m.mutex);
+    std::lock_guard<ipc::PiMutex> lock(m.mutex);
     TaskSlot& s = m.checked_slot(h, "set_period");
     if (period_ns <= 0)
         throw SchedError("rtpu '" + m.options.name + "', task '" + s.params.name +
@@ -388,7 +388,7 @@ void RtpuScheduler::set_period(TaskHandle h, std::int64_t period_ns) {
 
 void RtpuScheduler::attach_current_thread(TaskHandle h) {
     Impl& m = *impl_;
-    std::unique_lock<std::mutex> lock(m.mutex);
+    std::unique_lock<ipc::PiMutex> lock(m.mutex);
     TaskSlot& s = m.checked_slot(h, "attach_current_thread");
     const std::string who = "rtpu '" + m.options.name + "', task '" + s.params.name + "': ";
     if (s.state.load() == SlotState::attached)
@@ -485,7 +485,7 @@ void RtpuScheduler::attach_current_thread(TaskHandle h) {
 
 void RtpuScheduler::detach_current_thread(TaskHandle h) noexcept {
     Impl& m = *impl_;
-    std::lock_guard<std::mutex> lock(m.mutex);
+    std::lock_guard<ipc::PiMutex> lock(m.mutex);
     TaskSlot* s = m.slot(h);
     if (!s || s->tid.load() != static_cast<int>(syscall(SYS_gettid))) return;
     if (s->state.load() == SlotState::attached) s->state.store(SlotState::added);
@@ -596,7 +596,7 @@ void RtpuScheduler::disarm_abort(TaskHandle) noexcept { detail::clear_abort(); }
 
 std::string RtpuScheduler::policy_of(TaskHandle h) const {
     const Impl& m = *impl_;
-    std::lock_guard<std::mutex> lock(m.mutex);
+    std::lock_guard<ipc::PiMutex> lock(m.mutex);
     const TaskSlot* s = m.slot(h);
     if (!s) return "no such task";
     const int tid = s->tid.load();
@@ -626,7 +626,7 @@ std::int64_t RtpuScheduler::job_release_ns(TaskHandle h) const noexcept {
 }
 
 Assignment RtpuScheduler::assignment() const {
-    std::lock_guard<std::mutex> lock(impl_->mutex);
+    std::lock_guard<ipc::PiMutex> lock(impl_->mutex);
     return impl_->current_assignment;
 }
 

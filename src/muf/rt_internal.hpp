@@ -16,6 +16,7 @@
 #include <thread>
 #include <vector>
 
+#include "chimera/ipc/pi_mutex.hpp"
 #include "chimera/muf/rt.hpp"
 
 namespace chimera::muf::detail {
@@ -105,7 +106,10 @@ struct CHIMERA_LOCAL RtpuScheduler::Impl {
     bool dispatcher_running = false;
     std::string dispatcher_policy;
 
-    mutable std::mutex mutex;  // set-up calls (never taken by the dispatcher or the task loop)
+    // Set-up calls (never taken by the dispatcher or in a cycle); inherits
+    // priority: a task thread takes it to attach and detach itself, when it
+    // may already run at its real-time priority.
+    mutable ipc::PiMutex mutex;
     std::array<detail::TaskSlot, detail::kMaxTasks> slots;
     std::atomic<int> slot_count_seen{0};  // slots ever used (handles are below it)
     Assignment current_assignment;

@@ -58,7 +58,11 @@ public:
     virtual ~Pacer() = default;
     /// Pinned to the RTPU's CPU, SCHED_FIFO just below the scheduler's band
     /// (SCHED_OTHER for BACKEND other or without privilege). Returns the policy text.
-    virtual std::string idle() = 0;
+    /// The text says the idle policy; valid until the next idle(). No allocation:
+    /// a task thread calls it when it stops (off, error).
+    virtual std::string_view idle() = 0;
+    /// The text of the last idle(), without changing anything.
+    virtual std::string_view idle_policy() const noexcept = 0;
     /// The task turns on. Throws sbs::Error (e.g. SCHED_DEADLINE admission refused).
     virtual void start() = 0;
     /// The task stops running (off, error, kill); back to idle(). Idempotent.
@@ -100,6 +104,26 @@ struct Object {
     const ChimeraModuleAbi* abi = nullptr;
     Module* module = nullptr;
     std::unique_ptr<Task> view;
+};
+
+/// Text of at most N - 1 bytes in place (longer is cut): an error's module and
+/// message are kept so on the task thread, which must not allocate.
+template <std::size_t N>
+struct FixedText {
+    char text[N] = {};
+    std::size_t size = 0;
+    void assign(std::string_view v) noexcept {
+        size = v.copy(text, N - 1);
+        text[size] = '\0';
+    }
+    /// Appends the parts in order (cut at N - 1 bytes).
+    void assign(std::initializer_list<std::string_view> parts) noexcept {
+        size = 0;
+        for (std::string_view part : parts) size += part.copy(text + size, N - 1 - size);
+        text[size] = '\0';
+    }
+    void clear() noexcept { assign(std::string_view{}); }
+    std::string_view view() const noexcept { return {text, size}; }
 };
 
 /// One task: its thread, its objects (one, or several when combined), its
@@ -154,10 +178,10 @@ public:
     // --- messages: guarded by msg_mu (never held across a method call; the
     // task thread takes it, so it inherits priority: docs/muf.md, Locks) ---
     mutable ipc::PiMutex msg_mu;
-    std::string policy;
+    FixedText<160> policy;
     int error_code = 0;
-    std::string error_text;    // error that put the task in ERROR (or last error)
-    std::string error_module;
+    FixedText<256> error_text;  // error that put the task in ERROR (or last error)
+    FixedText<64> error_module;
     char first_warning[160] = {};  // "" when none; fixed, so a warning never allocates
     // Fixed buffer read by Task::error_message() in the task itself.
     char last_msg[160] = {};
@@ -199,7 +223,7 @@ public:
 
     void set_state(State s) noexcept;
     /// The policy text of the status (and of the status segment).
-    void publish_policy(std::string text) noexcept;
+    void publish_policy(std::string_view text) noexcept;
 
 private:
     static void* thread_main(void* self) noexcept;

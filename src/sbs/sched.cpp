@@ -12,6 +12,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <cstdio>
 #include <cstring>
 
 namespace chimera::sbs::detail {
@@ -40,35 +41,41 @@ public:
     }
     ~RtpuPacer() override { stop(); }
 
-    std::string idle() override {
+    std::string_view idle() override {
         const muf::RtpuOptions& o = sched_.options();
         cpu_set_t set;
         CPU_ZERO(&set);
         CPU_SET(o.cpu, &set);
         const int pin = pthread_setaffinity_np(pthread_self(), sizeof set, &set);
-        std::string text;
+        char policy[80];
         sched_param sp{};
         if (o.backend == muf::Backend::other || !sched_.privileged()) {
             pthread_setschedparam(pthread_self(), SCHED_OTHER, &sp);
-            text = o.backend == muf::Backend::other ? "SCHED_OTHER" : "SCHED_OTHER (no real-time privilege)";
+            std::snprintf(policy, sizeof policy, "%s",
+                          o.backend == muf::Backend::other ? "SCHED_OTHER" : "SCHED_OTHER (no real-time privilege)");
         } else {
             sp.sched_priority = o.fifo_low - 1;
             const int rc = pthread_setschedparam(pthread_self(), SCHED_FIFO, &sp);
             if (rc == 0) {
-                text = "SCHED_FIFO " + std::to_string(sp.sched_priority) + " (idle)";
+                std::snprintf(policy, sizeof policy, "SCHED_FIFO %d (idle)", sp.sched_priority);
             } else {
                 sp.sched_priority = 0;
                 pthread_setschedparam(pthread_self(), SCHED_OTHER, &sp);
-                text = std::string("SCHED_OTHER (SCHED_FIFO refused: ") + std::strerror(rc) + ")";
+                std::snprintf(policy, sizeof policy, "SCHED_OTHER (SCHED_FIFO refused: %s)", strerrordesc_np(rc));
                 task_.sbs.warn_no_privilege(std::string("SCHED_FIFO refused for task ") + task_.name + ": " +
-                                            std::strerror(rc));
+                                            strerrordesc_np(rc));
             }
         }
-        text += pin == 0 ? " CPU " + std::to_string(o.cpu)
-                         : std::string(" (not pinned to CPU ") + std::to_string(o.cpu) + ": " + std::strerror(pin) + ")";
-        idle_text_ = text;
-        return text;
+        char where[80];
+        if (pin == 0)
+            std::snprintf(where, sizeof where, " CPU %d", o.cpu);
+        else
+            std::snprintf(where, sizeof where, " (not pinned to CPU %d: %s)", o.cpu, strerrordesc_np(pin));
+        idle_text_.assign({policy, where});
+        return idle_text_.view();
     }
+
+    std::string_view idle_policy() const noexcept override { return idle_text_.view(); }
 
     void start() override {
         if (running_) return;
@@ -225,7 +232,7 @@ public:
     }
     std::string policy() const override {
         const muf::TaskHandle h = handle_.load(std::memory_order_acquire);
-        return h < 0 ? idle_text_ : sched_.policy_of(h);
+        return h < 0 ? std::string(idle_text_.view()) : sched_.policy_of(h);
     }
 
 private:
@@ -250,7 +257,7 @@ private:
     std::unique_ptr<SoftTask> soft_;
     std::unique_ptr<AperiodicServer> server_;
     std::atomic<std::uint64_t> saved_[4] = {};  // DEADLINE, MAXEXEC, MINEXEC, aborted of earlier runs
-    std::string idle_text_;
+    FixedText<160> idle_text_;
 };
 
 }  // namespace

@@ -653,10 +653,10 @@ TaskStatus Subsystem::status_without_profile(TaskId id) const {
         std::lock_guard<ipc::PiMutex> lock(t->msg_mu);
         s.warning = t->first_warning;
         t->first_warning[0] = '\0';  // shown once (§4.4.1)
-        s.policy = t->policy;
+        s.policy = std::string(t->policy.view());
         if (s.state == State::ERROR) {
             s.error_code = t->error_code;
-            s.error = t->error_text;
+            s.error = std::string(t->error_text.view());
         }
     }
     // While the task runs, the dispatcher moves its priority and a handler may

@@ -256,19 +256,16 @@ void TaskCore::tell_master() noexcept {
     ipc::futex_wake_all(answered);
 }
 
-void TaskCore::publish_policy(std::string text) noexcept {
+void TaskCore::publish_policy(std::string_view text) noexcept {
     std::lock_guard<ipc::PiMutex> lock(msg_mu);
-    policy = std::move(text);
-    if (slot.valid()) slot.set_policy(policy);
+    policy.assign(text);
+    if (slot.valid()) slot.set_policy(policy.view());
 }
 
 void TaskCore::stop_running() noexcept {
     if (!pacer || !pacer->running()) return;
     pacer->stop();
-    try {
-        publish_policy(pacer->policy());
-    } catch (const std::exception&) {
-    }
+    publish_policy(pacer->idle_policy());  // no allocation: a task thread stops so on an error
 }
 
 }  // namespace chimera::sbs::detail

@@ -241,7 +241,10 @@ private:
     Phase phase_ = Phase::init;
     std::size_t current_ = 0;           // the object whose method runs
     std::optional<Outcome> decided_;    // set by the task's error handler before it aborts
-    std::string err_module_, err_message_;
+    // The last error, kept in place: the error path of a cycle allocates nothing.
+    FixedText<64> err_module_;
+    FixedText<256> err_message_;
+    FixedText<256> failure_;  // the message of a failure the loop words itself
     int err_code_ = 0;
     std::uint64_t missed_ = 0;
     bool alive_ = true;
@@ -290,7 +293,7 @@ bool TaskLoop::spawn() {
     std::string failure;
     if (o != Outcome::ok) {
         // No recovery for init (§4.5.2): kill frees what init allocated; NOT-CREATED.
-        failure = "init failed: " + err_message_ + "; kill() called, the task is NOT-CREATED";
+        failure = "init failed: " + std::string(err_message_.view()) + "; kill() called, the task is NOT-CREATED";
         for (std::size_t i = 0; i < t_.objects.size(); ++i) call(Phase::kill, i, kKill);
         t_.set_state(State::NOT_CREATED);
     } else {
@@ -355,7 +358,7 @@ Answer TaskLoop::on() {
     }
     if (r != Outcome::ok) {
         settle(r);
-        a.result = "error in on(): " + err_message_ +
+        a.result = "error in on(): " + std::string(err_message_.view()) +
                    (r == Outcome::error_halt ? "; the task is in ERROR" : "; error() returned OFF");
         return a;
     }
@@ -393,7 +396,7 @@ Answer TaskLoop::off() {
         t_.set_state(State::OFF);
     } else {
         settle(r);
-        a.result = "error in off(): " + err_message_;
+        a.result = "error in off(): " + std::string(err_message_.view());
     }
     return a;
 }
@@ -401,14 +404,14 @@ Answer TaskLoop::off() {
 Answer TaskLoop::kill() {
     Answer a;
     if (t_.state.load() == State::ON) {
-        if (!ok_or_off(turn_off())) a.result = "error in off(): " + err_message_ + "; ";
+        if (!ok_or_off(turn_off())) a.result = "error in off(): " + std::string(err_message_.view()) + "; ";
         t_.set_state(State::OFF);  // kill runs from OFF (Figure 3.10)
     }
     t_.next_state.store(State::NOT_CREATED);
     bool failed = false;
     for (std::size_t i = 0; i < t_.objects.size(); ++i)
         if (call(Phase::kill, i, kKill) != Outcome::ok) failed = true;
-    if (failed) a.result += "error in kill(): " + err_message_;
+    if (failed) a.result += "error in kill(): " + std::string(err_message_.view());
     t_.set_state(State::NOT_CREATED);
     t_.sbs.refresh_error_flag();
     alive_ = false;
@@ -418,7 +421,7 @@ Answer TaskLoop::kill() {
 Answer TaskLoop::clear() {
     Answer a;
     t_.next_state.store(State::OFF);
-    const err::Error e{err_code_, err_module_, err_message_, nullptr, 0};
+    const err::Error e{err_code_, err_module_.view(), err_message_.view(), nullptr, 0};
     bool still = false;
     for (std::size_t i = 0; i < t_.objects.size() && !still; ++i) {
         phase_ = Phase::clear;
@@ -453,7 +456,7 @@ Answer TaskLoop::reinit() {
     if (r == Outcome::ok) r = call_all(Phase::reinit, kReinit);
     if (!ok_or_off(r)) {
         settle(r);
-        a.result = "error in reinit(): " + err_message_;
+        a.result = "error in reinit(): " + std::string(err_message_.view());
     }
     return a;
 }
@@ -476,7 +479,7 @@ Answer TaskLoop::set(const std::string& key) {
             // Refused: LOCAL keeps what the module runs with.
             if (before) local.set(key, before->values, before->line);
             else local.erase(key);
-            a.result = "set " + key + ": " + err_message_;
+            a.result = "set " + key + ": " + std::string(err_message_.view());
             break;
         }
         if (!any) break;
@@ -496,7 +499,7 @@ Answer TaskLoop::get(const std::string& key) {
             known = true;
         }
         if (call(Phase::get, i, kGet) != Outcome::ok) {
-            a.result = "get " + key + ": " + err_message_;
+            a.result = "get " + key + ": " + std::string(err_message_.view());
             break;
         }
         if (t_.reply_set) known = true;
@@ -654,7 +657,7 @@ void TaskLoop::settle(Outcome r) {
 }
 
 void TaskLoop::enter_error() {
-    if (t_.slot.valid()) t_.slot.error(err_message_);
+    if (t_.slot.valid()) t_.slot.error(err_message_.view());
     t_.set_state(State::ERROR);
     t_.next_state.store(State::ERROR);
     t_.sbs.refresh_error_flag();
@@ -676,8 +679,8 @@ Outcome TaskLoop::call(Phase p, std::size_t i, Fn&& fn) {
         if (decided_) return *decided_;
         return route(a.error());  // a user handler aborted: still the module's error()
     } catch (const std::exception& ex) {
-        return route(err::Error{err::code::exception, t_.objects[i].rmod.module,
-                                std::string("exception: ") + ex.what(), nullptr, 0});
+        failure_.assign({"exception: ", ex.what()});
+        return route(err::Error{err::code::exception, t_.objects[i].rmod.module, failure_.view(), nullptr, 0});
     } catch (...) {
         return route(err::Error{err::code::exception, t_.objects[i].rmod.module, "unknown exception", nullptr, 0});
     }
@@ -686,8 +689,8 @@ Outcome TaskLoop::call(Phase p, std::size_t i, Fn&& fn) {
         case Result::CONTINUE: return Outcome::ok;
         case Result::OFF: return Outcome::off;
         case Result::ERROR:
-            return route(err::Error{err::code::method_failed, t_.objects[i].rmod.module,
-                                    std::string(phase_name(p)) + "() returned ERROR", nullptr, 0});
+            failure_.assign({phase_name(p), "() returned ERROR"});
+            return route(err::Error{err::code::method_failed, t_.objects[i].rmod.module, failure_.view(), nullptr, 0});
     }
     return Outcome::error_halt;
 }
@@ -705,10 +708,9 @@ Outcome TaskLoop::call_all(Phase p, Fn&& fn) {
 // The module's state is unknown after a crash: error() is not called, the task halts.
 Outcome TaskLoop::crashed(Phase p, std::size_t i, int signo) {
     t_.pacer->disarm_abort();
-    const std::string msg = std::string("crashed with ") + sigabbrev_np(signo) + " (" + strsignal(signo) + ") in " +
-                            phase_name(p) + "()";
-    record(err::Error{err::code::exception, t_.objects[i].rmod.module, msg, nullptr, 0});
-    report_error(t_.objects[i].rmod.name, msg);
+    failure_.assign({"crashed with ", sigabbrev_np(signo), " (", sigdescr_np(signo), ") in ", phase_name(p), "()"});
+    record(err::Error{err::code::exception, t_.objects[i].rmod.module, failure_.view(), nullptr, 0});
+    report_error(t_.objects[i].rmod.name, failure_.view());
     return Outcome::error_halt;
 }
 
@@ -746,16 +748,16 @@ err::Outcome TaskLoop::handle(const err::Error& e) {
 
 void TaskLoop::record(const err::Error& e) {
     err_code_ = e.code;
-    err_module_ = std::string(e.module);
-    err_message_ = std::string(e.message);
+    err_module_.assign(e.module);
+    err_message_.assign(e.message);
     std::lock_guard<ipc::PiMutex> lock(t_.msg_mu);
     const std::size_t n = std::min(e.message.size(), sizeof(t_.last_msg) - 1);
     std::memcpy(t_.last_msg, e.message.data(), n);
     t_.last_msg[n] = '\0';
     t_.last_num.store(e.code);
     t_.error_code = e.code;
-    t_.error_module = err_module_;
-    t_.error_text = err_message_;
+    t_.error_module.assign(err_module_.view());
+    t_.error_text.assign(err_message_.view());
 }
 
 void TaskLoop::report_error(std::string_view object, std::string_view message, const char* phase, int code) {
@@ -772,9 +774,8 @@ void TaskLoop::report_error(std::string_view object, std::string_view message, c
 Outcome TaskLoop::transfer(svar::Status st, const char* what) {
     if (svar::transferred(st)) return Outcome::ok;
     current_ = 0;
-    return route(err::Error{err::code::timeout, "svar",
-                            std::string("state variable transfer of ") + what + " failed: " + svar::to_string(st),
-                            nullptr, 0});
+    failure_.assign({"state variable transfer of ", what, " failed: ", svar::to_string(st)});
+    return route(err::Error{err::code::timeout, "svar", failure_.view(), nullptr, 0});
 }
 
 svar::Status TaskLoop::copy_in(const svar::VarSet& set) {
@@ -807,7 +808,7 @@ void TaskCore::run() {
     } alt_stack_off;
     pthread_setname_np(pthread_self(), name.substr(0, 15).c_str());
     try {
-        publish_policy(pacer->idle());
+        publish_policy(std::string(pacer->idle()));
     } catch (const std::exception& e) {
         publish_policy(std::string("unknown (") + e.what() + ")");
     }
@@ -827,7 +828,7 @@ void TaskCore::run() {
         }
         slot.set_tid(static_cast<int>(tid.load()));
         std::lock_guard<ipc::PiMutex> lock(msg_mu);
-        slot.set_policy(policy);
+        slot.set_policy(policy.view());
     }
     struct ProfilerDetach {
         prof::TaskProfiler*& p;

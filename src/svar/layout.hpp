@@ -111,7 +111,7 @@ inline void undo_clear(TableHeader& h) noexcept {
 
 }  // namespace detail
 
-// The table lock on the cycle path: one CAS to take it, a store to give it back.
+// The table lock on the cycle path: one CAS to take it, one to give it back.
 inline Status Table::acquire() noexcept {
     switch (ipc::lock(hdr_->lock, lock_options_)) {
         case ipc::LockStatus::acquired: return Status::ok;
@@ -120,6 +120,7 @@ inline Status Table::acquire() noexcept {
             return Status::recovered;
         case ipc::LockStatus::forced: return Status::forced;
         case ipc::LockStatus::already_held: return Status::reentered;
+        case ipc::LockStatus::corrupt: return Status::lock_corrupt;
         case ipc::LockStatus::busy:
         case ipc::LockStatus::timed_out: break;
     }

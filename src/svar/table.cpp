@@ -64,6 +64,7 @@ const char* to_string(Status s) noexcept {
         case Status::timed_out: return "lock timed out";
         case Status::reentered: return "table lock already held by this thread";
         case Status::bad_argument: return "not a variable of this table";
+        case Status::lock_corrupt: return "the SVAR table's lock word is corrupt (it names no thread that could hold it)";
     }
     return "unknown";
 }

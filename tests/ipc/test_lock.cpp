@@ -1,11 +1,14 @@
 #include <gtest/gtest.h>
 #include <signal.h>
 
+#include <cstdio>
+#include <string>
 #include <thread>
 #include <vector>
 
 #include "chimera/ipc/clock.hpp"
 #include "chimera/ipc/lock.hpp"
+#include "priority_inversion.hpp"
 #include "sanitizer.hpp"
 #include "test_util.hpp"
 
@@ -25,7 +28,7 @@ struct Shared {
 };
 
 struct Events {
-    int recovered = 0, timed_out = 0, forced = 0;
+    int recovered = 0, timed_out = 0, forced = 0, corrupt = 0;
     std::int32_t last_pid = 0, last_tid = 0;
 };
 
@@ -35,6 +38,7 @@ void record(const LockEvent& ev, void* ctx) noexcept {
         case LockEvent::Kind::recovered: ++e->recovered; break;
         case LockEvent::Kind::timed_out: ++e->timed_out; break;
         case LockEvent::Kind::forced: ++e->forced; break;
+        case LockEvent::Kind::corrupt: ++e->corrupt; break;
     }
     e->last_pid = ev.previous_pid;
     e->last_tid = ev.previous_tid;
@@ -46,6 +50,17 @@ protected:
     void TearDown() override { set_lock_event_handler(nullptr); }
     Events events;
 };
+
+// A child process that takes the lock and holds it until killed; its pid once
+// it holds it, -1 if it did not get there.
+pid_t fork_holder(Shared& s) {
+    const pid_t child = fork_child([&] {
+        if (lock(s.lock) != LockStatus::acquired) return 2;
+        s.holding = 1;
+        for (;;) pause();
+    });
+    return wait_for([&] { return s.holding.load() == 1; }) ? child : -1;
+}
 
 }  // namespace
 
@@ -104,12 +119,8 @@ TEST_F(IpcLock, MutualExclusionAcrossProcesses) {
 TEST_F(IpcLock, HolderKilledWithSigkillIsRecoveredAndReported) {
     CHIMERA_NOT_UNDER_TSAN("a forked holder killed with SIGKILL");
     auto* s = shared_anon<Shared>();
-    const pid_t child = fork_child([&] {
-        if (lock(s->lock) != LockStatus::acquired) return 2;
-        s->holding = 1;
-        for (;;) pause();
-    });
-    ASSERT_TRUE(wait_for([&] { return s->holding.load() == 1; }));
+    const pid_t child = fork_holder(*s);
+    ASSERT_GT(child, 0);
     EXPECT_EQ(try_lock(s->lock), LockStatus::busy);
     // Alive holder: a short wait times out, the lock is left alone.
     EXPECT_EQ(lock(s->lock, LockOptions{.timeout_ns = 2'000'000}), LockStatus::timed_out);
@@ -194,4 +205,106 @@ TEST_F(IpcLock, WaiterGetsTheLockWhenTheHolderReleases) {
     EXPECT_TRUE(unlock(s->lock));
     EXPECT_EQ(wait_child(child), 0);
     EXPECT_EQ(events.recovered + events.timed_out + events.forced, 0);
+}
+
+// A holder killed while a waiter is blocked in FUTEX_LOCK_PI: the kernel hands
+// the lock to the waiter at the holder's exit, and the waiter is told it was a
+// recovery (the holder's pid was still in the word), not a release.
+TEST_F(IpcLock, HolderKilledWhileAWaiterBlocksInTheKernelIsRecovered) {
+    CHIMERA_NOT_UNDER_TSAN("a forked holder killed with SIGKILL");
+    auto* s = shared_anon<Shared>();
+    const pid_t child = fork_holder(*s);
+    ASSERT_GT(child, 0);
+    LockStatus got = LockStatus::busy;
+    bool released = false;
+    std::thread waiter([&] {
+        got = lock(s->lock, LockOptions{.timeout_ns = 10'000'000'000});
+        released = holds(got) && unlock(s->lock);
+    });
+    // FUTEX_WAITERS in the word: the waiter is queued in the kernel.
+    ASSERT_TRUE(wait_for([&] { return (s->lock.owner.load() & kFutexWaiters) != 0; }));
+    kill(child, SIGKILL);
+    waiter.join();
+    EXPECT_EQ(wait_child(child), 128 + SIGKILL);
+    EXPECT_EQ(got, LockStatus::recovered);
+    EXPECT_EQ(events.recovered, 1);
+    EXPECT_EQ(events.last_pid, child);
+    EXPECT_EQ(s->lock.recoveries.load(), 1u);
+    EXPECT_TRUE(released);
+    EXPECT_EQ(s->lock.owner.load(), 0u);
+}
+
+// A waiter queued in the kernel is handed the lock by FUTEX_UNLOCK_PI when the
+// holder releases: a clean release, not a recovery.
+TEST_F(IpcLock, ReleaseToAWaiterBlockedInTheKernelIsClean) {
+    LockWord l;
+    ASSERT_EQ(lock(l), LockStatus::acquired);
+    LockStatus got = LockStatus::busy;
+    std::thread waiter([&] {
+        got = lock(l, LockOptions{.timeout_ns = 10'000'000'000});
+        if (holds(got)) (void)unlock(l);
+    });
+    ASSERT_TRUE(wait_for([&] { return (l.owner.load() & kFutexWaiters) != 0; }));
+    EXPECT_TRUE(unlock(l));  // through FUTEX_UNLOCK_PI
+    waiter.join();
+    EXPECT_EQ(got, LockStatus::acquired);
+    EXPECT_EQ(events.recovered + events.corrupt + events.timed_out, 0);
+    EXPECT_EQ(l.owner.load(), 0u);
+}
+
+namespace {
+bool kthreadd_is_tid_2() {
+    char comm[32] = {};
+    FILE* f = std::fopen("/proc/2/comm", "r");
+    if (!f) return false;
+    const bool ok = std::fgets(comm, sizeof comm, f) && std::string(comm) == "kthreadd\n";
+    std::fclose(f);
+    return ok;
+}
+}  // namespace
+
+// A word overwritten with an owner no holder could have written — here our pid
+// with the TID of the namespace's init, a thread of another process — is
+// refused within two liveness periods even by a caller that waits forever,
+// counted and reported; the word is left as it was.
+TEST_F(IpcLock, ACorruptWordIsRefusedEvenWithoutATimeout) {
+    LockWord l;
+    const std::uint64_t garbage = std::uint64_t(std::uint32_t(getpid())) << 32 | 1u;
+    l.owner.store(garbage);
+    EXPECT_EQ(lock(l, LockOptions{.timeout_ns = -1, .liveness_check_ns = 2'000'000}), LockStatus::corrupt);
+    EXPECT_EQ(owner_of(l.owner.load()), garbage);
+    EXPECT_EQ(l.corruptions.load(), 1u);
+    EXPECT_EQ(events.corrupt, 1);
+    EXPECT_EQ(events.recovered + events.timed_out + events.forced, 0);
+    // A word the kernel refuses (EPERM: the TID of a kernel thread, kthreadd)
+    // is refused too, after kRefusedBoundNs (50 ms) of looking again.
+    if (!kthreadd_is_tid_2()) GTEST_SKIP() << "no kthreadd at TID 2 in this PID namespace";
+    const std::uint64_t kthread = std::uint64_t(std::uint32_t(getpid())) << 32 | 2u;
+    l.owner.store(kthread);
+    EXPECT_EQ(lock(l, LockOptions{.timeout_ns = -1}), LockStatus::corrupt);
+    EXPECT_EQ(events.corrupt, 2);
+    EXPECT_EQ(owner_of(l.owner.load()), kthread);  // left alone (the kernel may add FUTEX_WAITERS)
+}
+
+// The three-thread scene (tests/support/priority_inversion.hpp) with the table
+// lock: H blocks in FUTEX_LOCK_PI, the kernel boosts L past M.
+namespace {
+struct TableLock {
+    LockWord word;
+    void lock() {
+        if (!holds(chimera::ipc::lock(word, LockOptions{.timeout_ns = -1}))) std::abort();
+    }
+    void unlock() {
+        if (!chimera::ipc::unlock(word)) std::abort();
+    }
+};
+}  // namespace
+
+TEST(IpcLockPi, BoostsTheHolderPastAMediumHog) {
+    using namespace chimera::test::inversion;
+    TableLock lock;
+    const std::vector<int> ev = three_threads(lock);
+    if (ev.empty()) GTEST_SKIP() << "SCHED_FIFO is not allowed here";
+    EXPECT_EQ(ev, (std::vector<int>{l_released, h_acquired, m_saw_h_done}));
+    EXPECT_EQ(lock.word.owner.load(), 0u);
 }

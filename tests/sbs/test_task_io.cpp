@@ -149,3 +149,75 @@ TEST_F(TaskIo, ACycleThatThrowsHaltsTheTaskInErrorAndReportsThroughTheRing) {
     // ERRPRINT errors: the warnings of cycles 1..9 are counted, never printed.
     EXPECT_EQ(err.find("WARNING>"), std::string::npos) << err;
 }
+
+namespace {
+// What the task thread did from steady state (after 250 ms of warning cycles)
+// until its cycle failed and the master got sig::ERROR.
+struct FailureCount {
+    long allocations = -1;
+    std::uint64_t writes = 0;
+    chimera::sbs::TaskStatus status;
+};
+}  // namespace
+
+// Runs the warner with `local` (a failure at cycle 100, 0.5 s at 200 Hz).
+static FailureCount count_until_error(Subsystem& s, const std::string& rmod_path, long syscall_id) {
+    FailureCount c;
+    const auto w = s.spawn(rmod_path);
+    s.control(w, Control::on);
+    std::this_thread::sleep_for(250ms);  // warm-up: the warning path taken ~50 times
+    const long tid = s.status(w).tid;
+    const int writes = open_write_counter(syscall_id, tid);
+    if (writes < 0) return c;
+    const std::uint64_t writes0 = chimera::test::read_syscall_counter(writes);
+    chimera::test::alloc_count_start(chimera::test::AllocScope::thread, tid);
+    const auto ev = s.sig_wait(chimera::sig::bit(chimera::sig::ERROR), w, 5s);
+    const long allocations = chimera::test::alloc_count_stop();
+    c.writes = chimera::test::read_syscall_counter(writes) - writes0;
+    ::close(writes);
+    if (!ev) return c;
+    c.allocations = allocations;
+    c.status = s.status(w);
+    return c;
+}
+
+// A cycle that returns ERROR (issue #14.7): the runtime's whole error path on
+// the task thread — the message, the record for `status`, error() of the
+// module, the ERROR> line into the ring, the state change, sig::ERROR — makes
+// no allocation and no write(2).
+TEST_F(TaskIo, ACycleThatReturnsErrorNeitherAllocatesNorWritesOnTheTaskThread) {
+    testing::internal::CaptureStderr();
+    auto& s = init("errors");
+    const FailureCount c = count_until_error(s, rmod("FAIL_AT 100\n"), syscall_id_);
+    s.finish();
+    const std::string err = testing::internal::GetCapturedStderr();
+    ASSERT_GE(c.allocations, 0) << "no ERROR signal, or no write counter";
+    EXPECT_EQ(c.status.state, State::ERROR);
+    EXPECT_EQ(c.status.error, "cycle() returned ERROR");
+    EXPECT_EQ(c.allocations, 0);
+    if (!chimera::test::kSanitizer) {
+        EXPECT_EQ(c.writes, 0u);
+    }
+    EXPECT_NE(err.find("ERROR> w: cycle() returned ERROR (code"), std::string::npos) << err;
+}
+
+// A cycle that throws: the task thread allocates exactly what the module's own
+// `throw std::runtime_error("joint 3 encoder lost")` allocates in the C++
+// runtime — the exception object (__cxa_allocate_exception) and the
+// runtime_error's copy of its message (20 bytes, libstdc++'s reference-counted
+// string) — 2, and nothing for the runtime's catch, message, record, error(),
+// ERROR> line and signal.
+TEST_F(TaskIo, ACycleThatThrowsAllocatesOnlyTheModulesOwnException) {
+    testing::internal::CaptureStderr();
+    auto& s = init("errors");
+    const FailureCount c = count_until_error(s, rmod("THROW_AT 100\n"), syscall_id_);
+    s.finish();
+    const std::string err = testing::internal::GetCapturedStderr();
+    ASSERT_GE(c.allocations, 0) << "no ERROR signal, or no write counter";
+    EXPECT_EQ(c.status.state, State::ERROR);
+    EXPECT_EQ(c.status.error, "exception: joint 3 encoder lost");
+    EXPECT_EQ(c.allocations, 2);
+    if (!chimera::test::kSanitizer) {
+        EXPECT_EQ(c.writes, 0u);
+    }
+}
