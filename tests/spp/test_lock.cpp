@@ -159,14 +159,14 @@ TEST_F(SppLock, LockingAgainWaitsUntilTheTasksBufferedReleaseHasRun) {
 // A task sleeping in wait() is woken by its own WAKEUP only: every other
 // task's WAKEUP that woke it as well would cost it a switch in and out, at its
 // (possibly high) priority. Each round one task holds the lock, so the others'
-// commands stay queued and they sleep in wait() while the holder waits 1000
+// commands stay queued and they sleep in wait() while the holder waits 200
 // times; whatever wait() sleeps on must not be shared between tasks (with 8
 // tasks, any sharing between two of them shows in some round).
 TEST_F(SppLock, AnotherTasksWakeupDoesNotWakeATaskSleepingInWait) {
     // A wait() that sleeps once switches about 5 times (the sleep, and the
     // yields of libstdc++'s spin before it); one woken by every WAKEUP of a
     // task sharing its word switches hundreds of times.
-    constexpr int kTasks = 8, kHolderWaits = 1000, kMostSwitches = 20;
+    constexpr int kTasks = 8, kHolderWaits = 200, kMostSwitches = 20;
     start(/*queue=*/4, kTasks);
     std::vector<spp::Spp*> tasks;
     for (int t = 0; t < kTasks; ++t) tasks.push_back(&task(t + 1));
