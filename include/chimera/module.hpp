@@ -58,7 +58,7 @@
 // and a cycle that failed is not counted. The other tasks run on. The ERROR>
 // line goes through the subsystem's report ring and is printed by its reporter
 // thread, never from the task thread. The runtime's part of this path — the
-// catch, the message (cut at 255 bytes), the record for status, the ERROR>
+// catch, the message (cut at 1023 bytes), the record for status, the ERROR>
 // line, the state change and its idle scheduling policy, the signal —
 // allocates nothing and throws nothing on the task thread, for a throw as for
 // a cycle that returns ERROR (tests/sbs/test_task_io.cpp counts it: 0

@@ -180,7 +180,7 @@ public:
     mutable ipc::PiMutex msg_mu;
     FixedText<160> policy;
     int error_code = 0;
-    FixedText<256> error_text;  // error that put the task in ERROR (or last error)
+    FixedText<1024> error_text;  // error that put the task in ERROR (or last error)
     FixedText<64> error_module;
     char first_warning[160] = {};  // "" when none; fixed, so a warning never allocates
     // Fixed buffer read by Task::error_message() in the task itself.

@@ -243,8 +243,8 @@ private:
     std::optional<Outcome> decided_;    // set by the task's error handler before it aborts
     // The last error, kept in place: the error path of a cycle allocates nothing.
     FixedText<64> err_module_;
-    FixedText<256> err_message_;
-    FixedText<256> failure_;  // the message of a failure the loop words itself
+    FixedText<1024> err_message_;
+    FixedText<1024> failure_;  // the message of a failure the loop words itself
     int err_code_ = 0;
     std::uint64_t missed_ = 0;
     bool alive_ = true;
