@@ -2,7 +2,9 @@
 #include "chimera/ipc/segment.hpp"
 
 #include <fcntl.h>
+#include <grp.h>
 #include <pthread.h>
+#include <pwd.h>
 #include <signal.h>
 #include <sys/mman.h>
 #include <sys/stat.h>
@@ -14,7 +16,9 @@
 #include <climits>
 #include <chrono>
 #include <cstdio>
+#include <cstdlib>
 #include <cstring>
+#include <mutex>
 #include <thread>
 #include <utility>
 
@@ -42,10 +46,10 @@ void check_name(const std::string& name) {
 
 // Maps `fd` and applies the prefault/lock options; returns the address.
 void* map_fd(const std::string& name, int fd, std::size_t size, bool prefault, bool lock,
-             bool& locked) {
+             bool& locked, bool read_only = false) {
     int flags = MAP_SHARED;
     if (prefault) flags |= MAP_POPULATE;
-    void* base = mmap(nullptr, size, PROT_READ | PROT_WRITE, flags, fd, 0);
+    void* base = mmap(nullptr, size, read_only ? PROT_READ : PROT_READ | PROT_WRITE, flags, fd, 0);
     if (base == MAP_FAILED) fail_errno(name, "mmap", errno);
     locked = lock && mlock(base, size) == 0;
     return base;
@@ -176,7 +180,87 @@ bool names_file(const std::string& name, int fd) noexcept {
     return same;
 }
 
+#ifndef CHIMERA_WATCH_GROUP
+#define CHIMERA_WATCH_GROUP "chimera"
+#endif
+
+std::string user_name(uid_t uid) {
+    if (const passwd* pw = getpwuid(uid)) return pw->pw_name;
+    return "uid " + std::to_string(uid);
+}
+
+std::string group_name(gid_t gid) {
+    if (const group* gr = getgrgid(gid)) return gr->gr_name;
+    return "gid " + std::to_string(gid);
+}
+
+// Gives a new segment's file the mode asked for: group bits go to the watch
+// group, or are dropped (said once per process) when there is none to give.
+void set_mode(const std::string& name, int fd, mode_t mode) {
+    if ((mode & 070) != 0) {
+        const std::string group = watch_group_name();
+        const struct group* gr = group.empty() ? nullptr : getgrnam(group.c_str());
+        std::string why;
+        if (group.empty()) why = "no watch group is set (CHIMERA_GROUP is empty)";
+        else if (!gr) why = "group " + group + " does not exist (groupadd --system " + group + ")";
+        else if (fchown(fd, static_cast<uid_t>(-1), gr->gr_gid) != 0)
+            why = "cannot give it to group " + group + " (" + std::strerror(errno) +
+                  ": the creator must be root or a member)";
+        if (!why.empty()) {
+            static std::once_flag said;
+            std::call_once(said, [&] {
+                std::fprintf(stderr,
+                             "chimera: %s: shared segments are owner-only (0600) from %s on, so only "
+                             "their owner and root can watch them (docs/permissions.md)\n",
+                             why.c_str(), name.c_str());
+            });
+            mode &= ~static_cast<mode_t>(077);
+        }
+    }
+    // fchmod: the umask must not narrow the mode the caller asked for.
+    if (fchmod(fd, mode) != 0) fail_errno(name, "fchmod", errno);
+}
+
+// shm_open(), with EACCES explained (who owns the segment, what to do).
+int open_segment(const std::string& name, int flags) {
+    const int fd = shm_open(name.c_str(), flags, 0);
+    if (fd >= 0) return fd;
+    const int err = errno;
+    if (err == ENOENT) throw SegmentError(name, "does not exist", ENOENT);
+    if (err == EACCES) throw SegmentError(name, permission_advice(name, (flags & O_ACCMODE) != O_RDONLY), EACCES);
+    fail_errno(name, "shm_open", err);
+}
+
 }  // namespace
+
+std::string watch_group_name() {
+    if (const char* env = std::getenv("CHIMERA_GROUP")) return env;
+    return CHIMERA_WATCH_GROUP;
+}
+
+std::string permission_advice(const std::string& name, bool write) {
+    const std::string path = "/dev/shm" + name;
+    struct stat st {};
+    if (stat(path.c_str(), &st) != 0) return "permission denied: " + path;
+    char mode[8];
+    std::snprintf(mode, sizeof mode, "%04o", static_cast<unsigned>(st.st_mode & 07777));
+    const std::string owner = user_name(st.st_uid), group = group_name(st.st_gid);
+    std::string s = "permission denied: " + path + " is " + owner + "'s (group " + group + ", mode " + mode + "): ";
+    const bool group_reads = (st.st_mode & S_IRGRP) != 0;
+    const std::string run_as = "run as " + owner + (st.st_uid == 0 ? " (sudo)" : " or root");
+    if (write) {
+        s += "only " + owner + " may change it: " + run_as;
+        if (group_reads) s += "; members of group " + group + " may only watch it";
+    } else if (group_reads) {
+        s += "add yourself to group " + group + " (usermod -aG " + group + " " + user_name(geteuid()) +
+             "), then log in again";
+    } else {
+        const std::string watchers = watch_group_name().empty() ? "chimera" : watch_group_name();
+        s += "only " + owner + " may read it: " + run_as + ", or let group " + watchers +
+             " watch (groupadd --system " + watchers + ", then restart the subsystem)";
+    }
+    return s;
+}
 
 std::string describe(std::string_view segment, const Fault& f) {
     if (!f) return "";
@@ -332,8 +416,7 @@ Segment Segment::create(const std::string& name, std::size_t size, SegmentKind k
     seg.name_ = name;
     seg.creator_ = true;
     try {
-        // fchmod: the umask must not narrow the mode the caller asked for.
-        if (fchmod(fd, options.mode) != 0) fail_errno(name, "fchmod", errno);
+        set_mode(name, fd, options.mode);
         if (ftruncate(fd, static_cast<off_t>(size)) != 0) fail_errno(name, "ftruncate", errno);
         if (!set_user_lock(fd, F_RDLCK, false)) fail_errno(name, "fcntl(F_OFD_SETLK)", errno);
         if (!lock_one_free_slot(fd)) fail_errno(name, "user slot lock", errno);
@@ -352,12 +435,17 @@ Segment Segment::create(const std::string& name, std::size_t size, SegmentKind k
 }
 
 Segment Segment::attach(const std::string& name, SegmentKind kind, const AttachOptions& options) {
+    return map_published(name, kind, options, false);
+}
+
+Segment Segment::watch(const std::string& name, SegmentKind kind, const AttachOptions& options) {
+    return map_published(name, kind, options, true);
+}
+
+Segment Segment::map_published(const std::string& name, SegmentKind kind, const AttachOptions& options,
+                               bool read_only) {
     check_name(name);
-    const int fd = shm_open(name.c_str(), O_RDWR, 0);
-    if (fd < 0) {
-        if (errno == ENOENT) throw SegmentError(name, "does not exist", ENOENT);
-        fail_errno(name, "shm_open", errno);
-    }
+    const int fd = open_segment(name, read_only ? O_RDONLY : O_RDWR);
     struct stat st {};
     if (fstat(fd, &st) != 0) {
         const int err = errno;
@@ -373,12 +461,13 @@ Segment Segment::attach(const std::string& name, SegmentKind kind, const AttachO
     // Count ourselves in first: from here a detach_destroy_if_last() of
     // another user cannot remove the segment, and one that removed it before
     // has marked it destroyed, which we see below.
-    if (const int err = wait_for_user_lock(fd); err != 0) {
+    // A watcher takes no lock: it is nobody's user, and waits for nobody.
+    if (const int err = read_only ? 0 : wait_for_user_lock(fd); err != 0) {
         close(fd);
         if (err == ESHUTDOWN) throw SegmentError(name, "is being destroyed");
         fail_errno(name, "fcntl(F_OFD_SETLK)", err);
     }
-    if (!lock_one_free_slot(fd)) {
+    if (!read_only && !lock_one_free_slot(fd)) {
         const int err = errno;
         close(fd);
         fail_errno(name, "user slot lock", err);
@@ -388,7 +477,7 @@ Segment Segment::attach(const std::string& name, SegmentKind kind, const AttachO
     seg.fd_ = fd;
     track_fd(fd);
     seg.owner_ = getpid();
-    seg.base_ = map_fd(name, fd, size, options.prefault, options.lock, seg.locked_);
+    seg.base_ = map_fd(name, fd, size, options.prefault, options.lock, seg.locked_, read_only);
     seg.size_ = size;
     SegmentHeader& h = seg.header();
     // A segment still being built: wait for publish() a bounded time.
@@ -402,9 +491,15 @@ Segment Segment::attach(const std::string& name, SegmentKind kind, const AttachO
         std::this_thread::sleep_for(std::chrono::microseconds(200));
     }
     validate_header(name, h, kind, size);
-    h.attaches.fetch_add(1, std::memory_order_relaxed);
+    if (!read_only) h.attaches.fetch_add(1, std::memory_order_relaxed);
     seg.published_ = true;
     return seg;
+}
+
+bool Segment::read_only() const noexcept {
+    if (fd_ < 0 || owner_ != getpid()) return false;
+    const int flags = fcntl(fd_, F_GETFL);
+    return flags >= 0 && (flags & O_ACCMODE) == O_RDONLY;
 }
 
 void Segment::publish() noexcept {
@@ -429,7 +524,7 @@ bool Segment::release(bool destroy_if_last) noexcept {
     if (mine) {
         if (creator_ && !published_) {
             destroy = true;  // a creation that failed half-way leaves nothing behind
-        } else if (destroy_if_last && set_user_lock(fd_, F_WRLCK, false)) {
+        } else if (destroy_if_last && !read_only() && set_user_lock(fd_, F_WRLCK, false)) {
             // No other live mapping holds a lock: the segment is ours to remove.
             // `destroyed` first, so that an attacher that opened the name and
             // waits for its shared lock learns it as soon as it gets it. The

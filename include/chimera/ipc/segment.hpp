@@ -26,6 +26,16 @@
 // SIGKILL at any instruction is counted out at once, and the last live user
 // frees the segment (issue #15.2). A handle copied into a child by fork()
 // neither counts nor frees: only the process that attached releases.
+//
+// Watchers (issue 16.7, docs/permissions.md): watch() maps a published
+// segment read-only (O_RDONLY, PROT_READ) and takes no lock at all, so a
+// watcher is not a user: it keeps no segment alive, never delays the last
+// user's destroy, and never waits for anything a real-time task holds. Its
+// mapping stays readable after the segment is destroyed (the header then
+// says `destroyed`). A segment created with group bits in its mode is given
+// to the watch group (watch_group_name(), `chimera` by default), whose
+// members may watch it; the mode is set with fchmod, so the umask does not
+// narrow it.
 #pragma once
 
 #include "chimera/export.hpp"
@@ -134,7 +144,11 @@ struct SegmentKind {
 };
 
 struct CreateOptions {
-    mode_t mode = 0600;   ///< owner only, by default
+    /// Set exactly (fchmod: the umask does not narrow it). Group bits give the
+    /// segment to the watch group (watch_group_name()); without that group
+    /// they are dropped (owner only), and the first such creation says so on
+    /// stderr. 0600, owner only, by default; 0640 lets the group watch.
+    mode_t mode = 0600;
     bool prefault = true; ///< touch every page now, not in the first cycle
     bool lock = false;    ///< mlock the mapping (best effort: see Segment::locked())
 };
@@ -165,6 +179,12 @@ public:
     /// object type, layout version and size.
     static Segment attach(const std::string& name, SegmentKind kind,
                           const AttachOptions& options = {});
+    /// Maps a published segment read-only, as a watcher: validated as by
+    /// attach(), but no user lock (not counted by users(), never keeps the
+    /// segment alive or blocks its destroy). A segment this user may not read
+    /// throws with error_number() EACCES and permission_advice() in what().
+    static Segment watch(const std::string& name, SegmentKind kind,
+                         const AttachOptions& options = {});
 
     /// Marks a created segment ready for attach(). Call once, after the body
     /// is complete (release ordering: attachers see the whole body).
@@ -206,6 +226,8 @@ public:
     bool locked() const noexcept { return locked_; }
     /// True when this mapping created the segment.
     bool creator() const noexcept { return creator_; }
+    /// True for a watcher's mapping (watch()): PROT_READ, writes would fault.
+    bool read_only() const noexcept;
 
     template <typename T>
     T* at(Offset<T> offset) const noexcept {
@@ -217,6 +239,8 @@ public:
     }
 
 private:
+    static Segment map_published(const std::string& name, SegmentKind kind, const AttachOptions& options,
+                                 bool read_only);
     bool release(bool destroy_if_last) noexcept;
 
     std::string name_;
@@ -228,6 +252,18 @@ private:
     bool creator_ = false;
     bool published_ = false;
 };
+
+/// The group whose members may watch segments created with group bits in
+/// their mode: $CHIMERA_GROUP when set (empty: none), else the build's
+/// `watch_group` option (`chimera` unless configured otherwise).
+CHIMERA_API std::string watch_group_name();
+
+/// What to do about EACCES on `name`, for an error message: who owns it,
+/// its group and mode, and the remedy, e.g. "permission denied:
+/// /dev/shm/chimera.arm.status is root's (group chimera, mode 0640): add
+/// yourself to group chimera (usermod -aG chimera alice), then log in again".
+/// `write`: the access wanted was read-write (only the owner may).
+CHIMERA_API std::string permission_advice(const std::string& name, bool write);
 
 /// Checks a header against what a process expects; throws SegmentError with
 /// the mismatch named. Used by attach(), and by objects laid over
