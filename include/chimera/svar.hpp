@@ -70,7 +70,8 @@ inline constexpr std::size_t kMaxNameLength = 15;
 inline constexpr std::size_t kMaxTableDataBytes = std::size_t{256} << 20;
 
 /// Layout version of the table segment; attach() refuses other versions.
-inline constexpr std::uint32_t kLayoutVersion = 1;
+/// 2: the header's write sequence counter (Table::watch() reads by it).
+inline constexpr std::uint32_t kLayoutVersion = 2;
 
 /// The variable types of §5.5.2.
 enum class Type : std::uint32_t {
@@ -168,6 +169,7 @@ enum class [[nodiscard]] Status : int {
     lock_corrupt, ///< nothing transferred: the table lock's word names no thread
                   ///< that could hold it (overwritten by another process); the
                   ///< word is left alone (see chimera/ipc/lock.hpp)
+    read_only,    ///< nothing transferred: a watcher's table (Table::watch()) is not written
 };
 CHIMERA_API const char* to_string(Status s) noexcept;
 /// True when data was transferred (ok, recovered, forced, lock_lost).
@@ -254,6 +256,14 @@ public:
                         const TableOptions& options = {});
     /// Attaches to an existing table by name (any process).
     static Table attach(const std::string& segment_name, const TableOptions& options = {});
+    /// Maps a table read-only as a watcher (chimtop, a non-owner's query;
+    /// docs/permissions.md): not a user of the segment, and read() never
+    /// takes the table lock — it copies under the table's write sequence
+    /// counter and retries while a writer is in the middle of a write, so a
+    /// watcher never delays a task. write(), set_illegal_configuration() and a
+    /// LocalTable need the owner's attach(). A table this user may not read
+    /// throws ipc::SegmentError (error_number() EACCES, what to do in what()).
+    static Table watch(const std::string& segment_name, const TableOptions& options = {});
 
     /// Unmaps; the table stays for other users.
     void detach() noexcept;
@@ -275,8 +285,15 @@ public:
 
     /// Locked single-variable access to the global table, for tools and
     /// interfaces (sbs set/get, chimtop). `buffer` holds var(index).bytes().
+    /// A watcher's read() takes no lock (see watch()): a copy no write ran
+    /// through, or timed_out after lock_options().timeout_ns of writes in
+    /// progress (a writer that died mid-write, until a user recovers it); its
+    /// write() is refused with read_only.
+    /// (A timeout that waits forever is the default's 100 ms for a watcher.)
     Status read(std::size_t index, void* buffer) noexcept;
     Status write(std::size_t index, const void* buffer) noexcept;
+    /// True for a watcher's table (watch()).
+    bool read_only() const noexcept { return read_only_; }
 
     /// The illegal-configuration flag word of §3.10 (0 = configuration legal).
     /// Set during a reconfiguration or after an error so critical tasks fall
@@ -295,6 +312,8 @@ private:
     friend class LocalTable;
     friend class VarInfo;
     explicit Table(ipc::Segment seg, const TableOptions& options) noexcept;
+    /// A Table over `seg` once validate_table() accepts its image.
+    static Table checked(ipc::Segment seg, const TableOptions& options);
     void bind() noexcept;
     // Defined inline in the library's internal layout header: the cycle path.
     inline Status acquire() noexcept;
@@ -312,6 +331,7 @@ private:
     std::unique_ptr<detail::Descriptor[]> own_desc_;
     const detail::Descriptor* desc_ = nullptr;
     std::uint32_t nvars_ = 0;
+    bool read_only_ = false;  // watch(): in nvars_'s padding, the layout is unchanged
     std::byte* data_ = nullptr;
     std::byte* undo_ = nullptr;
     std::uint32_t* undo_list_ = nullptr;

@@ -23,6 +23,7 @@
 #include "chimera/ipc/copy.hpp"
 #include "chimera/ipc/lock.hpp"
 #include "chimera/ipc/segment.hpp"
+#include "chimera/ipc/seqlock.hpp"
 #include "chimera/svar.hpp"
 
 namespace chimera::svar::detail {
@@ -53,12 +54,16 @@ struct alignas(64) TableHeader {
     std::atomic<std::uint32_t> undo_active;  // 1 while a write-set is being written
     std::uint32_t undo_count;                // variables in the undo index list
     std::uint64_t undo_writer;               // owner word of the writer (diagnostics)
-    std::uint8_t reserved1[40];
+    // Odd while a write-set is being written (undo_mark .. undo_clear, or a
+    // roll-back): watchers, who take no lock, copy by it (ipc/seqlock.hpp).
+    std::atomic<std::uint32_t> write_seq;
+    std::uint8_t reserved1[36];
 };
 static_assert(sizeof(TableHeader) == 256);
 static_assert(offsetof(TableHeader, lock) == 64);
 static_assert(offsetof(TableHeader, nvars) == 128);
 static_assert(offsetof(TableHeader, illegal_config) == 192);
+static_assert(offsetof(TableHeader, write_seq) == 216);
 
 struct Descriptor {
     char name[16];              // NUL-terminated, at most kMaxNameLength characters
@@ -94,6 +99,7 @@ using ipc::is_small;
 // indices into the undo list, then marks the record active; writes; clears
 // the mark.
 inline void undo_mark(TableHeader& h, std::uint32_t count, std::uint64_t writer) noexcept {
+    ipc::seqlock::write_begin(h.write_seq);
     h.undo_count = count;
     h.undo_writer = writer;
     // Release: the saved copy is complete before the record is marked active.
@@ -107,6 +113,7 @@ inline void undo_mark(TableHeader& h, std::uint32_t count, std::uint64_t writer)
 inline void undo_clear(TableHeader& h) noexcept {
     // Release: the new data is complete before the record is dropped.
     h.undo_active.store(0, std::memory_order_release);
+    ipc::seqlock::write_end(h.write_seq);
 }
 
 }  // namespace detail

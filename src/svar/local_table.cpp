@@ -51,6 +51,9 @@ LocalTable::~LocalTable() = default;
 void LocalTable::build(const std::vector<const std::vector<std::string>*>& lists,
                        const std::vector<const char*>& list_names) {
     if (!global_->valid()) throw Error("local table: the global table is not attached");
+    if (global_->read_only())
+        throw Error("local table: table " + global_->name() +
+                    " is watched read-only; a task's local table needs its owner's attach()");
     hdr_ = global_->hdr_;
     gdata_ = global_->data_;
     gundo_ = global_->undo_;

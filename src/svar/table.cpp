@@ -65,6 +65,7 @@ const char* to_string(Status s) noexcept {
         case Status::reentered: return "table lock already held by this thread";
         case Status::bad_argument: return "not a variable of this table";
         case Status::lock_corrupt: return "the SVAR table's lock word is corrupt (it names no thread that could hold it)";
+        case Status::read_only: return "permission denied: the table is watched read-only (only its owner writes)";
     }
     return "unknown";
 }
@@ -112,6 +113,7 @@ Table& Table::operator=(Table&& o) noexcept {
         own_desc_ = std::move(o.own_desc_);
         desc_ = std::exchange(o.desc_, nullptr);
         nvars_ = std::exchange(o.nvars_, 0);
+        read_only_ = std::exchange(o.read_only_, false);
         data_ = std::exchange(o.data_, nullptr);
         undo_ = std::exchange(o.undo_, nullptr);
         undo_list_ = std::exchange(o.undo_list_, nullptr);
@@ -131,6 +133,7 @@ Table::Table(ipc::Segment seg, const TableOptions& options) noexcept
 void Table::bind() noexcept {
     hdr_ = seg_.at_bytes<TableHeader>(0);
     nvars_ = hdr_->nvars;
+    read_only_ = seg_.read_only();
     own_desc_.reset(new (std::nothrow) Descriptor[nvars_]);
     if (own_desc_)
         std::memcpy(own_desc_.get(), seg_.at_bytes<const Descriptor>(hdr_->desc_offset),
@@ -343,7 +346,15 @@ Table Table::create(const std::string& segment_name, const TableSpec& spec,
 }
 
 Table Table::attach(const std::string& segment_name, const TableOptions& options) {
-    ipc::Segment seg = ipc::Segment::attach(segment_name, kKind, options.attach);
+    return checked(ipc::Segment::attach(segment_name, kKind, options.attach), options);
+}
+
+Table Table::watch(const std::string& segment_name, const TableOptions& options) {
+    return checked(ipc::Segment::watch(segment_name, kKind, options.attach), options);
+}
+
+Table Table::checked(ipc::Segment seg, const TableOptions& options) {
+    const std::string segment_name = seg.name();
     // Validate every offset before trusting any; the handle keeps what it checked.
     if (const ipc::Fault f = validate_table(seg.base(), seg.size()))
         throw Error("table " + segment_name + ": corrupt: " + ipc::describe(segment_name, f));
@@ -391,6 +402,7 @@ std::uint32_t Table::illegal_configuration() const noexcept {
     return hdr_->illegal_config.load(std::memory_order_acquire);
 }
 void Table::set_illegal_configuration(std::uint32_t flags) noexcept {
+    if (read_only()) return;  // a watcher's mapping is PROT_READ
     hdr_->illegal_config.store(flags, std::memory_order_release);
 }
 
@@ -417,7 +429,14 @@ void Table::save_undo(const std::uint32_t* indices, std::size_t count) noexcept 
 void Table::clear_undo() noexcept { detail::undo_clear(*hdr_); }
 
 void Table::roll_back() noexcept {
-    if (hdr_->undo_active.load(std::memory_order_acquire) == 0) return;
+    // A holder that died inside undo_mark() may have left the write sequence
+    // odd with no record active: even it again (we hold the lock: the writer).
+    const auto seq = hdr_->write_seq.load(std::memory_order_relaxed);
+    if (hdr_->undo_active.load(std::memory_order_acquire) == 0) {
+        if (seq & 1u) hdr_->write_seq.store(seq + 1, std::memory_order_release);
+        return;
+    }
+    if ((seq & 1u) == 0) ipc::seqlock::write_begin(hdr_->write_seq);
     const std::byte* undo = undo_;
     const std::uint32_t* list = undo_list_;
     // Written by another process (the writer that died): bounded before use.
@@ -429,11 +448,20 @@ void Table::roll_back() noexcept {
     }
     hdr_->rollbacks.fetch_add(1, std::memory_order_relaxed);
     hdr_->undo_active.store(0, std::memory_order_release);
+    ipc::seqlock::write_end(hdr_->write_seq);
 }
 
 Status Table::read(std::size_t index, void* buffer) noexcept {
     if (index >= size()) return Status::bad_argument;
     const Descriptor& d = desc_[index];
+    if (read_only()) {
+        // A watcher may not write the lock word, and must not make a task wait:
+        // a copy that no write overlapped (writers hold the lock, one at a time).
+        const bool whole = ipc::seqlock::read_consistent(
+            hdr_->write_seq, [&]() noexcept { std::memcpy(buffer, data_ + d.data_offset, d.bytes); },
+            lock_options_.timeout_ns >= 0 ? lock_options_.timeout_ns : ipc::LockOptions{}.timeout_ns);
+        return whole ? Status::ok : Status::timed_out;
+    }
     const Status s = acquire();
     if (!transferred(s)) return s;
     std::memcpy(buffer, data_ + d.data_offset, d.bytes);
@@ -442,6 +470,7 @@ Status Table::read(std::size_t index, void* buffer) noexcept {
 
 Status Table::write(std::size_t index, const void* buffer) noexcept {
     if (index >= size()) return Status::bad_argument;
+    if (read_only()) return Status::read_only;
     const Descriptor& d = desc_[index];
     const Status s = acquire();
     if (!transferred(s)) return s;
