@@ -32,3 +32,7 @@ if ((${#missing[@]})); then
   apt-get update -qq
   apt-get install -y -qq --no-install-recommends "${missing[@]}"
 fi
+# The watch group: its members may run chimtop and read-only queries on every
+# subsystem (the status and SVAR segments are theirs to read; docs/permissions.md).
+# A build configured with another -Dwatch_group needs that group instead.
+getent group chimera >/dev/null || groupadd --system chimera

@@ -491,7 +491,9 @@ struct StatusOptions {
     std::int64_t tick_ns = 1'000'000;  ///< used in half-tick mode
     /// Unlink a segment of the same name left by a process that died.
     bool replace_stale = true;
-    mode_t mode = 0600;
+    /// Owner read-write, the watch group read-only (chimtop as a member of
+    /// group chimera: docs/permissions.md); 0600 for the owner alone.
+    mode_t mode = 0640;
     /// The RTPUs' names and CPUs as in the .sbs (index = RTPU number); shorter
     /// lists leave the rest unnamed. A name is cut to kNameMax - 1 characters.
     std::vector<std::string> rtpu_names;
@@ -560,6 +562,17 @@ public:
     /// its segment; 0: another reason, e.g. another layout) and `why` the message.
     [[nodiscard]] static std::optional<StatusReader> try_attach(std::string_view subsystem, int& error_number,
                                                                 std::string& why);
+    /// Maps the segment read-only, as a watcher (chimtop; docs/permissions.md):
+    /// a member of the watch group may, and the reads are the same seqlocked
+    /// copies; it is not a user of the segment (keeps nothing alive) and its
+    /// resets and set_accounting() throw StatusError "permission denied".
+    static StatusReader watch(std::string_view subsystem);
+    /// Like watch(), nullopt with the reason as try_attach() says it (EACCES:
+    /// the message says what to do, ipc::permission_advice()).
+    [[nodiscard]] static std::optional<StatusReader> try_watch(std::string_view subsystem, int& error_number,
+                                                               std::string& why);
+    /// True for a watcher's reader.
+    bool read_only() const noexcept { return segment_.read_only(); }
 
     std::vector<TaskStatus> snapshot() const;
     std::vector<TaskStatus> snapshot(std::int64_t now_ns) const;
@@ -591,6 +604,9 @@ public:
 
 private:
     explicit StatusReader(ipc::Segment segment) noexcept : segment_(std::move(segment)) {}
+    static std::optional<StatusReader> try_map(std::string_view subsystem, bool watcher, int& error_number,
+                                               std::string& why);
+    void check_writable(const char* what) const;
     ipc::Segment segment_;
 };
 

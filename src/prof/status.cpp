@@ -698,24 +698,34 @@ std::vector<TaskStatus> StatusSegment::snapshot(std::int64_t now_ns) const {
 
 // ------------------------------------------------------------- StatusReader
 
-StatusReader StatusReader::attach(std::string_view subsystem) {
+namespace {
+
+// The status segment of `subsystem` as a reader (attach) or a watcher (watch).
+ipc::Segment map_status(std::string_view subsystem, bool watcher, std::int64_t ready_timeout_ns) {
     ipc::AttachOptions ao;
     ao.prefault = false;
-    ipc::Segment seg = ipc::Segment::attach(ipc::segment_name(subsystem, "status"), kKind, ao);
+    ao.ready_timeout_ns = ready_timeout_ns;
+    const std::string name = ipc::segment_name(subsystem, "status");
+    ipc::Segment seg = watcher ? ipc::Segment::watch(name, kKind, ao) : ipc::Segment::attach(name, kKind, ao);
     validate_body(seg);
-    return StatusReader(std::move(seg));
+    return seg;
+}
+
+}  // namespace
+
+StatusReader StatusReader::attach(std::string_view subsystem) {
+    return StatusReader(map_status(subsystem, false, ipc::AttachOptions{}.ready_timeout_ns));
+}
+
+StatusReader StatusReader::watch(std::string_view subsystem) {
+    return StatusReader(map_status(subsystem, true, ipc::AttachOptions{}.ready_timeout_ns));
 }
 
 std::optional<StatusReader> StatusReader::try_attach(std::string_view subsystem) {
     const std::string name = ipc::segment_name(subsystem, "status");
     if (!ipc::Segment::exists(name)) return std::nullopt;
     try {
-        ipc::AttachOptions ao;
-        ao.prefault = false;
-        ao.ready_timeout_ns = 100'000'000;
-        ipc::Segment seg = ipc::Segment::attach(name, kKind, ao);
-        validate_body(seg);
-        return StatusReader(std::move(seg));
+        return StatusReader(map_status(subsystem, false, 100'000'000));
     } catch (const ipc::SegmentError&) {
         return std::nullopt;  // being built or destroyed: try again later
     }
@@ -723,16 +733,21 @@ std::optional<StatusReader> StatusReader::try_attach(std::string_view subsystem)
 
 std::optional<StatusReader> StatusReader::try_attach(std::string_view subsystem, int& error_number,
                                                      std::string& why) {
+    return try_map(subsystem, false, error_number, why);
+}
+
+std::optional<StatusReader> StatusReader::try_watch(std::string_view subsystem, int& error_number,
+                                                    std::string& why) {
+    return try_map(subsystem, true, error_number, why);
+}
+
+std::optional<StatusReader> StatusReader::try_map(std::string_view subsystem, bool watcher, int& error_number,
+                                                  std::string& why) {
     error_number = 0;
     why.clear();
     try {
         // No exists() first: it cannot tell a segment this user may not open from none.
-        ipc::AttachOptions ao;
-        ao.prefault = false;
-        ao.ready_timeout_ns = 100'000'000;
-        ipc::Segment seg = ipc::Segment::attach(ipc::segment_name(subsystem, "status"), kKind, ao);
-        validate_body(seg);
-        return StatusReader(std::move(seg));
+        return StatusReader(map_status(subsystem, watcher, 100'000'000));
     } catch (const ipc::SegmentError& e) {
         error_number = e.error_number();
         why = e.what();
@@ -740,6 +755,13 @@ std::optional<StatusReader> StatusReader::try_attach(std::string_view subsystem,
         why = e.what();
     }
     return std::nullopt;
+}
+
+void StatusReader::check_writable(const char* what) const {
+    if (segment_.read_only())
+        throw StatusError("status segment " + name() + ": permission denied: " + what +
+                          " changes what every reader sees, and this reader only watches (read-only); " +
+                          ipc::permission_advice(name(), true));
 }
 
 std::vector<TaskStatus> StatusReader::snapshot() const { return snapshot(ipc::now_ns()); }
@@ -766,12 +788,14 @@ std::vector<TaskStatus> StatusReader::status_and_reset() {
 }
 
 void StatusReader::reset_all() {
+    check_writable("a reset");
     StatusHeader* h = header_of(segment_);
     HeaderLock lock(h, "status segment " + name());
     for (std::uint32_t r = 0; r < h->rtpus; ++r) bump_epoch(h, static_cast<int>(r), nullptr, nullptr);
 }
 
 void StatusReader::reset_rtpu(int rtpu) {
+    check_writable("a reset");
     StatusHeader* h = header_of(segment_);
     check_rtpu(h, rtpu, "status segment " + name());
     HeaderLock lock(h, "status segment " + name());
@@ -779,6 +803,7 @@ void StatusReader::reset_rtpu(int rtpu) {
 }
 
 void StatusReader::set_accounting(int rtpu, Accounting accounting, std::int64_t tick_ns) {
+    check_writable("changing the accounting");
     set_rtpu_accounting(header_of(segment_), name(), rtpu, accounting, tick_ns);
 }
 

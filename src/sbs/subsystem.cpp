@@ -80,7 +80,11 @@ SubsystemCore::SubsystemCore(SbsFile f) : file(std::move(f)) {
                      file.subsystem.c_str(), seg.c_str());
         ipc::Segment::unlink(seg);
     }
-    table = svar::Table::create(seg, file.svarfile);
+    // The table and the status segment: the watch group reads them (chimtop,
+    // a non-owner's queries); everything else stays owner-only (docs/permissions.md).
+    svar::TableOptions to;
+    to.segment.mode = 0640;
+    table = svar::Table::create(seg, file.svarfile, to);
     prof::StatusOptions so;
     so.rtpus = static_cast<std::uint32_t>(std::max<std::size_t>(1, file.rtpus.size()));
     for (const auto& r : file.rtpus) {  // chimtop and `status` name RTPUs as the .sbs does

@@ -413,6 +413,36 @@ TEST(Window, RtpuNamesAndCpusFromTheOptions) {
     EXPECT_EQ(r.snapshot()[0].rtpu_name, "robot");
 }
 
+// A watcher (chimtop as a member of the watch group, issue 16.7): the same
+// seqlocked reads and its own window, but no reset or accounting change: they
+// would change what every reader sees, and its mapping is read-only.
+TEST(Window, AWatcherReadsAndKeepsAWindowButResetsNothing) {
+    const std::string sub = unique_subsystem("watch");
+    auto seg = StatusSegment::create(sub, 2, one_rtpu());
+    TaskSlot slot = seg.claim(id("w", 0, 100));
+    TaskProfiler p(slot);
+    for (int i = 0; i < 4; ++i) {
+        p.cycle_begin(ipc::now_ns());
+        p.cycle_end();
+    }
+    StatusReader watcher = StatusReader::watch(sub);
+    EXPECT_TRUE(watcher.read_only());
+    StatusWindow window;
+    EXPECT_EQ(window.take(watcher)[0].cycle, 4u);
+    const std::string denied = "status segment /chimera." + sub + ".status: permission denied: a reset changes what "
+                               "every reader sees, and this reader only watches (read-only); permission denied: "
+                               "/dev/shm/chimera." + sub + ".status is ";
+    try {
+        watcher.reset_all();
+        ADD_FAILURE() << "a watcher reset every reader's counts";
+    } catch (const StatusError& e) {
+        EXPECT_EQ(std::string(e.what()).substr(0, denied.size()), denied);
+    }
+    EXPECT_THROW(watcher.reset_rtpu(0), StatusError);
+    EXPECT_THROW(watcher.set_accounting(0, Accounting::half_tick, 1'000'000), StatusError);
+    EXPECT_EQ(StatusWindow{}.snapshot(watcher)[0].cycle, 4u) << "nothing was reset";
+}
+
 // --------------------------------------------------------------- the segment
 
 TEST(StatusSegmentTest, ClaimFillsIdentityAndRejectsBadInput) {
