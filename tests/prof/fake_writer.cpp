@@ -78,7 +78,9 @@ int main(int argc, char** argv) {
         "fake.svar");
     const std::string svar_name = chimera::ipc::segment_name(sub, "svar");
     chimera::ipc::Segment::unlink(svar_name);
-    auto table = chimera::svar::Table::create(svar_name, spec);
+    chimera::svar::TableOptions table_options;
+    table_options.segment.mode = 0640;  // as a subsystem's: the watch group reads it
+    auto table = chimera::svar::Table::create(svar_name, spec, table_options);
 #endif
 
     StatusOptions opt;

@@ -4,8 +4,9 @@
 # driven in tmux (send-keys / capture-pane): columns, rows, WARNING>/ERROR>
 # lines, the SVAR pane, sorting, the help screen, the field picker, search and
 # filter, the RTPU summary lines, `z` restarting only this chimtop's window,
-# the list of running subsystems, "permission denied" for another user, and
-# surviving the subsystem's restart.
+# the list of running subsystems, who may watch (a member of the group chimera
+# reads, a non-member gets "permission denied" and what to do), and surviving
+# the subsystem's restart.
 set -u
 CHIMTOP=$1
 WRITER=$2
@@ -230,20 +231,43 @@ sleep 0.5
 check "tui: Enter watches the chosen one" has "$(screen)" "chimtop  subsystem $SUB "
 tmux -L "$SOCK" kill-server 2>/dev/null
 
-# ---- a subsystem this user may not read: "permission denied" and what to do
-if command -v setpriv >/dev/null && [ "$(id -u)" = 0 ]; then
-    as_nobody() { setpriv --reuid=nobody --regid=nogroup --clear-groups "$@"; }
-    out=$(as_nobody "$CHIMTOP" "$SUB" --once 2>&1); rc=$?
-    check "another user: exit 1" test $rc -eq 1
-    check "...'permission denied', not 'not found'" has "$out" "permission denied: /dev/shm/chimera.$SUB.status is root's (mode 0600)"
-    check "...and what to do" has "$out" "sudo chimtop $SUB"
-    out=$(as_nobody "$CHIMTOP" --once 2>&1)
-    check "another user's list says so too" grep -qE "^$SUB +permission denied" <<<"$out"
-    tmux -L "$SOCK" new-session -d -x 200 -y 20 "setpriv --reuid=nobody --regid=nogroup --clear-groups $CHIMTOP $SUB"
+# ---- 16.7 who may watch: a member of the watch group reads, read-only; a
+# non-member is told "permission denied" and what to do (as nobody, via setpriv)
+if command -v setpriv >/dev/null && [ "$(id -u)" = 0 ] && getent group chimera >/dev/null; then
+    as_member() { setpriv --reuid=nobody --regid=nogroup --groups=chimera "$@"; }
+    as_stranger() { setpriv --reuid=nobody --regid=nogroup --clear-groups "$@"; }
+    check "the status segment is root's, group chimera, mode 0640" \
+        test "$(stat -c '%U %G %a' /dev/shm/chimera.$SUB.status)" = "root chimera 640"
+    json=$(as_member "$CHIMTOP" "$SUB" --json --svar 2>&1); rc=$?
+    check "a member of chimera watches: exit 0" test $rc -eq 0
+    check "...the tasks and the SVAR values, as root sees them" python3 -c '
+import json, sys
+t = {x["rmod"]: x for x in json.loads(sys.argv[1])["tasks"]}
+assert set(t) == {"servo", "planner", "logger"} and t["servo"]["cycle"] > 0, t
+sv = t["servo"]["svar"]
+if "error" not in sv or "built without" not in sv["error"]:
+    assert sv["in"]["Q_REF"] == [0.5, 1.5, 2.5] and sv["out"]["TAU"] == [7, 8], sv
+' "$json" || echo "$json"
+    out=$(as_member "$CHIMTOP" "$SUB" --once --half-tick 1 2>&1); rc=$?
+    check "a member cannot change the accounting (--half-tick): exit 1" test $rc -eq 1
+    check "...'permission denied', only root may" has "$out" \
+        "permission denied: /dev/shm/chimera.$SUB.status is root's (group chimera, mode 0640): only root may change it: run as root (sudo); members of group chimera may only watch it"
+    out=$(as_stranger "$CHIMTOP" "$SUB" --once 2>&1); rc=$?
+    check "a non-member: exit 1" test $rc -eq 1
+    check "...'permission denied' and what to do, not 'not found'" has "$out" \
+        "permission denied: /dev/shm/chimera.$SUB.status is root's (group chimera, mode 0640): add yourself to group chimera (usermod -aG chimera nobody), then log in again"
+    out=$(as_stranger "$CHIMTOP" --once 2>&1)
+    check "a non-member's list says so too" grep -qE "^$SUB +permission denied" <<<"$out"
+    tmux -L "$SOCK" new-session -d -x 220 -y 20 "setpriv --reuid=nobody --regid=nogroup --clear-groups $CHIMTOP $SUB"
     sleep 0.8
-    check "tui: another user sees 'permission denied'" has "$(screen)" "permission denied: /dev/shm/chimera.$SUB.status"
+    check "tui: a non-member sees 'permission denied'" has "$(screen)" "permission denied: /dev/shm/chimera.$SUB.status"
+    tmux -L "$SOCK" kill-server 2>/dev/null
+    tmux -L "$SOCK" new-session -d -x 160 -y 40 "setpriv --reuid=nobody --regid=nogroup --groups=chimera $CHIMTOP $SUB --rate 10"
+    rows() { test "$(grep -cE '^(servo|planner|logger) ' <<<"$(screen)")" -eq 3; }
+    for _ in $(seq 50); do rows && break; sleep 0.1; done
+    check "tui: a member sees the three tasks" rows || screen
     tmux -L "$SOCK" kill-server 2>/dev/null
 else
-    echo "skip - permission test: needs root and setpriv (util-linux)"
+    echo "skip - permission tests: need root, setpriv (util-linux) and the group chimera (scripts/setup-debian.sh)"
 fi
 exit $fail

@@ -4,7 +4,8 @@
 # show puma_torque, jtraj and jpid ON and cycling with the §4.4.1 fields
 # consistent with each other; --svar shows the variables each task reads and
 # writes; the live view (tmux) waits while the subsystem is gone and
-# re-attaches when it is started again.
+# re-attaches when it is started again; a member of the group chimera watches
+# it read-only without keeping its segments alive (issue 16.7).
 # Usage: test_chimtop_demo.sh CHIMTOP DEMO
 set -u
 CHIMTOP=$1
@@ -23,6 +24,7 @@ header_of() { grep -m1 -vE '^(subsystem|RTPU) ' <<<"$1"; }  # --once: the column
 demo_pid=
 cleanup() {
     tmux -L "$SOCK" kill-server 2>/dev/null
+    tmux -L "$SOCK.member" kill-server 2>/dev/null
     [ -n "$demo_pid" ] && kill "$demo_pid" 2>/dev/null && wait "$demo_pid" 2>/dev/null
     rm -f "$LOG".*
 }
@@ -147,6 +149,34 @@ t = {x["rmod"]: x for x in json.loads(sys.argv[1])["tasks"]}
 assert t["puma_torque"]["accounting"] == "ns" and t["puma_torque"]["tick"] == 0.001
 ' "$json"
 
+# ---- 16.7 who may watch: a member of the group chimera (nobody, via setpriv)
+# reads the status and the SVAR table of the running subsystem, read-only,
+# while its tasks run; its chimtop is no user of the segments (run 1's end
+# below removes them under it).
+member=0
+if command -v setpriv >/dev/null && [ "$(id -u)" = 0 ] && getent group chimera >/dev/null; then
+    member=1
+    as_member() { setpriv --reuid=nobody --regid=nogroup --groups=chimera "$@"; }
+    check "the SVAR table is root's, group chimera, mode 0640" \
+        test "$(stat -c '%U %G %a' /dev/shm/chimera.$SUB.svar)" = "root chimera 640"
+    json=$(as_member "$CHIMTOP" "$SUB" --json --svar 2>&1)
+    check "a member reads the running tasks and their SVAR values" python3 -c '
+import json, sys
+t = {x["rmod"]: x for x in json.loads(sys.argv[1])["tasks"]}
+for n in ("puma_torque", "jtraj", "jpid"):
+    assert t[n]["state"] == "ON" and t[n]["cycle"] > 0, (n, t[n])
+sv = t["jpid"]["svar"]
+assert "error" not in sv and len(sv["out"]["T_REF"]) == 6, sv
+' "$json" || echo "$json"
+    tmux -L "$SOCK.member" new-session -d -x 200 -y 45 \
+        "setpriv --reuid=nobody --regid=nogroup --groups=chimera $CHIMTOP $SUB --svar --rate 10 --sort rmod"
+    for _ in $(seq 50); do has "$(tmux -L "$SOCK.member" capture-pane -p)" "SVAR of" && break; sleep 0.1; done
+    check "tui: a member's chimtop shows the SVAR pane" grep -qE "^(in|out) +[A-Z_^]+ +double" \
+        <<<"$(tmux -L "$SOCK.member" capture-pane -p | sed 's/^ *//')"
+else
+    echo "skip - the member's view: needs root, setpriv (util-linux) and the group chimera (scripts/setup-debian.sh)"
+fi
+
 screen=$(tmux -L "$SOCK" capture-pane -p)
 echo "$screen"
 check "tui: rows of the real tasks" test "$(grep -cE '^(puma_torque|jtraj|jpid|grav_comp|jpidg) ' <<<"$screen")" -eq 5
@@ -155,6 +185,12 @@ check "tui: puma_torque ON on RTPU robot (named as in the .sbs)" grep -qE '^puma
 wait "$demo_pid"; rc=$?; demo_pid=
 check "demo run 1 exits 0" test $rc -eq 0
 check "demo removed its status segment" test ! -e "$SEG"
+if [ $member = 1 ]; then
+    check "...and its SVAR table, though a member's chimtop still watches it (a watcher is no user)" \
+        test ! -e /dev/shm/chimera.$SUB.svar
+    check "...the member's chimtop still runs" tmux -L "$SOCK.member" has-session
+    tmux -L "$SOCK.member" kill-server 2>/dev/null
+fi
 sleep 0.5
 check "tui: subsystem stopped -> waiting" has "$(tmux -L "$SOCK" capture-pane -p)" "waiting for subsystem '$SUB'"
 

@@ -5,8 +5,9 @@
 // snapshots: the tasks are never blocked). Counts are over this chimtop's
 // own window (`z` restarts it, nobody else's: issue 16.4). Started without a
 // subsystem it lists the running ones. The optional SVAR pane reads the
-// selected task's variables through the table's own locked read, once per
-// refresh. The live view is in ui.cpp.
+// selected task's variables as a watcher (Table::watch: no table lock), once
+// per refresh. chimtop maps both segments read-only, so a member of the watch
+// group may run it (docs/permissions.md). The live view is in ui.cpp.
 #include <cerrno>
 #include <csignal>
 

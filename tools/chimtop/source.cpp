@@ -30,17 +30,9 @@ std::string segment_path(const std::string& subsystem) { return kShm + std::stri
 
 }  // namespace
 
-std::string permission_advice(const std::string& subsystem) {
-    const std::string path = segment_path(subsystem);
-    struct stat st {};
-    std::string whose;
-    if (::stat(path.c_str(), &st) == 0) {
-        char mode[8];
-        std::snprintf(mode, sizeof mode, "%04o", static_cast<unsigned>(st.st_mode & 07777));
-        whose = " is " + user_name(st.st_uid) + "'s (mode " + mode + ")";
-    }
-    return "permission denied: " + path + whose + "; run chimtop as that user or root (sudo chimtop " + subsystem +
-           ")";
+std::string permission_advice(const std::string& subsystem, bool write) {
+    const std::string advice = chimera::ipc::permission_advice(chimera::ipc::segment_name(subsystem, "status"), write);
+    return write ? advice + " (--half-tick changes the subsystem's accounting)" : advice;
 }
 
 std::vector<SubsystemEntry> running_subsystems() {
@@ -60,13 +52,13 @@ std::vector<SubsystemEntry> running_subsystems() {
         }
         int err = 0;
         std::string why;
-        if (auto r = StatusReader::try_attach(e.name, err, why)) {
+        if (auto r = StatusReader::try_watch(e.name, err, why)) {
             e.readable = true;
             e.alive = r->alive();
             e.creator_pid = r->creator_pid();
             e.tasks = r->snapshot().size();
         } else {
-            e.problem = err == EACCES || err == EPERM ? permission_advice(e.name) : why;
+            e.problem = err == EACCES || err == EPERM ? permission_advice(e.name, false) : why;
         }
         out.push_back(std::move(e));
     }
@@ -96,11 +88,14 @@ bool Attachment::refresh() {
     const ino_t before = inode();
     int err = 0;
     std::string why;
-    reader_ = StatusReader::try_attach(subsystem_, err, why);
+    // A watcher (read-only, takes no lock, not a user of the segment), unless
+    // --half-tick must change the accounting: that is the owner's.
+    const bool write = half_tick_ns_ >= 0;
+    reader_ = write ? StatusReader::try_attach(subsystem_, err, why) : StatusReader::try_watch(subsystem_, err, why);
     if (reader_ && inode() != before) reader_.reset();  // replaced while attaching
     denied_ = !reader_ && (err == EACCES || err == EPERM);
     if (!reader_) {
-        problem_ = denied_          ? permission_advice(subsystem_)
+        problem_ = denied_          ? permission_advice(subsystem_, write)
                    : err == ENOENT ? "segment " + chimera::ipc::segment_name(subsystem_, "status") + " not found"
                                    : why;
         return false;

@@ -31,12 +31,16 @@ std::vector<SubsystemEntry> running_subsystems();
 /// "NAME  running (pid 123)  3 tasks" or "NAME  permission denied ..." lines.
 std::string entry_line(const SubsystemEntry& e);
 
-/// "permission denied: /dev/shm/chimera.X.status is root's (mode 0600); run
-/// chimtop as root (sudo chimtop X) or as the user who started it".
-std::string permission_advice(const std::string& subsystem);
+/// "permission denied: /dev/shm/chimera.X.status is root's (group chimera,
+/// mode 0640): add yourself to group chimera (usermod -aG chimera USER), then
+/// log in again" (ipc::permission_advice); `write`: for --half-tick, which
+/// only the owner may.
+std::string permission_advice(const std::string& subsystem, bool write);
 
 /// One subsystem, re-attached when it restarts (a reader is dropped when its
-/// creator is gone or the name now names a new segment).
+/// creator is gone or the name now names a new segment). chimtop watches:
+/// read-only, no lock a task waits on, not a user of the segment
+/// (docs/permissions.md); only --half-tick attaches to write, as the owner.
 class Attachment {
 public:
     /// `half_tick_ns` >= 0: on every (re-)attachment, switch each RTPU to

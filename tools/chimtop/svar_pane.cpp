@@ -56,7 +56,7 @@ Table* table_for(const std::string& segment, std::string& why) {
         try {
             chimera::svar::TableOptions opt;
             opt.attach.prefault = false;
-            table = Table::attach(segment, opt);
+            table = Table::watch(segment, opt);  // read-only, takes no table lock
             attached = segment;
         } catch (const std::exception& e) {
             why = e.what();
