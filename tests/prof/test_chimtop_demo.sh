@@ -6,10 +6,12 @@
 # writes; the live view (tmux) waits while the subsystem is gone and
 # re-attaches when it is started again; a member of the group chimera watches
 # it read-only without keeping its segments alive (issue 16.7).
-# Usage: test_chimtop_demo.sh CHIMTOP DEMO
+# Usage: test_chimtop_demo.sh CHIMTOP DEMO SBS FIG3_7.SBS
 set -u
 CHIMTOP=$1
 DEMO=$2
+SBS=$3
+SBS_FILE=$4
 SUB=fig3_7
 SEG=/dev/shm/chimera.$SUB.status
 SOCK=chimtopdemo_$$
@@ -173,6 +175,14 @@ assert "error" not in sv and len(sv["out"]["T_REF"]) == 6, sv
     for _ in $(seq 50); do has "$(tmux -L "$SOCK.member" capture-pane -p)" "SVAR of" && break; sleep 0.1; done
     check "tui: a member's chimtop shows the SVAR pane" grep -qE "^(in|out) +[A-Z_^]+ +double" \
         <<<"$(tmux -L "$SOCK.member" capture-pane -p | sed 's/^ *//')"
+    # Commanding it stays with root: sbs says so, and where watching is.
+    out=$(as_member "$SBS" "$SBS_FILE" -c 'setvar Q_REF 0 --force' 2>&1); rc=$?
+    check "a member's sbs may not command it: exit 1" test $rc -eq 1
+    check "...'permission denied', only root may, and chimtop watches" has "$out" \
+        "sbs: subsystem $SUB is running as root: permission denied: only root may command it (run sbs as root: sudo sbs $SBS_FILE); to watch it read-only, run chimtop $SUB"
+    out=$(setpriv --reuid=nobody --regid=nogroup --clear-groups "$SBS" "$SBS_FILE" -c status 2>&1)
+    check "...a non-member is also told to join the group" has "$out" \
+        "add yourself to group chimera (usermod -aG chimera nobody), then log in again"
 else
     echo "skip - the member's view: needs root, setpriv (util-linux) and the group chimera (scripts/setup-debian.sh)"
 fi

@@ -23,6 +23,7 @@
 #include <editline/readline.h>
 
 #include <poll.h>
+#include <pwd.h>
 #include <sys/stat.h>
 #include <unistd.h>
 
@@ -418,6 +419,24 @@ int attached(cli::NetworkClient& client, const std::string& script, bool json) {
     return 0;
 }
 
+/// When `subsystem` runs as another user: why this sbs may not command it
+/// (its master's socket is its owner's alone) and what to do; "" otherwise.
+/// Watching it is chimtop's, for the members of the watch group (issue 16.7).
+std::string someone_elses(const std::string& subsystem, const std::string& sbs_path) {
+    const std::string segment = ipc::segment_name(subsystem, "svar");
+    struct stat st {};
+    if (::stat(("/dev/shm" + segment).c_str(), &st) != 0 || st.st_uid == ::geteuid()) return "";
+    const passwd* pw = ::getpwuid(st.st_uid);
+    const std::string owner = pw ? pw->pw_name : "uid " + std::to_string(st.st_uid);
+    std::string s = "subsystem " + subsystem + " is running as " + owner + ": permission denied: only " + owner +
+                    " may command it (run sbs as " + owner + (st.st_uid == 0 ? ": sudo sbs " : ": sbs ") +
+                    sbs_path + "); to watch it read-only, run chimtop " + subsystem +
+                    " (--once or --json --svar for a query)";
+    const std::string status = ipc::segment_name(subsystem, "status");
+    if (::access(("/dev/shm" + status).c_str(), R_OK) != 0) s += "; " + ipc::permission_advice(status, false);
+    return s;
+}
+
 }  // namespace
 
 int main(int argc, char** argv) {
@@ -476,6 +495,12 @@ int main(int argc, char** argv) {
     std::unique_ptr<sbs::Subsystem> subsystem;
     try {
         const SbsFile file = read_sbs(sbs_path);
+        if (!no_attach) {
+            if (const std::string refusal = someone_elses(file.subsystem, sbs_path); !refusal.empty()) {
+                std::cerr << "sbs: " << refusal << std::endl;
+                return 1;
+            }
+        }
         // Already running: talk to its master over the network interface.
         if (!no_attach && ipc::Segment::exists(ipc::segment_name(file.subsystem, "svar"))) {
             std::string path;
