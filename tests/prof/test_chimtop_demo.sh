@@ -175,14 +175,20 @@ assert "error" not in sv and len(sv["out"]["T_REF"]) == 6, sv
     for _ in $(seq 50); do has "$(tmux -L "$SOCK.member" capture-pane -p)" "SVAR of" && break; sleep 0.1; done
     check "tui: a member's chimtop shows the SVAR pane" grep -qE "^(in|out) +[A-Z_^]+ +double" \
         <<<"$(tmux -L "$SOCK.member" capture-pane -p | sed 's/^ *//')"
-    # Commanding it stays with root: sbs says so, and where watching is.
+    # sbs as a member: read-only queries answer; commanding it stays with root.
+    out=$(as_member "$SBS" "$SBS_FILE" -c 'status; display T_REF' 2>&1); rc=$?
+    echo "$out"
+    check "a member's sbs queries it read-only: exit 0" test $rc -eq 0
+    check "...status: the tasks ON and cycling" test "$(grep -cE '^(puma_torque|jtraj|jpid) +[a-z]+ +[0-9]+ P +[0-9]+ ON +[1-9]' <<<"$out")" -eq 3
+    check "...display: T_REF's six values" grep -qE "^  T_REF +double\[6\]( +[-0-9.e+]+){6} +Nm" <<<"$out"
     out=$(as_member "$SBS" "$SBS_FILE" -c 'setvar Q_REF 0 --force' 2>&1); rc=$?
-    check "a member's sbs may not command it: exit 1" test $rc -eq 1
-    check "...'permission denied', only root may, and chimtop watches" has "$out" \
-        "sbs: subsystem $SUB is running as root: permission denied: only root may command it (run sbs as root: sudo sbs $SBS_FILE); to watch it read-only, run chimtop $SUB"
-    out=$(setpriv --reuid=nobody --regid=nogroup --clear-groups "$SBS" "$SBS_FILE" -c status 2>&1)
-    check "...a non-member is also told to join the group" has "$out" \
-        "add yourself to group chimera (usermod -aG chimera nobody), then log in again"
+    check "a member's sbs may not write: exit 1" test $rc -eq 1
+    check "...'permission denied', only root may" has "$out" \
+        "error: permission denied: subsystem $SUB runs as root, and only root may command it (sudo sbs $SBS_FILE); this sbs only watches it: status, display, help, quit"
+    out=$(setpriv --reuid=nobody --regid=nogroup --clear-groups "$SBS" "$SBS_FILE" -c status 2>&1); rc=$?
+    check "a non-member's sbs: exit 1" test $rc -eq 1
+    check "...told to join the group" has "$out" \
+        "may not watch it either: segment /chimera.$SUB.status: permission denied: /dev/shm/chimera.$SUB.status is root's (group chimera, mode 0640): add yourself to group chimera (usermod -aG chimera nobody), then log in again"
 else
     echo "skip - the member's view: needs root, setpriv (util-linux) and the group chimera (scripts/setup-debian.sh)"
 fi

@@ -189,6 +189,8 @@ const std::vector<CommandInfo>& command_table() {
     return table;
 }
 
+const std::vector<std::string>& default_status_fields() { return kDefaultFields; }
+
 const std::vector<std::string>& status_field_names() {
     static const std::vector<std::string> names = [] {
         std::vector<std::string> n;
@@ -618,12 +620,17 @@ Reply Interpreter::cmd_status(const Words& w) {
         }
         if (reset) prof_->reset_all();  // the thesis's reset, for every reader
     }
-    const auto& rows = tasks;
-    std::string text = "subsystem " + sbs_.name() + ": " + std::to_string(rows.size()) +
+    return status_reply(sbs_.name(), tasks, fields_, reset);
+}
+
+Reply status_reply(const std::string& subsystem, const std::vector<sbs::TaskStatus>& rows,
+                   const std::vector<std::string>& fields, bool reset) {
+    Reply r;
+    std::string text = "subsystem " + subsystem + ": " + std::to_string(rows.size()) +
                        (rows.size() == 1 ? " task" : " tasks") + " (times in " + tools::kTimeUnit + ")";
     if (reset) text += "\nprofiling reset on every RTPU: every reader's counts start again";
     std::string header;
-    for (const auto& f : fields_) {
+    for (const auto& f : fields) {
         const Field* fd = find_field(f);
         header += (header.empty() ? "" : " ") + pad(field_header(f), fd->width, fd->numeric);
     }
@@ -631,7 +638,7 @@ Reply Interpreter::cmd_status(const Words& w) {
     nlohmann::json jtasks = nlohmann::json::array();
     for (const auto& row : rows) {
         std::string line;
-        for (const auto& f : fields_) {
+        for (const auto& f : fields) {
             const Field* fd = find_field(f);
             line += (line.empty() ? "" : " ") + pad(field_text(row, f), fd->width, fd->numeric);
         }
@@ -648,7 +655,7 @@ Reply Interpreter::cmd_status(const Words& w) {
         jtasks.push_back(std::move(j));
     }
     r.text = text;
-    r.data = {{"subsystem", sbs_.name()}, {"fields", fields_}, {"tasks", jtasks}, {"time_unit", tools::kTimeUnit},
+    r.data = {{"subsystem", subsystem}, {"fields", fields}, {"tasks", jtasks}, {"time_unit", tools::kTimeUnit},
               {"reset", reset}};
     return r;
 }
@@ -670,11 +677,7 @@ svar::Table* Interpreter::table() {
 
 Reply Interpreter::cmd_display(const Words& w) {
     svar::Table& t = *table();
-    struct Item {
-        std::string dir;
-        std::string name;
-    };
-    std::vector<Item> items;
+    std::vector<VarItem> items;
     std::size_t k = 1;
     std::string who;
     const bool whole = w.size() > 1 && w[1] == "all";
@@ -700,14 +703,14 @@ Reply Interpreter::cmd_display(const Words& w) {
     }
     const std::vector<std::string> patterns(w.begin() + static_cast<std::ptrdiff_t>(k), w.end());
     if (!patterns.empty()) {
-        std::vector<Item> kept;
+        std::vector<VarItem> kept;
         for (const auto& p : patterns) {
             bool any = false;
             for (const auto& it : items) {
                 if (!glob_match(p, it.name)) continue;
                 any = true;
                 const bool dup = std::any_of(kept.begin(), kept.end(),
-                                             [&](const Item& x) { return x.name == it.name && x.dir == it.dir; });
+                                             [&](const VarItem& x) { return x.name == it.name && x.dir == it.dir; });
                 if (!dup) kept.push_back(it);
             }
             if (!any)
@@ -717,6 +720,10 @@ Reply Interpreter::cmd_display(const Words& w) {
         items = std::move(kept);
     }
 
+    return values_reply(t, items, who);
+}
+
+Reply values_reply(svar::Table& t, const std::vector<VarItem>& items, const std::string& who) {
     Reply r;
     std::string text = who.empty() ? "SVAR table " + t.name() : who + ":";
     nlohmann::json vars = nlohmann::json::array();

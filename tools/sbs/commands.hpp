@@ -33,6 +33,25 @@ const std::vector<CommandInfo>& command_table();
 /// may choose from, in display order.
 const std::vector<std::string>& status_field_names();
 
+/// The fields `status` shows until `status set` picks others.
+const std::vector<std::string>& default_status_fields();
+
+/// The reply of `status`: a line per task with `fields` (times in µs), its
+/// WARNING>/ERROR> lines, and the JSON of every field. `reset`: say that
+/// profiling restarted for every reader.
+Reply status_reply(const std::string& subsystem, const std::vector<sbs::TaskStatus>& rows,
+                   const std::vector<std::string>& fields, bool reset);
+
+/// A variable `display` shows: `dir` ("in", "out-const"...; "" for the whole table).
+struct VarItem {
+    std::string dir;
+    std::string name;
+};
+/// The reply of `display`: each variable's type, values and units, read from
+/// `t` (a watcher's table reads without the lock); `who`: the task whose
+/// ports they are ("" for the table).
+Reply values_reply(svar::Table& t, const std::vector<VarItem>& items, const std::string& who);
+
 /// Who sent a command. A network peer may name only .rmod files on the
 /// module path the master was started with (never a path, never the working
 /// folder), so it cannot get a library of its own choosing loaded.

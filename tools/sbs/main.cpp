@@ -8,11 +8,13 @@
 //   sbs arm.sbs --tcp 127.0.0.1:7000 --token T --serve
 //
 // When the subsystem already runs and its master listens on the default
-// socket, `sbs FILE.sbs` attaches to it as a network peer instead.
+// socket, `sbs FILE.sbs` attaches to it as a network peer instead; when it
+// runs as another user, this sbs only watches it (status, display: issue 16.7).
 #include "client.hpp"
 #include "command_line.hpp"
 #include "commands.hpp"
 #include "server.hpp"
+#include "watcher.hpp"
 
 #include <chimera/ipc/segment.hpp>
 #include <chimera/sbs.hpp>
@@ -419,22 +421,51 @@ int attached(cli::NetworkClient& client, const std::string& script, bool json) {
     return 0;
 }
 
-/// When `subsystem` runs as another user: why this sbs may not command it
-/// (its master's socket is its owner's alone) and what to do; "" otherwise.
-/// Watching it is chimtop's, for the members of the watch group (issue 16.7).
-std::string someone_elses(const std::string& subsystem, const std::string& sbs_path) {
-    const std::string segment = ipc::segment_name(subsystem, "svar");
+/// The user `subsystem` runs as when that is not this user ("" otherwise):
+/// its master is then not ours to command, only to watch (issue 16.7).
+std::string other_owner(const std::string& subsystem) {
     struct stat st {};
-    if (::stat(("/dev/shm" + segment).c_str(), &st) != 0 || st.st_uid == ::geteuid()) return "";
+    const std::string path = "/dev/shm" + ipc::segment_name(subsystem, "status");
+    if (::stat(path.c_str(), &st) != 0 || st.st_uid == ::geteuid()) return "";
     const passwd* pw = ::getpwuid(st.st_uid);
-    const std::string owner = pw ? pw->pw_name : "uid " + std::to_string(st.st_uid);
-    std::string s = "subsystem " + subsystem + " is running as " + owner + ": permission denied: only " + owner +
-                    " may command it (run sbs as " + owner + (st.st_uid == 0 ? ": sudo sbs " : ": sbs ") +
-                    sbs_path + "); to watch it read-only, run chimtop " + subsystem +
-                    " (--once or --json --svar for a query)";
-    const std::string status = ipc::segment_name(subsystem, "status");
-    if (::access(("/dev/shm" + status).c_str(), R_OK) != 0) s += "; " + ipc::permission_advice(status, false);
-    return s;
+    return pw ? pw->pw_name : "uid " + std::to_string(st.st_uid);
+}
+
+/// sbs as a watcher of another user's subsystem: `status` and `display`
+/// read-only, every other command refused (tools/sbs/watcher.hpp).
+int watch(const std::string& subsystem, const std::string& owner, const std::string& sbs_path,
+          const std::string& script, bool json) {
+    std::optional<cli::Watcher> watcher;
+    const std::string command_it = std::string(owner == "root" ? "sudo " : "") + "sbs " + sbs_path;
+    try {
+        watcher.emplace(subsystem, owner, sbs_path);
+    } catch (const std::exception& e) {
+        std::cerr << "sbs: subsystem " << subsystem << " runs as " << owner << ": only " << owner
+                  << " may command it (" << command_it << "), and this user may not watch it either: " << e.what()
+                  << std::endl;
+        return 1;
+    }
+    const Executor exec = [&](std::string_view c) { return watcher->execute(c); };
+    if (!script.empty()) return run_line(exec, script, json, true).ok ? 0 : 1;
+    std::cerr << "sbs: subsystem " << subsystem << " runs as " << owner << " (pid " << watcher->master_pid()
+              << "): watching it read-only (status, display, help); only " << owner << " may command it ("
+              << command_it << ")" << std::endl;
+    const bool tty = ::isatty(STDIN_FILENO) != 0;
+    std::optional<LineEditor> editor;
+    if (tty) editor.emplace([](std::string_view) { return std::vector<std::string>{}; });
+    for (;;) {
+        std::string line;
+        if (tty) {
+            auto got = editor->read(watcher->prompt());
+            if (!got) break;
+            line = std::move(*got);
+            if (line.empty()) continue;
+        } else if (!std::getline(std::cin, line)) {
+            break;
+        }
+        if (run_line(exec, line, json, false).action == Action::quit) break;
+    }
+    return 0;
 }
 
 }  // namespace
@@ -496,10 +527,8 @@ int main(int argc, char** argv) {
     try {
         const SbsFile file = read_sbs(sbs_path);
         if (!no_attach) {
-            if (const std::string refusal = someone_elses(file.subsystem, sbs_path); !refusal.empty()) {
-                std::cerr << "sbs: " << refusal << std::endl;
-                return 1;
-            }
+            if (const std::string owner = other_owner(file.subsystem); !owner.empty())
+                return watch(file.subsystem, owner, sbs_path, script, json);
         }
         // Already running: talk to its master over the network interface.
         if (!no_attach && ipc::Segment::exists(ipc::segment_name(file.subsystem, "svar"))) {
