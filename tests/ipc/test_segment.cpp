@@ -14,15 +14,11 @@ using chimera::ipc::test::unique_name;
 using chimera::ipc::test::wait_child;
 using chimera::ipc::test::shared_anon;
 using chimera::ipc::test::wait_for;
+using chimera::ipc::test::Body;
+using chimera::ipc::test::kKind;
+using chimera::ipc::test::make;
 
 namespace {
-
-constexpr SegmentKind kKind{ObjectType::test, 2};
-
-struct Body {
-    SegmentHeader header;
-    std::uint64_t value;
-};
 
 template <typename F>
 std::string error_of(F&& f) {
@@ -32,14 +28,6 @@ std::string error_of(F&& f) {
         return e.what();
     }
     return "";
-}
-
-// Creates and publishes a segment holding a Body.
-Segment make(const std::string& name, std::uint64_t value = 42) {
-    Segment s = Segment::create(name, sizeof(Body), kKind);
-    s.at_bytes<Body>(0)->value = value;
-    s.publish();
-    return s;
 }
 
 }  // namespace

@@ -23,24 +23,11 @@ using chimera::ipc::test::shared_anon;
 using chimera::ipc::test::unique_name;
 using chimera::ipc::test::wait_child;
 using chimera::ipc::test::wait_for;
+using chimera::ipc::test::Body;
+using chimera::ipc::test::kKind;
+using chimera::ipc::test::make;
 
 namespace {
-
-constexpr SegmentKind kKind{ObjectType::test, 2};
-
-struct Body {
-    SegmentHeader header;
-    std::uint64_t value;
-};
-
-Segment make(const std::string& name, mode_t mode, std::uint64_t value = 42) {
-    CreateOptions o;
-    o.mode = mode;
-    Segment s = Segment::create(name, sizeof(Body), kKind, o);
-    s.at_bytes<Body>(0)->value = value;
-    s.publish();
-    return s;
-}
 
 struct stat stat_of(const std::string& name) {
     struct stat st {};
@@ -70,8 +57,8 @@ TEST_F(WatchGroup, GroupBitsGiveTheSegmentToTheWatchGroupWhateverTheUmask) {
     if (chimera::test::gid_of("users") == static_cast<gid_t>(-1)) GTEST_SKIP() << "no group 'users'";
     const mode_t old_umask = ::umask(077);  // would make shm_open's 0640 a 0600
     const std::string shared = unique_name("grp"), own = unique_name("own");
-    Segment a = make(shared, 0640);
-    Segment b = make(own, 0600);
+    Segment a = make(shared, 42, 0640);
+    Segment b = make(own, 42, 0600);
     ::umask(old_umask);
     EXPECT_EQ(stat_of(shared).st_mode & 07777, 0640u);
     EXPECT_EQ(stat_of(shared).st_gid, chimera::test::gid_of("users"));
@@ -85,8 +72,8 @@ TEST_F(WatchGroup, WithoutTheGroupASegmentIsOwnerOnlyAndThatIsSaidOnce) {
     ::setenv("CHIMERA_GROUP", "chimera-no-such-group", 1);
     const std::string n1 = unique_name("nogrp1"), n2 = unique_name("nogrp2");
     ::testing::internal::CaptureStderr();
-    Segment a = make(n1, 0640);
-    Segment b = make(n2, 0640);
+    Segment a = make(n1, 42, 0640);
+    Segment b = make(n2, 42, 0640);
     const std::string said = ::testing::internal::GetCapturedStderr();
     EXPECT_EQ(stat_of(n1).st_mode & 07777, 0600u);
     EXPECT_EQ(stat_of(n2).st_mode & 07777, 0600u);
@@ -102,7 +89,7 @@ TEST_F(WatchGroup, WithoutTheGroupASegmentIsOwnerOnlyAndThatIsSaidOnce) {
 TEST(IpcWatch, AWatcherIsNoUserAndNeverBlocksTheDestroy) {
     CHIMERA_NOT_UNDER_TSAN("a forked watcher");
     const std::string name = unique_name("watched");
-    Segment owner = make(name, 0600, 7);
+    Segment owner = make(name, 7, 0600);
     auto* state = shared_anon<std::atomic<int>>();  // 1: watching, 2: owner destroyed
     const pid_t watcher = fork_child([&] {
         Segment w = Segment::watch(name, kKind);
@@ -128,7 +115,7 @@ TEST(IpcWatch, AWatcherIsNoUserAndNeverBlocksTheDestroy) {
 TEST(IpcWatch, AWatcherCannotWrite) {
     CHIMERA_NOT_UNDER_TSAN("a forked watcher killed by SIGSEGV");
     const std::string name = unique_name("ro");
-    Segment owner = make(name, 0600, 1);
+    Segment owner = make(name, 1, 0600);
     const pid_t watcher = fork_child([&] {
         Segment w = Segment::watch(name, kKind);
         w.at_bytes<Body>(0)->value = 2;  // PROT_READ: the kernel refuses
@@ -147,7 +134,7 @@ TEST_F(WatchGroup, AMemberWatchesANonMemberIsToldWhatToDo) {
     const gid_t users = chimera::test::gid_of("users");
     if (users == static_cast<gid_t>(-1)) GTEST_SKIP() << "no group 'users'";
     const std::string name = unique_name("perm");
-    Segment owner = make(name, 0640, 11);
+    Segment owner = make(name, 11, 0640);
     const std::string path = "/dev/shm" + name;
     struct Message {
         char text[512];
