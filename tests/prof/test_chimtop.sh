@@ -31,6 +31,7 @@ start_writer() {
 }
 cleanup() {
     tmux -L "$SOCK" kill-server 2>/dev/null
+    tmux -L "$SOCK.member" kill-server 2>/dev/null
     [ -n "$writer_pid" ] && kill "$writer_pid" 2>/dev/null && wait "$writer_pid" 2>/dev/null
     rm -f /tmp/$SUB.writer.log
 }
@@ -262,11 +263,12 @@ if "error" not in sv or "built without" not in sv["error"]:
     sleep 0.8
     check "tui: a non-member sees 'permission denied'" has "$(screen)" "permission denied: /dev/shm/chimera.$SUB.status"
     tmux -L "$SOCK" kill-server 2>/dev/null
-    tmux -L "$SOCK" new-session -d -x 160 -y 40 "setpriv --reuid=nobody --regid=nogroup --groups=chimera $CHIMTOP $SUB --rate 10"
-    rows() { test "$(grep -cE '^(servo|planner|logger) ' <<<"$(screen)")" -eq 3; }
+    # A server of its own: a new one on the socket just killed may find it still going away.
+    tmux -L "$SOCK.member" new-session -d -x 160 -y 40 "setpriv --reuid=nobody --regid=nogroup --groups=chimera $CHIMTOP $SUB --rate 10"
+    rows() { test "$(grep -cE '^(servo|planner|logger) ' <<<"$(tmux -L "$SOCK.member" capture-pane -p)")" -eq 3; }
     for _ in $(seq 50); do rows && break; sleep 0.1; done
-    check "tui: a member sees the three tasks" rows || screen
-    tmux -L "$SOCK" kill-server 2>/dev/null
+    check "tui: a member sees the three tasks" rows || tmux -L "$SOCK.member" capture-pane -p
+    tmux -L "$SOCK.member" kill-server 2>/dev/null
 else
     echo "skip - permission tests: need root, setpriv (util-linux) and the group chimera (scripts/setup-debian.sh)"
 fi
