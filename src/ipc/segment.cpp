@@ -18,6 +18,7 @@
 #include <cstdio>
 #include <cstdlib>
 #include <cstring>
+#include <ctime>
 #include <mutex>
 #include <thread>
 #include <utility>
@@ -418,7 +419,9 @@ Segment Segment::create(const std::string& name, std::size_t size, SegmentKind k
     try {
         set_mode(name, fd, options.mode);
         if (ftruncate(fd, static_cast<off_t>(size)) != 0) fail_errno(name, "ftruncate", errno);
-        if (!set_user_lock(fd, F_RDLCK, false)) fail_errno(name, "fcntl(F_OFD_SETLK)", errno);
+        // Polls: a cleanup of a stale segment of this name (destroy_if_unused)
+        // may hold the exclusive lock for a moment while it finds this one new.
+        if (const int err = wait_for_user_lock(fd); err != 0) fail_errno(name, "fcntl(F_OFD_SETLK)", err);
         if (!lock_one_free_slot(fd)) fail_errno(name, "user slot lock", errno);
         seg.base_ = map_fd(name, fd, size, options.prefault, options.lock, seg.locked_);
         seg.size_ = size;
@@ -569,10 +572,16 @@ bool Segment::destroy_if_unused(const std::string& name) noexcept {
         void* p = mmap(nullptr, sizeof(SegmentHeader), PROT_READ | PROT_WRITE, MAP_SHARED, fd, 0);
         if (p != MAP_FAILED) {
             auto* h = static_cast<SegmentHeader*>(p);
-            // Still being built by a live creator holds its lock; a dead one's is garbage too.
-            h->state.store(static_cast<std::uint32_t>(SegmentState::destroyed), std::memory_order_seq_cst);
+            // Still being built by a live creator holds its lock; a dead one's
+            // is garbage too. But a creator that has just made the file and not
+            // yet locked it leaves it without a header for a few system calls:
+            // a young file without one is somebody's new segment, not garbage
+            // (a cleanup of a name reused at once removed the new segment).
+            const bool being_made = h->magic != kSegmentMagic && std::time(nullptr) - st.st_ctime < 10;
+            if (!being_made)
+                h->state.store(static_cast<std::uint32_t>(SegmentState::destroyed), std::memory_order_seq_cst);
             munmap(p, sizeof(SegmentHeader));
-            removed = names_file(name, fd) && shm_unlink(name.c_str()) == 0;
+            removed = !being_made && names_file(name, fd) && shm_unlink(name.c_str()) == 0;
         }
     }
     close(fd);
