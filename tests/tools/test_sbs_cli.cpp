@@ -284,6 +284,18 @@ TEST(SbsCli, SpawnCombinedTask) {
     EXPECT_NE(failing(ws, "spawn ramp+nosuch").find("no file nosuch"), std::string::npos);
 }
 
+// A combined task whose objects read one global variable: display lists it once.
+TEST(SbsCli, DisplayOfACombinedTaskListsASharedPortOnce) {
+    Workspace ws;
+    ws.write("followa.rmod", "MODULE ramp\nDESC follower\nINVAR X\nOUTVAR Y\nTASKTYPE periodic\nFREQ 200\nEOF\n");
+    ws.write("sinkb.rmod", "MODULE ramp\nDESC reader\nINVAR X\nOUTVAR none\nTASKTYPE periodic\nFREQ 200\nEOF\n");
+    const auto r = ok_json(ws, "spawn ramp; spawn followa+sinkb; display followa+sinkb");
+    const auto& vars = r[2]["data"]["vars"];
+    ASSERT_EQ(vars.size(), 2u) << vars.dump();
+    EXPECT_EQ(vars[0]["name"], "X");
+    EXPECT_EQ(vars[1]["name"], "Y");
+}
+
 TEST(SbsCli, ControlSignalsAndTheirRefusals) {
     Workspace ws;
     EXPECT_NE(failing(ws, "on").find("no default RMOD"), std::string::npos);

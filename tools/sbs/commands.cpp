@@ -694,10 +694,15 @@ Reply Interpreter::cmd_display(const Words& w) {
         const auto it = rmods_.find(who);
         if (it == rmods_.end()) throw CommandError("display: no .rmod recorded for task " + who);
         const RmodFile& f = it->second;
-        for (const auto& v : f.global_in_consts()) items.push_back({"in-const", v});
-        for (const auto& v : f.global_out_consts()) items.push_back({"out-const", v});
-        for (const auto& v : f.global_in_vars()) items.push_back({"in", v});
-        for (const auto& v : f.global_out_vars()) items.push_back({"out", v});
+        // A combined task's objects may share a port (NDOF for each): once each.
+        auto add = [&](const char* dir, const std::string& v) {
+            if (std::none_of(items.begin(), items.end(), [&](const VarItem& x) { return x.name == v && x.dir == dir; }))
+                items.push_back({dir, v});
+        };
+        for (const auto& v : f.global_in_consts()) add("in-const", v);
+        for (const auto& v : f.global_out_consts()) add("out-const", v);
+        for (const auto& v : f.global_in_vars()) add("in", v);
+        for (const auto& v : f.global_out_vars()) add("out", v);
     } else {
         for (std::size_t i = 0; i < t.size(); ++i) items.push_back({"", std::string(t.var(i).name())});
     }
