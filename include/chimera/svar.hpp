@@ -51,6 +51,7 @@
 #include <optional>
 #include <stdexcept>
 #include <string>
+#include <utility>
 #include <string_view>
 #include <type_traits>
 #include <vector>
@@ -90,6 +91,9 @@ enum class Type : std::uint32_t {
 CHIMERA_API std::string_view type_name(Type type) noexcept;
 /// Element size of a fixed-size type; 0 for struct_.
 CHIMERA_API std::size_t type_size(Type type) noexcept;
+/// The values a fixed-size type can hold, as doubles (what INIT/MIN/MAX and
+/// `setvar` are checked against); unbounded for struct_.
+CHIMERA_API std::pair<double, double> type_range(Type type) noexcept;
 /// The type written as in a .svar file: "double", "struct[32]".
 CHIMERA_API std::string type_spelling(Type type, std::size_t elem_size);
 

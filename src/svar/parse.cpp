@@ -198,6 +198,12 @@ std::size_t type_size(Type type) noexcept {
     return row ? row->size : 0;
 }
 
+std::pair<double, double> type_range(Type type) noexcept {
+    const TypeRow* row = row_of(type);
+    if (!row) return {-HUGE_VAL, HUGE_VAL};
+    return {row->lo, row->hi};
+}
+
 std::string type_spelling(Type type, std::size_t elem_size) {
     if (type == Type::struct_) return "struct[" + std::to_string(elem_size) + "]";
     return std::string(type_name(type));

@@ -42,19 +42,6 @@ void store_number(const svar::VarInfo& v, unsigned char* buf, std::size_t k, dou
     }
 }
 
-std::pair<double, double> type_limits(svar::Type t) {
-    switch (t) {
-        case svar::Type::byte_: return {0, 255};
-        case svar::Type::char_: return {-128, 127};
-        case svar::Type::word: return {0, 65535};
-        case svar::Type::short_: return {-32768, 32767};
-        case svar::Type::unsigned_: return {0, 4294967295.0};
-        case svar::Type::int_: return {-2147483648.0, 2147483647.0};
-        case svar::Type::float_: return {-3.4028234663852886e38, 3.4028234663852886e38};
-        default: return {-HUGE_VAL, HUGE_VAL};
-    }
-}
-
 std::string type_text(const svar::VarInfo& v) {
     std::string t = svar::type_spelling(v.type(), v.elem_size());
     if (v.nelem() > 1) t += "[" + std::to_string(v.nelem()) + "]";
@@ -71,7 +58,7 @@ std::string number_text(double x) {
 
 std::string value_refusal(const svar::VarInfo& v, std::size_t k, double x) {
     if (!std::isfinite(x)) return "is not a finite number";
-    const auto [lo, hi] = type_limits(v.type());
+    const auto [lo, hi] = svar::type_range(v.type());
     if (x < lo || x > hi) return "does not fit type " + type_text(v);
     if (v.has_range() && (x < v.min(k) || x > v.max(k)))
         return "is outside the .svar range [" + number_text(v.min(k)) + ", " + number_text(v.max(k)) + "]";

@@ -20,8 +20,6 @@ std::vector<double> numbers_of(const svar::VarInfo& v, const unsigned char* buf)
 /// Stores `x` as element k of `buf` in the variable's type (integers rounded
 /// half away from zero, as std::llround). `x` must have passed value_refusal().
 void store_number(const svar::VarInfo& v, unsigned char* buf, std::size_t k, double x);
-/// The numeric limits of an element of the type ([lo, hi]).
-std::pair<double, double> type_limits(svar::Type t);
 /// "double", "float[6]", "struct[32][2]": the type as the tools print it.
 std::string type_text(const svar::VarInfo& v);
 /// Why `x` may not be element k of `v` — "is not a finite number", "does not
