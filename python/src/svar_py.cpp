@@ -46,7 +46,7 @@ py::object values_or_none(const svar::VarInfo& v, bool present, double (svar::Va
     py::array_t<double> a(static_cast<py::ssize_t>(v.nelem()));
     auto w = a.mutable_unchecked<1>();
     for (std::size_t k = 0; k < v.nelem(); ++k) w(static_cast<py::ssize_t>(k)) = (v.*at)(k);
-    return std::move(a);
+    return a;
 }
 
 }  // namespace
