@@ -121,5 +121,7 @@ CHIMERA_API std::vector<std::string> split_words(std::string_view s);
 /// Whole-token number parsing shared by every reader; nullopt when malformed.
 [[nodiscard]] CHIMERA_API std::optional<double> parse_double(std::string_view token) noexcept;
 [[nodiscard]] CHIMERA_API std::optional<std::int64_t> parse_int(std::string_view token) noexcept;
+/// A number as the readers' messages and written files show it (printf's %g).
+CHIMERA_API std::string number_text(double v);
 
 }  // namespace chimera::cfg

@@ -73,6 +73,12 @@ std::optional<double> parse_double(std::string_view token) noexcept {
     return v;
 }
 
+std::string number_text(double v) {
+    char buf[32];
+    std::snprintf(buf, sizeof buf, "%g", v);
+    return buf;
+}
+
 std::optional<std::int64_t> parse_int(std::string_view token) noexcept {
     if (!token.empty() && token.front() == '+') token.remove_prefix(1);
     std::int64_t v = 0;

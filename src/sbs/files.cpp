@@ -37,12 +37,6 @@ std::vector<std::string> port_list(const cfg::Reader& r, const cfg::Line& l, std
 
 bool positive_finite(double v) { return std::isfinite(v) && v > 0.0; }
 
-std::string format_g(double v) {
-    char buf[32];
-    std::snprintf(buf, sizeof buf, "%g", v);
-    return buf;
-}
-
 }  // namespace
 
 std::string_view to_string(TaskType t) noexcept {
@@ -303,10 +297,10 @@ RmodFile parse_rmod(cfg::Reader& r, const std::string& path) {
 std::string frequency_problem(double hz) {
     if (!std::isfinite(hz) || !(hz > 0)) return "the frequency must be a positive number of Hz";
     if (hz > kMaxFrequencyHz)
-        return format_g(hz) + " Hz is above the highest task frequency, " + format_g(kMaxFrequencyHz) +
+        return cfg::number_text(hz) + " Hz is above the highest task frequency, " + cfg::number_text(kMaxFrequencyHz) +
                " Hz (a period of 1 us)";
     if (hz < kMinFrequencyHz)
-        return format_g(hz) + " Hz is below the lowest task frequency, " + format_g(kMinFrequencyHz) +
+        return cfg::number_text(hz) + " Hz is below the lowest task frequency, " + cfg::number_text(kMinFrequencyHz) +
                " Hz (a period of 10^6 s)";
     return {};
 }

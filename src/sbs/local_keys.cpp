@@ -38,17 +38,11 @@ const LocalKey* find_local_key(std::span<const LocalKey> keys, std::string_view 
 
 namespace {
 
-std::string number_text(double v) {
-    char buf[32];
-    std::snprintf(buf, sizeof buf, "%g", v);
-    return buf;
-}
-
 bool numeric(LocalType t) { return t == LocalType::number || t == LocalType::numbers || t == LocalType::integer; }
 
 std::string range_text(const LocalKey& k) {
     if (!numeric(k.type) || k.min > k.max || (std::isinf(k.min) && std::isinf(k.max))) return "";
-    return "[" + number_text(k.min) + ", " + number_text(k.max) + "]";
+    return "[" + cfg::number_text(k.min) + ", " + cfg::number_text(k.max) + "]";
 }
 
 // Why a value does not fit the declared type and range ("" when it does).

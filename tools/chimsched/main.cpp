@@ -13,6 +13,8 @@
 // task after the first 30 time units (a domino the figure does not show).
 #include "tool_cli.hpp"
 
+#include <chimera/cfg.hpp>
+
 #include <CLI/CLI.hpp>
 #include <nlohmann/json.hpp>
 
@@ -37,12 +39,6 @@ namespace {
 std::string fmt(double v, int prec = 4) {
     char buf[64];
     std::snprintf(buf, sizeof buf, "%.*f", prec, v);
-    return buf;
-}
-
-std::string fmt_time(double v) {
-    char buf[64];
-    std::snprintf(buf, sizeof buf, "%g", v);
     return buf;
 }
 
@@ -126,8 +122,8 @@ int analyze(const muf::TaskSet& set, muf::Policy policy, bool as_json) {
         const auto& t = set.tasks[i];
         const auto yes = [](bool b) { return b ? "yes" : "-"; };
         std::snprintf(line, sizeof line, "%-*s %10s %10s %10s %8s  %-3s %-3s %-3s  %4d %5d\n",
-                      static_cast<int>(w), t.name.c_str(), fmt_time(t.period).c_str(),
-                      fmt_time(t.wcet).c_str(), fmt_time(t.relative_deadline()).c_str(),
+                      static_cast<int>(w), t.name.c_str(), chimera::cfg::number_text(t.period).c_str(),
+                      chimera::cfg::number_text(t.wcet).c_str(), chimera::cfg::number_text(t.relative_deadline()).c_str(),
                       fmt(t.reserved() / t.period).c_str(), yes(sets[0].member[i]),
                       yes(sets[1].member[i]), yes(sets[2].member[i]), chosen.crit[i],
                       chosen.uprio[i]);
@@ -147,7 +143,7 @@ int analyze(const muf::TaskSet& set, muf::Policy policy, bool as_json) {
     for (std::size_t i = 0; i < n; ++i) {
         const auto& t = set.tasks[i];
         if (t.effective > 0)
-            std::cout << "soft task " << t.name << ": E = " << fmt_time(t.effective)
+            std::cout << "soft task " << t.name << ": E = " << chimera::cfg::number_text(t.effective)
                       << ", completes at least one cycle in every "
                       << muf::guaranteed_one_in(t.wcet, t.effective) << "\n";
     }
@@ -257,10 +253,10 @@ int simulate(const muf::TaskSet& set, muf::Policy policy, double until, muf::Lat
         columns == 0 ? 1 : std::max<std::int64_t>(1, (o.until + static_cast<std::int64_t>(columns) - 1) /
                                                          static_cast<std::int64_t>(columns));
     std::cout << muf::to_string(policy) << " schedule of " << set.file << " over [0, "
-              << fmt_time(until) << "), late jobs "
+              << chimera::cfg::number_text(until) << "), late jobs "
               << (late == muf::LateJob::abort ? "aborted at their deadline (as Figure 6.1; --late finish: run on)"
                                               : "finish late (--late finish; Figure 6.1 aborts them: --late abort)")
-              << "; one column = " << fmt_time(t_of(per_column))
+              << "; one column = " << chimera::cfg::number_text(t_of(per_column))
               << "  (# running, - waiting, ! missed deadline)\n";
     std::cout << muf::gantt(sim, r, per_column) << "\n";
     std::size_t w = 4;

@@ -1,5 +1,7 @@
 #include "svar_values.hpp"
 
+#include <chimera/cfg.hpp>
+
 #include <cmath>
 #include <cstdint>
 #include <cstdio>
@@ -48,20 +50,12 @@ std::string type_text(const svar::VarInfo& v) {
     return t;
 }
 
-namespace {
-std::string number_text(double x) {
-    char b[32];
-    std::snprintf(b, sizeof b, "%g", x);
-    return b;
-}
-}  // namespace
-
 std::string value_refusal(const svar::VarInfo& v, std::size_t k, double x) {
     if (!std::isfinite(x)) return "is not a finite number";
     const auto [lo, hi] = svar::type_range(v.type());
     if (x < lo || x > hi) return "does not fit type " + type_text(v);
     if (v.has_range() && (x < v.min(k) || x > v.max(k)))
-        return "is outside the .svar range [" + number_text(v.min(k)) + ", " + number_text(v.max(k)) + "]";
+        return "is outside the .svar range [" + cfg::number_text(v.min(k)) + ", " + cfg::number_text(v.max(k)) + "]";
     return {};
 }
 
