@@ -13,6 +13,7 @@
 #include <time.h>
 #include <unistd.h>
 
+#include <algorithm>
 #include <cerrno>
 #include <cstring>
 #include <mutex>
@@ -297,11 +298,41 @@ void arm_budget(TaskSlot& s, std::int64_t budget_ns) noexcept {
     }
 }
 
-void job_ended(TaskSlot& s) noexcept {
+bool job_ended(TaskSlot& s) noexcept {
     ThreadState& t = tl;
+    const std::int64_t now = clock_ns();
+    // Its own deadline, not the one a DEADLINE handler moved on.
+    const std::int64_t own =
+        s.job_release_ns.load(std::memory_order_relaxed) + s.rel_deadline_ns.load(std::memory_order_relaxed);
     const std::int64_t d = s.job_deadline_ns.load(std::memory_order_acquire);
-    if (d == infinity || d == t.reported_deadline || clock_ns() <= d) return;
-    t.reported_deadline = d;
+    if (d != infinity && d != t.reported_deadline && now > d) {
+        // Every deadline that passed unreported is a failure (the watchdog,
+        // starved, may have reported none of them), the handler runs once.
+        const std::int64_t period = s.period_ns.load(std::memory_order_relaxed);
+        const std::int64_t passed = period > 0 ? 1 + (now - d) / period : 1;
+        t.reported_deadline = d + (passed - 1) * period;
+        if (passed > 1)
+            s.deadline_failures.fetch_add(static_cast<std::uint64_t>(passed - 1), std::memory_order_relaxed);
+        raise_failure_here(Failure::deadline);
+    }
+    return d != infinity && now > own;
+}
+
+void releases_skipped(TaskSlot& s, std::int64_t first_release, std::int64_t count) noexcept {
+    ThreadState& t = tl;
+    const std::int64_t period = s.period_ns.load(std::memory_order_relaxed);
+    if (count <= 0 || period <= 0) return;
+    // A skipped release's deadline may already be reported: a late job's
+    // deadline moves one period on (to the next release's) at each report.
+    const std::int64_t first_deadline = first_release + s.rel_deadline_ns.load(std::memory_order_relaxed);
+    std::int64_t covered = 0;
+    if (t.reported_deadline != infinity && t.reported_deadline >= first_deadline)
+        covered = std::min(count, 1 + (t.reported_deadline - first_deadline) / period);
+    const std::int64_t uncovered = count - covered;
+    if (uncovered == 0) return;
+    t.reported_deadline = first_deadline + (count - 1) * period;
+    if (uncovered > 1)
+        s.deadline_failures.fetch_add(static_cast<std::uint64_t>(uncovered - 1), std::memory_order_relaxed);
     raise_failure_here(Failure::deadline);
 }
 
@@ -406,8 +437,9 @@ void pause(std::int64_t restart_ns, std::int64_t min_c_ns, std::int64_t max_c_ns
     detail::ThreadState& t = tl;
     if (t.slot) {
         detail::Phase job = detail::Phase::job;
-        if (t.slot->phase.compare_exchange_strong(job, detail::Phase::waiting, std::memory_order_acq_rel))
-            detail::job_ended(*t.slot);
+        if (t.slot->phase.compare_exchange_strong(job, detail::Phase::waiting, std::memory_order_acq_rel) &&
+            detail::job_ended(*t.slot))
+            t.slot->missed.fetch_add(1, std::memory_order_relaxed);
     }
     const timespec ts = detail::to_ts(restart_ns);
     while (clock_nanosleep(CLOCK_MONOTONIC, TIMER_ABSTIME, &ts, nullptr) == EINTR) {

@@ -13,6 +13,7 @@
 #include <cstdio>
 #include <cstdlib>
 #include <cstring>
+#include <fstream>
 #include <mutex>
 #include <string>
 
@@ -131,12 +132,15 @@ int pin_to_cpu(int cpu) noexcept {
     return pthread_setaffinity_np(pthread_self(), sizeof set, &set);
 }
 
-int unpin() noexcept {
-    cpu_set_t set;
-    CPU_ZERO(&set);
-    const int n = get_nprocs();
-    for (int c = 0; c < n && c < CPU_SETSIZE; ++c) CPU_SET(c, &set);
-    return pthread_setaffinity_np(pthread_self(), sizeof set, &set);
+std::string process_cpus_text() {
+    // The thread group leader's mask: the CPUs the process's cpuset gives it.
+    std::ifstream in("/proc/self/status");
+    for (std::string line; std::getline(in, line);)
+        if (line.rfind("Cpus_allowed_list:", 0) == 0) {
+            const std::size_t at = line.find_first_not_of(" \t", sizeof "Cpus_allowed_list:" - 1);
+            return "this process may run on CPUs " + (at == std::string::npos ? std::string("?") : line.substr(at));
+        }
+    return "the CPUs of this process are unknown";
 }
 
 int set_fifo(pid_t tid, int prio) noexcept {

@@ -407,28 +407,37 @@ void RtpuScheduler::attach_current_thread(TaskHandle h) {
     bool reserved = false;
     const std::int64_t budget = s.params.effective_ns > 0 ? s.params.effective_ns : s.params.wcet_ns;
     if (m.options.backend == Backend::deadline && critical && m.privileged && budget > 0) {
-        // The kernel refuses SCHED_DEADLINE to a thread pinned inside a larger
-        // root domain: critical tasks of this backend float.
-        detail::unpin();
+        // Pinned first: the kernel admits SCHED_DEADLINE to a thread pinned to
+        // one CPU only where that CPU is a root domain of its own (an exclusive
+        // cpuset partition). A reservation that floats over other CPUs would
+        // not be this RTPU's, so without a partition the task is refused.
+        if (const int pin = detail::pin_to_cpu(m.options.cpu); pin != 0)
+            throw SchedError(who + "cannot pin to CPU " + std::to_string(m.options.cpu) + " of RTPU " +
+                             m.options.name + " (" + detail::process_cpus_text() + "): " + std::strerror(pin));
         const std::int64_t runtime = std::max<std::int64_t>(budget, 1024);
-        const int rc = detail::set_deadline_policy(0, runtime, s.rel_deadline_ns.load(),
-                                                   s.period_ns.load());
+        const int rc = detail::set_deadline_policy(0, runtime, s.rel_deadline_ns.load(), s.period_ns.load());
         if (rc == 0) {
             reserved = true;
+            note = " (CPU " + std::to_string(m.options.cpu) + ", a root domain of its own)";
+        } else if (rc == EPERM) {
+            throw SchedError(who + "SCHED_DEADLINE on RTPU " + m.options.name + " needs CPU " +
+                             std::to_string(m.options.cpu) +
+                             " to be an exclusive cpuset partition (a root domain of its own): the kernel "
+                             "refuses a reservation pinned inside a wider root domain (" +
+                             detail::process_cpus_text() +
+                             "). Make one (docs/muf.md, \"Deadline backend: a CPU of its own\") or run "
+                             "this RTPU on BACKEND fifo");
         } else if (rc == EBUSY) {
-            detail::pin_to_cpu(m.options.cpu);
             char buf[256];
             std::snprintf(buf, sizeof buf,
                           "SCHED_DEADLINE admission refused (runtime %s, period %s): the critical "
                           "set's utilisation is %.3f on this RTPU, and the kernel admits at most "
-                          "%.2f per CPU over the root domain (%d CPUs), shared with every "
-                          "SCHED_DEADLINE task on the machine",
+                          "%.2f of CPU %d, shared with every SCHED_DEADLINE task there",
                           ms(runtime).c_str(), ms(s.period_ns.load()).c_str(),
                           m.current_assignment.critical.utilisation,
-                          detail::deadline_bandwidth_per_cpu(), get_nprocs());
+                          detail::deadline_bandwidth_per_cpu(), m.options.cpu);
             throw SchedError(who + buf);
         } else if (rc == EINVAL) {
-            detail::pin_to_cpu(m.options.cpu);
             throw SchedError(who + "SCHED_DEADLINE refused the parameters (runtime " + ms(runtime) +
                              ", deadline " + ms(s.rel_deadline_ns.load()) + ", period " +
                              ms(s.period_ns.load()) + "): " + std::strerror(rc));
@@ -536,7 +545,10 @@ Wake RtpuScheduler::wait_release(TaskHandle h, const std::atomic<std::uint32_t>*
         if (now >= release) {
             const std::int64_t period = s.period_ns.load(std::memory_order_acquire);
             const std::int64_t late = (now - release) / period;
-            if (late > 0) s.missed.fetch_add(static_cast<std::uint64_t>(late), std::memory_order_relaxed);
+            if (late > 0) {
+                s.missed.fetch_add(static_cast<std::uint64_t>(late), std::memory_order_relaxed);
+                detail::releases_skipped(s, release, late);
+            }
             release += late * period;
             s.job_release_ns.store(release, std::memory_order_relaxed);
             s.job_deadline_ns.store(release + s.rel_deadline_ns.load(std::memory_order_relaxed),
@@ -577,11 +589,15 @@ void RtpuScheduler::cycle_complete(TaskHandle h) noexcept {
     detail::clear_abort();
     // The job ends first: a watchdog signal from now on finds no job and is stale.
     Phase job = Phase::job;
-    if (s.phase.compare_exchange_strong(job, Phase::waiting, std::memory_order_acq_rel)) detail::job_ended(s);
-    if (detail::take_cycle_aborted())
+    const bool ended_late =
+        s.phase.compare_exchange_strong(job, Phase::waiting, std::memory_order_acq_rel) && detail::job_ended(s);
+    // A miss per deadline missed: a job aborted, or complete but late (it still counts as a cycle).
+    if (detail::take_cycle_aborted()) {
         s.missed.fetch_add(1, std::memory_order_relaxed);
-    else
+    } else {
         s.cycles.fetch_add(1, std::memory_order_relaxed);
+        if (ended_late) s.missed.fetch_add(1, std::memory_order_relaxed);
+    }
 }
 
 sigjmp_buf* RtpuScheduler::cycle_mark(TaskHandle h) noexcept {

@@ -162,9 +162,9 @@ namespace chimera::muf::detail {
 
 /// Pins the calling thread to `cpu`; 0 or the errno.
 int pin_to_cpu(int cpu) noexcept;
-/// Lets the calling thread run on every CPU of the process (SCHED_DEADLINE needs
-/// the whole root domain); 0 or the errno.
-int unpin() noexcept;
+/// "this process may run on CPUs 0-1": the process's cpuset, for a refusal
+/// that needs a CPU of its own.
+std::string process_cpus_text();
 /// SCHED_FIFO at `prio` for thread `tid` (0: the caller); 0 or the errno.
 int set_fifo(pid_t tid, int prio) noexcept;
 /// SCHED_OTHER for thread `tid` (0: the caller); 0 or the errno.
@@ -204,8 +204,13 @@ void arm_budget(TaskSlot& s, std::int64_t budget_ns) noexcept;
 /// The job of the calling thread has ended (its phase already left `job`): if
 /// it ended after its deadline and that failure was not reported yet, DEADLINE
 /// is raised here, in the task (the handler runs; there is no cycle to abort).
-/// One clock read, no system call where the vDSO serves the clock.
-void job_ended(TaskSlot& s) noexcept;
+/// Returns whether the job ended after its own deadline (a miss for the caller
+/// to count). One clock read, no system call where the vDSO serves the clock.
+bool job_ended(TaskSlot& s) noexcept;
+/// `count` releases from `first_release` on were skipped (the task was still
+/// busy): each deadline among them not reported yet is a DEADLINE failure
+/// (the handler runs once), so a task's misses and failures agree.
+void releases_skipped(TaskSlot& s, std::int64_t first_release, std::int64_t count) noexcept;
 /// The watchdog's signal to task thread `tid`: its job is past its deadline.
 /// 0 or the errno.
 int signal_deadline(pid_t tid) noexcept;

@@ -21,6 +21,9 @@ done
 mount -t configfs none /sys/kernel/config || setup_fail "mount configfs"
 # The per-thread system-call counters of the real-time tests (raw_syscalls).
 mount -t tracefs nodev /sys/kernel/tracing || setup_fail "mount tracefs"
+# cgroup v2 with the cpuset controller: the deadline backend's tests make an
+# exclusive partition of one CPU there (docs/muf.md, "Deadline backend").
+mount -t cgroup2 none /sys/fs/cgroup || setup_fail "mount cgroup2"
 
 ip link add dev vcan0 type vcan && ip link set vcan0 up || setup_fail "vcan0"
 ip link add dev vcan1 type vcan && ip link set vcan1 up || setup_fail "vcan1"
@@ -63,6 +66,12 @@ for t in /tests/*; do
         echo "=== FAILED $t (status $status)"
         fail=$((fail + 1))
     fi
+    # A CPU partition a test made and left would take its CPU from every later program.
+    for p in /sys/fs/cgroup/chimera-partition-*; do
+        [ -d "$p" ] || continue
+        echo "=== FAILED $t left the CPU partition $p ($(cat $p/cpuset.cpus.partition))"
+        fail=$((fail + 1))
+    done
 done
 if [ $fail -eq 0 ]; then
     echo "CHIMERA-RTGUEST-RESULT: PASS ($n programs)"

@@ -34,14 +34,18 @@
 //    (runtime = C, or E for a soft task; deadline and period = T) and the
 //    kernel's admission control checks the set; a refusal is an error naming
 //    the set's utilisation. Other tasks run on SCHED_FIFO below, ordered by the
-//    dispatcher. SCHED_DEADLINE threads cannot be pinned to one CPU of a larger
-//    root domain, so critical tasks of this backend float; the status says so.
+//    dispatcher. The kernel admits SCHED_DEADLINE to a thread pinned to one CPU
+//    only when that CPU is a root domain of its own: a critical task stays on
+//    its RTPU's CPU through an exclusive cpuset partition, and is refused,
+//    naming what to do, where the CPU is not one (docs/muf.md).
 //  - other: SCHED_OTHER, best effort; timing failures still work.
 // Without real-time privilege the scheduler warns once on stderr, runs best
 // effort, and policy_of() reports what each thread really got.
 //
 // Timing failures (§6.3), delivered in the failing task's own thread:
-//  - DEADLINE: a POSIX timer on CLOCK_MONOTONIC, SIGEV_THREAD_ID to the thread;
+//  - DEADLINE: found at the job's end, or by the RTPU's watchdog for a job still
+//    running (docs/muf.md); every deadline passed counts one failure, and the
+//    handler runs once per report;
 //  - MAXEXEC: a timer on the thread's CPU-time clock (fifo/other), SIGXCPU from
 //    SCHED_FLAG_DL_OVERRUN (deadline backend);
 //  - MINEXEC: detected at the release, when less than the minimum execution
@@ -152,7 +156,11 @@ enum class Wake {
 /// Per-task counters, written by the task and dispatcher, read by anyone.
 struct RtTaskStatus {
     std::uint64_t cycles = 0;           ///< cycles completed
-    std::uint64_t missed = 0;           ///< releases missed (late, skipped or failed)
+    /// Deadlines missed: a job that ended after its deadline (it is also a
+    /// cycle) or was aborted, and each release skipped (late, at a handler's
+    /// request, or for MINEXEC). Equals deadline_failures where no handler
+    /// aborts, skips or moves deadlines.
+    std::uint64_t missed = 0;
     std::uint64_t deadline_failures = 0;
     std::uint64_t maxexec_failures = 0;
     std::uint64_t minexec_failures = 0;
