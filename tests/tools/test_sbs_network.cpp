@@ -499,3 +499,38 @@ TEST(SbsNetwork, PromptPassesControlAndGetsItBack) {
     ::close(fd);
     EXPECT_FALSE(std::filesystem::exists(ws.socket_path()));
 }
+
+// `record` from a second sbs attached to a running master: the master runs
+// the sampler task, the attached sbs reads the ring and writes the file where
+// it runs. Sent by a peer straight to the master, `record` is refused (the
+// master writes no file for a peer).
+TEST(SbsNetwork, RecordFromAnAttachedSbsAndNotFromAPeer) {
+    Workspace ws;
+    Master m(ws, {"--serve", "-c", "spawn ramp; on"});
+    ASSERT_TRUE(sbs_test::wait_for_file(ws.socket_path()));
+    const std::string csv = ws.dir() + "/attached.csv";
+    const auto r = ws.sbs_run({"-c", "record X 0.25s " + csv, "--json"});
+    EXPECT_EQ(r.status, 0) << r.out << r.err;
+    const auto replies = sbs_test::json_lines(r.out);
+    ASSERT_EQ(replies.size(), 1u) << r.out;
+    EXPECT_EQ(replies[0]["data"]["samples"], 50);
+    std::ifstream in(csv);
+    std::string line;
+    std::getline(in, line);
+    EXPECT_EQ(line, "t,X");
+    int rows = 0;
+    while (std::getline(in, line)) ++rows;
+    EXPECT_EQ(rows, 50);
+    {
+        NetworkClient c = connect(ws);
+        const auto j = c.request("record X 1s " + ws.dir() + "/peer.csv", 5000);
+        EXPECT_FALSE(j.value("ok", true));
+        EXPECT_EQ(j.value("error", ""), "record writes a file, so it runs in the sbs program that asked (sbs FILE.sbs -c "
+                                        "'record ...'), never over the network: a peer runs `sample` and reads the ring itself");
+        const auto status = c.request("status", 5000);
+        EXPECT_EQ(status["data"]["tasks"].size(), 1u) << "the attached record killed its sampler";
+        c.request("finish", 5000);
+    }
+    EXPECT_EQ(m.wait(), 0) << m.err_text();
+    EXPECT_FALSE(std::filesystem::exists(ws.dir() + "/peer.csv"));
+}
