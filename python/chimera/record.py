@@ -48,7 +48,7 @@ class Recording:
 
     @property
     def t(self) -> numpy.ndarray:
-        return (self.time_ns - self.time_ns[0]) * 1e-9 if len(self.time_ns) else numpy.zeros(0)
+        return (self.time_ns - self.time_ns[0]) / 1e9 if len(self.time_ns) else numpy.zeros(0)
 
     @property
     def variables(self) -> List[str]:

@@ -123,7 +123,7 @@ Reply record(const Executor& exec, std::string_view command) {
             text.clear();
             for (std::size_t k = 0; k < c.samples; ++k) {
                 if (rows + k == 0) first = t[0];
-                append_number(text, static_cast<double>(t[k] - first) * 1e-9);
+                append_number(text, static_cast<double>(t[k] - first) / 1e9);  // correctly rounded: 0.002012614
                 for (std::size_t i = 0; i < width; ++i) {
                     text += ',';
                     append_number(text, v[k * width + i]);
