@@ -534,3 +534,26 @@ TEST(SbsNetwork, RecordFromAnAttachedSbsAndNotFromAPeer) {
     EXPECT_EQ(m.wait(), 0) << m.err_text();
     EXPECT_FALSE(std::filesystem::exists(ws.dir() + "/peer.csv"));
 }
+
+// Ctrl-C during a long `record` stops it: the rows taken are kept in the
+// file, the command fails saying so, and the sampler task is killed.
+TEST(SbsNetwork, RecordInterruptedKeepsWhatItTook) {
+    Workspace ws;
+    const std::string csv = ws.dir() + "/long.csv";
+    Master m(ws, {"-c", "spawn ramp; on; record X 60s " + csv});
+    ASSERT_TRUE(sbs_test::wait_for_file(csv + ".part"));
+    std::this_thread::sleep_for(std::chrono::milliseconds(300));
+    ::kill(m.pid(), SIGINT);
+    EXPECT_TRUE(m.stderr_has("error: record: interrupted after ")) << m.err_text();
+    EXPECT_EQ(m.wait(), 1) << m.err_text();
+    EXPECT_NE(m.err_text().find(" of 12000 samples"), std::string::npos) << m.err_text();
+    EXPECT_FALSE(std::filesystem::exists(csv + ".part"));
+    std::ifstream in(csv);
+    std::string line;
+    std::getline(in, line);
+    EXPECT_EQ(line, "t,X");
+    int rows = 0;
+    while (std::getline(in, line)) ++rows;
+    EXPECT_GT(rows, 0);
+    EXPECT_LT(rows, 12000);
+}

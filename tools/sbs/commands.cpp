@@ -793,6 +793,50 @@ double positive_number(const std::string& option, const std::string& text) {
 
 }  // namespace
 
+// Spawns a task from an .rmod made here and turns it on; when `on` is
+// refused (verification), the task is killed again and the refusal thrown.
+sbs::TaskId Interpreter::spawn_on(const RmodFile& f, const std::string& rtpu) {
+    const sbs::TaskId id = sbs_.spawn_parsed({f}, rtpu);
+    rmods_[f.name] = f;
+    rtpu_of_[f.name] = sbs_.status(id).rtpu;
+    try {
+        sbs_.control(id, sbs::Control::on);
+    } catch (...) {
+        try {
+            sbs_.control(id, sbs::Control::kill);
+        } catch (const std::exception&) {  // the refusal is what the caller needs to see
+        }
+        rmods_.erase(f.name);
+        rtpu_of_.erase(f.name);
+        throw;
+    }
+    return id;
+}
+
+// At a task's rate: by default the fastest producer's, so no value it writes is missed.
+double Interpreter::producers_rate(const std::vector<std::string>& vars, std::string& why) const {
+    double rate = 0;
+    for (const auto& v : vars)
+        for (const auto& p : users_of(v.substr(0, v.find('['))).producers)
+            if (const auto id = sbs_.find(p); id && sbs_.freq_get(*id) > rate) {
+                rate = sbs_.freq_get(*id);
+                why = "the rate of " + p;
+            }
+    if (rate > 0) return rate;
+    why = "no task produces them";
+    return 100;
+}
+
+// sample.N for the first N naming neither a task nor a ring (a crashed master's stale ring is removed).
+std::string Interpreter::free_sampler_name() {
+    for (;;) {
+        const std::string name = "sample." + std::to_string(++samplers_made_);
+        const std::string ring = ipc::segment_name(sbs_.name(), name);
+        if (ipc::Segment::exists(ring) && ipc::Segment::is_stale(ring)) ipc::Segment::unlink(ring);
+        if (!is_task(name) && !ipc::Segment::exists(ring)) return name;
+    }
+}
+
 Reply Interpreter::cmd_sample(const Words& w) {
     std::vector<std::string> vars;
     std::string rtpu, capacity;
@@ -807,28 +851,10 @@ Reply Interpreter::cmd_sample(const Words& w) {
     }
     if (vars.empty()) throw CommandError("usage: sample VAR[IDX]... [--rate HZ] [--rtpu RTPU] [--capacity N]");
     const std::vector<sampler::Channel> channels = sampler::parse_channels(*table(), vars);
-    // At a task's rate: by default the fastest producer's, so no value it writes is missed.
     std::string rate_from = "given";
-    if (rate == 0) {
-        for (const auto& v : vars)
-            for (const auto& p : users_of(v.substr(0, v.find('['))).producers)
-                if (const auto id = sbs_.find(p); id && sbs_.freq_get(*id) > rate) {
-                    rate = sbs_.freq_get(*id);
-                    rate_from = "the rate of " + p;
-                }
-        if (rate == 0) {
-            rate = 100;
-            rate_from = "no task produces them";
-        }
-    }
+    if (rate == 0) rate = producers_rate(vars, rate_from);
     if (const std::string why = frequency_problem(rate); !why.empty()) throw CommandError("sample: " + why);
-    std::string name;
-    do {
-        name = "sample." + std::to_string(++samplers_made_);
-        const std::string ring = ipc::segment_name(sbs_.name(), name);
-        if (ipc::Segment::exists(ring) && ipc::Segment::is_stale(ring)) ipc::Segment::unlink(ring);  // a crashed master's
-        if (!is_task(name) && !ipc::Segment::exists(ring)) break;
-    } while (true);
+    const std::string name = free_sampler_name();
     RmodFile f;
     f.name = name;
     f.module = "sampler";
@@ -840,18 +866,7 @@ Reply Interpreter::cmd_sample(const Words& w) {
     f.local.set("CHANNELS", vars);
     f.local.set("RING", {name});
     if (!capacity.empty()) f.local.set("CAPACITY", {capacity});
-    const sbs::TaskId id = sbs_.spawn_parsed({f}, rtpu);
-    rmods_[name] = f;
-    const auto s = sbs_.status(id);
-    rtpu_of_[name] = s.rtpu;
-    try {
-        sbs_.control(id, sbs::Control::on);
-    } catch (...) {
-        sbs_.control(id, sbs::Control::kill);
-        rmods_.erase(name);
-        rtpu_of_.erase(name);
-        throw;
-    }
+    const auto s = sbs_.status(spawn_on(f, rtpu));
     const std::string ring = ipc::segment_name(sbs_.name(), name);
     const sampler::RingReader reader = sampler::RingReader::attach(ring);
     std::vector<std::string> names;
@@ -895,20 +910,7 @@ Reply Interpreter::cmd_peer(const Words& w) {
     f.local.file = "peer command";
     f.local.set("PID", pid);
     if (!program.empty()) f.local.set("PROGRAM", program);
-    const sbs::TaskId id = sbs_.spawn_parsed({f}, {});
-    rmods_[name] = f;
-    rtpu_of_[name] = sbs_.status(id).rtpu;
-    try {
-        sbs_.control(id, sbs::Control::on);  // §3.3.1: refused when another task produces one of `out`
-    } catch (...) {
-        try {
-            sbs_.control(id, sbs::Control::kill);
-        } catch (const std::exception&) {
-        }
-        rmods_.erase(name);
-        rtpu_of_.erase(name);
-        throw;
-    }
+    (void)spawn_on(f, {});  // §3.3.1: refused when another task produces one of `out`
     Reply r;
     r.text = name + ": peer process " + pid[0] + " ON, producing " + (out.empty() ? "nothing" : join(out)) +
              ", consuming " + (in.empty() ? "nothing" : join(in));

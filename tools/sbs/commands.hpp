@@ -105,6 +105,9 @@ private:
     Reply cmd_event(const Words& w);
     Reply cmd_help(const Words& w);
     Reply cmd_sample(const Words& w);
+    double producers_rate(const std::vector<std::string>& vars, std::string& why) const;
+    std::string free_sampler_name();
+    sbs::TaskId spawn_on(const RmodFile& f, const std::string& rtpu);
     Reply cmd_peer(const Words& w);
     /// Peer tasks whose process is gone are woken to find out (their task
     /// goes to ERROR): run before every command, so verification never counts

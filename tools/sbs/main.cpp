@@ -109,7 +109,7 @@ Reply run_line(const Executor& exec, std::string_view line, bool json, bool erro
     }
     Reply last;
     for (const auto& c : commands) {
-        last = cli::is_record(c) ? cli::record(exec, c) : exec(c);
+        last = cli::is_record(c) ? cli::record(exec, c, &g_interrupted) : exec(c);
         if (json) {
             std::cout << cli::to_json_line(last) << std::endl;
         } else if (last.ok) {

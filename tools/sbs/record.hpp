@@ -7,6 +7,7 @@
 
 #include "reply.hpp"
 
+#include <atomic>
 #include <functional>
 #include <string_view>
 
@@ -26,7 +27,8 @@ double parse_duration(std::string_view text);
 /// samples, writes FILE.csv (replaced atomically: header `t,COLUMN...`, t in
 /// seconds from the first sample, then one row per sample), and kills the
 /// task. A lost sample (this reader fell behind the ring) fails the command,
-/// naming how many, with the file written.
-Reply record(const Executor& exec, std::string_view command);
+/// naming how many, with the file written. `interrupted` (Ctrl-C) stops it
+/// early: the rows taken are kept in the file and the command fails saying so.
+Reply record(const Executor& exec, std::string_view command, const std::atomic<bool>* interrupted = nullptr);
 
 }  // namespace chimera::cli
