@@ -669,3 +669,13 @@ TEST(SbsCli, SampleAndRecordRefusals) {
     EXPECT_FALSE(std::filesystem::exists(ws.dir() + "/n.csv.part"));
     EXPECT_FALSE(std::filesystem::exists(ws.dir() + "/n.csv"));
 }
+
+TEST(SbsCli, SampleRecordAndPeerComplete) {
+    Workspace ws;
+    const auto r = ok_json(ws, "complete sample LI; complete record X --rtpu c; complete record --r; complete peer p --o");
+    ASSERT_EQ(r.size(), 4u);
+    EXPECT_EQ(r[0]["data"]["candidates"], nlohmann::json({"LIMITS"}));
+    EXPECT_EQ(r[1]["data"]["candidates"], nlohmann::json({"cpu0"}));
+    EXPECT_EQ(r[2]["data"]["candidates"], nlohmann::json({"--rate", "--rtpu"}));
+    EXPECT_EQ(r[3]["data"]["candidates"], nlohmann::json({"--out"}));
+}

@@ -1397,6 +1397,15 @@ std::vector<std::string> Interpreter::complete_locked(std::string_view line) {
             } else if (c == "setvar") {
                 if (index == 1) variables();
                 else cand.insert("--force");
+            } else if (c == "sample" || c == "record" || c == "peer") {
+                if (index >= 2 && words[index - 1] == "--rtpu") {
+                    for (const auto& r : sbs_.file().rtpus) cand.insert(r.name);
+                } else if (c != "peer" || index >= 2) {
+                    variables();
+                    if (c == "sample") cand.insert({"--rate", "--rtpu", "--capacity"});
+                    if (c == "record") cand.insert({"--rate", "--rtpu"});
+                    if (c == "peer") cand.insert({"--pid", "--out", "--in", "--program"});
+                }
             } else if (c == "reconfig") {
                 // Alternating SIG RMOD; a comma starts a new item.
                 std::size_t pos = 0;
