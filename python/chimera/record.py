@@ -46,6 +46,15 @@ class Recording:
         self.lost = int(lost)
         self.rate = float(rate)
 
+    @classmethod
+    def join(cls, parts: Sequence["Recording"]) -> "Recording":
+        """One Recording of consecutive parts (Sampling.read()'s chunks) of the same columns."""
+        if not parts:
+            raise ValueError("Recording.join: no part")
+        return cls(parts[0].columns, numpy.concatenate([p.time_ns for p in parts]),
+                   numpy.concatenate([p.cycle for p in parts]), numpy.concatenate([p.values for p in parts]),
+                   sum(p.lost for p in parts), parts[0].rate)
+
     @property
     def t(self) -> numpy.ndarray:
         return (self.time_ns - self.time_ns[0]) / 1e9 if len(self.time_ns) else numpy.zeros(0)
@@ -185,12 +194,10 @@ def record(variables: Union[str, Sequence[str]], seconds: float, *, subsystem: O
             if time.monotonic() > deadline:
                 raise TimeoutError("record: the sampler task %s gave %d of %d samples in time" % (s.task, got, want))
             time.sleep(min(0.01, max(0.001, (want - got) / s.rate / 4)))
-    lost = sum(c.lost for c in chunks)
-    result = Recording(s.columns,
-                       numpy.concatenate([c.time_ns for c in chunks]) if chunks else numpy.zeros(0, numpy.int64),
-                       numpy.concatenate([c.cycle for c in chunks]) if chunks else numpy.zeros(0, numpy.uint64),
-                       numpy.concatenate([c.values for c in chunks]) if chunks else numpy.zeros((0, len(s.columns))),
-                       lost, s.rate)
+    result = Recording.join(chunks) if chunks else Recording(s.columns, numpy.zeros(0, numpy.int64),
+                                                              numpy.zeros(0, numpy.uint64),
+                                                              numpy.zeros((0, len(s.columns))), 0, s.rate)
+    lost = result.lost
     if lost:
         warnings.warn("record: %d samples lost (this process fell behind the ring)" % lost, RuntimeWarning, stacklevel=2)
     return result
