@@ -22,6 +22,8 @@
 #include <chimera/module.hpp>
 #include <chimera/sampler.hpp>
 
+#include <sys/stat.h>
+
 #include <memory>
 #include <stdexcept>
 #include <string>
@@ -45,6 +47,14 @@ std::string subsystem_of(const std::string& table_segment) {
     return table_segment;
 }
 
+// Whoever may watch the table (docs/permissions.md: the group, 0640) may watch its samples.
+chimera::ipc::CreateOptions same_mode_as(const std::string& table_segment) {
+    chimera::ipc::CreateOptions o;
+    struct stat st {};
+    if (::stat(("/dev/shm" + table_segment).c_str(), &st) == 0) o.mode = st.st_mode & 0777;
+    return o;
+}
+
 class SamplerModule : public chimera::Module {
 public:
     std::span<const chimera::LocalKey> local_keys() const noexcept override { return kSamplerLocalKeys; }
@@ -64,7 +74,8 @@ public:
         }
         auto channels = chimera::sampler::parse_channels(table, words->values);  // throws naming the word
         sampler_ = std::make_unique<chimera::sampler::Sampler>(
-            table, std::move(channels), chimera::ipc::segment_name(subsystem_of(table.name()), ring), capacity, hz);
+            table, std::move(channels), chimera::ipc::segment_name(subsystem_of(table.name()), ring), capacity, hz,
+            same_mode_as(table.name()));
         return chimera::Result::OK;
     }
 

@@ -557,3 +557,19 @@ TEST(SbsNetwork, RecordInterruptedKeepsWhatItTook) {
     EXPECT_GT(rows, 0);
     EXPECT_LT(rows, 12000);
 }
+
+// Who may watch the table may watch its samples: the ring has the table's mode
+// (0640 with the watch group, docs/permissions.md; else both 0600).
+TEST(SbsNetwork, ASampleRingHasTheTablesMode) {
+    Workspace ws;
+    Master m(ws, {"--serve", "-c", "spawn ramp; on"});
+    NetworkClient c = connect(ws);
+    const auto j = c.request("sample X", 5000);
+    ASSERT_TRUE(j.value("ok", false)) << j.dump();
+    struct stat ring {}, table {};
+    ASSERT_EQ(::stat(("/dev/shm" + j["data"]["ring"].get<std::string>()).c_str(), &ring), 0);
+    ASSERT_EQ(::stat(("/dev/shm/chimera." + ws.subsystem() + ".svar").c_str(), &table), 0);
+    EXPECT_EQ(ring.st_mode & 0777, table.st_mode & 0777);
+    c.request("finish", 5000);
+    EXPECT_EQ(m.wait(), 0) << m.err_text();
+}
