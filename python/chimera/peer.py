@@ -53,8 +53,9 @@ class Peer:
     # -- life ----------------------------------------------------------------------------
 
     def start(self) -> "Peer":
-        """Declare the peer to the master (raises MasterError when another task produces one of PRODUCES,
-        or nothing produces one of CONSUMES) and map the table."""
+        """Declare the peer to the master and map the table. Turning the peer task on is checked as `on`
+        is: MasterError when another ON task produces one of PRODUCES. (As for any task, an input nobody
+        produces is found by the whole-configuration check of `reconfig`, not by `on`.)"""
         if self._started:
             return self
         self.table = _core.Table.attach(self.subsystem, self._lock_timeout)
