@@ -44,7 +44,7 @@ stage_asan() {
 # cross); tests/tsan.supp holds the suppressions, each with its reason.
 stage_tsan() {
   configure build-tsan "${sanitizer_options[@]}" -Db_sanitize=thread
-  meson test -C build-tsan --print-errorlogs --num-processes 2 --suite ipc --suite svar --suite xmail "${meson_test_args[@]}"
+  meson test -C build-tsan --print-errorlogs --num-processes 2 --suite ipc --suite svar --suite sampler --suite xmail "${meson_test_args[@]}"
 }
 
 # Bounded fuzzing in its own clang build (docs/fuzzing.md): a fixed number of

@@ -11,8 +11,8 @@ and settling time (2 % band), and saves a plot.
         /usr/bin/python3 examples/python/step_response.py [--joint 2] [--step 0.2] [--out step.png]
 
 The real-time tasks run in the master process on their RTPUs; this script only writes the
-set-point and samples the table (every --period seconds, each sample one consistent read of
-Q_REF and Q_MEZ under one table lock).
+set-point, and Q_REF and Q_MEZ are sampled on the real-time side at jpid's rate (500 Hz) by a
+`sample` task of the master (chimera.Sampling): every cycle one consistent set, none lost.
 """
 
 import argparse
@@ -39,33 +39,12 @@ def step_metrics(t, y, y0, y1):
     return rise, overshoot, settling
 
 
-def record(reader, seconds, period, on_time=None):
-    """Samples of (time, Q_REF, Q_MEZ), calling ON_TIME(t) once at each sample."""
-    times, q_ref, q_mez = [], [], []
-    start = time.monotonic()
-    next_at = start
-    while True:
-        now = time.monotonic() - start
-        if now > seconds:
-            break
-        if on_time:
-            on_time(now)
-        views = reader.read()
-        times.append(now)
-        q_ref.append(views["Q_REF"].copy())
-        q_mez.append(views["Q_MEZ"].copy())
-        next_at += period
-        time.sleep(max(0.0, next_at - time.monotonic()))
-    return np.array(times), np.array(q_ref), np.array(q_mez)
-
-
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--joint", type=int, default=2, help="joint number, 1..6 (default 2, the shoulder)")
     ap.add_argument("--step", type=float, default=0.2, help="step size in rad")
     ap.add_argument("--settle", type=float, default=1.0, help="seconds to let the arm settle first")
     ap.add_argument("--seconds", type=float, default=2.0, help="seconds recorded after the step")
-    ap.add_argument("--period", type=float, default=0.002, help="sampling period of this script, s")
     ap.add_argument("--out", default="step_response.png")
     args = ap.parse_args()
     j = args.joint - 1
@@ -76,29 +55,36 @@ def main():
         "spawn qrdiff ctrl", "spawn jpid ctrl",
         "reconfig on puma_torque, on jpid, on qrdiff, on jstep",
     ])
-    with chimera.serve(SBS, script) as sub:
+    with chimera.serve(SBS, script) as sub, sub.master() as master:
         table = chimera.attach(sub.name)
         feed = chimera.Tbuf.attach(chimera.segment_name("tbuf", "step"))
-        reader = table.reader(["Q_REF", "Q_MEZ"])
         time.sleep(args.settle)
-        start_ref = reader.read()["Q_REF"].copy()
+        start_ref = table.read("Q_REF")
         target = start_ref.copy()
         target[j] += args.step
         step_at = 0.2
-        written = []
-
-        def maybe_step(now):
-            if now >= step_at and not written:
-                written.append(feed.write(target.astype(np.float64)))
-
-        t, q_ref, q_mez = record(reader, step_at + args.seconds, args.period, maybe_step)
+        chunks = []
+        with chimera.Sampling(["Q_REF", "Q_MEZ"], master=master) as sampling:  # at the producers' rate
+            begin = time.monotonic()
+            while time.monotonic() - begin < step_at:
+                chunks.append(sampling.read())
+                time.sleep(0.02)
+            feed.write(target.astype(np.float64))
+            stepped_ns = time.monotonic_ns()  # CLOCK_MONOTONIC, as the samples' time-stamps
+            while time.monotonic() - begin < step_at + args.seconds:
+                chunks.append(sampling.read())
+                time.sleep(0.02)
+            chunks.append(sampling.read())
+        rec = chimera.Recording.join(chunks)
         status = {s.rmod: s for s in chimera.status(sub.name)}
 
+    t = (rec.time_ns - stepped_ns) / 1e9 + step_at
+    q_ref, q_mez = rec["Q_REF"], rec["Q_MEZ"]
     after = t >= step_at
     y0 = float(q_mez[after][0, j])
     rise, overshoot, settling = step_metrics(t[after] - step_at, q_mez[after][:, j], y0, float(target[j]))
-    print("joint %d step %+.3f rad (from %.4f to %.4f), %d samples at %.1f ms"
-          % (args.joint, args.step, start_ref[j], target[j], len(t), args.period * 1e3))
+    print("joint %d step %+.3f rad (from %.4f to %.4f), %d samples at %g Hz, %d lost"
+          % (args.joint, args.step, start_ref[j], target[j], len(t), rec.rate, rec.lost))
     print("rise time (10-90 %%): %.1f ms" % (rise * 1e3))
     print("overshoot:           %.1f %%" % overshoot)
     print("settling time (2 %%): %.1f ms" % (settling * 1e3))

@@ -79,6 +79,14 @@
 
 namespace chimera::sbs {
 
+/// The MODULE of a peer task: a stand-in for a process outside the master (a
+/// Python program, like a LinuxCNC HAL user-space component) that reads and
+/// writes the table itself in its own non-real-time loop. Its .rmod declares
+/// what the process consumes (INVAR) and produces (OUTVAR), so §3.3.1
+/// verification and status see it like any task, but the runtime copies none
+/// of its ports: the process's own writes are never overwritten by the task.
+inline constexpr std::string_view kPeerModule = "peer";
+
 /// A task of the subsystem; ids are never reused within a subsystem.
 struct TaskId {
     int value = -1;
@@ -244,6 +252,10 @@ public:
     /// another consumes stay in the local table (never copied to the global
     /// one). All must have the same TASKTYPE and frequency.
     TaskId spawn_combined(const std::vector<std::string>& rmod_paths, std::string_view rtpu = {});
+    /// spawn / spawn_combined from .rmod contents already parsed, or made in
+    /// memory by a program (the `sample` command's sampler task): the same
+    /// checks, the same life. The task's name is the (joined) RmodFile names.
+    TaskId spawn_parsed(std::vector<RmodFile> rmods, std::string_view rtpu = {});
 
     /// Looks a task up by rmod name (the latest one created with that name).
     [[nodiscard]] std::optional<TaskId> find(std::string_view rmod) const;

@@ -6,6 +6,8 @@
     table.write("Q_REF", [0, 0.8, 3.1, 0, 0.8, 0])  # range- and producer-checked
     for t in chimera.status("fig3_7"): print(t.rmod, t.state, t.mez_f)
     with chimera.Master("fig3_7") as m: m.on("jpid")  # the master over its socket
+    rec = chimera.record(["Q_REF", "Q_MEZ"], seconds=2.0)  # at a task's rate, every sample once
+    with chimera.Peer("vision", produces=["TARGET"], consumes=["Q_MEZ"]) as p: ...  # a producer the master knows
 
 Nothing here runs on a real-time thread: every call that may wait for the table
 lock releases the GIL, and no Python code runs while the lock is held.
@@ -21,6 +23,7 @@ from ._core import (  # noqa: F401  (re-exported)
     LockTimeout,
     ProducerConflict,
     Reader,
+    Ring,
     StatusReader,
     SvarError,
     Table,
@@ -33,13 +36,15 @@ from ._core import (  # noqa: F401  (re-exported)
     segment_name,
 )
 from .master import Master, MasterError  # noqa: F401
+from .peer import Peer  # noqa: F401
+from .record import Recording, Sampling, record, running_subsystems  # noqa: F401
 from .serve import ServedSubsystem, serve  # noqa: F401
 
 __all__ = [
     "attach", "status", "to_dataframe", "segment_name",
     "Table", "VarInfo", "Reader", "Writer", "Tbuf", "TbufItem", "StatusReader", "TaskStatus",
     "Master", "MasterError", "serve", "ServedSubsystem", "ChimeraError", "SvarError", "LockTimeout", "ProducerConflict", "TbufError",
-    "TASK_STATUS_FIELDS",
+    "TASK_STATUS_FIELDS", "record", "Recording", "Sampling", "Ring", "Peer", "running_subsystems",
 ]
 
 

@@ -166,6 +166,33 @@ class Master:
     def display(self, rmod: str = "all", *names: str) -> List[Dict[str, Any]]:
         return self._do("display", rmod, *names).get("data", {}).get("vars", [])
 
+    def sample(self, variables: Sequence[str], rate: Optional[float] = None, rtpu: Optional[str] = None,
+               capacity: Optional[int] = None) -> Dict[str, Any]:
+        """Start a sampler task (`sample`): VARIABLES ('Q_REF', 'Q_REF[2]', 'Q_REF[0:2]') read at RATE Hz
+        (default: the fastest producer's) into a ring; returns {rmod, ring, channels, rate, capacity, rtpu}.
+        ``kill(rmod)`` stops it. chimera.record() and chimera.Sampling use this."""
+        words: List[Word] = list(variables)
+        if rate is not None:
+            words += ["--rate", repr(float(rate))]
+        if rtpu is not None:
+            words += ["--rtpu", rtpu]
+        if capacity is not None:
+            words += ["--capacity", int(capacity)]
+        return self._do("sample", *words).get("data", {})
+
+    def peer(self, name: str, pid: int, produces: Sequence[str] = (), consumes: Sequence[str] = (),
+             program: Optional[str] = None) -> Dict[str, Any]:
+        """Declare process PID as the peer task NAME producing and consuming those variables (`peer`);
+        chimera.Peer uses this. Refused (MasterError) when another task already produces one of them."""
+        words: List[Word] = ["--pid", int(pid)]
+        if produces:
+            words += ["--out", *produces]
+        if consumes:
+            words += ["--in", *consumes]
+        if program:
+            words += ["--program", program]
+        return self._do("peer", name, *words).get("data", {})
+
     def finish(self) -> None:
         """Turn every task off, kill them, and end the subsystem (the master exits)."""
         try:

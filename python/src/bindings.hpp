@@ -149,5 +149,6 @@ private:
 void bind_svar(py::module_& m);
 void bind_status(py::module_& m);
 void bind_tbuf(py::module_& m);
+void bind_sampler(py::module_& m);
 
 }  // namespace chimera::python

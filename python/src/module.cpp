@@ -4,6 +4,7 @@
 
 #include <chimera/cfg.hpp>
 #include <chimera/ipc/segment.hpp>
+#include <chimera/sampler.hpp>
 
 namespace chimera::python {
 
@@ -111,6 +112,8 @@ PYBIND11_MODULE(_core, m) {
             PyErr_SetString(svar_error.ptr(), e.what());
         } catch (const cp::TbufError& e) {
             PyErr_SetString(tbuf_error.ptr(), e.what());
+        } catch (const chimera::sampler::Error& e) {
+            PyErr_SetString(base.ptr(), e.what());
         } catch (const chimera::svar::Error& e) {
             PyErr_SetString(svar_error.ptr(), e.what());
         } catch (const chimera::ipc::SegmentError& e) {
@@ -126,4 +129,5 @@ PYBIND11_MODULE(_core, m) {
     cp::bind_svar(m);
     cp::bind_status(m);
     cp::bind_tbuf(m);
+    cp::bind_sampler(m);
 }

@@ -286,6 +286,7 @@ std::string object_type_name(ObjectType type) {
         case ObjectType::prof_status: return "prof_status";
         case ObjectType::sbs_control: return "sbs_control";
         case ObjectType::name_server: return "name_server";
+        case ObjectType::sampler_ring: return "sampler_ring";
     }
     return "type " + std::to_string(static_cast<std::uint32_t>(type));
 }

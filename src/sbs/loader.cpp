@@ -121,8 +121,10 @@ std::string load_module_file(const std::string& path) {
 }
 
 std::vector<std::string> module_search_dirs(const RmodFile& rmod, std::vector<std::string> dirs) {
+    // An .rmod made in memory (spawn_parsed: `sample`, `peer`) has no folder,
+    // and the working folder is not searched for it.
     const std::string folder = std::filesystem::path(rmod.path).parent_path().string();
-    dirs.push_back(folder.empty() ? std::string(".") : folder);
+    if (!rmod.path.empty()) dirs.push_back(folder.empty() ? std::string(".") : folder);
     for (auto& d : default_module_dirs()) dirs.push_back(std::move(d));
     return dirs;
 }

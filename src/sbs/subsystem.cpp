@@ -268,10 +268,6 @@ TaskId Subsystem::spawn(const std::string& rmod_path, std::string_view rtpu) {
 TaskId Subsystem::spawn_combined(const std::vector<std::string>& rmod_paths, std::string_view rtpu_name) {
     auto& c = *core_;
     if (c.finished) throw Error("subsystem " + c.file.subsystem + " is finished");
-    const std::string rname = rtpu_name.empty() ? c.file.master : std::string(rtpu_name);
-    const RtpuSpec* rtpu = c.file.find_rtpu(rname);
-    if (!rtpu) throw Error("spawn: RTPU '" + rname + "' is not in " + c.file.path);
-
     std::vector<RmodFile> rmods;
     for (const auto& p : rmod_paths) {
         std::string path = p;
@@ -286,6 +282,16 @@ TaskId Subsystem::spawn_combined(const std::vector<std::string>& rmod_paths, std
             throw Error(std::string("spawn: ") + e.what());
         }
     }
+    return spawn_parsed(std::move(rmods), rtpu_name);
+}
+
+TaskId Subsystem::spawn_parsed(std::vector<RmodFile> rmods, std::string_view rtpu_name) {
+    auto& c = *core_;
+    if (c.finished) throw Error("subsystem " + c.file.subsystem + " is finished");
+    if (rmods.empty()) throw Error("spawn: no .rmod given");
+    const std::string rname = rtpu_name.empty() ? c.file.master : std::string(rtpu_name);
+    const RtpuSpec* rtpu = c.file.find_rtpu(rname);
+    if (!rtpu) throw Error("spawn: RTPU '" + rname + "' is not in " + c.file.path);
 
     // §3.5: a task's in-consts must already have been written by the task
     // producing them, so producers are spawned first. A constant the .svar

@@ -103,10 +103,16 @@ TaskCore::TaskCore(SubsystemCore& s, int task_id, const RtpuSpec& r, std::vector
         local = std::make_unique<svar::LocalTable>(sbs.table, all);
         set_in_consts = local->make_set(in_consts);
         set_out_consts = local->make_set(out_consts);
-        set_in_vars = local->make_set(in_vars);
-        set_out_vars = local->make_set(out_vars);
-        std::vector<std::string> on_names = in_vars;
-        for (const auto& v : out_vars) add_unique(on_names, v);
+        // A peer task stands for a process outside the master (a Python
+        // program, sbs.hpp kPeerModule) that reads and writes the table
+        // itself: its ports count for §3.3.1 and status, but the runtime
+        // copies none of them, so it never overwrites what the process wrote.
+        const bool peer = rmods.size() == 1 && rmods.front().module == kPeerModule;
+        const std::vector<std::string> none;
+        set_in_vars = local->make_set(peer ? none : in_vars);
+        set_out_vars = local->make_set(peer ? none : out_vars);
+        std::vector<std::string> on_names = peer ? none : in_vars;
+        for (const auto& v : peer ? none : out_vars) add_unique(on_names, v);
         set_on = local->make_set(on_names);
     } catch (const svar::Error& e) {
         throw Error("task " + name + ": " + e.what());

@@ -26,4 +26,10 @@ def use(subsystem: str) -> float:
     with chimera.Master(subsystem) as m:
         m.on("jpid")
         rows: List[dict] = m.status()
-    return float(views["Q_REF"][0]) + (p99 or 0.0) + counter + item.counter + len(rows) + (0 if low is None else 1)
+    rec: chimera.Recording = chimera.record(["Q_REF", "Q_MEZ"], seconds=2.0, subsystem=subsystem)
+    q: np.ndarray = rec["Q_MEZ"]
+    lost: int = rec.lost
+    with chimera.Peer("vision", produces=["TARGET"], consumes=["Q_MEZ"], subsystem=subsystem) as peer:
+        for cycle in peer.run(hz=30, cycles=3):
+            peer.write(TARGET=peer.read()["Q_MEZ"][:3])
+    return float(views["Q_REF"][0]) + (p99 or 0.0) + counter + item.counter + len(rows) + (0 if low is None else 1) + float(q[0, 0]) + lost

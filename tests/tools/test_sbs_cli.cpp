@@ -5,6 +5,7 @@
 #include <gtest/gtest.h>
 
 #include <filesystem>
+#include <fstream>
 #include <set>
 
 using sbs_test::json_lines;
@@ -569,4 +570,112 @@ TEST(SbsCli, ScriptFromStdin) {
     EXPECT_NE(r.out.find("ramp: ON"), std::string::npos) << r.out;
     EXPECT_NE(r.out.find("error: unknown command 'bogus'"), std::string::npos) << r.out;
     EXPECT_NE(r.out.find("1 task"), std::string::npos) << "the prompt survives errors: " << r.out;
+}
+
+// ----------------------------------------------------------------- sample and record
+
+namespace {
+
+std::vector<std::vector<std::string>> csv_rows(const std::string& path, std::string& header) {
+    std::ifstream in(path);
+    std::getline(in, header);
+    std::vector<std::vector<std::string>> rows;
+    for (std::string line; std::getline(in, line);) {
+        std::vector<std::string> cells;
+        std::size_t at = 0;
+        for (;;) {
+            const auto comma = line.find(',', at);
+            cells.push_back(line.substr(at, comma == std::string::npos ? std::string::npos : comma - at));
+            if (comma == std::string::npos) break;
+            at = comma + 1;
+        }
+        rows.push_back(cells);
+    }
+    return rows;
+}
+
+}  // namespace
+
+// record: a sampler task at the producer's rate (ramp, 200 Hz), round(0.5 s x
+// 200 Hz) rows, time and one column per element, nothing lost, the task and
+// its ring gone afterwards.
+TEST(SbsCli, RecordWritesOneRowPerSampleAtTheProducersRate) {
+    Workspace ws;
+    const std::string csv = ws.dir() + "/q.csv";
+    const auto r = ok_json(ws, "spawn ramp; on; record X LIMITS 0.5s " + csv + "; status all");
+    ASSERT_EQ(r.size(), 4u);
+    EXPECT_EQ(r[2]["cmd"], "record");
+    EXPECT_EQ(r[2]["data"]["samples"], 100);
+    EXPECT_EQ(r[2]["data"]["lost"], 0);
+    EXPECT_EQ(r[2]["data"]["rate"], 200.0);
+    EXPECT_EQ(r[2]["data"]["channels"], 4);
+    EXPECT_EQ(r[2]["text"], "recorded 100 samples of 4 channel(s) at 200 Hz to " + csv + ", 0 lost");
+    ASSERT_EQ(r[3]["data"]["tasks"].size(), 1u) << "the sampler task is killed at the end";
+    EXPECT_FALSE(std::filesystem::exists("/dev/shm/chimera." + ws.subsystem() + ".sample.1"));
+    EXPECT_FALSE(std::filesystem::exists(csv + ".part"));
+    std::string header;
+    const auto rows = csv_rows(csv, header);
+    EXPECT_EQ(header, "t,X,LIMITS[0],LIMITS[1],LIMITS[2]");
+    ASSERT_EQ(rows.size(), 100u);
+    double last_t = -1, last_x = -1;
+    for (const auto& row : rows) {
+        ASSERT_EQ(row.size(), 5u);
+        const double t = std::stod(row[0]), x = std::stod(row[1]);
+        EXPECT_GT(t, last_t);
+        EXPECT_GE(x, last_x) << "X ramps up: a sample out of order";
+        EXPECT_EQ(row[2], "0.5");
+        EXPECT_EQ(row[3], "1.5");
+        EXPECT_EQ(row[4], "2.5");
+        last_t = t;
+        last_x = x;
+    }
+    EXPECT_EQ(rows[0][0], "0");
+    EXPECT_GT(last_x, 1.0);
+}
+
+TEST(SbsCli, SampleStartsARingThatKillStops) {
+    Workspace ws;
+    const auto r = ok_json(ws, "sample LIMITS[1:2] X --rate 50 --capacity 3000; status; kill sample.1; sample X");
+    ASSERT_EQ(r.size(), 4u);
+    const auto& d = r[0]["data"];
+    EXPECT_EQ(d["rmod"], "sample.1");
+    EXPECT_EQ(d["ring"], "/chimera." + ws.subsystem() + ".sample.1");
+    EXPECT_EQ(d["channels"], nlohmann::json({"LIMITS[1]", "LIMITS[2]", "X"}));
+    EXPECT_EQ(d["rate"], 50.0);
+    EXPECT_EQ(d["capacity"], 4096);
+    const auto* s = task(r[1], "sample.1");
+    ASSERT_NE(s, nullptr);
+    EXPECT_EQ((*s)["state"], "ON");
+    EXPECT_EQ((*s)["module"], "sampler");
+    EXPECT_EQ(r[2]["data"]["state"], "NOT-CREATED");
+    // No task produces X: 100 Hz, and the reply says why.
+    EXPECT_EQ(r[3]["data"]["rmod"], "sample.2");
+    EXPECT_EQ(r[3]["data"]["rate"], 100.0);
+    EXPECT_NE(r[3]["text"].get<std::string>().find("(no task produces them)"), std::string::npos) << r[3]["text"];
+}
+
+TEST(SbsCli, SampleAndRecordRefusals) {
+    Workspace ws;
+    const std::string table = "/chimera." + ws.subsystem() + ".svar";
+    EXPECT_EQ(failing(ws, "sample NOPE"), "sample NOPE: table " + table + " has no variable NOPE");
+    EXPECT_EQ(failing(ws, "sample LIMITS[3]"), "sample LIMITS[3]: element 3 is outside LIMITS (3 elements: 0 to 2)");
+    EXPECT_EQ(failing(ws, "sample X --rate -5"), "sample: --rate -5 is not a positive number");
+    EXPECT_EQ(failing(ws, "sample X --bogus 1"), "sample: unknown option --bogus (--rate HZ, --rtpu RTPU, --capacity N)");
+    EXPECT_EQ(failing(ws, "sample"), "usage: sample VAR[IDX]... [--rate HZ] [--rtpu RTPU] [--capacity N]");
+    EXPECT_EQ(failing(ws, "record X 2s"), "usage: record VAR[IDX]... DURATION FILE.csv [--rate HZ] [--rtpu RTPU]");
+    EXPECT_EQ(failing(ws, "record X 0s q.csv"), "record: duration 0s is not a positive time (5s, 500ms, 2min, 1.5)");
+    EXPECT_EQ(failing(ws, "record X 2h q.csv"), "record: duration 2h is not a positive time (5s, 500ms, 2min, 1.5)");
+    EXPECT_EQ(failing(ws, "record NOPE 1s " + ws.dir() + "/n.csv"), "sample NOPE: table " + table + " has no variable NOPE");
+    EXPECT_FALSE(std::filesystem::exists(ws.dir() + "/n.csv.part"));
+    EXPECT_FALSE(std::filesystem::exists(ws.dir() + "/n.csv"));
+}
+
+TEST(SbsCli, SampleRecordAndPeerComplete) {
+    Workspace ws;
+    const auto r = ok_json(ws, "complete sample LI; complete record X --rtpu c; complete record --r; complete peer p --o");
+    ASSERT_EQ(r.size(), 4u);
+    EXPECT_EQ(r[0]["data"]["candidates"], nlohmann::json({"LIMITS"}));
+    EXPECT_EQ(r[1]["data"]["candidates"], nlohmann::json({"cpu0"}));
+    EXPECT_EQ(r[2]["data"]["candidates"], nlohmann::json({"--rate", "--rtpu"}));
+    EXPECT_EQ(r[3]["data"]["candidates"], nlohmann::json({"--out"}));
 }

@@ -499,3 +499,77 @@ TEST(SbsNetwork, PromptPassesControlAndGetsItBack) {
     ::close(fd);
     EXPECT_FALSE(std::filesystem::exists(ws.socket_path()));
 }
+
+// `record` from a second sbs attached to a running master: the master runs
+// the sampler task, the attached sbs reads the ring and writes the file where
+// it runs. Sent by a peer straight to the master, `record` is refused (the
+// master writes no file for a peer).
+TEST(SbsNetwork, RecordFromAnAttachedSbsAndNotFromAPeer) {
+    Workspace ws;
+    Master m(ws, {"--serve", "-c", "spawn ramp; on"});
+    ASSERT_TRUE(sbs_test::wait_for_file(ws.socket_path()));
+    const std::string csv = ws.dir() + "/attached.csv";
+    const auto r = ws.sbs_run({"-c", "record X 0.25s " + csv, "--json"});
+    EXPECT_EQ(r.status, 0) << r.out << r.err;
+    const auto replies = sbs_test::json_lines(r.out);
+    ASSERT_EQ(replies.size(), 1u) << r.out;
+    EXPECT_EQ(replies[0]["data"]["samples"], 50);
+    std::ifstream in(csv);
+    std::string line;
+    std::getline(in, line);
+    EXPECT_EQ(line, "t,X");
+    int rows = 0;
+    while (std::getline(in, line)) ++rows;
+    EXPECT_EQ(rows, 50);
+    {
+        NetworkClient c = connect(ws);
+        const auto j = c.request("record X 1s " + ws.dir() + "/peer.csv", 5000);
+        EXPECT_FALSE(j.value("ok", true));
+        EXPECT_EQ(j.value("error", ""), "record writes a file, so it runs in the sbs program that asked (sbs FILE.sbs -c "
+                                        "'record ...'), never over the network: a peer runs `sample` and reads the ring itself");
+        const auto status = c.request("status", 5000);
+        EXPECT_EQ(status["data"]["tasks"].size(), 1u) << "the attached record killed its sampler";
+        c.request("finish", 5000);
+    }
+    EXPECT_EQ(m.wait(), 0) << m.err_text();
+    EXPECT_FALSE(std::filesystem::exists(ws.dir() + "/peer.csv"));
+}
+
+// Ctrl-C during a long `record` stops it: the rows taken are kept in the
+// file, the command fails saying so, and the sampler task is killed.
+TEST(SbsNetwork, RecordInterruptedKeepsWhatItTook) {
+    Workspace ws;
+    const std::string csv = ws.dir() + "/long.csv";
+    Master m(ws, {"-c", "spawn ramp; on; record X 60s " + csv});
+    ASSERT_TRUE(sbs_test::wait_for_file(csv + ".part"));
+    std::this_thread::sleep_for(std::chrono::milliseconds(300));
+    ::kill(m.pid(), SIGINT);
+    EXPECT_TRUE(m.stderr_has("error: record: interrupted after ")) << m.err_text();
+    EXPECT_EQ(m.wait(), 1) << m.err_text();
+    EXPECT_NE(m.err_text().find(" of 12000 samples"), std::string::npos) << m.err_text();
+    EXPECT_FALSE(std::filesystem::exists(csv + ".part"));
+    std::ifstream in(csv);
+    std::string line;
+    std::getline(in, line);
+    EXPECT_EQ(line, "t,X");
+    int rows = 0;
+    while (std::getline(in, line)) ++rows;
+    EXPECT_GT(rows, 0);
+    EXPECT_LT(rows, 12000);
+}
+
+// Who may watch the table may watch its samples: the ring has the table's mode
+// (0640 with the watch group, docs/permissions.md; else both 0600).
+TEST(SbsNetwork, ASampleRingHasTheTablesMode) {
+    Workspace ws;
+    Master m(ws, {"--serve", "-c", "spawn ramp; on"});
+    NetworkClient c = connect(ws);
+    const auto j = c.request("sample X", 5000);
+    ASSERT_TRUE(j.value("ok", false)) << j.dump();
+    struct stat ring {}, table {};
+    ASSERT_EQ(::stat(("/dev/shm" + j["data"]["ring"].get<std::string>()).c_str(), &ring), 0);
+    ASSERT_EQ(::stat(("/dev/shm/chimera." + ws.subsystem() + ".svar").c_str(), &table), 0);
+    EXPECT_EQ(ring.st_mode & 0777, table.st_mode & 0777);
+    c.request("finish", 5000);
+    EXPECT_EQ(m.wait(), 0) << m.err_text();
+}

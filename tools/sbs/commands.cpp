@@ -5,8 +5,12 @@
 #include "svar_values.hpp"
 
 #include <chimera/ipc/segment.hpp>
+#include <chimera/sampler.hpp>
+
+#include <signal.h>
 
 #include <algorithm>
+#include <cerrno>
 #include <chrono>
 #include <cmath>
 #include <cstdio>
@@ -176,8 +180,11 @@ const std::vector<CommandInfo>& command_table() {
         {"network", "network", "pass control to a network peer until it quits or is lost"},
         {"off", "off [RMOD]", "send the off signal"},
         {"on", "on [RMOD]", "send the on signal"},
+        {"peer", "peer NAME --pid PID [--out VAR...] [--in VAR...] [--program TEXT...]", "declare a process outside the master (a Python program) that produces the --out and consumes the --in variables in its own loop: a background task NAME (module peer) that verification counts as their producer and status lists; it goes to ERROR when the process is gone; `kill NAME` removes it"},
         {"quit", "quit", "leave this interface (at the prompt: finish the subsystem and exit)"},
         {"reconfig", "reconfig SIG RMOD [, SIG RMOD ...]", "apply an ordered list of signals (on off kill clear); stops at the first failure"},
+        {"record", "record VAR[IDX]... DURATION FILE.csv [--rate HZ] [--rtpu RTPU]", "record state variables (VAR, VAR[i], VAR[i:j]) at a task's rate for DURATION (5s, 500ms, 2min) into a CSV file: a `sample` task, read by this sbs program, killed at the end; the reply counts lost samples (not over the network: a peer runs `sample` and reads the ring itself)"},
+        {"sample", "sample VAR[IDX]... [--rate HZ] [--rtpu RTPU] [--capacity N]", "start a sampler task: chosen elements of state variables read at HZ (default: the fastest producer's rate) into a shared-memory ring for any number of readers (scope, record, Python's chimera.record); `kill` the task to stop it"},
         {"save", "save FILE.sbs", "write the running configuration as a .sbs that starts the same subsystem: the RTPUs, a TASK line per task (its RTPU, ON when on) and a SET line per LOCAL value changed at run time (not over the network)"},
         {"set", "set [RMOD] [KEY [VALUE...]]", "show the LOCAL configuration of a task, one key, or change a key"},
         {"setvar", "setvar VAR[IDX] VALUE... [--force]", "write a state variable of the running table (halcmd setp): range-checked against the .svar MIN/MAX; refused while a task produces it unless --force"},
@@ -275,6 +282,8 @@ Reply Interpreter::execute(std::string_view command, Origin origin) {
 
 Reply Interpreter::run(const Words& w) {
     const std::string& c = w[0];
+    check_peers();
+    if (c == "peer") return cmd_peer(w);
     if (c == "spawn") return cmd_spawn(w);
     if (c == "on") return cmd_control(w, sbs::Control::on);
     if (c == "off") return cmd_control(w, sbs::Control::off);
@@ -291,6 +300,10 @@ Reply Interpreter::run(const Words& w) {
     if (c == "show") return cmd_show(w);
     if (c == "setvar") return cmd_setvar(w);
     if (c == "save") return cmd_save(w);
+    if (c == "sample") return cmd_sample(w);
+    if (c == "record")
+        throw CommandError("record writes a file, so it runs in the sbs program that asked (sbs FILE.sbs -c 'record "
+                           "...'), never over the network: a peer runs `sample` and reads the ring itself");
     Reply r;
     if (c == "sleep") {
         double seconds = -1;
@@ -766,6 +779,158 @@ Reply values_reply(svar::Table& t, const std::vector<VarItem>& items, const std:
 
 // The live tasks that write (out-var, out-const) and read (in-var, in-const)
 // the global variable `name`.
+// ----------------------------------------------------------------- sample
+
+namespace {
+
+double positive_number(const std::string& option, const std::string& text) {
+    char* end = nullptr;
+    const double v = std::strtod(text.c_str(), &end);
+    if (end == text.c_str() || *end != '\0' || !(v > 0) || !std::isfinite(v))
+        throw CommandError("sample: " + option + " " + text + " is not a positive number");
+    return v;
+}
+
+}  // namespace
+
+// Spawns a task from an .rmod made here and turns it on; when `on` is
+// refused (verification), the task is killed again and the refusal thrown.
+sbs::TaskId Interpreter::spawn_on(const RmodFile& f, const std::string& rtpu) {
+    const sbs::TaskId id = sbs_.spawn_parsed({f}, rtpu);
+    rmods_[f.name] = f;
+    rtpu_of_[f.name] = sbs_.status(id).rtpu;
+    try {
+        sbs_.control(id, sbs::Control::on);
+    } catch (...) {
+        try {
+            sbs_.control(id, sbs::Control::kill);
+        } catch (const std::exception&) {  // the refusal is what the caller needs to see
+        }
+        rmods_.erase(f.name);
+        rtpu_of_.erase(f.name);
+        throw;
+    }
+    return id;
+}
+
+// At a task's rate: by default the fastest producer's, so no value it writes is missed.
+double Interpreter::producers_rate(const std::vector<std::string>& vars, std::string& why) const {
+    double rate = 0;
+    for (const auto& v : vars)
+        for (const auto& p : users_of(v.substr(0, v.find('['))).producers)
+            if (const auto id = sbs_.find(p); id && sbs_.freq_get(*id) > rate) {
+                rate = sbs_.freq_get(*id);
+                why = "the rate of " + p;
+            }
+    if (rate > 0) return rate;
+    why = "no task produces them";
+    return 100;
+}
+
+// sample.N for the first N naming neither a task nor a ring (a crashed master's stale ring is removed).
+std::string Interpreter::free_sampler_name() {
+    for (;;) {
+        const std::string name = "sample." + std::to_string(++samplers_made_);
+        const std::string ring = ipc::segment_name(sbs_.name(), name);
+        if (ipc::Segment::exists(ring) && ipc::Segment::is_stale(ring)) ipc::Segment::unlink(ring);
+        if (!is_task(name) && !ipc::Segment::exists(ring)) return name;
+    }
+}
+
+Reply Interpreter::cmd_sample(const Words& w) {
+    std::vector<std::string> vars;
+    std::string rtpu, capacity;
+    double rate = 0;
+    for (std::size_t i = 1; i < w.size(); ++i) {
+        const bool has_value = i + 1 < w.size();
+        if (w[i] == "--rate" && has_value) rate = positive_number("--rate", w[++i]);
+        else if (w[i] == "--rtpu" && has_value) rtpu = w[++i];
+        else if (w[i] == "--capacity" && has_value) capacity = std::to_string(static_cast<long>(positive_number("--capacity", w[++i])));
+        else if (w[i].rfind("--", 0) == 0) throw CommandError("sample: unknown option " + w[i] + " (--rate HZ, --rtpu RTPU, --capacity N)");
+        else vars.push_back(w[i]);
+    }
+    if (vars.empty()) throw CommandError("usage: sample VAR[IDX]... [--rate HZ] [--rtpu RTPU] [--capacity N]");
+    const std::vector<sampler::Channel> channels = sampler::parse_channels(*table(), vars);
+    std::string rate_from = "given";
+    if (rate == 0) rate = producers_rate(vars, rate_from);
+    if (const std::string why = frequency_problem(rate); !why.empty()) throw CommandError("sample: " + why);
+    const std::string name = free_sampler_name();
+    RmodFile f;
+    f.name = name;
+    f.module = "sampler";
+    f.desc = "sampler (the sample command)";
+    f.type = TaskType::periodic;
+    f.freq = rate;
+    f.period = 1.0 / rate;
+    f.local.file = "sample command";
+    f.local.set("CHANNELS", vars);
+    f.local.set("RING", {name});
+    if (!capacity.empty()) f.local.set("CAPACITY", {capacity});
+    const auto s = sbs_.status(spawn_on(f, rtpu));
+    const std::string ring = ipc::segment_name(sbs_.name(), name);
+    const sampler::RingReader reader = sampler::RingReader::attach(ring);
+    std::vector<std::string> names;
+    for (const auto& c : channels) names.push_back(c.name);
+    Reply r;
+    r.text = name + ": sampling " + std::to_string(names.size()) + " channel(s) (" + join(names) + ") at " +
+             cfg::number_text(rate) + " Hz (" + rate_from + ") on RTPU " + s.rtpu + " into " + ring + " (" +
+             std::to_string(reader.capacity()) + " entries); `kill " + name + "` stops it";
+    r.data = {{"rmod", name}, {"ring", ring}, {"channels", names}, {"rate", rate},
+              {"capacity", reader.capacity()}, {"rtpu", s.rtpu}};
+    return r;
+}
+
+// ----------------------------------------------------------------- peer
+
+Reply Interpreter::cmd_peer(const Words& w) {
+    constexpr const char* kUsage = "usage: peer NAME --pid PID [--out VAR...] [--in VAR...] [--program TEXT...]";
+    if (w.size() < 2 || w[1].rfind("--", 0) == 0) throw CommandError(kUsage);
+    const std::string name = w[1];
+    std::vector<std::string> out, in, program, pid;
+    std::vector<std::string>* list = nullptr;
+    for (std::size_t i = 2; i < w.size(); ++i) {
+        if (w[i] == "--out") list = &out;
+        else if (w[i] == "--in") list = &in;
+        else if (w[i] == "--pid") list = &pid;
+        else if (w[i] == "--program") list = &program;
+        else if (!list || (list != &program && w[i].rfind("--", 0) == 0)) throw CommandError(kUsage);
+        else list->push_back(w[i]);
+    }
+    if (pid.size() != 1) throw CommandError(kUsage);
+    if (out.empty() && in.empty()) throw CommandError("peer " + name + ": it produces (--out) or consumes (--in) nothing");
+    if (is_task(name)) throw CommandError("peer: task " + name + " already exists (kill it first)");
+    if (name.find_first_of("+/ ") != std::string::npos) throw CommandError("peer: NAME " + name + " may not hold + / or blanks");
+    RmodFile f;
+    f.name = name;
+    f.module = std::string(sbs::kPeerModule);
+    f.desc = "peer process " + pid[0];
+    f.type = TaskType::background;
+    f.in_vars = in;
+    f.out_vars = out;
+    f.local.file = "peer command";
+    f.local.set("PID", pid);
+    if (!program.empty()) f.local.set("PROGRAM", program);
+    (void)spawn_on(f, {});  // §3.3.1: refused when another task produces one of `out`
+    Reply r;
+    r.text = name + ": peer process " + pid[0] + " ON, producing " + (out.empty() ? "nothing" : join(out)) +
+             ", consuming " + (in.empty() ? "nothing" : join(in));
+    r.data = {{"rmod", name}, {"state", "ON"}, {"pid", std::stol(pid[0])}, {"produces", out}, {"consumes", in}};
+    return r;
+}
+
+void Interpreter::check_peers() {
+    for (const auto& [name, f] : rmods_) {
+        if (f.module != sbs::kPeerModule) continue;
+        const long pid = static_cast<long>(f.local.number("PID", 0));
+        if (pid <= 0 || ::kill(static_cast<pid_t>(pid), 0) == 0 || errno == EPERM) continue;
+        const auto id = sbs_.find(name);
+        if (!id || sbs_.state(*id) != State::ON) continue;
+        sbs_.event(*id);  // its cycle finds the process gone: ERROR
+        for (int i = 0; i < 200 && sbs_.state(*id) == State::ON; ++i)
+            std::this_thread::sleep_for(std::chrono::milliseconds(1));
+    }
+}
+
 Interpreter::Users Interpreter::users_of(const std::string& name) const {
     Users u;
     for (const auto& [task, f] : rmods_) {
@@ -1232,6 +1397,15 @@ std::vector<std::string> Interpreter::complete_locked(std::string_view line) {
             } else if (c == "setvar") {
                 if (index == 1) variables();
                 else cand.insert("--force");
+            } else if (c == "sample" || c == "record" || c == "peer") {
+                if (index >= 2 && words[index - 1] == "--rtpu") {
+                    for (const auto& r : sbs_.file().rtpus) cand.insert(r.name);
+                } else if (c != "peer" || index >= 2) {
+                    variables();
+                    if (c == "sample") cand.insert({"--rate", "--rtpu", "--capacity"});
+                    if (c == "record") cand.insert({"--rate", "--rtpu"});
+                    if (c == "peer") cand.insert({"--pid", "--out", "--in", "--program"});
+                }
             } else if (c == "reconfig") {
                 // Alternating SIG RMOD; a comma starts a new item.
                 std::size_t pos = 0;

@@ -104,6 +104,15 @@ private:
     Reply cmd_freq(const Words& w);
     Reply cmd_event(const Words& w);
     Reply cmd_help(const Words& w);
+    Reply cmd_sample(const Words& w);
+    double producers_rate(const std::vector<std::string>& vars, std::string& why) const;
+    std::string free_sampler_name();
+    sbs::TaskId spawn_on(const RmodFile& f, const std::string& rtpu);
+    Reply cmd_peer(const Words& w);
+    /// Peer tasks whose process is gone are woken to find out (their task
+    /// goes to ERROR): run before every command, so verification never counts
+    /// a dead process as a producer.
+    void check_peers();
 
     /// The task named `rmod` (or the default one when empty); throws
     /// std::runtime_error naming what is wrong. Makes it the default RMOD.
@@ -138,6 +147,7 @@ private:
     /// -c scripts, [1] the network peer in control.
     prof::StatusWindow windows_[2];
     Origin origin_ = Origin::local;  // of the command being executed
+    unsigned samplers_made_ = 0;     // `sample` names its tasks sample.1, sample.2, ...
     std::mutex mutex_;  // one command at a time, whichever interface sent it
 };
 

@@ -11,6 +11,7 @@
 // socket, `sbs FILE.sbs` attaches to it as a network peer instead; when it
 // runs as another user, this sbs only watches it (status, display: issue 16.7).
 #include "client.hpp"
+#include "record.hpp"
 #include "command_line.hpp"
 #include "commands.hpp"
 #include "server.hpp"
@@ -90,7 +91,7 @@ int prompt_getc(FILE* in) {
     }
 }
 
-using Executor = std::function<Reply(std::string_view)>;
+using cli::Executor;
 
 /// Runs one line (one or more commands separated by `;`): each reply is
 /// printed; stops at the first failure. Returns the last reply (the failing
@@ -108,7 +109,7 @@ Reply run_line(const Executor& exec, std::string_view line, bool json, bool erro
     }
     Reply last;
     for (const auto& c : commands) {
-        last = exec(c);
+        last = cli::is_record(c) ? cli::record(exec, c, &g_interrupted) : exec(c);
         if (json) {
             std::cout << cli::to_json_line(last) << std::endl;
         } else if (last.ok) {

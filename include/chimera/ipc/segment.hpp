@@ -71,6 +71,7 @@ enum class ObjectType : std::uint32_t {
     prof_status = 8,
     sbs_control = 9,
     name_server = 10,
+    sampler_ring = 11,
 };
 
 /// The name of an ObjectType for messages ("svar_table"), or "type N".

@@ -1,0 +1,66 @@
+// The sampler ring from Python (issues #18.4, #17.5): a reader of the ring a
+// `sample` task writes at its rate, returning numpy arrays of the samples
+// taken since the last read, and counting what it lost if it fell behind. A
+// read never waits, so it keeps the GIL.
+#include "bindings.hpp"
+
+#include <chimera/sampler.hpp>
+
+namespace chimera::python {
+
+namespace {
+
+struct PyRing {
+    sampler::RingReader reader;
+
+    py::tuple read(std::optional<std::size_t> max_samples) {
+        const std::uint64_t available = reader.head() - reader.position();
+        std::size_t n = static_cast<std::size_t>(std::min<std::uint64_t>(available, reader.capacity()));
+        if (max_samples) n = std::min(n, *max_samples);
+        const std::size_t width = reader.channels();
+        py::array_t<std::int64_t> t(static_cast<py::ssize_t>(n));
+        py::array_t<std::uint64_t> cycle(static_cast<py::ssize_t>(n));
+        py::array_t<double> values({static_cast<py::ssize_t>(n), static_cast<py::ssize_t>(width)});
+        const sampler::ReadCount c = reader.read(t.mutable_data(), cycle.mutable_data(), values.mutable_data(), n);
+        if (c.samples < n) {  // some were overwritten meanwhile: keep the rows taken
+            t.resize({static_cast<py::ssize_t>(c.samples)});
+            cycle.resize({static_cast<py::ssize_t>(c.samples)});
+            values.resize({static_cast<py::ssize_t>(c.samples), static_cast<py::ssize_t>(width)});
+        }
+        return py::make_tuple(t, cycle, values, c.lost);
+    }
+};
+
+}  // namespace
+
+void bind_sampler(py::module_& m) {
+    py::class_<PyRing>(m, "Ring",
+                       "A reader of a sampler ring (the `sample` command's task): samples taken at the task's rate, "
+                       "each delivered once, loss counted when this reader falls behind. Many readers may follow one "
+                       "ring; none of them can delay the task.")
+        .def_static("attach", [](const std::string& name) {
+            return std::make_unique<PyRing>(PyRing{sampler::RingReader::attach(name)});
+        }, py::arg("name"), "Map the ring NAME read-only; reading starts with the next sample written.")
+        .def_property_readonly("name", [](const PyRing& r) { return r.reader.name(); })
+        .def_property_readonly("channels", [](const PyRing& r) { return r.reader.channel_names(); },
+                               "column names: 'Q_REF[0]', ..., or 'X' for a scalar")
+        .def_property_readonly("capacity", [](const PyRing& r) { return r.reader.capacity(); })
+        .def_property_readonly("rate", [](const PyRing& r) { return r.reader.rate_hz(); }, "the sampling task's rate, Hz")
+        .def_property_readonly("position", [](const PyRing& r) { return r.reader.position(); },
+                               "number of the next sample this reader takes")
+        .def_property_readonly("head", [](const PyRing& r) { return r.reader.head(); }, "samples written so far")
+        .def_property_readonly("lost", [](const PyRing& r) { return r.reader.lost_total(); },
+                               "samples this reader lost (overwritten before it read them) since it attached")
+        .def_property_readonly("closed", [](const PyRing& r) { return r.reader.closed(); },
+                               "True once the sampling task has been killed: nothing follows")
+        .def("rewind", [](PyRing& r) { r.reader.rewind(); }, "Go back to the oldest sample the ring still holds.")
+        .def("read", &PyRing::read, py::arg("max_samples") = py::none(),
+             "The samples written since the last read (at most MAX_SAMPLES), oldest first: (time_ns int64[n], "
+             "cycle uint64[n], values float64[n, channels], lost) — lost: samples skipped because this reader fell "
+             "behind.")
+        .def("__repr__", [](const PyRing& r) {
+            return "<chimera.Ring " + r.reader.name() + ", " + std::to_string(r.reader.channels()) + " channels>";
+        });
+}
+
+}  // namespace chimera::python
