@@ -6,6 +6,7 @@
 #include <algorithm>
 #include <cctype>
 #include <cmath>
+#include <filesystem>
 #include <stdexcept>
 
 namespace ddsbridge {
@@ -107,7 +108,12 @@ BridgeConfig parse_config(const chimera::RmodFile& rmod) {
     BridgeConfig c;
     const chimera::LocalConfig& lc = rmod.local;
     c.domain = static_cast<int>(lc.number("DOMAIN", 0));
-    if (const auto* e = lc.find("CONFIG"); e && !e->values.empty()) c.config_file = e->values.front();
+    if (const auto* e = lc.find("CONFIG"); e && !e->values.empty()) {
+        // A relative file is the .rmod's neighbour, wherever the program runs.
+        const std::filesystem::path file = e->values.front();
+        const std::filesystem::path dir = std::filesystem::path(rmod.path).parent_path();
+        c.config_file = (file.is_relative() && !rmod.path.empty() ? dir / file : file).string();
+    }
     if (const auto* e = lc.find("AGE_CLOCK"); e && !e->values.empty()) {
         if (e->values.front() == "receive") {
             c.age_clock = AgeClock::receive;

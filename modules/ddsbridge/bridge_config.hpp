@@ -4,7 +4,7 @@
 //
 //   LOCAL
 //   DOMAIN    17                      DDS domain id (default 0)
-//   CONFIG    cyclone.xml             Cyclone DDS XML configuration (default: Cyclone's own)
+//   CONFIG    cyclone.xml             Cyclone DDS XML configuration, relative to the .rmod (default: Cyclone's own)
 //   AGE_CLOCK receive                 receive | source (see README: which clock the age is on)
 //   JOINT_NAMES j1 j2 j3 j4 j5 j6     JointState.name of what is published (default: none)
 //   TOPIC_Q_MEZ  puma/joint_positions  pub  JointState.position  state
@@ -57,7 +57,7 @@ struct TopicSpec {
 
 struct BridgeConfig {
     int domain = 0;
-    std::string config_file;  ///< empty: Cyclone's defaults (or CYCLONEDDS_URI)
+    std::string config_file;  ///< empty: Cyclone's defaults (or CYCLONEDDS_URI); relative: to the .rmod's folder
     AgeClock age_clock = AgeClock::receive;
     std::vector<std::string> joint_names;
     std::vector<TopicSpec> topics;  ///< in_vars first (pub), then out_vars (sub), in .rmod order

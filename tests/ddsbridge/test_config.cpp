@@ -58,6 +58,10 @@ TEST(DdsBridgeConfig, AWellFormedSectionGivesEveryPortItsTopic) {
     const BridgeConfig c = parse_config(r);
     EXPECT_EQ(c.domain, 17);
     EXPECT_EQ(c.config_file, "cyclone.xml");
+    r.path = "/etc/arm/bridge.rmod";
+    EXPECT_EQ(parse_config(r).config_file, "/etc/arm/cyclone.xml") << "a relative CONFIG is the .rmod's neighbour";
+    set(r, "CONFIG", "/opt/dds.xml", 11);
+    EXPECT_EQ(parse_config(r).config_file, "/opt/dds.xml");
     EXPECT_EQ(c.age_clock, AgeClock::receive);
     EXPECT_EQ(c.joint_names, (std::vector<std::string>{"a", "b"}));
     ASSERT_EQ(c.topics.size(), 3u);
