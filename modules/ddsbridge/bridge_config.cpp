@@ -123,6 +123,15 @@ BridgeConfig parse_config(const chimera::RmodFile& rmod) {
             fail(rmod, e->line, "AGE_CLOCK '" + e->values.front() + "': expected receive or source");
         }
     }
+    if (const auto* e = lc.find("NOTIFY"); e && !e->values.empty()) {
+        if (e->values.front() == "poll") {
+            c.notify = Notify::poll;
+        } else if (e->values.front() == "wake") {
+            c.notify = Notify::wake;
+        } else {
+            fail(rmod, e->line, "NOTIFY '" + e->values.front() + "': expected poll or wake");
+        }
+    }
     if (const auto* e = lc.find("JOINT_NAMES")) c.joint_names = e->values;
     std::vector<TopicSpec> pubs, subs;
     for (const auto& e : lc.entries()) {

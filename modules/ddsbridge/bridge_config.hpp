@@ -6,6 +6,7 @@
 //   DOMAIN    17                      DDS domain id (default 0)
 //   CONFIG    cyclone.xml             Cyclone DDS XML configuration, relative to the .rmod (default: Cyclone's own)
 //   AGE_CLOCK receive                 receive | source (see README: which clock the age is on)
+//   NOTIFY    poll                    poll | wake: how the bridge thread learns of a value to publish
 //   JOINT_NAMES j1 j2 j3 j4 j5 j6     JointState.name of what is published (default: none)
 //   TOPIC_Q_MEZ  puma/joint_positions  pub  JointState.position  state
 //   TOPIC_T_REF  puma/joint_torques    sub  JointState.effort    command  0.02 illegal
@@ -42,6 +43,13 @@ enum class AgeClock : std::uint8_t {
     source,   ///< the sender's stamp (header.stamp, CLOCK_REALTIME): needs PTP or chrony
 };
 
+/// How the bridge thread learns that the task wrote a value to publish.
+enum class Notify : std::uint8_t {
+    poll,  ///< it looks at the TBUFs when the task's write is due: no system call on the task thread
+    wake,  ///< the task wakes it (futex) after writing: one more system call per cycle, a
+           ///< thread wake-up instead of the poll's lag (bench/results/dds.md compares them)
+};
+
 struct TopicSpec {
     std::string port;        ///< the internal port name (INVAR or OUTVAR)
     std::string ros_name;    ///< ROS 2 topic name, without "rt/"
@@ -59,6 +67,7 @@ struct BridgeConfig {
     int domain = 0;
     std::string config_file;  ///< empty: Cyclone's defaults (or CYCLONEDDS_URI); relative: to the .rmod's folder
     AgeClock age_clock = AgeClock::receive;
+    Notify notify = Notify::poll;
     std::vector<std::string> joint_names;
     std::vector<TopicSpec> topics;  ///< in_vars first (pub), then out_vars (sub), in .rmod order
 };

@@ -268,6 +268,7 @@ void Link::publish_loop() noexcept {
     joint.header.frame_id = empty;
     Clock newest = 0;  // stamp of the newest value the task wrote
     while (!stop_.load(std::memory_order_relaxed)) {
+        const std::uint32_t seen = wakeups_.load();  // before the look: a write after it ends the wait at once
         for (auto& s : slots_) {
             const Port& p = *s->port;
             if (p.spec.direction != Direction::pub) continue;
@@ -296,6 +297,13 @@ void Link::publish_loop() noexcept {
                 rc = dds_write(s->endpoint, &joint);
             }
             if (rc == DDS_RETCODE_OK) published_.fetch_add(1, std::memory_order_relaxed);
+        }
+        if (config_.notify == Notify::wake) {
+            // Until the task's notify(), at most 10 ms (to see stop_).
+            sleeping_.store(true);
+            if (wakeups_.load() == seen) chimera::ipc::futex_wait(wakeups_, seen, 10'000'000);
+            sleeping_.store(false);
+            continue;
         }
         // Sleep until just after the task's next write is due; look every
         // kPollStep while it is late, every period while the task is OFF.

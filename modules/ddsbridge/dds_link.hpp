@@ -6,14 +6,18 @@
 //   pub:  task cycle --tbuf write--> [TBUF] --poll--> bridge thread --dds_write--> network
 //   sub:  network --> Cyclone receive thread (listener) --tbuf write--> [TBUF] --read--> task cycle
 //
-// The task never waits for the bridge and never makes a system call for it:
+// The task never waits for the bridge and, with NOTIFY poll (the default),
+// never makes a system call for it:
 // the bridge thread learns of a new value by looking at the TBUF, woken just
 // after the task's next write is due (the newest write's stamp + one period +
 // kPollLag), and again every kPollStep while the write is late. So a value
 // leaves at most about kPollLag plus the thread's wake-up latency after the
-// task wrote it (bench/results/dds.md measures it).
+// task wrote it (bench/results/dds.md measures it). With NOTIFY wake the task
+// wakes the thread after writing (one futex(2) call per cycle): the lag is then
+// one thread wake-up.
 #pragma once
 
+#include <chimera/ipc/futex.hpp>
 #include <chimera/tbuf.hpp>
 
 #include <atomic>
@@ -70,6 +74,12 @@ public:
     const SubCounts& counts(std::size_t i) const noexcept;
     /// The task's period while it is ON, 0 while OFF: paces the bridge thread's looks.
     void set_period_ns(std::int64_t ns) noexcept { period_ns_.store(ns, std::memory_order_relaxed); }
+    /// NOTIFY wake: called by the task after writing its pub TBUFs; one
+    /// futex(2) wake when the bridge thread sleeps (it nearly always does).
+    void notify() noexcept {
+        wakeups_.fetch_add(1);
+        if (sleeping_.load()) chimera::ipc::futex_wake(wakeups_);
+    }
     /// Linux thread id of the bridge thread (tests check its policy).
     long thread_id() const noexcept { return tid_.load(); }
     /// Samples published since start.
@@ -91,6 +101,8 @@ private:
     std::atomic<long> tid_{0};
     std::atomic<bool> stop_{false};
     std::atomic<std::int64_t> period_ns_{0};
+    std::atomic<std::uint32_t> wakeups_{0};  // NOTIFY wake: bumped by the task
+    std::atomic<bool> sleeping_{false};       // the bridge thread is (about to be) in futex_wait
     std::atomic<std::uint64_t> published_{0};
     std::int32_t participant_ = 0;
     std::mutex mu_;

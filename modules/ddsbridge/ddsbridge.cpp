@@ -34,6 +34,8 @@ constexpr chimera::LocalKey kKeys[] = {
      "Cyclone DDS XML configuration file (network interface, discovery, lease)", ""},
     {"AGE_CLOCK", chimera::LocalType::word, -chimera::unbounded, chimera::unbounded, false,
      "receive | source: a received value's age since its arrival here, or since the sender's stamp", "receive"},
+    {"NOTIFY", chimera::LocalType::word, -chimera::unbounded, chimera::unbounded, false,
+     "poll | wake: the bridge thread looks when the task's write is due, or the task wakes it (one system call)", "poll"},
     {"JOINT_NAMES", chimera::LocalType::text, -chimera::unbounded, chimera::unbounded, false,
      "JointState.name of the joint vectors published", ""},
     {"TOPIC_*", chimera::LocalType::text, -chimera::unbounded, chimera::unbounded, false,
@@ -109,6 +111,7 @@ public:
     chimera::Result cycle(chimera::Task& t) override {
         const std::int64_t now = chimera::ipc::now_ns();
         for (const Pub& p : pubs_) (void)link_->buffer(p.link_index).write(p.var, now);
+        if (!pubs_.empty() && config_.notify == Notify::wake) link_->notify();
         bool ok = true;
         for (Sub& s : subs_) ok = take(t, s, now) && ok;
         return ok ? chimera::Result::OK : chimera::Result::ERROR;

@@ -132,4 +132,10 @@ TEST(DdsBridgeConfig, EachMistakeIsNamedWithFileLineAndKey) {
     set(clock, "TOPIC_T", t_ok, 8);
     set(clock, "AGE_CLOCK", "wall", 9);
     EXPECT_EQ(error_of(clock), "bridge.rmod:9: AGE_CLOCK 'wall': expected receive or source");
+    clock.local.erase("AGE_CLOCK");
+    EXPECT_EQ(parse_config(clock).notify, Notify::poll);
+    set(clock, "NOTIFY", "wake", 10);
+    EXPECT_EQ(parse_config(clock).notify, Notify::wake);
+    set(clock, "NOTIFY", "signal", 10);
+    EXPECT_EQ(error_of(clock), "bridge.rmod:10: NOTIFY 'signal': expected poll or wake");
 }

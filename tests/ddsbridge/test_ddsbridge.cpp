@@ -116,12 +116,13 @@ protected:
         return (dir_ / (name + ".rmod")).string();
     }
     // The publisher of X and S, the subscriber of Y and T, on topics of this run.
-    void start(const std::string& y_action = "zero", const std::string& t_action = "illegal") {
+    void start(const std::string& y_action = "zero", const std::string& t_action = "illegal",
+               const std::string& notify = "poll") {
         sbs_ = Subsystem::init((dir_ / "t.sbs").string());
         global_ = std::make_unique<chimera::svar::Table>(
             chimera::svar::Table::attach(chimera::ipc::segment_name(name_, "svar")));
         pub_ = sbs_->spawn(bridge_rmod("pub", "INVAR X S\nOUTVAR none\n",
-                                       "JOINT_NAMES j1 j2 j3 j4 j5 j6\n"
+                                       "NOTIFY " + notify + "\nJOINT_NAMES j1 j2 j3 j4 j5 j6\n"
                                        "TOPIC_X " + topic_ + "/joints pub JointState.position state\n"
                                        "TOPIC_S " + topic_ + "/array pub StateVar command\n"),
                            "cpu0");
@@ -151,6 +152,13 @@ protected:
     std::unique_ptr<Subsystem> sbs_;
     std::unique_ptr<chimera::svar::Table> global_;
     TaskId pub_{}, sub_{};
+
+    void count_task_threads(const std::string& notify);
+    static bool syscall_counter_available() {
+        const int probe = chimera::test::open_syscall_counter();
+        if (probe >= 0) ::close(probe);
+        return probe >= 0;
+    }
 };
 
 const std::array<double, 6> kJoints{0.5, -1.25, 3.0, 0.0, 1e-3, -2.5};
@@ -324,11 +332,11 @@ int open_thread_counter(long tid, bool futex_only) {
 // flow both ways, each bridge task thread makes no allocation and no system
 // call but the release wait (plus, as for every task, a futex(2) when the
 // table lock is found busy and a profiler read in a cycle switched out).
-TEST_F(Bridge, TaskThreadsMakeNoAllocationAndNoSystemCallButTheReleaseWait) {
-    const int probe = chimera::test::open_syscall_counter();
-    if (probe < 0) GTEST_SKIP() << "no raw_syscalls tracepoint: tracefs not mounted (see tests/prof/in_tracefs_namespace.sh)";
-    ::close(probe);
-    start("warn", "warn");
+// NOTIFY poll: the release wait alone. NOTIFY wake: the publishing task adds
+// one futex(2) wake per cycle (counted and stated: 2 system calls per cycle),
+// the subscribing one none.
+void Bridge::count_task_threads(const std::string& notify) {
+    start("warn", "warn", notify);
     put("X", kJoints);
     put("S", kArray);
     ASSERT_TRUE(eventually([&] { return get<6>("Y") == kJoints && get<3>("T") == kArray; }));
@@ -351,13 +359,31 @@ TEST_F(Bridge, TaskThreadsMakeNoAllocationAndNoSystemCallButTheReleaseWait) {
         ::close(futex);
         const std::uint64_t cycles = st.cycles - st0.cycles;
         const std::uint64_t switched = st.profile.switched - st0.profile.switched;
-        std::printf("%s: cycles %llu system calls %llu (futex %llu, switched %llu) allocations %ld\n", st.rmod.c_str(),
-                    static_cast<unsigned long long>(cycles), static_cast<unsigned long long>(calls),
+        std::printf("NOTIFY %s, %s: cycles %llu system calls %llu (futex %llu, switched %llu) allocations %ld\n", notify.c_str(),
+                    st.rmod.c_str(), static_cast<unsigned long long>(cycles), static_cast<unsigned long long>(calls),
                     static_cast<unsigned long long>(locks), static_cast<unsigned long long>(switched), allocations);
         EXPECT_GT(cycles, 50u) << st.rmod;
         EXPECT_EQ(allocations, 0) << st.rmod;
-        EXPECT_GE(calls, cycles) << st.rmod << ": the release wait alone is one per cycle";
+        // The status reads bracket the counting window: a cycle more at each end.
+        EXPECT_GE(calls + 2, cycles) << st.rmod << ": the release wait alone is one per cycle";
+        // futex(2) counts the table lock found busy and, NOTIFY wake, the wake.
         EXPECT_LE(calls, cycles + locks + switched + 2) << st.rmod;
+        if (notify == "wake" && id == pub_) {
+            EXPECT_GE(locks + 2, cycles) << "one wake per cycle";
+            EXPECT_LE(locks, cycles + 2 + cycles / 5) << "one wake per cycle, and the lock found busy now and then";
+        } else {
+            EXPECT_LE(locks, cycles / 5) << st.rmod << ": the table lock found busy now and then, nothing else";
+        }
         EXPECT_NE(sbs_->get(sub_, "STATUS"), received0) << "samples kept flowing while counted";
     }
+}
+
+TEST_F(Bridge, TaskThreadsMakeNoAllocationAndNoSystemCallButTheReleaseWait) {
+    if (!syscall_counter_available()) GTEST_SKIP() << "no raw_syscalls tracepoint: tracefs not mounted (see tests/prof/in_tracefs_namespace.sh)";
+    count_task_threads("poll");
+}
+
+TEST_F(Bridge, WithNotifyWakeThePublishingTaskAddsOneWakePerCycle) {
+    if (!syscall_counter_available()) GTEST_SKIP() << "no raw_syscalls tracepoint: tracefs not mounted (see tests/prof/in_tracefs_namespace.sh)";
+    count_task_threads("wake");
 }
