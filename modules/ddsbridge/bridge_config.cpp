@@ -13,6 +13,7 @@ namespace ddsbridge {
 namespace {
 
 constexpr std::string_view kTopicPrefix = "TOPIC_";
+constexpr std::string_view kStampPrefix = "STAMP_";
 
 [[noreturn]] void fail(const chimera::RmodFile& rmod, int line, const std::string& what) {
     throw std::invalid_argument(rmod.local.file + ":" + std::to_string(line) + ": " + what);
@@ -139,6 +140,17 @@ BridgeConfig parse_config(const chimera::RmodFile& rmod) {
         TopicSpec t = parse_topic(rmod, e);
         (t.direction == Direction::pub ? pubs : subs).push_back(std::move(t));
     }
+    std::vector<std::string> stamp_ports;
+    for (const auto& e : lc.entries()) {
+        if (e.key.rfind(kStampPrefix, 0) != 0) continue;
+        const std::string port = e.key.substr(kStampPrefix.size());
+        auto it = std::find_if(subs.begin(), subs.end(), [&](const TopicSpec& t) { return t.port == port; });
+        if (it == subs.end()) fail(rmod, e.line, e.key + ": " + port + " has no subscribed TOPIC_" + port + " line");
+        if (e.values.size() != 1 || !listed(rmod.out_vars, e.values[0]))
+            fail(rmod, e.line, e.key + " takes one OUTVAR (3 doubles: counter, age, new/repeat/stale)");
+        it->stamp_port = e.values[0];
+        stamp_ports.push_back(e.values[0]);
+    }
     auto has_topic = [](const std::vector<TopicSpec>& list, const std::string& port) {
         return std::any_of(list.begin(), list.end(), [&](const TopicSpec& t) { return t.port == port; });
     };
@@ -146,7 +158,7 @@ BridgeConfig parse_config(const chimera::RmodFile& rmod) {
         if (!has_topic(pubs, port))
             throw std::invalid_argument(lc.file + ": INVAR " + port + " has no TOPIC_" + port + " line in LOCAL");
     for (const auto& port : rmod.out_vars)
-        if (!has_topic(subs, port))
+        if (!has_topic(subs, port) && !listed(stamp_ports, port))
             throw std::invalid_argument(lc.file + ": OUTVAR " + port + " has no TOPIC_" + port + " line in LOCAL");
     c.topics = std::move(pubs);
     c.topics.insert(c.topics.end(), subs.begin(), subs.end());

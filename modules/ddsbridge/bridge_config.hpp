@@ -10,8 +10,10 @@
 //   JOINT_NAMES j1 j2 j3 j4 j5 j6     JointState.name of what is published (default: none)
 //   TOPIC_Q_MEZ  puma/joint_positions  pub  JointState.position  state
 //   TOPIC_T_REF  puma/joint_torques    sub  JointState.effort    command  0.02 illegal
+//   STAMP_T_REF  T_REF_RX               an OUTVAR of 3 doubles: counter, age, new/repeat/stale
 //
-// One TOPIC_<port> line per INVAR (pub) and OUTVAR (sub) port, and none else.
+// One TOPIC_<port> line per INVAR (pub) and OUTVAR (sub) port but those named
+// by a STAMP_ line, and none else.
 // Errors are std::invalid_argument naming the .rmod, the line and the key.
 #pragma once
 
@@ -58,6 +60,10 @@ struct TopicSpec {
     Qos qos = Qos::state;
     double age_limit = 0;    ///< seconds (sub only)
     StaleAction stale = StaleAction::warn;
+    /// STAMP_<port> OUTVAR (sub only): an out-var of 3 doubles the cycle fills
+    /// with [counter, age (s; -1 before the first value), 1 new value | 0 a repeat | -1 stale],
+    /// for a consumer module that wants to see the stamps itself. Empty: none.
+    std::string stamp_port;
     int line = 0;            ///< of the TOPIC_ line
 
     std::string dds_topic() const { return "rt/" + ros_name; }

@@ -38,6 +38,8 @@ constexpr chimera::LocalKey kKeys[] = {
      "poll | wake: the bridge thread looks when the task's write is due, or the task wakes it (one system call)", "poll"},
     {"JOINT_NAMES", chimera::LocalType::text, -chimera::unbounded, chimera::unbounded, false,
      "JointState.name of the joint vectors published", ""},
+    {"STAMP_*", chimera::LocalType::word, -chimera::unbounded, chimera::unbounded, false,
+     "STAMP_<port> OUTVAR: 3 doubles per cycle: counter, age (s), 1 new | 0 repeat | -1 stale", ""},
     {"TOPIC_*", chimera::LocalType::text, -chimera::unbounded, chimera::unbounded, false,
      "TOPIC_<port> TOPIC pub|sub MESSAGE state|command [AGE_LIMIT warn|zero|illegal|error]", ""},
 };
@@ -52,6 +54,7 @@ std::int64_t realtime_ns() noexcept {
 struct Sub {
     std::size_t link_index = 0;
     double* var = nullptr;
+    double* stamp = nullptr;  // STAMP_<port>: counter, age, new/repeat/stale
     std::size_t nelem = 0;
     std::int64_t age_limit_ns = 0;
     StaleAction action = StaleAction::warn;
@@ -60,6 +63,7 @@ struct Sub {
     // For `get STATUS`:
     std::uint64_t counter = 0;
     std::int64_t age_ns = -1;
+    bool fresh = false;  // this cycle's read found a new value
 };
 
 struct Pub {
@@ -89,6 +93,7 @@ public:
             Sub s;
             s.link_index = i;
             s.var = t.translate<double>(p.spec.port);
+            if (!p.spec.stamp_port.empty()) s.stamp = stamp_port(t, p.spec);
             s.nelem = p.nelem;
             s.age_limit_ns = static_cast<std::int64_t>(p.spec.age_limit * 1e9);
             s.action = p.spec.stale;
@@ -165,11 +170,31 @@ private:
         return p;
     }
 
+    double* stamp_port(chimera::Task& t, const TopicSpec& spec) {
+        const std::string name = t.global_name(spec.stamp_port);
+        const chimera::svar::VarInfo info = t.local_table().global().var(name);
+        if (info.type() != chimera::svar::Type::double_ || info.nelem() != 3)
+            throw std::invalid_argument(t.rmod_file().local.file + ": STAMP_" + spec.port + ": " + name +
+                                        " must be a double variable of 3 elements (counter, age, new/repeat/stale)");
+        return t.translate<double>(spec.stamp_port);
+    }
+
     // The newest value of a subscription into its port, or the stale action.
     // Not noexcept: t.error() leaves by an exception (err.hpp).
     bool take(chimera::Task& t, Sub& s, std::int64_t now) {
+        const bool ok = take_value(t, s, now);
+        if (s.stamp) {
+            s.stamp[0] = static_cast<double>(s.counter);
+            s.stamp[1] = s.age_ns < 0 ? -1.0 : 1e-9 * static_cast<double>(s.age_ns);
+            s.stamp[2] = s.stale ? -1.0 : (s.fresh ? 1.0 : 0.0);
+        }
+        return ok;
+    }
+
+    bool take_value(chimera::Task& t, Sub& s, std::int64_t now) {
         chimera::tbuf::ReadResult r;
         const auto* item = static_cast<const std::byte*>(link_->buffer(s.link_index).read_view(r));
+        s.fresh = r.status == chimera::tbuf::ReadStatus::fresh;
         std::int64_t age;
         if (r.status == chimera::tbuf::ReadStatus::fresh || r.status == chimera::tbuf::ReadStatus::reused) {
             ReceivedHeader head;

@@ -124,6 +124,19 @@ TEST(DdsBridgeConfig, EachMistakeIsNamedWithFileLineAndKey) {
     EXPECT_EQ(with(q_ok, "q sub StateVar state 0.1 warn"),
               "bridge.rmod:8: TOPIC_T: topic q is already TOPIC_Q's (one variable per topic)");
 
+    auto stamped = rmod({"Q"}, {"T", "T_RX"});
+    set(stamped, "TOPIC_Q", q_ok, 7);
+    set(stamped, "TOPIC_T", t_ok, 8);
+    set(stamped, "STAMP_T", "T_RX", 9);
+    EXPECT_EQ(parse_config(stamped).topics[1].stamp_port, "T_RX");
+    set(stamped, "STAMP_T", "T_RX extra", 9);
+    EXPECT_EQ(error_of(stamped), "bridge.rmod:9: STAMP_T takes one OUTVAR (3 doubles: counter, age, new/repeat/stale)");
+    set(stamped, "STAMP_T", "NOPE", 9);
+    EXPECT_EQ(error_of(stamped), "bridge.rmod:9: STAMP_T takes one OUTVAR (3 doubles: counter, age, new/repeat/stale)");
+    stamped.local.erase("STAMP_T");
+    set(stamped, "STAMP_Q", "T_RX", 9);
+    EXPECT_EQ(error_of(stamped), "bridge.rmod:9: STAMP_Q: Q has no subscribed TOPIC_Q line");
+
     auto missing = base();
     set(missing, "TOPIC_Q", q_ok, 7);
     EXPECT_EQ(error_of(missing), "bridge.rmod: OUTVAR T has no TOPIC_T line in LOCAL");

@@ -57,6 +57,7 @@ const char* kSvar =
     "NAME Y\nTYPE double\nDESC joint positions received\nUNITS rad\nNELEM 6\n"
     "NAME S\nTYPE double\nDESC a plain array published\nUNITS none\nNELEM 3\n"
     "NAME T\nTYPE double\nDESC a plain array received\nUNITS none\nNELEM 3\n"
+    "NAME T_RX\nTYPE double\nDESC T's counter, age and new/repeat/stale\nUNITS mixed\nNELEM 3\n"
     "EOF\n";
 
 // Loopback only, unicast discovery: nothing of the test leaves the machine.
@@ -126,9 +127,10 @@ protected:
                                        "TOPIC_X " + topic_ + "/joints pub JointState.position state\n"
                                        "TOPIC_S " + topic_ + "/array pub StateVar command\n"),
                            "cpu0");
-        sub_ = sbs_->spawn(bridge_rmod("sub", "INVAR none\nOUTVAR Y T\n",
+        sub_ = sbs_->spawn(bridge_rmod("sub", "INVAR none\nOUTVAR Y T T_RX\n",
                                        "TOPIC_Y " + topic_ + "/joints sub JointState.position state 0.1 " + y_action + "\n"
-                                       "TOPIC_T " + topic_ + "/array sub StateVar command 0.1 " + t_action + "\n"),
+                                       "TOPIC_T " + topic_ + "/array sub StateVar command 0.1 " + t_action + "\n"
+                                       "STAMP_T T_RX\n"),
                            "cpu0");
         // One at a time: reconfig() would verify that a module produces X and S;
         // here the test writes them into the table itself.
@@ -178,6 +180,13 @@ TEST_F(Bridge, PublishedValuesArriveInTheSubscribersPortsWithCountersAndStamps) 
     EXPECT_NE(status.find("rejected 0"), std::string::npos) << status;
     EXPECT_EQ(sbs_->status(sub_).state, State::ON);
     EXPECT_FALSE(sbs_->illegal_configuration());
+    // STAMP_T: the sender's counter-stamps, growing; an age within the limit; new or a repeat.
+    const auto rx0 = get<3>("T_RX");
+    EXPECT_TRUE(eventually([&] { return get<3>("T_RX")[0] > rx0[0] + 10; })) << "the counter did not advance";
+    const auto rx = get<3>("T_RX");
+    EXPECT_GE(rx[1], 0.0);
+    EXPECT_LE(rx[1], 0.1);
+    EXPECT_TRUE(rx[2] == 0.0 || rx[2] == 1.0) << rx[2];
 }
 
 TEST_F(Bridge, AnIndependentReaderDecodesTheSamplesAsRos2Types) {
@@ -252,6 +261,8 @@ TEST_F(Bridge, StaleDataGoesToEachPortsStaleActionAndRecovers) {
     // Y: zeros; T: keeps its last value and raises the illegal-configuration flag.
     EXPECT_TRUE(eventually([&] { return get<6>("Y") == std::array<double, 6>{} && sbs_->illegal_configuration(); }));
     EXPECT_EQ(get<3>("T"), kArray);
+    EXPECT_TRUE(eventually([&] { return get<3>("T_RX")[2] == -1.0; })) << "STAMP_T says stale";
+    EXPECT_GT(get<3>("T_RX")[1], 0.1) << "and its age is past the limit";
     const auto st = sbs_->status(sub_);
     EXPECT_EQ(st.state, State::ON) << "stale data never stops the task";
     EXPECT_NE(st.warning.find(": stale (no value newer than 0.1 s; "), std::string::npos) << st.warning;
