@@ -21,6 +21,7 @@ packages=(
   pybind11-dev python3-dev python3-numpy         # the Python bindings, import chimera (optional: -Dpython)
   python3-pytest mypy python3-pandas             # their tests: pytest, the stubs checked by mypy, to_dataframe()
   python3-matplotlib                             # examples/python/step_response.py's plot; docs/thesis_plots.py (the thesis's figures)
+  cyclonedds-dev cyclonedds-tools                # ddsbridge: Cyclone DDS C API, idlc (the wire types from IDL) and ddsperf (bench) (optional: -Ddds)
 )
 missing=()
 for p in "${packages[@]}"; do

@@ -1,0 +1,323 @@
+// dds_link.cpp — the bridge thread, its DDS entities and the listeners (dds_link.hpp).
+#include "dds_link.hpp"
+
+#include <chimera/ipc/clock.hpp>
+
+#include <dds/dds.h>
+#include <sched.h>
+#include <sys/syscall.h>
+#include <unistd.h>
+
+#include <cerrno>
+#include <cstring>
+#include <ctime>
+#include <map>
+#include <stdexcept>
+
+#include "ros2_msgs.h"
+
+namespace ddsbridge {
+
+struct Link::Slot {
+    std::unique_ptr<std::byte[], void (*)(void*)> memory{nullptr, &std::free};
+    chimera::tbuf::Tbuf tbuf;
+    SubCounts counts;
+    dds_entity_t topic = 0, endpoint = 0;
+    std::mutex listener_mu;  // one writer of the TBUF at a time, whichever Cyclone thread delivers
+    std::vector<std::byte> item;  // the listener's staging item
+    std::vector<char*> names;     // JointState.name (pub)
+    const Port* port = nullptr;
+};
+
+namespace {
+
+using Clock = std::int64_t;
+
+Clock clock_ns(clockid_t id) noexcept {
+    timespec ts{};
+    clock_gettime(id, &ts);  // vDSO
+    return static_cast<Clock>(ts.tv_sec) * 1'000'000'000 + ts.tv_nsec;
+}
+
+// A domain created with a configuration file is shared by the bridges of one
+// process that name the same domain and file, and deleted with the last one.
+struct DomainUse {
+    dds_entity_t entity = 0;
+    std::string config;
+    int users = 0;
+};
+std::mutex g_domains_mu;
+std::map<int, DomainUse> g_domains;
+
+void acquire_domain(int id, const std::string& file) {
+    if (file.empty()) return;  // Cyclone's defaults: the participant creates the domain
+    std::lock_guard<std::mutex> lock(g_domains_mu);
+    auto it = g_domains.find(id);
+    if (it != g_domains.end()) {
+        if (it->second.config != file)
+            throw std::runtime_error("DDS domain " + std::to_string(id) + " already runs in this process with CONFIG " +
+                                     it->second.config + ", not " + file);
+        ++it->second.users;
+        return;
+    }
+    const std::string uri = "file://" + file;
+    const dds_entity_t d = dds_create_domain(static_cast<dds_domainid_t>(id), uri.c_str());
+    if (d < 0)
+        throw std::runtime_error("CONFIG " + file + ": Cyclone DDS refused domain " + std::to_string(id) + ": " +
+                                 dds_strretcode(d) + " (an unreadable file, bad XML, or the domain already "
+                                 "running in this process without a CONFIG)");
+    g_domains[id] = DomainUse{d, file, 1};
+}
+
+void release_domain(int id, const std::string& file) noexcept {
+    if (file.empty()) return;
+    std::lock_guard<std::mutex> lock(g_domains_mu);
+    auto it = g_domains.find(id);
+    if (it != g_domains.end() && --it->second.users == 0) {
+        dds_delete(it->second.entity);
+        g_domains.erase(it);
+    }
+}
+
+dds_qos_t* make_qos(Qos profile) {
+    dds_qos_t* q = dds_create_qos();
+    if (profile == Qos::command)
+        dds_qset_reliability(q, DDS_RELIABILITY_RELIABLE, DDS_MSECS(100));
+    else
+        dds_qset_reliability(q, DDS_RELIABILITY_BEST_EFFORT, 0);
+    dds_qset_history(q, DDS_HISTORY_KEEP_LAST, 1);
+    dds_qset_durability(q, DDS_DURABILITY_VOLATILE);
+    const dds_data_representation_id_t xcdr1 = DDS_DATA_REPRESENTATION_XCDR1;
+    dds_qset_data_representation(q, 1, &xcdr1);
+    return q;
+}
+
+const dds_topic_descriptor_t* descriptor(Message m) noexcept {
+    return m == Message::state_var ? &chimera_msgs_msg_dds__StateVar__desc : &sensor_msgs_msg_dds__JointState__desc;
+}
+
+dds_sequence_double* joint_field(sensor_msgs_msg_dds__JointState_& s, Message m) noexcept {
+    switch (m) {
+        case Message::joint_position: return &s.position;
+        case Message::joint_velocity: return &s.velocity;
+        case Message::joint_effort: return &s.effort;
+        case Message::state_var: break;
+    }
+    return nullptr;
+}
+
+void set_stamp(std_msgs_msg_dds__Header_& h, Clock realtime_ns) noexcept {
+    h.stamp.sec = static_cast<int32_t>(realtime_ns / 1'000'000'000);
+    h.stamp.nanosec = static_cast<uint32_t>(realtime_ns % 1'000'000'000);
+}
+
+Clock stamp_ns(const std_msgs_msg_dds__Header_& h) noexcept {
+    return static_cast<Clock>(h.stamp.sec) * 1'000'000'000 + h.stamp.nanosec;
+}
+
+// The listener: every sample taken goes into the port's TBUF, stamped with its
+// arrival on this machine's CLOCK_MONOTONIC; a sample of the wrong length is
+// counted and dropped (never half-copied).
+void on_data_available(dds_entity_t reader, void* arg) {
+    auto& slot = *static_cast<Link::Slot*>(arg);
+    std::lock_guard<std::mutex> lock(slot.listener_mu);
+    const Port& port = *slot.port;
+    void* samples[1] = {nullptr};
+    dds_sample_info_t info;
+    while (dds_take(reader, samples, &info, 1, 1) > 0) {
+        if (info.valid_data) {
+            const dds_sequence_double* data = nullptr;
+            ReceivedHeader head{};
+            if (port.spec.message == Message::state_var) {
+                auto* s = static_cast<chimera_msgs_msg_dds__StateVar_*>(samples[0]);
+                data = &s->data;
+                head = {stamp_ns(s->header), s->counter};
+            } else {
+                auto* s = static_cast<sensor_msgs_msg_dds__JointState_*>(samples[0]);
+                data = joint_field(*s, port.spec.message);
+                head = {stamp_ns(s->header), slot.counts.received.load(std::memory_order_relaxed)};
+            }
+            if (data->_length != port.nelem) {
+                slot.counts.rejected.fetch_add(1, std::memory_order_relaxed);
+            } else {
+                std::memcpy(slot.item.data(), &head, sizeof head);
+                std::memcpy(slot.item.data() + sizeof head, data->_buffer, port.nelem * sizeof(double));
+                (void)slot.tbuf.write(slot.item.data(), chimera::ipc::now_ns());
+                slot.counts.received.fetch_add(1, std::memory_order_relaxed);
+            }
+        }
+        dds_return_loan(reader, samples, 1);
+        samples[0] = nullptr;
+    }
+}
+
+std::string dds_error(const std::string& what, dds_return_t rc) {
+    return what + ": " + dds_strretcode(rc);
+}
+
+}  // namespace
+
+Link::Link(const BridgeConfig& config, std::vector<Port> ports) : config_(config), ports_(std::move(ports)) {
+    for (const Port& p : ports_) {
+        auto s = std::make_unique<Slot>();
+        s->port = &p;
+        const std::size_t item = p.nelem * sizeof(double) + (p.spec.direction == Direction::sub ? sizeof(ReceivedHeader) : 0);
+        const std::size_t size = (chimera::tbuf::required_size(item) + 63) / 64 * 64;
+        s->memory.reset(static_cast<std::byte*>(std::aligned_alloc(64, size)));
+        if (!s->memory) throw std::bad_alloc();
+        s->tbuf = chimera::tbuf::Tbuf::create_in(s->memory.get(), size, item);
+        s->item.assign(item, std::byte{0});
+        if (p.spec.message != Message::state_var && p.spec.direction == Direction::pub)
+            for (const std::string& n : config_.joint_names) s->names.push_back(const_cast<char*>(n.c_str()));
+        slots_.push_back(std::move(s));
+    }
+    // Not the task's policy, priority or CPU: SCHED_OTHER on every CPU the process may use.
+    pthread_attr_t attr;
+    pthread_attr_init(&attr);
+    pthread_attr_setinheritsched(&attr, PTHREAD_EXPLICIT_SCHED);
+    pthread_attr_setschedpolicy(&attr, SCHED_OTHER);
+    sched_param sp{};
+    pthread_attr_setschedparam(&attr, &sp);
+    cpu_set_t cpus;
+    if (sched_getaffinity(::getpid(), sizeof cpus, &cpus) == 0) pthread_attr_setaffinity_np(&attr, sizeof cpus, &cpus);
+    const int rc = pthread_create(&thread_, &attr, &Link::thread_main, this);
+    pthread_attr_destroy(&attr);
+    if (rc != 0) throw std::runtime_error(std::string("cannot start the bridge thread: ") + std::strerror(rc));
+    std::unique_lock<std::mutex> lock(mu_);
+    cv_.wait(lock, [this] { return opened_; });
+    if (!open_error_.empty()) {
+        lock.unlock();
+        pthread_join(thread_, nullptr);
+        throw std::runtime_error(open_error_);
+    }
+}
+
+chimera::tbuf::Tbuf& Link::buffer(std::size_t i) noexcept { return slots_[i]->tbuf; }
+const SubCounts& Link::counts(std::size_t i) const noexcept { return slots_[i]->counts; }
+
+Link::~Link() {
+    stop_.store(true);
+    pthread_join(thread_, nullptr);
+}
+
+void* Link::thread_main(void* self) noexcept {
+    pthread_setname_np(pthread_self(), "ddsbridge");
+    static_cast<Link*>(self)->run();
+    return nullptr;
+}
+
+void Link::run() noexcept {
+    tid_.store(static_cast<long>(::syscall(SYS_gettid)));
+    std::string error;
+    try {
+        open();
+    } catch (const std::exception& e) {
+        error = e.what();
+        close();
+    }
+    {
+        std::lock_guard<std::mutex> lock(mu_);
+        open_error_ = error;
+        opened_ = true;
+    }
+    cv_.notify_all();
+    if (!error.empty()) return;
+    publish_loop();
+    close();
+}
+
+void Link::open() {
+    acquire_domain(config_.domain, config_.config_file);
+    participant_ = dds_create_participant(static_cast<dds_domainid_t>(config_.domain), nullptr, nullptr);
+    if (participant_ < 0) {
+        const dds_return_t rc = participant_;
+        participant_ = 0;
+        throw std::runtime_error(dds_error("cannot create a DDS participant on domain " + std::to_string(config_.domain), rc));
+    }
+    for (auto& s : slots_) {
+        const TopicSpec& t = s->port->spec;
+        s->topic = dds_create_topic(participant_, descriptor(t.message), t.dds_topic().c_str(), nullptr, nullptr);
+        if (s->topic < 0)
+            throw std::runtime_error(dds_error("topic " + t.dds_topic() + " (" + type_name(t.message) + ")", s->topic));
+        dds_qos_t* q = make_qos(t.qos);
+        if (t.direction == Direction::pub) {
+            s->endpoint = dds_create_writer(participant_, s->topic, q, nullptr);
+        } else {
+            dds_listener_t* l = dds_create_listener(s.get());
+            dds_lset_data_available(l, &on_data_available);
+            s->endpoint = dds_create_reader(participant_, s->topic, q, l);
+            dds_delete_listener(l);
+        }
+        dds_delete_qos(q);
+        if (s->endpoint < 0)
+            throw std::runtime_error(dds_error(std::string(t.direction == Direction::pub ? "writer" : "reader") +
+                                                   " of " + t.dds_topic(), s->endpoint));
+    }
+}
+
+void Link::close() noexcept {
+    if (participant_ > 0) dds_delete(participant_);  // its topics, readers (listeners stopped) and writers
+    participant_ = 0;
+    release_domain(config_.domain, config_.config_file);
+}
+
+void Link::publish_loop() noexcept {
+    sensor_msgs_msg_dds__JointState_ joint{};
+    chimera_msgs_msg_dds__StateVar_ var{};
+    char empty[] = "";
+    joint.header.frame_id = empty;
+    Clock newest = 0;  // stamp of the newest value the task wrote
+    while (!stop_.load(std::memory_order_relaxed)) {
+        const std::uint32_t seen = wakeups_.load();  // before the look: a write after it ends the wait at once
+        for (auto& s : slots_) {
+            const Port& p = *s->port;
+            if (p.spec.direction != Direction::pub) continue;
+            chimera::tbuf::ReadResult r;
+            const void* data = s->tbuf.read_view(r);
+            if (r.status != chimera::tbuf::ReadStatus::fresh) continue;
+            newest = std::max(newest, r.time_ns);
+            // ROS time: the task's write, moved from CLOCK_MONOTONIC to CLOCK_REALTIME.
+            const Clock realtime = clock_ns(CLOCK_REALTIME) - (clock_ns(CLOCK_MONOTONIC) - r.time_ns);
+            dds_sequence_double seq{static_cast<uint32_t>(p.nelem), static_cast<uint32_t>(p.nelem),
+                                    static_cast<double*>(const_cast<void*>(data)), false};
+            dds_return_t rc;
+            if (p.spec.message == Message::state_var) {
+                set_stamp(var.header, realtime);
+                var.header.frame_id = const_cast<char*>(p.global_name.c_str());
+                var.counter = r.counter;
+                var.data = seq;
+                rc = dds_write(s->endpoint, &var);
+            } else {
+                joint = sensor_msgs_msg_dds__JointState_{};
+                joint.header.frame_id = empty;
+                set_stamp(joint.header, realtime);
+                joint.name = {static_cast<uint32_t>(s->names.size()), static_cast<uint32_t>(s->names.size()),
+                              s->names.data(), false};
+                *joint_field(joint, p.spec.message) = seq;
+                rc = dds_write(s->endpoint, &joint);
+            }
+            if (rc == DDS_RETCODE_OK) published_.fetch_add(1, std::memory_order_relaxed);
+        }
+        if (config_.notify == Notify::wake) {
+            // Until the task's notify(), at most 10 ms (to see stop_).
+            sleeping_.store(true);
+            if (wakeups_.load() == seen) chimera::ipc::futex_wait(wakeups_, seen, 10'000'000);
+            sleeping_.store(false);
+            continue;
+        }
+        // Sleep until just after the task's next write is due; look every
+        // kPollStep while it is late, every period while the task is OFF.
+        const Clock period = period_ns_.load(std::memory_order_relaxed);
+        const Clock now = chimera::ipc::now_ns();
+        Clock wake = now + (period > 0 ? period : 10'000'000);
+        if (period > 0 && newest > 0) {
+            const Clock due = newest + period + kPollLag;
+            if (due > now) wake = due;
+            else if (now - newest < 2 * period + kPollLag) wake = now + kPollStep;
+        }
+        const timespec ts{static_cast<time_t>(wake / 1'000'000'000), static_cast<long>(wake % 1'000'000'000)};
+        while (clock_nanosleep(CLOCK_MONOTONIC, TIMER_ABSTIME, &ts, nullptr) == EINTR) {}
+    }
+}
+
+}  // namespace ddsbridge

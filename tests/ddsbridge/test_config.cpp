@@ -1,0 +1,154 @@
+// The ddsbridge .rmod reader (modules/ddsbridge/bridge_config.hpp): what a
+// well-formed LOCAL section gives, and the message for each mistake, naming
+// the file, the line and the key — checked before anything touches the network.
+#include "bridge_config.hpp"
+
+#include <gtest/gtest.h>
+
+#include <stdexcept>
+#include <string>
+
+namespace {
+
+using namespace ddsbridge;
+
+chimera::RmodFile rmod(std::vector<std::string> in, std::vector<std::string> out) {
+    chimera::RmodFile r;
+    r.name = "bridge";
+    r.module = "ddsbridge";
+    r.in_vars = std::move(in);
+    r.out_vars = std::move(out);
+    r.local.file = "bridge.rmod";
+    return r;
+}
+
+void set(chimera::RmodFile& r, const std::string& key, const std::string& text, int line) {
+    std::vector<std::string> words;
+    std::string w;
+    for (char c : text + " ") {
+        if (c == ' ') {
+            if (!w.empty()) words.push_back(w);
+            w.clear();
+        } else {
+            w += c;
+        }
+    }
+    r.local.set(key, words, line);
+}
+
+std::string error_of(const chimera::RmodFile& r) {
+    try {
+        parse_config(r);
+    } catch (const std::invalid_argument& e) {
+        return e.what();
+    }
+    return "";
+}
+
+}  // namespace
+
+TEST(DdsBridgeConfig, AWellFormedSectionGivesEveryPortItsTopic) {
+    auto r = rmod({"Q_MEZ", "STATE"}, {"T_REF"});
+    set(r, "DOMAIN", "17", 10);
+    set(r, "CONFIG", "cyclone.xml", 11);
+    set(r, "JOINT_NAMES", "a b", 12);
+    set(r, "TOPIC_Q_MEZ", "puma/joint_positions pub JointState.position state", 13);
+    set(r, "TOPIC_T_REF", "puma/torques sub JointState.effort command 0.02 illegal", 14);
+    set(r, "TOPIC_STATE", "puma/state pub StateVar state", 15);
+    const BridgeConfig c = parse_config(r);
+    EXPECT_EQ(c.domain, 17);
+    EXPECT_EQ(c.config_file, "cyclone.xml");
+    r.path = "/etc/arm/bridge.rmod";
+    EXPECT_EQ(parse_config(r).config_file, "/etc/arm/cyclone.xml") << "a relative CONFIG is the .rmod's neighbour";
+    set(r, "CONFIG", "/opt/dds.xml", 11);
+    EXPECT_EQ(parse_config(r).config_file, "/opt/dds.xml");
+    EXPECT_EQ(c.age_clock, AgeClock::receive);
+    EXPECT_EQ(c.joint_names, (std::vector<std::string>{"a", "b"}));
+    ASSERT_EQ(c.topics.size(), 3u);
+    EXPECT_EQ(c.topics[0].port, "Q_MEZ");
+    EXPECT_EQ(c.topics[0].dds_topic(), "rt/puma/joint_positions");
+    EXPECT_EQ(c.topics[0].direction, Direction::pub);
+    EXPECT_EQ(c.topics[0].message, Message::joint_position);
+    EXPECT_EQ(c.topics[0].qos, Qos::state);
+    EXPECT_EQ(c.topics[1].port, "STATE");
+    EXPECT_EQ(c.topics[1].message, Message::state_var);
+    EXPECT_EQ(c.topics[2].port, "T_REF");
+    EXPECT_EQ(c.topics[2].direction, Direction::sub);
+    EXPECT_EQ(c.topics[2].message, Message::joint_effort);
+    EXPECT_EQ(c.topics[2].qos, Qos::command);
+    EXPECT_DOUBLE_EQ(c.topics[2].age_limit, 0.02);
+    EXPECT_EQ(c.topics[2].stale, StaleAction::illegal);
+    EXPECT_STREQ(type_name(Message::joint_effort), "sensor_msgs::msg::dds_::JointState_");
+    EXPECT_STREQ(type_name(Message::state_var), "chimera_msgs::msg::dds_::StateVar_");
+}
+
+TEST(DdsBridgeConfig, EachMistakeIsNamedWithFileLineAndKey) {
+    auto base = [] { return rmod({"Q"}, {"T"}); };
+    auto with = [&](const std::string& q, const std::string& t) {
+        auto r = base();
+        set(r, "TOPIC_Q", q, 7);
+        set(r, "TOPIC_T", t, 8);
+        return error_of(r);
+    };
+    const std::string t_ok = "t sub StateVar state 0.1 warn";
+    const std::string q_ok = "q pub StateVar state";
+    EXPECT_EQ(with(q_ok, t_ok), "");
+    EXPECT_EQ(with("q pub", t_ok),
+              "bridge.rmod:7: TOPIC_Q takes TOPIC pub|sub MESSAGE state|command [AGE_LIMIT STALE_ACTION]");
+    EXPECT_EQ(with("rt/q pub StateVar state", t_ok),
+              "bridge.rmod:7: TOPIC_Q: topic 'rt/q': give the ROS 2 name; the bridge adds the DDS prefix rt/");
+    EXPECT_EQ(with("a//b pub StateVar state", t_ok),
+              "bridge.rmod:7: TOPIC_Q: topic 'a//b': empty name token (leading, trailing or double '/')");
+    EXPECT_EQ(with("a-b pub StateVar state", t_ok),
+              "bridge.rmod:7: TOPIC_Q: topic 'a-b': character '-' (ROS 2 names take letters, digits, '_' and '/')");
+    EXPECT_EQ(with("9a pub StateVar state", t_ok), "bridge.rmod:7: TOPIC_Q: topic '9a': a name token starts with a digit");
+    EXPECT_EQ(with("q both StateVar state", t_ok), "bridge.rmod:7: TOPIC_Q: direction 'both': expected pub or sub");
+    EXPECT_EQ(with("q pub Twist state", t_ok),
+              "bridge.rmod:7: TOPIC_Q: message 'Twist': expected JointState.position, JointState.velocity, "
+              "JointState.effort or StateVar");
+    EXPECT_EQ(with("q pub StateVar fast", t_ok),
+              "bridge.rmod:7: TOPIC_Q: QoS profile 'fast': expected state or command");
+    EXPECT_EQ(with("q pub StateVar state 0.1 warn", t_ok),
+              "bridge.rmod:7: TOPIC_Q: a published topic takes no age limit");
+    EXPECT_EQ(with("q sub StateVar state 0.1 warn", t_ok),
+              "bridge.rmod:7: TOPIC_Q: sub needs Q among the OUTVARs (what the bridge subscribes)");
+    EXPECT_EQ(with(q_ok, "t pub StateVar state"),
+              "bridge.rmod:8: TOPIC_T: pub needs T among the INVARs (what the bridge publishes)");
+    EXPECT_EQ(with(q_ok, "t sub StateVar state"),
+              "bridge.rmod:8: TOPIC_T: a subscribed topic needs AGE_LIMIT (seconds) and STALE_ACTION");
+    EXPECT_EQ(with(q_ok, "t sub StateVar state -1 warn"), "bridge.rmod:8: TOPIC_T: age limit '-1': expected seconds > 0");
+    EXPECT_EQ(with(q_ok, "t sub StateVar state 1e999 warn"),
+              "bridge.rmod:8: TOPIC_T: age limit '1e999': expected seconds > 0");
+    EXPECT_EQ(with(q_ok, "t sub StateVar state 0.1 panic"),
+              "bridge.rmod:8: TOPIC_T: stale action 'panic': expected warn, zero, illegal or error");
+    EXPECT_EQ(with(q_ok, "q sub StateVar state 0.1 warn"),
+              "bridge.rmod:8: TOPIC_T: topic q is already TOPIC_Q's (one variable per topic)");
+
+    auto stamped = rmod({"Q"}, {"T", "T_RX"});
+    set(stamped, "TOPIC_Q", q_ok, 7);
+    set(stamped, "TOPIC_T", t_ok, 8);
+    set(stamped, "STAMP_T", "T_RX", 9);
+    EXPECT_EQ(parse_config(stamped).topics[1].stamp_port, "T_RX");
+    set(stamped, "STAMP_T", "T_RX extra", 9);
+    EXPECT_EQ(error_of(stamped), "bridge.rmod:9: STAMP_T takes one OUTVAR (3 doubles: counter, age, new/repeat/stale)");
+    set(stamped, "STAMP_T", "NOPE", 9);
+    EXPECT_EQ(error_of(stamped), "bridge.rmod:9: STAMP_T takes one OUTVAR (3 doubles: counter, age, new/repeat/stale)");
+    stamped.local.erase("STAMP_T");
+    set(stamped, "STAMP_Q", "T_RX", 9);
+    EXPECT_EQ(error_of(stamped), "bridge.rmod:9: STAMP_Q: Q has no subscribed TOPIC_Q line");
+
+    auto missing = base();
+    set(missing, "TOPIC_Q", q_ok, 7);
+    EXPECT_EQ(error_of(missing), "bridge.rmod: OUTVAR T has no TOPIC_T line in LOCAL");
+    auto clock = base();
+    set(clock, "TOPIC_Q", q_ok, 7);
+    set(clock, "TOPIC_T", t_ok, 8);
+    set(clock, "AGE_CLOCK", "wall", 9);
+    EXPECT_EQ(error_of(clock), "bridge.rmod:9: AGE_CLOCK 'wall': expected receive or source");
+    clock.local.erase("AGE_CLOCK");
+    EXPECT_EQ(parse_config(clock).notify, Notify::poll);
+    set(clock, "NOTIFY", "wake", 10);
+    EXPECT_EQ(parse_config(clock).notify, Notify::wake);
+    set(clock, "NOTIFY", "signal", 10);
+    EXPECT_EQ(error_of(clock), "bridge.rmod:10: NOTIFY 'signal': expected poll or wake");
+}

@@ -1,0 +1,400 @@
+// ddsbridge end to end on this machine: two bridge tasks of one subsystem,
+// one publishing X (JointState.position) and S (chimera_msgs/StateVar), the
+// other subscribing them into Y and T, over Cyclone DDS on the loopback
+// interface only (unicast discovery, no multicast), on a domain id chosen from
+// the pid so concurrent runs do not meet.
+//   - values arrive, with counters and stamps (get STATUS);
+//   - an independent reader process (dds_echo: Cyclone's API + the IDL types
+//     only) decodes the samples from the wire: ROS 2 type names, rt/ topics,
+//     XCDR1, the QoS of each profile, the data;
+//   - a sample of the wrong length is dropped and counted, never half-copied;
+//   - stale data: the publisher turned off, the subscriber's ports go to their
+//     stale action (zeros; the illegal-configuration flag) with a warning, and
+//     come back when it is turned on again;
+//   - the bridge's thread and Cyclone's are SCHED_OTHER, the task threads not
+//     touched;
+//   - the task threads make no allocation and no system call beyond the
+//     release wait (needs tracefs: run under tests/prof/in_tracefs_namespace.sh).
+#include "chimera/ipc/segment.hpp"
+#include "chimera/sbs.hpp"
+#include "chimera/svar.hpp"
+
+#include <dds/dds.h>
+#include <gtest/gtest.h>
+#include <linux/perf_event.h>
+#include <sched.h>
+#include <sys/ioctl.h>
+#include <sys/syscall.h>
+#include <unistd.h>
+
+#include <array>
+#include <atomic>
+#include <chrono>
+#include <cstdio>
+#include <filesystem>
+#include <fstream>
+#include <set>
+#include <sstream>
+#include <string>
+#include <thread>
+#include <vector>
+
+#include "alloc_counter.hpp"
+#include "ros2_msgs.h"
+#include "syscall_counter.hpp"
+
+namespace fs = std::filesystem;
+using namespace std::chrono_literals;
+using chimera::State;
+using chimera::sbs::Control;
+using chimera::sbs::Subsystem;
+using chimera::sbs::TaskId;
+
+namespace {
+
+const char* kSvar =
+    "NAME X\nTYPE double\nDESC joint positions published\nUNITS rad\nNELEM 6\n"
+    "NAME Y\nTYPE double\nDESC joint positions received\nUNITS rad\nNELEM 6\n"
+    "NAME S\nTYPE double\nDESC a plain array published\nUNITS none\nNELEM 3\n"
+    "NAME T\nTYPE double\nDESC a plain array received\nUNITS none\nNELEM 3\n"
+    "NAME T_RX\nTYPE double\nDESC T's counter, age and new/repeat/stale\nUNITS mixed\nNELEM 3\n"
+    "EOF\n";
+
+// Loopback only, unicast discovery: nothing of the test leaves the machine.
+const char* kCycloneConfig =
+    "<CycloneDDS><Domain id=\"any\">"
+    "<General><Interfaces><NetworkInterface name=\"lo\"/></Interfaces><AllowMulticast>false</AllowMulticast></General>"
+    "<Discovery><ParticipantIndex>auto</ParticipantIndex><MaxAutoParticipantIndex>30</MaxAutoParticipantIndex>"
+    "<Peers><Peer address=\"127.0.0.1\"/></Peers></Discovery>"
+    "</Domain></CycloneDDS>\n";
+
+template <typename P>
+bool eventually(P pred, std::chrono::milliseconds t = 10000ms) {
+    const auto end = std::chrono::steady_clock::now() + t;
+    while (std::chrono::steady_clock::now() < end) {
+        if (pred()) return true;
+        std::this_thread::sleep_for(5ms);
+    }
+    return pred();
+}
+
+std::string run(const std::string& command) {
+    std::string out;
+    if (FILE* p = ::popen(command.c_str(), "r")) {
+        char buf[4096];
+        while (std::fgets(buf, sizeof buf, p)) out += buf;
+        ::pclose(p);
+    }
+    return out;
+}
+
+class Bridge : public ::testing::Test {
+protected:
+    void SetUp() override {
+        static std::atomic<int> counter{0};
+        const int n = counter++;
+        name_ = "ddsb" + std::to_string(::getpid()) + "x" + std::to_string(n);
+        domain_ = 1 + static_cast<int>((::getpid() * 7 + n) % 230);
+        topic_ = "chimera_test/p" + std::to_string(::getpid()) + "_" + std::to_string(n);
+        dir_ = fs::temp_directory_path() / name_;
+        fs::create_directories(dir_);
+        write("t.svar", kSvar);
+        write("cyclone.xml", kCycloneConfig);
+        write("t.sbs", "SUBSYSTEM " + name_ + "\nSVARFILE t.svar\nRTPU cpu0\nERRPRINT none\nEOF\n");
+    }
+    void TearDown() override {
+        global_.reset();
+        if (sbs_) sbs_->finish();
+        sbs_.reset();
+        fs::remove_all(dir_);
+    }
+    void write(const std::string& file, const std::string& text) { std::ofstream(dir_ / file) << text; }
+    std::string config_path() const { return (dir_ / "cyclone.xml").string(); }
+
+    std::string bridge_rmod(const std::string& name, const std::string& ports, const std::string& topics) {
+        write(name + ".rmod", "MODULE ddsbridge\nDESC test bridge\n" + ports + "TASKTYPE periodic\nFREQ 200\nLOCAL\n" +
+                                  "DOMAIN " + std::to_string(domain_) + "\nCONFIG " + config_path() + "\n" + topics + "EOF\n");
+        return (dir_ / (name + ".rmod")).string();
+    }
+    // The publisher of X and S, the subscriber of Y and T, on topics of this run.
+    void start(const std::string& y_action = "zero", const std::string& t_action = "illegal",
+               const std::string& notify = "poll") {
+        sbs_ = Subsystem::init((dir_ / "t.sbs").string());
+        global_ = std::make_unique<chimera::svar::Table>(
+            chimera::svar::Table::attach(chimera::ipc::segment_name(name_, "svar")));
+        pub_ = sbs_->spawn(bridge_rmod("pub", "INVAR X S\nOUTVAR none\n",
+                                       "NOTIFY " + notify + "\nJOINT_NAMES j1 j2 j3 j4 j5 j6\n"
+                                       "TOPIC_X " + topic_ + "/joints pub JointState.position state\n"
+                                       "TOPIC_S " + topic_ + "/array pub StateVar command\n"),
+                           "cpu0");
+        sub_ = sbs_->spawn(bridge_rmod("sub", "INVAR none\nOUTVAR Y T T_RX\n",
+                                       "TOPIC_Y " + topic_ + "/joints sub JointState.position state 0.1 " + y_action + "\n"
+                                       "TOPIC_T " + topic_ + "/array sub StateVar command 0.1 " + t_action + "\n"
+                                       "STAMP_T T_RX\n"),
+                           "cpu0");
+        // One at a time: reconfig() would verify that a module produces X and S;
+        // here the test writes them into the table itself.
+        sbs_->control(pub_, Control::on);
+        sbs_->control(sub_, Control::on);
+    }
+    template <std::size_t N>
+    std::array<double, N> get(const std::string& var) {
+        std::array<double, N> v{};
+        EXPECT_EQ(global_->read(global_->index_of(var), v.data()), chimera::svar::Status::ok) << var;
+        return v;
+    }
+    template <std::size_t N>
+    void put(const std::string& var, const std::array<double, N>& v) {
+        EXPECT_EQ(global_->write(global_->index_of(var), v.data()), chimera::svar::Status::ok) << var;
+    }
+
+    std::string name_, topic_;
+    int domain_ = 0;
+    fs::path dir_;
+    std::unique_ptr<Subsystem> sbs_;
+    std::unique_ptr<chimera::svar::Table> global_;
+    TaskId pub_{}, sub_{};
+
+    void count_task_threads(const std::string& notify);
+    static bool syscall_counter_available() {
+        const int probe = chimera::test::open_syscall_counter();
+        if (probe >= 0) ::close(probe);
+        return probe >= 0;
+    }
+};
+
+const std::array<double, 6> kJoints{0.5, -1.25, 3.0, 0.0, 1e-3, -2.5};
+const std::array<double, 3> kArray{7.0, 8.5, -9.0};
+
+}  // namespace
+
+TEST_F(Bridge, PublishedValuesArriveInTheSubscribersPortsWithCountersAndStamps) {
+    start();
+    put("X", kJoints);
+    put("S", kArray);
+    EXPECT_TRUE(eventually([&] { return get<6>("Y") == kJoints && get<3>("T") == kArray; }))
+        << "Y and T never took the published values";
+    const std::string status = sbs_->get(sub_, "STATUS");
+    EXPECT_NE(status.find("Y counter "), std::string::npos) << status;
+    EXPECT_NE(status.find("stale no received "), std::string::npos) << status;
+    EXPECT_NE(status.find("rejected 0"), std::string::npos) << status;
+    EXPECT_EQ(sbs_->status(sub_).state, State::ON);
+    EXPECT_FALSE(sbs_->illegal_configuration());
+    // STAMP_T: the sender's counter-stamps, growing; an age within the limit; new or a repeat.
+    const auto rx0 = get<3>("T_RX");
+    EXPECT_TRUE(eventually([&] { return get<3>("T_RX")[0] > rx0[0] + 10; })) << "the counter did not advance";
+    const auto rx = get<3>("T_RX");
+    EXPECT_GE(rx[1], 0.0);
+    EXPECT_LE(rx[1], 0.1);
+    EXPECT_TRUE(rx[2] == 0.0 || rx[2] == 1.0) << rx[2];
+}
+
+TEST_F(Bridge, AnIndependentReaderDecodesTheSamplesAsRos2Types) {
+    start();
+    put("X", kJoints);
+    put("S", kArray);
+    const std::string echo = std::string(DDS_ECHO) + " " + std::to_string(domain_) + " " + config_path() + " rt/";
+    const std::string joints = run(echo + topic_ + "/joints JointState 3 20");
+    EXPECT_NE(joints.find("writer type=sensor_msgs::msg::dds_::JointState_ representation=XCDR1 reliability=best_effort\n"),
+              std::string::npos) << joints;
+    EXPECT_NE(joints.find(" frame_id= name=[j1,j2,j3,j4,j5,j6] position=[0.5,-1.25,3,0,0.001,-2.5] velocity=[] effort=[]\n"),
+              std::string::npos) << joints;
+    // The stamp is ROS time (CLOCK_REALTIME) of the task's write: within seconds of now.
+    const auto at = joints.find("JointState stamp=");
+    ASSERT_NE(at, std::string::npos) << joints;
+    const long sec = std::stol(joints.substr(at + 17));
+    EXPECT_LE(std::labs(sec - static_cast<long>(std::time(nullptr))), 5) << joints;
+
+    const std::string array = run(echo + topic_ + "/array StateVar 3 20");
+    EXPECT_NE(array.find("writer type=chimera_msgs::msg::dds_::StateVar_ representation=XCDR1 reliability=reliable\n"),
+              std::string::npos) << array;
+    EXPECT_NE(array.find(" frame_id=S counter="), std::string::npos) << array;
+    EXPECT_NE(array.find(" data=[7,8.5,-9]\n"), std::string::npos) << array;
+    // Counters: the sender's counter-stamps, increasing (keep-last-1 may skip some).
+    std::istringstream lines(array);
+    std::string line;
+    long last = -1, seen = 0;
+    while (std::getline(lines, line)) {
+        const auto c = line.find(" counter=");
+        if (c == std::string::npos) continue;
+        const long counter = std::stol(line.substr(c + 9));
+        EXPECT_GT(counter, last) << array;
+        last = counter;
+        ++seen;
+    }
+    EXPECT_EQ(seen, 3) << array;
+}
+
+TEST_F(Bridge, ASampleOfTheWrongLengthIsDroppedAndCounted) {
+    start();
+    put("X", kJoints);
+    ASSERT_TRUE(eventually([&] { return get<6>("Y") == kJoints; }));
+    sbs_->control(pub_, Control::off);
+    // A foreign writer on the same topic, with five positions for six joints.
+    const dds_entity_t pp = dds_create_participant(static_cast<dds_domainid_t>(domain_), nullptr, nullptr);
+    ASSERT_GT(pp, 0);
+    const std::string topic = "rt/" + topic_ + "/joints";
+    const dds_entity_t tp = dds_create_topic(pp, &sensor_msgs_msg_dds__JointState__desc, topic.c_str(), nullptr, nullptr);
+    const dds_entity_t w = dds_create_writer(pp, tp, nullptr, nullptr);
+    ASSERT_GT(w, 0);
+    double five[5] = {9, 9, 9, 9, 9};
+    char empty[] = "";
+    sensor_msgs_msg_dds__JointState_ s{};
+    s.header.frame_id = empty;
+    s.position = {5, 5, five, false};
+    EXPECT_TRUE(eventually([&] {
+        (void)dds_write(w, &s);
+        const std::string status = sbs_->get(sub_, "STATUS");
+        return status.find("rejected 0\nT ") == std::string::npos;
+    })) << sbs_->get(sub_, "STATUS");
+    dds_delete(pp);
+    EXPECT_NE(get<6>("Y")[0], 9.0) << "the bad sample reached the port";
+}
+
+TEST_F(Bridge, StaleDataGoesToEachPortsStaleActionAndRecovers) {
+    start("zero", "illegal");
+    put("X", kJoints);
+    put("S", kArray);
+    ASSERT_TRUE(eventually([&] { return get<6>("Y") == kJoints && get<3>("T") == kArray; }));
+    (void)sbs_->status(sub_);  // hands over the first warning so far
+    sbs_->control(pub_, Control::off);  // the link goes quiet
+    // Y: zeros; T: keeps its last value and raises the illegal-configuration flag.
+    EXPECT_TRUE(eventually([&] { return get<6>("Y") == std::array<double, 6>{} && sbs_->illegal_configuration(); }));
+    EXPECT_EQ(get<3>("T"), kArray);
+    EXPECT_TRUE(eventually([&] { return get<3>("T_RX")[2] == -1.0; })) << "STAMP_T says stale";
+    EXPECT_GT(get<3>("T_RX")[1], 0.1) << "and its age is past the limit";
+    const auto st = sbs_->status(sub_);
+    EXPECT_EQ(st.state, State::ON) << "stale data never stops the task";
+    EXPECT_NE(st.warning.find(": stale (no value newer than 0.1 s; "), std::string::npos) << st.warning;
+    EXPECT_NE(sbs_->get(sub_, "STATUS").find("stale yes"), std::string::npos);
+    const auto cycles = st.cycles;
+    EXPECT_TRUE(eventually([&] { return sbs_->status(sub_).cycles > cycles + 20; })) << "the task kept its rate";
+
+    sbs_->control(pub_, Control::on);  // the link is back
+    EXPECT_TRUE(eventually([&] { return get<6>("Y") == kJoints && !sbs_->illegal_configuration(); }));
+    EXPECT_EQ(sbs_->get(sub_, "STATUS").find("stale yes"), std::string::npos);
+}
+
+TEST_F(Bridge, StaleDataWithTheErrorActionPutsTheTaskInError) {
+    start("error", "warn");
+    put("X", kJoints);
+    ASSERT_TRUE(eventually([&] { return get<6>("Y") == kJoints; }));
+    sbs_->control(pub_, Control::off);
+    EXPECT_TRUE(eventually([&] { return sbs_->status(sub_).state == State::ERROR; }));
+    EXPECT_NE(sbs_->status(sub_).error.find("Y from rt/" + topic_ + "/joints: stale (no value newer than 0.1 s; error)"),
+              std::string::npos);
+}
+
+namespace {
+
+std::set<long> thread_ids() {
+    std::set<long> out;
+    for (const auto& e : fs::directory_iterator("/proc/self/task")) out.insert(std::stol(e.path().filename().string()));
+    return out;
+}
+
+}  // namespace
+
+TEST_F(Bridge, TheBridgeThreadAndCycloneThreadsAreNotRealTime) {
+    const std::set<long> before = thread_ids();
+    start();
+    const std::set<long> tasks{sbs_->status(pub_).tid, sbs_->status(sub_).tid};
+    int others = 0;
+    for (const long tid : thread_ids()) {
+        if (before.count(tid) || tasks.count(tid)) continue;
+        std::ifstream comm("/proc/self/task/" + std::to_string(tid) + "/comm");
+        std::string name;
+        std::getline(comm, name);
+        const int policy = sched_getscheduler(static_cast<pid_t>(tid));
+        if (name.rfind("ddsbridge", 0) != 0 && name.find("recv") == std::string::npos &&
+            name.find("tev") == std::string::npos && name.find("gc") == std::string::npos &&
+            name.find("dq.") == std::string::npos && name.find("lease") == std::string::npos)
+            continue;  // the runtime's own threads (reporter, dispatchers) are not the bridge's business
+        ++others;
+        EXPECT_EQ(policy, SCHED_OTHER) << "thread " << tid << " (" << name << ")";
+    }
+    EXPECT_GE(others, 3) << "the bridge threads and Cyclone's receive and event threads";
+}
+
+namespace {
+
+// A kernel counter of one thread of this process: every system call, or
+// futex(2) alone (the table lock found busy).
+int open_thread_counter(long tid, bool futex_only) {
+    std::ifstream f("/sys/kernel/tracing/events/raw_syscalls/sys_enter/id");
+    long id = -1;
+    if (!(f >> id)) return -1;
+    perf_event_attr a{};
+    a.size = sizeof a;
+    a.type = PERF_TYPE_TRACEPOINT;
+    a.config = static_cast<std::uint64_t>(id);
+    const int fd = static_cast<int>(::syscall(SYS_perf_event_open, &a, static_cast<pid_t>(tid), -1, -1, PERF_FLAG_FD_CLOEXEC));
+    const std::string filter = "id == " + std::to_string(SYS_futex);
+    if (fd >= 0 && futex_only && ::ioctl(fd, PERF_EVENT_IOC_SET_FILTER, filter.c_str()) != 0) {
+        ::close(fd);
+        return -1;
+    }
+    return fd;
+}
+
+}  // namespace
+
+// The real-time path never touches the network (issue #19.3): while samples
+// flow both ways, each bridge task thread makes no allocation and no system
+// call but the release wait (plus, as for every task, a futex(2) when the
+// table lock is found busy and a profiler read in a cycle switched out).
+// NOTIFY poll: the release wait alone. NOTIFY wake: the publishing task adds
+// one futex(2) wake per cycle (counted and stated: 2 system calls per cycle),
+// the subscribing one none.
+void Bridge::count_task_threads(const std::string& notify) {
+    start("warn", "warn", notify);
+    put("X", kJoints);
+    put("S", kArray);
+    ASSERT_TRUE(eventually([&] { return get<6>("Y") == kJoints && get<3>("T") == kArray; }));
+    std::this_thread::sleep_for(500ms);  // warm-up
+    for (const TaskId id : {pub_, sub_}) {
+        const auto received0 = sbs_->get(sub_, "STATUS");  // get() runs on the task thread: not while counting
+        const auto st0 = sbs_->status(id);
+        const int all = open_thread_counter(st0.tid, false), futex = open_thread_counter(st0.tid, true);
+        ASSERT_GE(all, 0);
+        ASSERT_GE(futex, 0);
+        const std::uint64_t calls0 = chimera::test::read_syscall_counter(all);
+        const std::uint64_t futex0 = chimera::test::read_syscall_counter(futex);
+        chimera::test::alloc_count_start(chimera::test::AllocScope::thread, st0.tid);
+        std::this_thread::sleep_for(1s);
+        const long allocations = chimera::test::alloc_count_stop();
+        const std::uint64_t calls = chimera::test::read_syscall_counter(all) - calls0;
+        const std::uint64_t locks = chimera::test::read_syscall_counter(futex) - futex0;
+        const auto st = sbs_->status(id);
+        ::close(all);
+        ::close(futex);
+        const std::uint64_t cycles = st.cycles - st0.cycles;
+        const std::uint64_t switched = st.profile.switched - st0.profile.switched;
+        std::printf("NOTIFY %s, %s: cycles %llu system calls %llu (futex %llu, switched %llu) allocations %ld\n", notify.c_str(),
+                    st.rmod.c_str(), static_cast<unsigned long long>(cycles), static_cast<unsigned long long>(calls),
+                    static_cast<unsigned long long>(locks), static_cast<unsigned long long>(switched), allocations);
+        EXPECT_GT(cycles, 50u) << st.rmod;
+        EXPECT_EQ(allocations, 0) << st.rmod;
+        // The status reads bracket the counting window: a cycle more at each end.
+        EXPECT_GE(calls + 2, cycles) << st.rmod << ": the release wait alone is one per cycle";
+        // futex(2) counts the table lock found busy and, NOTIFY wake, the wake.
+        EXPECT_LE(calls, cycles + locks + switched + 2) << st.rmod;
+        if (notify == "wake" && id == pub_) {
+            EXPECT_GE(locks + 2, cycles) << "one wake per cycle";
+            EXPECT_LE(locks, cycles + 2 + cycles / 5) << "one wake per cycle, and the lock found busy now and then";
+        } else {
+            EXPECT_LE(locks, cycles / 5) << st.rmod << ": the table lock found busy now and then, nothing else";
+        }
+        EXPECT_NE(sbs_->get(sub_, "STATUS"), received0) << "samples kept flowing while counted";
+    }
+}
+
+TEST_F(Bridge, TaskThreadsMakeNoAllocationAndNoSystemCallButTheReleaseWait) {
+    if (!syscall_counter_available()) GTEST_SKIP() << "no raw_syscalls tracepoint: tracefs not mounted (see tests/prof/in_tracefs_namespace.sh)";
+    count_task_threads("poll");
+}
+
+TEST_F(Bridge, WithNotifyWakeThePublishingTaskAddsOneWakePerCycle) {
+    if (!syscall_counter_available()) GTEST_SKIP() << "no raw_syscalls tracepoint: tracefs not mounted (see tests/prof/in_tracefs_namespace.sh)";
+    count_task_threads("wake");
+}

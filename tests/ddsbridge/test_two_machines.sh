@@ -1,0 +1,136 @@
+#!/usr/bin/env bash
+# Two machines on one (issue #19.5): two network namespaces joined by a veth
+# pair, nothing else in them but loopback, so no traffic leaves them. The
+# robot host of examples/two_machines (robotsim + ddsbridge) runs in one, the
+# controller host (trajectory + PID + ddsbridge) in the other, and:
+#   1. the arm tracks the trajectory across the link (|Q_REF - Q_MEZ| on the
+#      controller host, Q_MEZ having come over DDS);
+#   2. the link is cut (the robot's veth down) for 4 s, longer than the 2 s
+#      lease of cyclone.xml, so the peers are forgotten: the robot host reports
+#      stale torques and raises the illegal-configuration flag, robotsim holds
+#      the arm (its speed goes to 0), the controller host reports stale
+#      measurements, and every task keeps its rate;
+#   3. the link returns: both hosts have fresh data again within the stated
+#      time (5 s; by design about 0.5 s: one SPDP interval), the flag drops and
+#      the arm tracks again.
+# Skips (77) with the reason where namespaces cannot be made (no CAP_NET_ADMIN).
+# Usage: test_two_machines.sh TWO_MACHINES_PROGRAM EXAMPLE_DIR
+set -u
+prog=$1
+example=$(cd "$2" && pwd)
+if [ "$(id -u)" -ne 0 ]; then echo "SKIP: network namespaces need CAP_NET_ADMIN (run as root)"; exit 77; fi
+tag=$$
+ns_robot=chr$tag ns_ctrl=chc$tag veth_robot=vr$tag veth_ctrl=vc$tag
+work=$(mktemp -d /tmp/two_machines.XXXXXX)
+pids=()
+cleanup() {
+    for p in "${pids[@]}"; do kill "$p" 2>/dev/null; done
+    wait 2>/dev/null
+    ip netns del "$ns_robot" 2>/dev/null
+    ip netns del "$ns_ctrl" 2>/dev/null
+    rm -rf "$work"
+}
+trap cleanup EXIT
+if ! reason=$(ip netns add "$ns_robot" 2>&1); then
+    echo "SKIP: cannot create a network namespace: $reason"
+    exit 77
+fi
+set -e
+ip netns add "$ns_ctrl"
+ip link add "$veth_robot" type veth peer name "$veth_ctrl"
+ip link set "$veth_robot" netns "$ns_robot"
+ip link set "$veth_ctrl" netns "$ns_ctrl"
+ip -n "$ns_robot" addr add 10.219.0.1/30 dev "$veth_robot"
+ip -n "$ns_ctrl" addr add 10.219.0.2/30 dev "$veth_ctrl"
+for ns in "$ns_robot" "$ns_ctrl"; do ip -n "$ns" link set lo up; done
+ip -n "$ns_robot" link set "$veth_robot" up
+ip -n "$ns_ctrl" link set "$veth_ctrl" up
+set +e
+
+fail=0
+check() {  # check CONDITION MESSAGE
+    if eval "$1"; then echo "ok: $2"; else echo "FAILED: $2"; fail=1; fi
+}
+# No way out: each namespace holds loopback and its end of the pair, nothing else.
+links() { ip -n "$1" -o link show | awk -F': ' '{print $2}' | sed 's/@.*//' | sort | tr '\n' ' '; }
+check '[ "$(links $ns_robot)" = "lo $veth_robot " ]' "namespace $ns_robot holds only lo and $veth_robot ($(links $ns_robot))"
+check '[ "$(links $ns_ctrl)" = "lo $veth_ctrl " ]' "namespace $ns_ctrl holds only lo and $veth_ctrl ($(links $ns_ctrl))"
+
+# This run's domain id and the example's configuration.
+domain=$((1 + tag % 230))
+for side in robot controller; do
+    sed -e "s/^DOMAIN .*/DOMAIN    $domain/" -e "s|^CONFIG .*|CONFIG    $example/cyclone.xml|" \
+        "$example/${side}_bridge.rmod" > "$work/${side}_bridge.rmod"
+done
+CHIMERA_DDS_INTERFACE=$veth_robot ip netns exec "$ns_robot" "$prog" robot --seconds 60 --name tmr$tag \
+    --bridge "$work/robot_bridge.rmod" > "$work/robot.log" 2> "$work/robot.err" &
+pids+=($!)
+CHIMERA_DDS_INTERFACE=$veth_ctrl ip netns exec "$ns_ctrl" "$prog" controller --seconds 60 --name tmc$tag \
+    --bridge "$work/controller_bridge.rmod" > "$work/ctrl.log" 2> "$work/ctrl.err" &
+pids+=($!)
+
+now() { date +%s.%N; }
+calc() { awk "BEGIN { printf \"%.6f\", $1 }"; }
+less() { awk -v a="$1" -v b="$2" 'BEGIN { exit !(a + 0 < b + 0) }'; }
+# The last status line of a host ("" before the first).
+last() { grep '^t=' "$work/$1.log" | tail -1; }
+field() { sed -n "s/\(^\|.* \)$2=\([^ ]*\).*/\2/p" <<< "$1"; }
+# Wait (at most $2 s) until the condition $1 holds.
+wait_for() {
+    local end; end=$(calc "$(now) + $2")
+    while less "$(now)" "$end"; do eval "$1" && return 0; sleep 0.1; done
+    return 1
+}
+
+# 1. Tracking across the link: measurements fresh, and the error small while moving.
+wait_for '[ "$(field "$(last ctrl)" measurements)" = fresh ] && [ "$(field "$(last robot)" torques)" = fresh ]' 10
+sleep 3.5
+tracking=$(grep '^t=' "$work/ctrl.log" | tail -10 | awk '{for(i=1;i<=NF;i++) if ($i ~ /^error=/) {split($i,a,"="); if (a[2]>m) m=a[2]}} END {print m+0}')
+echo "worst tracking error over the last second before the cut: $tracking rad"
+check 'less "$tracking" 0.03' "the arm tracks across the link (worst |Q_REF - Q_MEZ| $tracking rad < 0.03 rad)"
+
+# 2. Cut the link for 4 s.
+before_robot=$(last robot)
+before_ctrl=$(last ctrl)
+ip -n "$ns_robot" link set "$veth_robot" down
+
+sleep 4
+during_robot=$(last robot)
+during_ctrl=$(last ctrl)
+ip -n "$ns_robot" link set "$veth_robot" up
+up_at=$(now)
+echo "before the cut: robot [$before_robot] controller [$before_ctrl]"
+echo "after 4 s cut:  robot [$during_robot] controller [$during_ctrl]"
+check '[ "$(field "$during_robot" torques)" = stale ]' "the robot host reports stale torques"
+check '[ "$(field "$during_robot" illegal)" = 1 ]' "the robot host raised the illegal-configuration flag"
+check '[ "$(field "$during_ctrl" measurements)" = stale ]' "the controller host reports stale measurements"
+check 'less "$(field "$during_robot" max_speed)" 0.01' "robotsim holds the arm (max speed $(field "$during_robot" max_speed) rad/s)"
+check 'grep -q "T_REF from rt/puma/joint_torques: stale (no value newer than 0.05 s; illegal)" "$work/robot.log" "$work/robot.err"' \
+    "the robot host's warning names the port, the topic and the age limit"
+# Rates: cycles counted over the cut against 500 Hz x the time between the two lines.
+rate() {  # rate LINE_BEFORE LINE_AFTER FIELD
+    calc "($(field "$2" "$3") - $(field "$1" "$3")) / ($(field "$2" t) - $(field "$1" t))"
+}
+for f in robot_cycles bridge_cycles; do
+    r=$(rate "$before_robot" "$during_robot" $f)
+    check 'less 400 "$r"' "robot host $f kept their rate through the cut ($(printf %.0f "$r") Hz of 500)"
+done
+for f in ctrl_cycles bridge_cycles; do
+    r=$(rate "$before_ctrl" "$during_ctrl" $f)
+    check 'less 400 "$r"' "controller host $f kept their rate through the cut ($(printf %.0f "$r") Hz of 500)"
+done
+
+# 3. The link is back: fresh data on both hosts, the flag down, tracking again.
+if wait_for '[ "$(field "$(last robot)" torques)" = fresh ] && [ "$(field "$(last robot)" illegal)" = 0 ] && [ "$(field "$(last ctrl)" measurements)" = fresh ]' 5; then
+    recovered=$(calc "$(now) - $up_at")
+    check true "both hosts have fresh data again $(printf %.2f "$recovered") s after the link returned (stated bound 5 s)"
+else
+    check false "both hosts have fresh data again within 5 s of the link's return: robot [$(last robot)] controller [$(last ctrl)]"
+fi
+check 'wait_for "less \"\$(field \"\$(last ctrl)\" error)\" 0.03" 6' "the arm tracks the trajectory again after the link returned"
+for p in "${pids[@]}"; do kill "$p" 2>/dev/null; done  # SIGTERM: each host finishes its subsystem
+wait
+pids=()
+echo "--- robot host"; grep -v ddsi_udp_conn_write "$work/robot.err" | head -20; awk 'NR % 5 == 0' "$work/robot.log"
+echo "--- controller host"; head -20 "$work/ctrl.err"; awk 'NR % 5 == 0' "$work/ctrl.log"
+exit $fail
