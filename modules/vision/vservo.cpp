@@ -26,7 +26,6 @@
 #include <vector>
 
 #include <Eigen/Cholesky>
-#include <Eigen/Eigenvalues>
 
 #include "robotics/kinematics.hpp"
 #include "robotics/ports.hpp"
@@ -78,12 +77,14 @@ public:
         }
         // pinv(L*) = (L*^T L*)^-1 L*^T, L* of full column rank: refused when its
         // 6 x 6 normal matrix is (nearly) singular.
-        const Eigen::Matrix<double, 6, 6> normal = l.transpose() * l;
-        const Eigen::SelfAdjointEigenSolver<Eigen::Matrix<double, 6, 6>> eig(normal, Eigen::EigenvaluesOnly);
-        if (!(eig.eigenvalues()[0] > 1e-12 * eig.eigenvalues()[5]))
+        const Eigen::MatrixXd normal = l.transpose() * l;
+        const Eigen::LDLT<Eigen::MatrixXd> ldlt(normal);
+        const Eigen::VectorXd d = ldlt.vectorD().cwiseAbs();
+        if (ldlt.info() != Eigen::Success || !(d.minCoeff() > 1e-12 * d.maxCoeff()))
             rb::module_error(t, "LOCAL DESIRED: these features do not fix all 6 degrees of freedom of the camera "
                                 "(points in a line or repeated?)");
-        pinv_ = normal.ldlt().solve(l.transpose());
+        const Eigen::MatrixXd pinv = ldlt.solve(l.transpose());
+        pinv_ = pinv;
         error_.setZero(n_);
         return chimera::Result::OK;
     }
@@ -113,15 +114,16 @@ public:
         lost_ = false;
         error_ = s - desired_;
         if (err_) *err_ = std::sqrt(error_.squaredNorm() / static_cast<double>(n_ / 2));
-        Twist twist = -gain_ * (pinv_ * error_) / cam_.focal;
+        twist_.noalias() = pinv_ * error_;
+        twist_ *= -gain_ / cam_.focal;
         // Limits scale the whole twist, so the camera keeps its direction.
-        const double over = std::max({twist.head<3>().norm() / max_v_, twist.tail<3>().norm() / max_w_, 1.0});
-        twist /= over;
+        const double over = std::max({twist_.head<3>().norm() / max_v_, twist_.tail<3>().norm() / max_w_, 1.0});
+        twist_ /= over;
         // Move the camera by the twist for one period, in its own frame; the
         // tool goes with it: T' = T M D M^-1.
         const double dt = t.period();
-        const KDL::Frame step(KDL::Rot(KDL::Vector(twist[3], twist[4], twist[5]) * dt),
-                              KDL::Vector(twist[0], twist[1], twist[2]) * dt);
+        const KDL::Frame step(KDL::Rot(KDL::Vector(twist_[3], twist_[4], twist_[5]) * dt),
+                              KDL::Vector(twist_[0], twist_[1], twist_[2]) * dt);
         Eigen::Map<rb::Vector6d> x(xpos_);
         x = rb::frame_to_pose(rb::pose_to_frame(x) * mount_ * step * mount_.Inverse());
         return chimera::Result::OK;
@@ -146,7 +148,8 @@ private:
     vi::Pinhole cam_;
     KDL::Frame mount_;
     Eigen::VectorXd desired_, error_;
-    Eigen::MatrixXd pinv_;
+    Eigen::Matrix<double, 6, Eigen::Dynamic> pinv_;
+    Twist twist_ = Twist::Zero();
     double gain_ = 1, max_v_ = 0.2, max_w_ = 0.5;
     bool lost_ = false;
 };

@@ -22,7 +22,11 @@
 #include <chrono>
 #include <cmath>
 #include <cstdio>
+#include <filesystem>
+#include <fstream>
 #include <memory>
+#include <regex>
+#include <sstream>
 #include <string>
 #include <thread>
 #include <vector>
@@ -273,6 +277,31 @@ TEST_F(Fig315, FeatureErrorConvergesUnderBothControllers) {
     // vservo's FEAT_ERR is the same measure, of a frame at most one camera
     // period and one servo period old.
     EXPECT_NEAR(end2.servo_err, end2.feature_err, 0.5);
+}
+
+// Desired features that cannot fix the camera's 6 degrees of freedom (the four
+// corners wanted on one line) are refused at spawn, by name.
+TEST(Fig315Vservo, DesiredFeaturesOnALineAreRefused) {
+    const auto dir = std::filesystem::temp_directory_path() / ("fig3_15_line" + std::to_string(::getpid()));
+    std::filesystem::create_directories(dir);
+    std::ifstream in(fig3_15::rmod("vservo"));
+    std::stringstream text;
+    text << in.rdbuf();
+    const std::string rmod =
+        std::regex_replace(text.str(), std::regex("\nDESIRED +[^\n]*"), "\nDESIRED 100 240 200 240 300 240 400 240");
+    std::ofstream(dir / "vservo.rmod") << rmod;
+    auto sbs = Subsystem::init(fig3_15::load_sbs(nullptr, "fig3_15_line" + std::to_string(::getpid())));
+    fig3_15::add_module_dirs(*sbs);
+    try {
+        sbs->spawn((dir / "vservo.rmod").string(), "ctrl");
+        ADD_FAILURE() << "vservo accepted four desired features on one line";
+    } catch (const chimera::sbs::Error& e) {
+        std::printf("spawn refused: %s\n", e.what());
+        EXPECT_NE(std::string(e.what()).find("do not fix all 6 degrees of freedom"), std::string::npos) << e.what();
+    }
+    EXPECT_TRUE(sbs->status_all().empty());
+    sbs->finish();
+    std::filesystem::remove_all(dir);
 }
 
 }  // namespace
