@@ -11,7 +11,7 @@
 //           [GAIN v...]         rad/s at full deflection, 1 or NDOF values (default 0.5)
 //           [DEADBAND d]        fraction of full scale read as 0 (default 0.05)
 //           [MIN q...] [MAX q...]  rad, Q_REF is kept in [MIN, MAX]
-//           [TIMEOUT s]         no good packet for this long: stop and warn (default 0.2)
+//           [TIMEOUT s]         no good packet for this long: stop and warn (default 0.5)
 //
 // Each cycle reads whatever the line has (WAITNONE: the task never blocks on
 // the operator) and uses the newest good packet. On `on` the line is flushed,
@@ -44,7 +44,7 @@ constexpr chimera::LocalKey kJtballLocalKeys[] = {
     {"DEADBAND", chimera::LocalType::number, 0.0, 0.99, false, "deflection read as zero (fraction)", "0.05"},
     {"MIN", chimera::LocalType::numbers, -chimera::unbounded, chimera::unbounded, false, "lower joint limit (rad)", "-1e300"},
     {"MAX", chimera::LocalType::numbers, -chimera::unbounded, chimera::unbounded, false, "upper joint limit (rad)", "1e300"},
-    {"TIMEOUT", chimera::LocalType::number, 0.0, chimera::unbounded, false, "seconds without a packet before stopping", "0.2"},
+    {"TIMEOUT", chimera::LocalType::number, 0.0, chimera::unbounded, false, "seconds without a packet before stopping", "0.5"},
 };
 
 class Jtball : public chimera::Module {
@@ -63,7 +63,7 @@ public:
         lo_ = rb::local_vector(t, "MIN", n_, -1e300);
         hi_ = rb::local_vector(t, "MAX", n_, 1e300);
         if ((lo_.array() > hi_.array()).any()) rb::module_error(t, "LOCAL MIN exceeds MAX");
-        const double timeout = rb::local_number(t, "TIMEOUT", 0.2);
+        const double timeout = rb::local_number(t, "TIMEOUT", 0.5);
         if (!(timeout > 0)) rb::module_error(t, "LOCAL TIMEOUT must be > 0");
         timeout_ns_ = static_cast<std::int64_t>(timeout * 1e9);
         open_line(t);

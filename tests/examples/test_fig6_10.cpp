@@ -154,13 +154,13 @@ protected:
             const auto set = local.make_set({"Q_REF", "Q_MEZ"});
             const double* q_ref = local.translate<double>("Q_REF");
             const double* q_mez = local.translate<double>("Q_MEZ");
-            // Until 0.8 s after the trackball has gone (its TIMEOUT is 0.2 s), at most 10 s.
+            // Until 1 s after the trackball has gone (its TIMEOUT is 0.5 s), at most 10 s.
             for (auto next = t0;; next += std::chrono::milliseconds(2)) {
                 std::this_thread::sleep_until(next);
                 const double t = std::chrono::duration<double>(Clock::now() - t0).count();
                 if (run.trackball_status < 0 && (run.trackball_status = trackball.exit_status(false)) >= 0)
                     run.trackball_exit_t = t;
-                if ((run.trackball_status >= 0 && t > run.trackball_exit_t + 0.8) || t > script_end + 6)
+                if ((run.trackball_status >= 0 && t > run.trackball_exit_t + 1.0) || t > script_end + 6)
                     break;
                 if (!chimera::svar::transferred(local.copy_from_global(set)))
                     throw chimera::sbs::Error("reading the SVAR table failed");
