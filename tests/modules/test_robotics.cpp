@@ -250,8 +250,9 @@ TEST(Puma560, ConstantsAreTheRoboticsToolboxs) {
     EXPECT_NEAR(f1.p.x() - f2.p.x(), 0.0, 1e-12);
 }
 
-// Coulomb friction in the simulated arm sticks and slips (the model the
-// toolbox's fdyn() lacks: it integrates the discontinuous Tc(qd) as is).
+// Coulomb friction in the simulated arm sticks and slips: at rest a joint
+// holds against torques within [Tc-, Tc+] (what Tc(qd) of the inverse dynamics
+// cannot say: it is 0 at rest).
 TEST(Puma560, SimulatedCoulombFrictionHoldsBelowBreakawayAndSlipsAbove) {
     rb::RobotModel m = rb::puma560();
     const rb::DhLink& wrist = m.links()[5];  // joint 6: no gravity torque about its axis at qz
