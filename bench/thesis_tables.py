@@ -85,7 +85,8 @@ def ratio(thesis_us, today_ns):
 def table1(m):
     print("### Table 1: SVAR transfers of the Figure 6.10 modules\n")
     print("Thesis: MC68030 (25 MHz), table on a remote VMEbus memory board. Today: the same modules "
-          "(examples/fig6_10_teleop; `jteleop` stands for `jtball`, its operator feed a triple buffer), "
+          "(examples/fig6_10_teleop; `jteleop` stands for `jtball` in this benchmark, its operator feed a "
+          "triple buffer), "
           "the table in POSIX shared memory. *task*: in-vars copy + cycle + out-vars copy, as one "
           "release minus the wake-up. Ratio: thesis time / today's.\n")
     print("| module | N in | N out | in-vars: thesis µs / today ns / ratio | out-vars: thesis / today / ratio "

@@ -13,7 +13,10 @@ when the reference is to be regenerated (the output is committed):
 For each standard pose (qz, qr, qn, qs) with the velocities and accelerations
 below: gravload(q); rne(q, qd, qdd) of the full model; and rne of the model
 with its Coulomb friction removed (nofriction(coulomb=True, viscous=False)),
-which keeps the motor inertia and the viscous friction.
+which keeps the motor inertia and the viscous friction. Also each link's
+parameters as the toolbox holds them (DH, mass, centre of mass, inertia, and
+at the motor Jm, G, B and Tc = [forward, backward]), so the test can check the
+C++ model's constants against the toolbox's, not only the torques they give.
 """
 import json
 import sys
@@ -40,6 +43,16 @@ def main():
             "rne": np.asarray(robot.rne(q, QD, QDD)).tolist(),
             "rne_no_coulomb": np.asarray(no_coulomb.rne(q, QD, QDD)).tolist(),
         })
+    links = []
+    for link in robot.links:
+        links.append({
+            "a": float(link.a), "alpha": float(link.alpha), "d": float(link.d),
+            "offset": float(link.offset), "m": float(link.m),
+            "r": np.asarray(link.r, dtype=float).ravel().tolist(),
+            "I": np.asarray(link.I, dtype=float).tolist(),
+            "Jm": float(link.Jm), "G": float(link.G), "B": float(link.B),
+            "Tc": np.asarray(link.Tc, dtype=float).ravel().tolist(),
+        })
     out = {
         "source": "roboticstoolbox.models.DH.Puma560",
         "roboticstoolbox": rtb.__version__,
@@ -47,6 +60,7 @@ def main():
         "python": sys.version.split()[0],
         "gravity": np.asarray(robot.gravity).tolist(),
         "base_height_d1": robot.links[0].d,
+        "links": links,
         "cases": cases,
     }
     json.dump(out, sys.stdout, indent=1)

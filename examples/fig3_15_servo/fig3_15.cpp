@@ -1,15 +1,19 @@
 // fig3_15 — the thesis's Figures 3.15/3.16 subsystem run by an autonomous
-// master program (§3.10, §4.4.4): Cartesian servoing of a simulated PUMA 560,
-// first with the inverse-kinematics controller (Figure 3.15), then — in ONE
-// reconfiguration — with the damped-least-squares controller and its time
-// integrator (Figure 3.16), while the robot interface keeps cycling.
+// master program (§3.10, §4.4.4): visual servoing of a simulated PUMA 560 — a
+// simulated camera on its hand sees a target, the visual servo moves the
+// desired tool pose until the target's image is where it is wanted — first
+// with the inverse-kinematics controller (Figure 3.15), then, in ONE
+// reconfiguration, with the damped-least-squares controller and its time
+// integrator (Figure 3.16), while the robot interface keeps cycling. At the
+// swap the target moves, so the second configuration servos too.
 //
 //   build/examples/fig3_15_servo/fig3_15 [--seconds N] [--quiet]
 //
 // The tasks (all created at start-up, §3.10; rmod files from modules/):
 //   puma_position  position-mode robot interface, simulated PUMA 560  RTPU robot
 //   fwdkin         forward kinematics and Jacobian -> X_MEZ, J_MEZ     RTPU ctrl
-//   xtraj          desired tool pose (stands in for visual servoing)   RTPU ctrl
+//   camera         X_MEZ -> FEATURES, the target's corners, 30 Hz     RTPU ctrl
+//   vservo         FEATURES -> X_REF, FEAT_ERR (visual servoing)       RTPU ctrl
 //   invkin         X_REF -> Q_REF (Newton, pseudo-inverse)             RTPU ctrl
 //   dlsik          X_REF, Q_REF -> Q^_REF (damped least squares)       RTPU ctrl, OFF until the swap
 //   qrinteg        Q^_REF -> Q_REF (time integrator)                   RTPU ctrl, OFF until the swap
@@ -61,9 +65,9 @@ Options parse(int argc, char** argv) {
         } else {
             std::fprintf(stderr,
                          "usage: %s [--seconds N] [--quiet]\n"
-                         "  Runs the thesis's Figures 3.15/3.16 subsystem (Cartesian servoing of a simulated\n"
+                         "  Runs the thesis's Figures 3.15/3.16 subsystem (visual servoing of a simulated\n"
                          "  PUMA 560) for N seconds (default 6): half on invkin, then one reconfiguration\n"
-                         "  {off invkin, on dlsik, on qrinteg}, then the other half.\n"
+                         "  {off invkin, on dlsik, on qrinteg} and the target moves, then the other half.\n"
                          "  --quiet  leave out the tracking line printed every 0.5 s\n",
                          argv[0]);
             std::exit(a == "--help" || a == "-h" ? 0 : 2);
@@ -77,11 +81,12 @@ class Watch {
 public:
     explicit Watch(const std::string& subsystem)
         : table_(chimera::svar::Table::attach(chimera::ipc::segment_name(subsystem, "svar"))),
-          local_(table_, std::vector<std::string>{"X_REF", "X_MEZ", "Q_REF"}),
-          set_(local_.make_set({"X_REF", "X_MEZ", "Q_REF"})),
+          local_(table_, std::vector<std::string>{"X_REF", "X_MEZ", "Q_REF", "FEATURES"}),
+          set_(local_.make_set({"X_REF", "X_MEZ", "Q_REF", "FEATURES"})),
           x_ref_(local_.translate<double>("X_REF")),
           x_mez_(local_.translate<double>("X_MEZ")),
-          q_ref_(local_.translate<double>("Q_REF")) {}
+          q_ref_(local_.translate<double>("Q_REF")),
+          features_(local_.translate<double>("FEATURES")) {}
     ~Watch() { table_.detach(); }
 
     void look() {
@@ -91,12 +96,14 @@ public:
     /// |x_ref - x_mez| over the position (m).
     double position_error() const { return std::hypot(x_ref_[0] - x_mez_[0], x_ref_[1] - x_mez_[1], x_ref_[2] - x_mez_[2]); }
     std::array<double, 6> q_ref() const { return {q_ref_[0], q_ref_[1], q_ref_[2], q_ref_[3], q_ref_[4], q_ref_[5]}; }
+    /// RMS distance of the target's corners from where they are wanted (pixels).
+    double feature_error() const { return fig3_15::feature_error(features_); }
 
 private:
     chimera::svar::Table table_;
     chimera::svar::LocalTable local_;
     chimera::svar::VarSet set_;
-    const double *x_ref_, *x_mez_, *q_ref_;
+    const double *x_ref_, *x_mez_, *q_ref_, *features_;
 };
 
 double max_diff(const std::array<double, 6>& a, const std::array<double, 6>& b) {
@@ -116,9 +123,9 @@ void run_phase(Watch& watch, const char* controller, double& clock_s, double sec
         if (next - start < std::chrono::milliseconds(500) * line) continue;
         ++line;
         if (!quiet)
-            std::printf("t=%5.1f s  %-13s |x_ref - x_mez| %6.2f mm, worst of last 0.5 s %6.2f mm\n",
+            std::printf("t=%5.1f s  %-13s feature error %7.2f px  |x_ref - x_mez| %6.2f mm, worst of last 0.5 s %6.2f mm\n",
                         clock_s + std::chrono::duration<double>(next - start).count(), controller,
-                        watch.position_error() * 1e3, worst * 1e3);
+                        watch.feature_error(), watch.position_error() * 1e3, worst * 1e3);
         worst = 0;
     }
     clock_s += seconds;
@@ -135,18 +142,20 @@ int run(const Options& opt) {
     auto sbs = Subsystem::init(fig3_15::load_sbs(&notes));
     for (const auto& n : notes) std::printf("note: %s\n", n.c_str());
     fig3_15::add_module_dirs(*sbs);
-    std::printf("Figures 3.15/3.16: Cartesian servoing of a simulated PUMA 560 (subsystem %s)\n", sbs->name().c_str());
+    std::printf("Figures 3.15/3.16: visual servoing of a simulated PUMA 560 (subsystem %s)\n", sbs->name().c_str());
 
     const TaskId robot = sbs->spawn(fig3_15::rmod("puma_position"), "robot");
     const TaskId fwd = sbs->spawn(fig3_15::rmod("fwdkin"), "ctrl");
-    const TaskId traj = sbs->spawn(fig3_15::rmod("xtraj"), "ctrl");
+    const TaskId camera = sbs->spawn(fig3_15::rmod("camera"), "ctrl");
+    const TaskId servo = sbs->spawn(fig3_15::rmod("vservo"), "ctrl");
     const TaskId ik = sbs->spawn(fig3_15::rmod("invkin"), "ctrl");
     const TaskId dls = sbs->spawn(fig3_15::rmod("dlsik"), "ctrl");
     const TaskId integ = sbs->spawn(fig3_15::rmod("qrinteg"), "ctrl");
-    std::printf("spawned puma_position, fwdkin, xtraj, invkin, dlsik, qrinteg (all OFF)\n");
-    auto r = sbs->reconfig({{robot, Control::on}, {fwd, Control::on}, {ik, Control::on}, {traj, Control::on}});
+    std::printf("spawned puma_position, fwdkin, camera, vservo, invkin, dlsik, qrinteg (all OFF)\n");
+    auto r = sbs->reconfig(
+        {{robot, Control::on}, {fwd, Control::on}, {camera, Control::on}, {ik, Control::on}, {servo, Control::on}});
     if (!r) throw chimera::sbs::Error("turning the subsystem on: " + r.message);
-    std::printf("reconfig: on puma_position, fwdkin, invkin, xtraj -- ok (Figure 3.15)\n\n");
+    std::printf("reconfig: on puma_position, fwdkin, camera, invkin, vservo -- ok (Figure 3.15)\n\n");
 
     auto watch = std::make_unique<Watch>(sbs->name());
     double clock_s = 0;
@@ -174,8 +183,10 @@ int run(const Options& opt) {
                 "missed releases %llu -> %llu\n",
                 static_cast<unsigned long long>(later.cycles - before.cycles), window * 1e3, window * later.ref_freq,
                 static_cast<unsigned long long>(before.misses), static_cast<unsigned long long>(later.misses));
-    std::printf("  Q_REF: largest joint change from invkin's last to qrinteg's first value %.4f rad\n\n",
+    std::printf("  Q_REF: largest joint change from invkin's last to qrinteg's first value %.4f rad\n",
                 max_diff(q_before, q_after));
+    sbs->set(camera, "TARGET", fig3_15::kMovedTarget);
+    std::printf("the target moves: camera TARGET %s\n\n", fig3_15::kMovedTarget);
     clock_s += window;
     run_phase(*watch, "dlsik+qrinteg", clock_s, opt.seconds - first, opt.quiet);
     print_status(*sbs, "after the reconfiguration (Figure 3.16):");

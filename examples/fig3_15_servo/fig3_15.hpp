@@ -5,6 +5,8 @@
 
 #include "example_files.hpp"
 
+#include <array>
+#include <cmath>
 #include <string>
 #include <string_view>
 #include <utility>
@@ -32,5 +34,19 @@ inline chimera::SbsFile load_sbs(std::vector<std::string>* notes = nullptr, std:
 
 /// Adds the build tree's module folders to a subsystem's module path.
 inline void add_module_dirs(chimera::sbs::Subsystem& sbs) { chimera_examples::add_module_dirs(sbs, FIG3_15_MODULE_PATH); }
+
+/// The scene (modules/vision camera.rmod, vservo.rmod): where vservo wants the
+/// target's four corners in the image (its DESIRED, pixels) ...
+inline constexpr std::array<double, 8> kDesired{220, 140, 420, 140, 420, 340, 220, 340};
+/// ... and where the target goes at the swap (the camera's LOCAL TARGET): the
+/// 10 cm square 4 cm to the base's +y and 2 cm lower than camera.rmod has it.
+inline constexpr const char* kMovedTarget = "0.96 -0.13 0.72  0.96 -0.13 0.62  0.96 -0.03 0.62  0.96 -0.03 0.72";
+
+/// The feature error: RMS over the corners of |image position - desired| (pixels).
+inline double feature_error(const double* features) {
+    double sum = 0;
+    for (std::size_t k = 0; k < kDesired.size(); ++k) sum += (features[k] - kDesired[k]) * (features[k] - kDesired[k]);
+    return std::sqrt(sum / (kDesired.size() / 2));
+}
 
 }  // namespace fig3_15

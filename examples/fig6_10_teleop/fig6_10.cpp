@@ -1,26 +1,23 @@
 // fig6_10 — the thesis's Figure 6.10 subsystem run by an autonomous master
-// program (§4.2, §4.4.4): joint teleoperation of a simulated PUMA 560, the
-// operator in ANOTHER process writing set-points through a TBUF (§5.6).
+// program (§4.2, §4.4.4): joint teleoperation of a simulated PUMA 560 with a
+// trackball on a serial line, as drawn.
 //
-//   build/examples/fig6_10_teleop/fig6_10 [--seconds N] [--quiet] [--no-feed]
+//   build/examples/fig6_10_teleop/fig6_10 [--seconds N] [--quiet]
 //
 // The tasks (rmod files from modules/):
 //   puma_pidg  the PUMA's PID servo with gravity feed-forward, arm simulated  RTPU robot
 //   grav_comp  gravity compensation g(q_mez) -> T_GRAV                         RTPU ctrl
 //   qrdiff     differentiator Q_REF -> Q^_REF                                  RTPU ctrl
-//   jteleop    teleoperation input: operator feed (TBUF "operator") -> Q_REF   RTPU ctrl
-// The operator: teleop_feed, started here as a child process sweeping the
-// joints (unless --no-feed: then run `teleop_feed operator ...` yourself).
+//   jtball     the trackball on its serial line (SIO driver, §7.2) -> Q_REF    RTPU ctrl
+// The trackball: trackball_sim, started here as a child process on a
+// pseudo-terminal, pushing joints 1, 3 and 5 one after the other, out and back.
 #include "fig6_10.hpp"
 
 #include <chimera/ipc/segment.hpp>
 #include <chimera/sbs.hpp>
 #include <chimera/svar.hpp>
 
-#include "teleop/feed.hpp"
-
-#include <spawn.h>
-#include <sys/wait.h>
+#include <unistd.h>
 
 #include <algorithm>
 #include <array>
@@ -30,13 +27,12 @@
 #include <cstdlib>
 #include <cstring>
 #include <exception>
+#include <filesystem>
 #include <memory>
 #include <numbers>
 #include <string>
 #include <thread>
 #include <vector>
-
-extern char** environ;
 
 namespace {
 
@@ -47,9 +43,8 @@ using Clock = std::chrono::steady_clock;
 constexpr double kRadToDeg = 180.0 / std::numbers::pi;
 
 struct Options {
-    double seconds = 5.0;
+    double seconds = 10.0;
     bool quiet = false;
-    bool feed = true;
 };
 
 Options parse(int argc, char** argv) {
@@ -58,8 +53,6 @@ Options parse(int argc, char** argv) {
         const std::string a = argv[i];
         if (a == "--quiet") {
             o.quiet = true;
-        } else if (a == "--no-feed") {
-            o.feed = false;
         } else if (a == "--seconds" && i + 1 < argc) {
             char* end = nullptr;
             o.seconds = std::strtod(argv[++i], &end);
@@ -69,10 +62,9 @@ Options parse(int argc, char** argv) {
             }
         } else {
             std::fprintf(stderr,
-                         "usage: %s [--seconds N] [--quiet] [--no-feed]\n"
+                         "usage: %s [--seconds N] [--quiet]\n"
                          "  Runs the thesis's Figure 6.10 subsystem (joint teleoperation of a simulated PUMA 560)\n"
-                         "  for N seconds (default 5) with teleop_feed as the operator in another process.\n"
-                         "  --no-feed  start no operator: run `teleop_feed operator ...` yourself\n"
+                         "  for N seconds (default 10; the trackball's script takes 8.5) with a simulated trackball on a serial line.\n"
                          "  --quiet    leave out the tracking line printed every 0.5 s\n",
                          argv[0]);
             std::exit(a == "--help" || a == "-h" ? 0 : 2);
@@ -81,15 +73,14 @@ Options parse(int argc, char** argv) {
     return o;
 }
 
-// The operator process: teleop_feed NAME --seconds S (its default sweep).
-pid_t start_feed(const std::string& tbuf, double seconds) {
-    const std::string prog = fig6_10::feed_program(), secs = std::to_string(seconds);
-    const char* argv[] = {prog.c_str(), tbuf.c_str(), "--seconds", secs.c_str(), nullptr};
-    pid_t pid = -1;
-    const int rc = ::posix_spawn(&pid, prog.c_str(), nullptr, nullptr, const_cast<char* const*>(argv), environ);
-    if (rc != 0) throw chimera::sbs::Error("starting " + prog + ": " + std::strerror(rc));
-    return pid;
-}
+// The operator's script (trackball_sim phases): joint 1 out and back, then
+// joint 3, then joint 5, 1 s each way at 60 % deflection, ENABLE held; a pause
+// with ENABLE released between them.
+const std::vector<std::string> kOperator{
+    "idle", "1",   "move", "1", "600", "0", "0", "0", "0",    "0", "move", "1", "-600", "0", "0", "0", "0", "0",
+    "idle", "0.5", "move", "1", "0",   "0", "600", "0", "0",  "0", "move", "1", "0", "0", "-600", "0", "0", "0",
+    "idle", "0.5", "move", "1", "0",   "0", "0", "0", "600",  "0", "move", "1", "0", "0", "0", "0", "-600", "0",
+    "idle", "0.5"};
 
 void print_status(const Subsystem& sbs, const char* when) {
     std::printf("\nstatus %s\n%s\n", when, chimera::sbs::format_status_header().c_str());
@@ -103,24 +94,20 @@ int run(const Options& opt) {
     fig6_10::add_module_dirs(*sbs);
     std::printf("Figure 6.10: joint teleoperation of a simulated PUMA 560 (subsystem %s)\n", sbs->name().c_str());
 
+    // The trackball's line first: jtball opens it at init.
+    const auto dir = std::filesystem::temp_directory_path() / ("fig6_10." + std::to_string(::getpid()));
+    fig6_10::SimulatedTrackball trackball(dir, kOperator);
+    std::printf("trackball: trackball_sim (pid %d) on %s/tball, database %s/trackball.iod\n",
+                static_cast<int>(trackball.pid()), dir.c_str(), dir.c_str());
     // The robot interface first: it produces the NDOF and DH in-consts (§3.5).
     const TaskId robot = sbs->spawn(fig6_10::rmod("puma_pidg"), "robot");
     const TaskId grav = sbs->spawn(fig6_10::rmod("grav_comp"), "ctrl");
     const TaskId diff = sbs->spawn(fig6_10::rmod("qrdiff"), "ctrl");
-    const TaskId teleop = sbs->spawn(fig6_10::rmod("jteleop"), "ctrl");
-    const std::string tbuf = sbs->get(teleop, "TBUF");
-    auto r = sbs->reconfig({{grav, Control::on}, {robot, Control::on}, {diff, Control::on}, {teleop, Control::on}});
+    const TaskId jtball = sbs->spawn(trackball.rmod_path(), "ctrl");
+    auto r = sbs->reconfig({{grav, Control::on}, {robot, Control::on}, {diff, Control::on}, {jtball, Control::on}});
     if (!r) throw chimera::sbs::Error("turning the subsystem on: " + r.message);
-    std::printf("spawned and turned on puma_pidg, grav_comp, qrdiff, jteleop (operator feed %s)\n",
-                chimera::teleop::feed_segment(tbuf).c_str());
-
-    pid_t feeder = -1;
-    if (opt.feed) {
-        feeder = start_feed(tbuf, std::max(0.5, opt.seconds - 1.0));
-        std::printf("operator: teleop_feed %s (pid %d)\n\n", tbuf.c_str(), static_cast<int>(feeder));
-    } else {
-        std::printf("waiting for an operator: %s %s --seconds 10\n\n", fig6_10::feed_program().c_str(), tbuf.c_str());
-    }
+    trackball.start();
+    std::printf("spawned and turned on puma_pidg, grav_comp, qrdiff, jtball; the operator starts\n\n");
     std::fflush(stdout);
 
     {
@@ -154,12 +141,7 @@ int run(const Options& opt) {
         }
         table.detach();
     }
-    if (feeder > 0) {
-        int status = 0;
-        ::waitpid(feeder, &status, 0);
-        std::printf("operator process exited with %d\n",
-                    WIFEXITED(status) ? WEXITSTATUS(status) : 128 + WTERMSIG(status));
-    }
+    std::printf("trackball process exited with %d\n", trackball.exit_status(true));
     print_status(*sbs, "at the end:");
     sbs->finish();
     std::printf("\nfinished: every task off and killed, shared segments removed\n");

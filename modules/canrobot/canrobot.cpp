@@ -6,7 +6,7 @@
 // by swapping this one module (transparent simulation).
 //
 // Ports (internal names; SVARALIAS may rename them):
-//   OUTCONST NDOF (int), DH (double[16*(NDOF+1)])   from LOCAL ROBOT, as robotsim
+//   OUTCONST NDOF (int), DH (double[18*(NDOF+1)])   from LOCAL ROBOT, as robotsim
 //   INVAR    torque mode:   T_REF                  joint torques (N m) -> CST target torque
 //            position mode: Q_REF [Q^_REF]         rad, rad/s -> CSP target position, velocity offset
 //   OUTVAR   Q_MEZ [Q^_MEZ]                        position / velocity actual, latched at the last SYNC

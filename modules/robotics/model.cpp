@@ -65,6 +65,8 @@ void RobotModel::pack_dh(std::span<double> out) const {
         for (int k = 0; k < 6; ++k) r[8 + k] = l.inertia[k];
         r[14] = l.rotor_inertia;
         r[15] = l.damping;
+        r[16] = l.coulomb_pos;
+        r[17] = l.coulomb_neg;
     }
 }
 
@@ -77,11 +79,11 @@ RobotModel RobotModel::unpack_dh(std::span<const double> dh, long ndof, std::str
     if (dh.size() != dh_size(n)) {
         throw std::invalid_argument(name + " has " + std::to_string(dh.size()) +
                                     " elements but NDOF " + std::to_string(ndof) + " needs " +
-                                    std::to_string(dh_size(n)) + " (16 x (NDOF+1))");
+                                    std::to_string(dh_size(n)) + " (18 x (NDOF+1))");
     }
     if (dh[0] != dh_layout_version) {
         throw std::invalid_argument(name + " header says layout version " + std::to_string(dh[0]) +
-                                    ", expected 1 (was it written by a robot interface?)");
+                                    ", expected 2 (was it written by a robot interface?)");
     }
     std::vector<DhLink> links(n);
     for (std::size_t i = 0; i < n; ++i) {
@@ -96,6 +98,15 @@ RobotModel RobotModel::unpack_dh(std::span<const double> dh, long ndof, std::str
         for (int k = 0; k < 6; ++k) l.inertia[k] = r[8 + k];
         l.rotor_inertia = r[14];
         l.damping = r[15];
+        l.coulomb_pos = r[16];
+        l.coulomb_neg = r[17];
+        if (!(l.coulomb_pos >= 0) || !(l.coulomb_neg <= 0)) {
+            throw std::invalid_argument(name + " link " + std::to_string(i + 1) +
+                                        " has Coulomb friction forward " +
+                                        std::to_string(l.coulomb_pos) + ", backward " +
+                                        std::to_string(l.coulomb_neg) +
+                                        " (must be >= 0 and <= 0: it opposes the motion)");
+        }
         if (!(l.mass >= 0) || !std::isfinite(l.a) || !std::isfinite(l.alpha) ||
             !std::isfinite(l.d) || !std::isfinite(l.theta0)) {
             throw std::invalid_argument(name + " link " + std::to_string(i + 1) +
@@ -135,17 +146,22 @@ RobotModel RobotModel::from_urdf(const std::string& path, const std::string& roo
     return m;
 }
 
-RobotModel puma560() {
+RobotModel puma560(double base_height) {
     constexpr double pi = 3.141592653589793;
-    // Jm and G (gear ratio) per joint; the armature inertia at the joint is Jm*G^2
-    // and the viscous friction B*G^2, as the toolbox's rne() adds them.
-    struct Motor { double jm, g, b; };
-    const Motor mot[6] = {{200e-6, -62.6111, 1.48e-3}, {200e-6, 107.815, 0.817e-3},
-                          {200e-6, -53.7063, 1.38e-3}, {33e-6, 76.0364, 71.2e-6},
-                          {33e-6, 71.923, 82.6e-6},    {33e-6, 76.686, 36.7e-6}};
+    // Per joint, measured at the motor: Jm, G (gear ratio), B (viscous), Tc
+    // (Coulomb, forward then backward). At the joint the armature inertia is
+    // Jm*G^2, the viscous friction B*G^2 and the Coulomb friction Tc*|G|, as the
+    // toolbox's Link.friction() and rne() scale them.
+    struct Motor { double jm, g, b, tc_pos, tc_neg; };
+    const Motor mot[6] = {{200e-6, -62.6111, 1.48e-3, 0.395, -0.435},
+                          {200e-6, 107.815, 0.817e-3, 0.126, -0.071},
+                          {200e-6, -53.7063, 1.38e-3, 0.132, -0.105},
+                          {33e-6, 76.0364, 71.2e-6, 11.2e-3, -16.9e-3},
+                          {33e-6, 71.923, 82.6e-6, 9.26e-3, -14.5e-3},
+                          {33e-6, 76.686, 36.7e-6, 3.96e-3, -10.5e-3}};
     std::vector<DhLink> l(6);
     //            a        alpha   d
-    l[0] = {0.0,    pi / 2,  0.0,     0, 0.0,  {0, 0, 0},               {0, 0.35, 0, 0, 0, 0}, 0, 0};
+    l[0] = {0.0,    pi / 2,  base_height, 0, 0.0,  {0, 0, 0},               {0, 0.35, 0, 0, 0, 0}, 0, 0};
     l[1] = {0.4318, 0.0,     0.0,     0, 17.4, {-0.3638, 0.006, 0.2275}, {0.13, 0.524, 0.539, 0, 0, 0}, 0, 0};
     l[2] = {0.0203, -pi / 2, 0.15005, 0, 4.8,  {-0.0203, -0.0141, 0.070}, {0.066, 0.086, 0.0125, 0, 0, 0}, 0, 0};
     l[3] = {0.0,    pi / 2,  0.4318,  0, 0.82, {0, 0.019, 0},            {1.8e-3, 1.3e-3, 1.8e-3, 0, 0, 0}, 0, 0};
@@ -154,6 +170,8 @@ RobotModel puma560() {
     for (int i = 0; i < 6; ++i) {
         l[i].rotor_inertia = mot[i].jm * mot[i].g * mot[i].g;
         l[i].damping = mot[i].b * mot[i].g * mot[i].g;
+        l[i].coulomb_pos = mot[i].tc_pos * std::abs(mot[i].g);
+        l[i].coulomb_neg = mot[i].tc_neg * std::abs(mot[i].g);
     }
     return RobotModel("puma560", std::move(l), Eigen::Vector3d(0, 0, -9.81));
 }

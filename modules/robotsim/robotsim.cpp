@@ -4,7 +4,7 @@
 // and DH out-consts other modules configure themselves from (§3.5).
 //
 // Ports (internal names; SVARALIAS may rename them):
-//   OUTCONST NDOF (int), DH (double[16*(NDOF+1)], layout in robotics/model.hpp)
+//   OUTCONST NDOF (int), DH (double[18*(NDOF+1)], layout in robotics/model.hpp)
 //   INVAR    torque mode:   T_REF            joint torques (N m)
 //            position mode: Q_REF            reference joint positions (rad)
 //                           [Q^_REF]         reference joint velocities (rad/s), optional
@@ -14,6 +14,8 @@
 // LOCAL: see README.md.
 #include <chimera/module.hpp>
 
+#include <algorithm>
+#include <cmath>
 #include <memory>
 #include <optional>
 
@@ -35,6 +37,7 @@ constexpr chimera::LocalKey kRobotSimLocalKeys[] = {
     {"SERVO_KI", chimera::LocalType::numbers, 0.0, chimera::unbounded, false, "position mode: servo integral gain", "0"},
     {"SERVO_KD", chimera::LocalType::numbers, 0.0, chimera::unbounded, false, "position mode: servo derivative gain", "40"},
     {"TLIMIT", chimera::LocalType::numbers, 0.0, chimera::unbounded, false, "torque limit per joint (N m)", "1e9"},
+    {"FRICTION_COMP", chimera::LocalType::word, -chimera::unbounded, chimera::unbounded, false, "yes | no: position mode: the servo feeds the model's Coulomb friction forward", "yes"},
     {"STABILITY", chimera::LocalType::word, -chimera::unbounded, chimera::unbounded, false, "hold | none: what the robot does while the configuration is illegal", "hold"},
 };
 
@@ -83,12 +86,16 @@ public:
         servo_.emplace(n_, g);
         hold_servo_.emplace(n_, g);
         hold_on_illegal_ = rb::local_word(t, "STABILITY", "hold") == "hold";
+        const std::string comp = rb::local_word(t, "FRICTION_COMP", "yes");
+        if (comp != "yes" && comp != "no") rb::module_error(t, "LOCAL FRICTION_COMP '" + comp + "': expected yes or no");
+        friction_comp_ = comp == "yes";
 
         sim_ = std::make_unique<rb::ArmSimulator>(model_);
         dyn_ = std::make_unique<rb::Dynamics>(model_);
         const Eigen::VectorXd q0 = rb::local_vector(t, "Q0", n_, 0.0);
         sim_->reset(q0, Eigen::VectorXd::Zero(n_));
         tau_.setZero(n_);
+        q_ref_prev_.setZero(n_);
         grav_.setZero(n_);
         zero_.setZero(n_);
         hold_.setZero(n_);
@@ -98,6 +105,7 @@ public:
     chimera::Result on(chimera::Task&) override {
         publish();  // the out-vars read on `on` are replaced by the arm's real state
         servo_->reset();
+        if (q_ref_) q_ref_prev_ = Eigen::Map<const Eigen::VectorXd>(q_ref_, static_cast<Eigen::Index>(n_));
         holding_ = false;
         return chimera::Result::OK;
     }
@@ -130,6 +138,8 @@ public:
                 } else {
                     servo_->update(qr, zero_, q, qd, grav_, t.period(), tau_);
                 }
+                if (friction_comp_) add_friction_compensation(qr, q, t.period());
+                q_ref_prev_ = qr;
             } else {
                 tau_ = Eigen::Map<const Eigen::VectorXd>(t_ref_, n).cwiseMax(-tlimit_).cwiseMin(tlimit_);
             }
@@ -143,6 +153,26 @@ public:
     }
 
 private:
+    // The drive's Coulomb friction feed-forward (a real position servo's, e.g.
+    // Corke's for the PUMA): the model's Tc in the direction the reference
+    // moves (Q^_REF, or Q_REF's change over the cycle); with the reference at
+    // rest, in the direction of the position error, scaled down within 1 mrad
+    // of it so the joint settles instead of chattering about the set-point.
+    void add_friction_compensation(const Eigen::Ref<const Eigen::VectorXd>& qr, const Eigen::VectorXd& q,
+                                   double period) noexcept {
+        constexpr double settle_band = 1e-3;  // rad
+        for (std::size_t j = 0; j < n_; ++j) {
+            const auto i = static_cast<Eigen::Index>(j);
+            const double v = qd_ref_ ? qd_ref_[j] : (qr[i] - q_ref_prev_[i]) / period;
+            double f = dyn_->coulomb(j, v);
+            if (v == 0) {
+                const double e = qr[i] - q[i];
+                f = dyn_->coulomb(j, e) * std::min(1.0, std::fabs(e) / settle_band);
+            }
+            tau_[i] = std::clamp(tau_[i] + f, -tlimit_[i], tlimit_[i]);
+        }
+    }
+
     void publish() noexcept {
         const auto n = static_cast<Eigen::Index>(n_);
         Eigen::Map<Eigen::VectorXd>(q_mez_, n) = sim_->q();
@@ -154,6 +184,7 @@ private:
     bool position_mode_ = false;
     bool hold_on_illegal_ = true;
     bool holding_ = false;
+    bool friction_comp_ = true;
     int substeps_ = 10;
     double* q_ref_ = nullptr;
     double* qd_ref_ = nullptr;
@@ -164,7 +195,7 @@ private:
     std::unique_ptr<rb::ArmSimulator> sim_;
     std::unique_ptr<rb::Dynamics> dyn_;
     std::optional<rb::Pid> servo_, hold_servo_;
-    Eigen::VectorXd tau_, grav_, zero_, hold_, tlimit_;
+    Eigen::VectorXd tau_, grav_, zero_, hold_, tlimit_, q_ref_prev_;
 };
 
 }  // namespace

@@ -170,13 +170,15 @@ TEST_F(Fig37, ArmFollowsTheTrajectoryAfterSettling) {
     // covers the simulated arm running up to ~0.2 s behind the wall clock when
     // its task misses releases on a loaded machine.
     EXPECT_LT(settled_hold, 0.005);
-    // Moving (quintic segments of up to 1.4 rad in 2 s, peak 1.3 rad/s): 0.03
-    // rad (1.7 deg), the same order as the 0.02 rad that tests/modules states
-    // for PID + gravity at 1 kHz, with room for this servo's 500 Hz and the
-    // trajectory's 100 Hz steps (Q_REF is held for up to 10 ms: up to 0.013
-    // rad at peak speed). Measured runs stay below 0.02 rad.
-    EXPECT_LT(moving_jpid, 0.03);
-    EXPECT_LT(moving_jpidg, 0.03);
+    // Moving (quintic segments of up to 1.4 rad in 2 s, peak 1.3 rad/s): 0.08
+    // rad (4.6 deg). The simulated arm has the PUMA's Coulomb friction (24.7 N m
+    // forward, 27.2 N m backward on joint 1), which a PID without a friction
+    // model carries only once its integral has built it up, at every start and
+    // reversal: tests/modules states 0.1 rad for PID + gravity at 1 kHz on such
+    // a move. Measured runs: 0.043 (jpid) and 0.054 rad (jpidg); below 0.02 rad
+    // before the arm had Coulomb friction.
+    EXPECT_LT(moving_jpid, 0.08);
+    EXPECT_LT(moving_jpidg, 0.08);
     // The trajectory did move in the window (the error bound is not vacuous).
     const auto& first_moving = *std::find_if(run_->samples.begin(), run_->samples.end(),
                                              [](const Sample& s) { return s.t >= 2.05; });
@@ -212,13 +214,15 @@ TEST_F(Fig37, ReconfigurationSwapsControllersWithNoLostCycle) {
     // Commanded torque across the handover: the last T_REF of jpid against the
     // first of jpidg. Both run the same gains; jpid carries gravity in its
     // integral, jpidg in the T_GRAV feed-forward, so the torque stays
-    // continuous. Bound 10 N m: a handover that lost the command (T_REF
-    // stale at zero) or the gravity term would jump by the ~30 N m that joint 2
-    // carries at this configuration. Measured changes are a few N m.
+    // continuous but for the Coulomb friction of the moving joints, which
+    // jpid's integral carries and jpidg's starts without (up to 27 N m on joint
+    // 1; measured changes 12-14 N m). Bound 20 N m: a handover that lost the
+    // command (T_REF stale at zero) or the gravity term would jump by the
+    // ~30 N m that joint 2 carries at this configuration, friction on top.
     const double torque_jump = max_diff(r.first_jpidg.t_ref, r.just_before.t_ref);
     std::printf("T_REF change across the swap %.3f N m (samples %.2f ms apart)\n", torque_jump,
                 (r.first_jpidg.t - r.just_before.t) * 1e3);
-    EXPECT_LT(torque_jump, 10.0);
+    EXPECT_LT(torque_jump, 20.0);
 
     // Commanded and measured joint positions stay continuous through the swap:
     // between consecutive looks (about 1 ms apart) neither moves by more than

@@ -1,13 +1,17 @@
 // The Figure 6.10 subsystem (examples/fig6_10_teleop) driven through the master
-// API, with the operator in ANOTHER process: teleop_feed is posix_spawn'ed and
-// writes joint set-points into the teleop module's TBUF; the arm follows.
+// API as drawn: the operator's trackball on a serial line — trackball_sim on a
+// pseudo-terminal, in another process — read by jtball through the SIO driver
+// (§7.2); the arm follows. Also the trackball protocol itself, and the TBUF-fed
+// teleop module (teleop_feed as its operator).
 //
-// One run (about 4.7 s) serves the tests: the subsystem is on for 1 s with no
-// operator (the arm must hold its start pose under puma_pidg's PID + gravity
-// compensation), then the feeder sweeps joints 1, 3 and 5 by
-// +-0.3 rad with a 2 s period for 2.5 s, ending at base + amp, and exits.
+// One run serves the Fig610 tests: the subsystem is on for 1 s with the
+// trackball idle (the arm must hold its start pose under puma_pidg's PID +
+// gravity compensation), then the trackball pushes joints 1, 3 and 5 with
+// ENABLE held for 1 s, deflects axes 2, 4 and 6 with ENABLE released for
+// 0.6 s, idles 0.3 s and goes silent; with line noise before every 10th packet.
 #include "fig6_10.hpp"
 #include "teleop/feed.hpp"
+#include "teleop/trackball.hpp"
 
 #include <chimera/ipc/segment.hpp>
 #include <chimera/sbs.hpp>
@@ -46,8 +50,6 @@ using Joints = std::array<double, kDof>;
 
 // Where the arm starts (fig6_10.svar INIT, the PUMA's qn) and the operator's sweep.
 constexpr Joints kBase{0.0, 0.785398, 3.141593, 0.0, 0.785398, 0.0};
-constexpr Joints kAmp{0.3, 0.0, -0.3, 0.0, 0.3, 0.0};
-constexpr double kFeedStart = 1.0, kFeedSeconds = 2.5, kFeedPeriod = 2.0, kEnd = 4.7;
 
 struct Sample {
     double t = 0;
@@ -84,28 +86,39 @@ std::string joined(const Joints& v) {
     return s;
 }
 
-pid_t spawn_feeder(const std::string& tbuf) {
-    std::vector<std::string> args{fig6_10::feed_program(), tbuf, "--rate", "100", "--seconds",
-                                  std::to_string(kFeedSeconds), "--period", std::to_string(kFeedPeriod), "--base"};
-    for (double x : kBase) args.push_back(std::to_string(x));
-    args.push_back("--amp");
-    for (double x : kAmp) args.push_back(std::to_string(x));
-    std::vector<char*> argv;
-    for (auto& a : args) argv.push_back(a.data());
-    argv.push_back(nullptr);
-    pid_t pid = -1;
-    if (::posix_spawn(&pid, argv[0], nullptr, nullptr, argv.data(), environ) != 0) return -1;
-    return pid;
+// The trackball script: {deflection of each axis} while ENABLE is held, then
+// other axes deflected while it is released.
+constexpr std::array<int, kDof> kPush{600, 0, -500, 0, -1000, 0};
+constexpr std::array<int, kDof> kReleased{0, 800, 0, 800, 0, 800};
+constexpr double kIdleStart = 1.0, kPushSeconds = 1.0, kReleasedSeconds = 0.6, kIdleEnd = 0.3;
+// jtball.rmod's GAIN and DEADBAND.
+constexpr Joints kGain{0.5, 0.5, 0.5, 1.0, 1.0, 1.0};
+constexpr double kDeadband = 0.05;
+
+// Joint speed for a deflection in counts, as jtball maps it.
+double speed_of(std::size_t j, int counts) {
+    const double d = std::clamp(counts / 1000.0, -1.0, 1.0);
+    const double live = std::fabs(d) <= kDeadband ? 0.0 : (std::fabs(d) - kDeadband) / (1 - kDeadband);
+    return std::copysign(live, d) * kGain[j];
+}
+
+std::vector<std::string> script() {
+    std::vector<std::string> p{"idle", std::to_string(kIdleStart), "move", std::to_string(kPushSeconds)};
+    for (int a : kPush) p.push_back(std::to_string(a));
+    p.insert(p.end(), {"release", std::to_string(kReleasedSeconds)});
+    for (int a : kReleased) p.push_back(std::to_string(a));
+    p.insert(p.end(), {"idle", std::to_string(kIdleEnd)});
+    return p;
 }
 
 class Fig610 : public ::testing::Test {
 protected:
     struct Run {
         std::vector<Sample> samples;
-        int feeder_status = -1;
-        double feeder_exit_t = 0;  // when the master saw the feeder gone
-        std::uint64_t teleop_cycles = 0, robot_misses = 0;
-        std::string failure;
+        int trackball_status = -1;
+        double trackball_exit_t = 0;  // when the master saw the trackball gone
+        std::uint64_t jtball_cycles = 0, robot_misses = 0, jtball_warnings = 0;
+        std::string jtball_warning, failure;
     };
     static std::unique_ptr<Run> run_;
 
@@ -121,17 +134,19 @@ protected:
     void SetUp() override { ASSERT_TRUE(run_->failure.empty()) << run_->failure; }
 
     static void record(Run& run) {
-        const auto dir = std::filesystem::temp_directory_path() / unique_name("rmod");
-        const std::string tbuf = unique_name("op");
+        fig6_10::SimulatedTrackball trackball(std::filesystem::temp_directory_path() / unique_name("tball"), script(),
+                                              {}, {"--garbage"});
         auto sbs = Subsystem::init(fig6_10::load_sbs(nullptr, unique_name("run")));
         fig6_10::add_module_dirs(*sbs);
         const TaskId robot = sbs->spawn(fig6_10::rmod("puma_pidg"), "robot");
         const TaskId grav = sbs->spawn(fig6_10::rmod("grav_comp"), "ctrl");
         const TaskId diff = sbs->spawn(fig6_10::rmod("qrdiff"), "ctrl");
-        const TaskId teleop = sbs->spawn(teleop_rmod(dir, tbuf).string(), "ctrl");
-        auto on = sbs->reconfig({{grav, Control::on}, {robot, Control::on}, {diff, Control::on}, {teleop, Control::on}});
+        const TaskId jtball = sbs->spawn(trackball.rmod_path(), "ctrl");
+        auto on = sbs->reconfig({{grav, Control::on}, {robot, Control::on}, {diff, Control::on}, {jtball, Control::on}});
         if (!on) throw chimera::sbs::Error("turning on: " + on.message);
+        trackball.start();
         const auto t0 = Clock::now();
+        const double script_end = kIdleStart + kPushSeconds + kReleasedSeconds + kIdleEnd;
 
         auto table = chimera::svar::Table::attach(chimera::ipc::segment_name(sbs->name(), "svar"));
         {
@@ -139,21 +154,14 @@ protected:
             const auto set = local.make_set({"Q_REF", "Q_MEZ"});
             const double* q_ref = local.translate<double>("Q_REF");
             const double* q_mez = local.translate<double>("Q_MEZ");
-            pid_t feeder = -1;
-            for (auto next = t0; next < t0 + std::chrono::duration<double>(kEnd); next += std::chrono::milliseconds(2)) {
+            // Until 1 s after the trackball has gone (its TIMEOUT is 0.5 s), at most 10 s.
+            for (auto next = t0;; next += std::chrono::milliseconds(2)) {
                 std::this_thread::sleep_until(next);
                 const double t = std::chrono::duration<double>(Clock::now() - t0).count();
-                if (feeder < 0 && t >= kFeedStart) {
-                    feeder = spawn_feeder(tbuf);
-                    if (feeder < 0) throw chimera::sbs::Error("could not start " + fig6_10::feed_program());
-                }
-                if (feeder > 0 && run.feeder_status < 0) {
-                    int status = 0;
-                    if (::waitpid(feeder, &status, WNOHANG) == feeder) {
-                        run.feeder_status = WIFEXITED(status) ? WEXITSTATUS(status) : 128 + WTERMSIG(status);
-                        run.feeder_exit_t = t;
-                    }
-                }
+                if (run.trackball_status < 0 && (run.trackball_status = trackball.exit_status(false)) >= 0)
+                    run.trackball_exit_t = t;
+                if ((run.trackball_status >= 0 && t > run.trackball_exit_t + 1.0) || t > script_end + 6)
+                    break;
                 if (!chimera::svar::transferred(local.copy_from_global(set)))
                     throw chimera::sbs::Error("reading the SVAR table failed");
                 Sample s;
@@ -162,18 +170,14 @@ protected:
                 std::copy(q_mez, q_mez + kDof, s.q_mez.begin());
                 run.samples.push_back(s);
             }
-            if (feeder > 0 && run.feeder_status < 0) {
-                int status = 0;
-                ::waitpid(feeder, &status, 0);
-                run.feeder_status = WIFEXITED(status) ? WEXITSTATUS(status) : 128 + WTERMSIG(status);
-                run.feeder_exit_t = kEnd;
-            }
-            run.teleop_cycles = sbs->status(teleop).cycles;
+            const auto st = sbs->status(jtball);
+            run.jtball_cycles = st.cycles;
+            run.jtball_warnings = st.warnings;
+            run.jtball_warning = st.warning;
             run.robot_misses = sbs->status(robot).misses;
         }
         table.detach();
         sbs->finish();
-        std::filesystem::remove_all(dir);
     }
 
     template <typename F>
@@ -183,88 +187,146 @@ protected:
             if (s.t >= from && s.t < to) w = std::max(w, f(s));
         return w;
     }
+    // When Q_REF first left the start pose (the end of the run if never).
+    static double first_move() {
+        for (const auto& s : run_->samples)
+            if (max_diff(s.q_ref, kBase) != 0) return s.t;
+        return run_->samples.empty() ? 0 : run_->samples.back().t;
+    }
 };
 std::unique_ptr<Fig610::Run> Fig610::run_;
 
-TEST_F(Fig610, ArmHoldsItsPoseUnderPidAndGravityCompensationWithoutAnOperator) {
-    // No operator yet: the teleop module must not move Q_REF at all (exactly
-    // the .svar's INIT), and the arm must stay there.
-    const double q_ref_moved = worst(0.0, kFeedStart, [](const Sample& s) { return max_diff(s.q_ref, kBase); });
-    EXPECT_EQ(q_ref_moved, 0.0);
+TEST_F(Fig610, ArmHoldsItsPoseUnderPidAndGravityCompensationWhileTheTrackballIdles) {
+    // Idle packets (ENABLE released, axes at rest) must not move Q_REF at all
+    // (exactly the .svar's INIT), and the arm must stay there.
+    const double moved = first_move();
+    std::printf("Q_REF first moved at %.3f s (the push starts at %.1f s)\n", moved, kIdleStart);
+    EXPECT_GT(moved, 0.5);
     // Until T_GRAV's first values and the servo's integral have built up the
     // arm sags a little (measured: up to ~0.04 rad in the first 0.1 s); by
-    // 0.5 s it is back. Bound 0.005 rad (0.29 deg) over [0.5 s, 1 s); measured
-    // runs stay below 0.002 rad. Without gravity compensation joint 2 sags by
-    // tenths of a radian (tests/modules ClosedLoop), so the bound has teeth.
-    const double hold = worst(0.5, kFeedStart, [](const Sample& s) { return max_diff(s.q_mez, kBase); });
+    // 0.5 s it is back. Bound 0.005 rad (0.29 deg) over [0.5 s, first move);
+    // measured runs stay below 0.002 rad. Without gravity compensation joint 2
+    // sags by tenths of a radian (tests/modules ClosedLoop), so the bound has teeth.
+    const double hold = worst(0.5, moved, [](const Sample& s) { return max_diff(s.q_mez, kBase); });
     std::printf("hold before the operator: worst |q_mez - q_start| %.5f rad\n", hold);
     EXPECT_LT(hold, 0.005);
 }
 
-TEST_F(Fig610, FeederInAnotherProcessDrivesTheArm) {
+TEST_F(Fig610, TrackballOnTheSerialLineDrivesTheJointsAtTheRatesItsAxesCommand) {
     const Run& r = *run_;
-    EXPECT_EQ(r.feeder_status, 0) << "teleop_feed failed";
-    EXPECT_GT(r.teleop_cycles, 300u);
-    // The sweep went through both extremes of joints 1, 3 and 5 (base +- 0.3
-    // rad): first in Q_REF (the operator's set-points reached the table),
-    // then in the measured arm.
-    for (std::size_t j : {0u, 2u, 4u}) {
-        const double ref_hi = worst(0, kEnd, [j](const Sample& s) { return s.q_ref[j] - kBase[j]; });
-        const double ref_lo = worst(0, kEnd, [j](const Sample& s) { return kBase[j] - s.q_ref[j]; });
-        const double mez_hi = worst(0, kEnd, [j](const Sample& s) { return s.q_mez[j] - kBase[j]; });
-        const double mez_lo = worst(0, kEnd, [j](const Sample& s) { return kBase[j] - s.q_mez[j]; });
-        // 0.29: the sweep's +-0.3 rad less the step between two 100 Hz
-        // set-points at the extremes (< 0.001 rad) and room for the feeder
-        // being sampled a little off the peak.
-        EXPECT_GT(ref_hi, 0.29) << "joint " << j + 1;
-        EXPECT_GT(ref_lo, 0.29) << "joint " << j + 1;
-        EXPECT_GT(mez_hi, 0.28) << "joint " << j + 1;
-        EXPECT_GT(mez_lo, 0.28) << "joint " << j + 1;
-    }
-    // Joints 2, 4 and 6 were sent their start value all along.
-    const double others = worst(0, kEnd, [](const Sample& s) {
+    EXPECT_EQ(r.trackball_status, 0) << "trackball_sim failed";
+    EXPECT_GT(r.jtball_cycles, 300u);
+    const Joints& end = r.samples.back().q_ref;
+    Joints moved{};
+    for (std::size_t j = 0; j < kDof; ++j) moved[j] = end[j] - kBase[j];
+    std::printf("Q_REF moved [%s] rad\n", joined(moved).c_str());
+    // Every joint moved for the same cycles (the axes arrive in one packet), so
+    // the displacements are in the ratio of the commanded speeds, exactly but
+    // for rounding: the protocol's scale, sign, deadband and gain per joint.
+    const double t_eff = moved[0] / speed_of(0, kPush[0]);
+    for (std::size_t j : {2u, 4u})
+        EXPECT_NEAR(moved[j], t_eff * speed_of(j, kPush[j]), 1e-9) << "joint " << j + 1;
+    // ... for about the push's length (the packets' timing; a wrong full scale
+    // or gain would be off by a factor of 30 or more).
+    std::printf("the push moved the joints for %.3f s of jtball cycles (sent for %.1f s)\n", t_eff, kPushSeconds);
+    EXPECT_GT(t_eff, 0.5 * kPushSeconds);
+    EXPECT_LT(t_eff, 1.5 * kPushSeconds);
+    // Axes 2, 4 and 6 were deflected only with ENABLE released (the deadman):
+    // their joints never moved, in any sample.
+    const double others = worst(0, 1e9, [](const Sample& s) {
         return std::max({std::fabs(s.q_ref[1] - kBase[1]), std::fabs(s.q_ref[3] - kBase[3]),
                          std::fabs(s.q_ref[5] - kBase[5])});
     });
-    EXPECT_LT(others, 1e-6);
+    EXPECT_EQ(others, 0.0);
 }
 
-TEST_F(Fig610, ArmFollowsTheOperatorWithinAStatedError) {
-    auto error = [](const Sample& s) { return max_diff(s.q_ref, s.q_mez); };
-    // The sweep starts at full speed (0.3 * pi = 0.94 rad/s from rest): a
-    // velocity step the servo takes ~0.2 s to absorb, the more so as Q^_REF
-    // comes from a 40 Hz differentiator (qrdiff) and is up to 25 ms late.
-    // Bound 0.06 rad over the first 0.2 s; measured runs reach ~0.045 rad.
-    const double start = worst(kFeedStart, kFeedStart + 0.2, error);
-    // Then the arm tracks within 0.04 rad (2.3 deg). puma_pidg has velocity
-    // but no acceleration feed-forward, so at the sweep's extremes (3 rad/s^2)
-    // the PID error carries the acceleration torque: measured runs peak at
-    // ~0.028 rad there and fall below 0.01 rad at the zero crossings.
-    const double sweep = worst(kFeedStart + 0.2, kFeedStart + kFeedSeconds, error);
-    std::printf("tracking while the operator moves: worst |q_ref - q_mez| %.4f rad in the first 0.2 s, "
-                "%.4f rad after\n", start, sweep);
-    EXPECT_LT(start, 0.06);
-    EXPECT_LT(sweep, 0.04);
-}
-
-TEST_F(Fig610, ArmStaysAtTheOperatorsLastSetPoint) {
-    // The sweep ends at base + amp * sin(2 pi * 2.5 / 2) = base + amp; the
-    // set-points are absolute, so after the operator has gone Q_REF is exactly
-    // there and the arm settles onto it.
+TEST_F(Fig610, ArmFollowsTheTrackballAndStopsWhereItWasLeft) {
     const Run& r = *run_;
-    ASSERT_LT(r.feeder_exit_t, kEnd - 0.5) << "the feeder ran late; no settled window";
-    Joints last{};
-    for (std::size_t j = 0; j < kDof; ++j) last[j] = kBase[j] + kAmp[j];
-    const Sample& end = r.samples.back();
-    std::printf("last set-point [%s], q_mez at the end max error %.5f rad\n", joined(last).c_str(),
-                max_diff(end.q_mez, last));
-    // 1e-6: the operator's values travel as doubles through the TBUF and the
-    // table; only sin(2.5 pi) != 1 in the last bits and the argument's
-    // rounding separate them.
-    EXPECT_LT(max_diff(end.q_ref, last), 1e-6);
-    // Settled, 0.5 s or more after the operator stopped (at zero velocity but
-    // full deceleration): 0.005 rad; measured runs are below 0.002 rad.
-    EXPECT_LT(max_diff(end.q_mez, last), 0.005);
+    auto error = [](const Sample& s) { return max_diff(s.q_ref, s.q_mez); };
+    // The push starts at full speed from rest (joint 5 at 1 rad/s): a velocity
+    // step the servo absorbs in ~0.2 s with Q^_REF from a 40 Hz differentiator.
+    // Bound 0.06 rad over the whole run; measured ~0.035.
+    const double tracking = worst(0, 1e9, error);
+    std::printf("tracking: worst |q_ref - q_mez| %.4f rad\n", tracking);
+    EXPECT_LT(tracking, 0.06);
+    // After the push nothing moves Q_REF again (the released axes, the idle
+    // packets and the silence): it is the last sample's from the moment the
+    // push ended, and the arm has settled onto it.
+    ASSERT_GT(r.trackball_exit_t, 0);
+    const Sample& last = r.samples.back();
+    const double after = worst(r.trackball_exit_t - kIdleEnd - 0.2, 1e9,
+                               [&last](const Sample& s) { return max_diff(s.q_ref, last.q_ref); });
+    EXPECT_EQ(after, 0.0);
+    EXPECT_LT(max_diff(last.q_mez, last.q_ref), 0.005);
+    // The silence after the trackball went away was noticed.
+    EXPECT_GE(r.jtball_warnings, 1u);
+    EXPECT_NE(r.jtball_warning.find("no packet from the trackball"), std::string::npos) << r.jtball_warning;
+}
+
+// The protocol (modules/teleop/teleop/trackball.hpp), both ends.
+TEST(TrackballProtocol, PacketsSurviveAnySplitAndLineNoise) {
+    namespace tp = chimera::teleop;
+    std::vector<std::uint8_t> line{0x00, 0xA5, 0x13, 0xA5};  // noise with sync bytes in it
+    tp::TrackballPacket sent[3];
+    for (int k = 0; k < 3; ++k) {
+        sent[k].buttons = tp::kTrackballEnable;
+        sent[k].axes = {static_cast<std::int16_t>(-1000 + k), 1000, -1, 0, 32767, -32768};
+        sent[k].sequence = static_cast<std::uint8_t>(254 + k);  // wraps
+        const auto b = tp::encode(sent[k]);
+        line.insert(line.end(), b.begin(), b.end());
+        if (k == 0) line.insert(line.end(), {0xA5, 0xA5, 0x01});
+    }
+    // Every way of cutting the stream in two reads gives the same packets.
+    for (std::size_t cut = 0; cut <= line.size(); ++cut) {
+        tp::TrackballParser p;
+        const std::size_t n = p.feed(line.data(), cut) + p.feed(line.data() + cut, line.size() - cut);
+        ASSERT_EQ(n, 3u) << "cut at " << cut;
+        EXPECT_EQ(p.good(), 3u);
+        EXPECT_EQ(p.lost(), 0u);
+        EXPECT_EQ(p.latest().axes, sent[2].axes);
+        EXPECT_EQ(p.latest().sequence, 0);
+        EXPECT_TRUE(p.latest().enabled());
+    }
+    EXPECT_EQ(sent[0].deflection(4), 1.0);  // beyond full scale: full scale
+    EXPECT_EQ(sent[0].deflection(5), -1.0);
+    EXPECT_EQ(sent[0].deflection(0), -1.0);
+}
+
+TEST(TrackballProtocol, ACorruptedPacketIsRefusedAndAGapCounted) {
+    namespace tp = chimera::teleop;
+    tp::TrackballPacket a, b;
+    a.axes[0] = 500;
+    a.buttons = tp::kTrackballEnable;
+    a.sequence = 10;
+    b.sequence = 13;  // 11 and 12 never arrived
+    auto bad = tp::encode(a);
+    bad[5] ^= 0x04;  // one bit flipped on the line
+    tp::TrackballParser p;
+    EXPECT_EQ(p.feed(bad.data(), bad.size()), 0u);
+    EXPECT_GE(p.bad(), 1u);
+    const auto ga = tp::encode(a), gb = tp::encode(b);
+    EXPECT_EQ(p.feed(ga.data(), ga.size()), 1u);
+    EXPECT_EQ(p.latest().axes[0], 500);
+    EXPECT_EQ(p.feed(gb.data(), gb.size()), 1u);
+    EXPECT_EQ(p.lost(), 2u);
+    EXPECT_FALSE(p.latest().enabled());
+}
+
+TEST(Fig610Jtball, AMissingTrackballDeviceIsRefusedByName) {
+    fig6_10::SimulatedTrackball trackball(std::filesystem::temp_directory_path() / unique_name("nodev"),
+                                          {"idle", "0.1"}, {{"DEVICE", "nosuch"}});
+    auto sbs = Subsystem::init(fig6_10::load_sbs(nullptr, unique_name("nodev")));
+    fig6_10::add_module_dirs(*sbs);
+    sbs->spawn(fig6_10::rmod("puma_pidg"), "robot");
+    try {
+        sbs->spawn(trackball.rmod_path(), "ctrl");
+        ADD_FAILURE() << "jtball accepted a device that is not in its database";
+    } catch (const chimera::sbs::Error& e) {
+        std::printf("spawn refused: %s\n", e.what());
+        EXPECT_NE(std::string(e.what()).find("no device named nosuch"), std::string::npos) << e.what();
+    }
+    EXPECT_EQ(sbs->status_all().size(), 1u);
+    sbs->finish();
 }
 
 TEST(Fig610Feed, ASilentOperatorStopsTheArmWhereItIsAndIsWarnedOf) {

@@ -5,7 +5,7 @@
 // NOT-CREATED, §3.6).
 //
 // The table holds two robots' out-consts: the PUMA 560's (NDOF 6, DH of
-// 16 x 7 = 112) and a planar 2-link arm's (NDOF2 = 2, DH2 of 48), each from its
+// 18 x 7 = 126) and a planar 2-link arm's (NDOF2 = 2, DH2 of 54), each from its
 // own robot interface. Each module's .rmod is given NDOF from one robot and DH
 // (or its vector ports) from the other with SVARALIAS.
 #include "fig3_15.hpp"
@@ -35,7 +35,7 @@ protected:
         text.erase(text.rfind("EOF"));
         text +=
             "NAME  NDOF2\nTYPE  int\nDESC  joints of the second robot\nUNITS none\nNELEM 1\n\n"
-            "NAME  DH2\nTYPE  double\nDESC  DH of the second robot\nUNITS mixed\nNELEM 48\n\n"
+            "NAME  DH2\nTYPE  double\nDESC  DH of the second robot\nUNITS mixed\nNELEM 54\n\n"
             "NAME  T_REF2\nTYPE  double\nDESC  torques of the second robot\nUNITS Nm\nNELEM 2\n\n"
             "NAME  Q_MEZ2\nTYPE  double\nDESC  joints of the second robot\nUNITS rad\nNELEM 2\n\n"
             "NAME  T_GRAV\nTYPE  double\nDESC  gravity torques\nUNITS Nm\nNELEM 6\n\n"
@@ -79,9 +79,9 @@ protected:
     std::unique_ptr<Subsystem> sbs_;
 };
 
-// NDOF 2 (the planar arm's) with the PUMA's DH of 112 elements.
+// NDOF 2 (the planar arm's) with the PUMA's DH of 126 elements.
 constexpr const char* kMixed = "SVARALIAS NDOF=NDOF2\nINCONST   NDOF DH\n";
-const std::string kDhMismatch = "in-const DH has 112 elements but NDOF 2 needs 48";
+const std::string kDhMismatch = "in-const DH has 126 elements but NDOF 2 needs 54";
 
 TEST_F(ModuleConsts, FwdkinRefusesDhOfAnotherNdof) {
     expect_refused("fwdkin_bad", std::string("MODULE fwdkin\nDESC x\nSVARALIAS JPOS=Q_MEZ\nSVARALIAS XPOS=X_MEZ\n") +

@@ -3,9 +3,11 @@
 // integrating the forward dynamics. KDL solvers inside, Eigen at the
 // interfaces; sized in the constructor, no allocation per call.
 //
-//   tau = M(q) qdd + C(q, qd) qd + g(q) + Jm qdd + B qd
-// where Jm (rotor inertia) and B (viscous friction) are the per-joint terms of
-// the model (DhLink::rotor_inertia, DhLink::damping).
+//   tau = M(q) qdd + C(q, qd) qd + g(q) + Jm qdd + B qd + Tc(qd)
+// where Jm (rotor inertia), B (viscous friction) and Tc (Coulomb friction:
+// Tc+ while qd > 0, Tc- while qd < 0, 0 at rest) are the per-joint terms of the
+// model (DhLink::rotor_inertia, damping, coulomb_pos, coulomb_neg) — the
+// Robotics Toolbox's rne(), sign conventions included.
 #pragma once
 
 #include <vector>
@@ -29,8 +31,9 @@ public:
 
     std::size_t ndof() const noexcept { return n_; }
 
-    /// Joint torques for motion (q, qd, qdd), including gravity, rotor inertia and
-    /// viscous friction. Returns false on a solver error or a size mismatch.
+    /// Joint torques for motion (q, qd, qdd), including gravity, rotor inertia,
+    /// viscous and Coulomb friction. Returns false on a solver error or a size
+    /// mismatch.
     bool inverse(const Eigen::Ref<const Eigen::VectorXd>& q,
                  const Eigen::Ref<const Eigen::VectorXd>& qd,
                  const Eigen::Ref<const Eigen::VectorXd>& qdd,
@@ -39,6 +42,14 @@ public:
     bool gravity(const Eigen::Ref<const Eigen::VectorXd>& q, Eigen::Ref<Eigen::VectorXd> tau) noexcept;
     /// Joint-space inertia matrix M(q) + diag(Jm).
     bool mass(const Eigen::Ref<const Eigen::VectorXd>& q, Eigen::Ref<Eigen::MatrixXd> m) noexcept;
+    /// The Coulomb friction torque of `joint` turning at `qd`: Tc+ for qd > 0,
+    /// Tc- (<= 0) for qd < 0, 0 at rest.
+    double coulomb(std::size_t joint, double qd) const noexcept {
+        return qd > 0 ? coulomb_pos_[joint] : qd < 0 ? coulomb_neg_[joint] : 0.0;
+    }
+    /// Tc+ and Tc- of `joint`, the range of torque its friction holds at rest.
+    double coulomb_pos(std::size_t joint) const noexcept { return coulomb_pos_[joint]; }
+    double coulomb_neg(std::size_t joint) const noexcept { return coulomb_neg_[joint]; }
 
 private:
     // KDL's solvers keep a reference to the chain they were built on, so the
@@ -46,7 +57,7 @@ private:
     // (a module's init reading the DH in-const) stays valid.
     KDL::Chain chain_;
     std::size_t n_;
-    std::vector<double> rotor_, damping_;
+    std::vector<double> rotor_, damping_, coulomb_pos_, coulomb_neg_;
     KDL::ChainIdSolver_RNE rne_;
     KDL::ChainDynParam dyn_;
     KDL::JntArray q_, qd_, qdd_, tau_;
@@ -55,9 +66,13 @@ private:
 };
 
 /// A simulated arm (§7.3 transparent simulation): integrates
-///   qdd = M(q)^-1 (tau - C qd - g(q) - B qd)
+///   qdd = M(q)^-1 (tau - C qd - g(q) - B qd - Tc(qd))
 /// with a semi-implicit (symplectic) Euler step, several substeps per call so it
-/// runs at its own rate, finer than the task that drives it.
+/// runs at its own rate, finer than the task that drives it. Coulomb friction
+/// sticks and slips: a joint at rest stays at rest while the torque left at it
+/// (with the others' accelerations ignored) is within [Tc-, Tc+], and starts
+/// against Tc+ or Tc- when it is not; a moving joint whose velocity friction
+/// would reverse within a substep stops instead.
 class ArmSimulator {
 public:
     explicit ArmSimulator(const RobotModel& model);
@@ -79,13 +94,17 @@ public:
     double time() const noexcept { return t_; }
 
 private:
+    bool stick_or_slip(std::size_t joint) noexcept;
+    void hold_joints() noexcept;
+
     std::size_t n_;
     Dynamics dyn_;
     Eigen::VectorXd q_, qd_, qdd_, bias_, zero_, rhs_;
     Eigen::MatrixXd m_;
     Eigen::LLT<Eigen::MatrixXd> llt_;
-    std::vector<char> locked_;
+    std::vector<char> locked_, held_;
     bool any_locked_ = false;
+    bool any_coulomb_ = false;
     double t_ = 0;
 };
 

@@ -36,15 +36,24 @@ struct DhLink {
     std::array<double, 6> inertia{};  ///< Ixx Iyy Izz Ixy Iyz Ixz about the COM (kg m^2)
     double rotor_inertia = 0;  ///< motor/armature inertia reflected to the joint (kg m^2)
     double damping = 0;        ///< viscous friction at the joint (N m s/rad)
+    /// Coulomb friction at the joint (N m), the Robotics Toolbox's Tc scaled by
+    /// |G|: coulomb_pos while the joint turns forward (qd > 0, >= 0), coulomb_neg
+    /// while it turns backward (qd < 0, <= 0; asymmetric in general), none at rest.
+    /// Inverse dynamics adds it to the torque the joint needs, as the toolbox's
+    /// rne() does.
+    double coulomb_pos = 0;
+    double coulomb_neg = 0;
 };
 
 /// The flat double array of the DH out-const (thesis §3.5). Layout, all doubles:
-///   row 0 (header):  [0] layout version (1), [1..3] gravity gx gy gz, [4..15] zero
+///   row 0 (header):  [0] layout version (2), [1..3] gravity gx gy gz, [4..17] zero
 ///   row 1+i (link i): [0] a [1] alpha [2] d [3] theta0 [4] mass [5..7] com xyz
 ///                     [8..13] Ixx Iyy Izz Ixy Iyz Ixz [14] rotor inertia [15] damping
-/// so a robot with NDOF joints needs DH of NELEM = 16 * (NDOF + 1).
-inline constexpr std::size_t dh_stride = 16;
-inline constexpr double dh_layout_version = 1;
+///                     [16] Coulomb friction forward [17] Coulomb friction backward
+/// so a robot with NDOF joints needs DH of NELEM = 18 * (NDOF + 1). Version 1
+/// (16 per row, no Coulomb friction) is refused with a message saying so.
+inline constexpr std::size_t dh_stride = 18;
+inline constexpr double dh_layout_version = 2;
 constexpr std::size_t dh_size(std::size_t ndof) { return dh_stride * (ndof + 1); }
 
 class RobotModel {
@@ -92,9 +101,13 @@ private:
 /// dynamic model and inertial parameters of the PUMA 560 arm", IEEE ICRA 1986,
 /// and the link masses/centres of mass from P. Corke, B. Armstrong-Hélouvry, "A
 /// search for consensus among model parameters reported for the PUMA 560 robot",
-/// IEEE ICRA 1994. Armature inertia Jm*G^2 and viscous friction B*G^2 as in the
-/// toolbox. Gravity (0, 0, -9.81).
-RobotModel puma560();
+/// IEEE ICRA 1994. Armature inertia Jm*G^2, viscous friction B*G^2 and the
+/// asymmetric Coulomb friction Tc*|G| as in the toolbox (roboticstoolbox-python
+/// 1.5.0, models.DH.Puma560). `base_height` is d of link 1, the height of the
+/// shoulder axis above the mounting surface: the toolbox's 26.45 in = 0.67183 m
+/// by default (it moves the kinematics, not the torques). Gravity (0, 0, -9.81).
+inline constexpr double puma560_base_height = 26.45 * 0.0254;
+RobotModel puma560(double base_height = puma560_base_height);
 
 /// Named PUMA 560 configurations of the Robotics Toolbox (rad).
 namespace puma560_q {
