@@ -15,7 +15,7 @@ import tempfile
 import time
 
 SBS = os.environ.get("SBS_EXE", "sbs")
-FIG3_7 = os.environ.get("FIG3_7_DIR", "")
+FIG3_7 = os.path.abspath(os.environ.get("FIG3_7_DIR", "."))
 TOKEN = "web-test-token-%d" % os.getpid()
 
 TASKS = """
