@@ -311,6 +311,7 @@ function drawGraph(g) {
   if (ui.selected && !taskOf.has(ui.selected)) selectTask(null);
   else if (ui.selected) $('task-name').textContent = `${ui.selected} (${taskOf.get(ui.selected).state})`;
   if (ui.rcItems.length) checkReconfig();
+  if (ui.statusTimer) refreshStatus();  // the table follows the graph at once, not at the next tick
 }
 
 // ------------------------------------------------------------------ one task
