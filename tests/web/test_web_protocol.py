@@ -182,3 +182,13 @@ def test_local_keys_and_variable_writes_checked_as_the_command_line(master):
         assert s.request("set jpid")["data"]["local"]["KP"].split()[:2] == ["400", "800"]
     finally:
         s.request("release")
+
+
+def test_a_silent_socket_is_closed_at_the_auth_timeout(master):
+    s = Socket(master.port)
+    assert s.hello["auth_timeout_ms"] == 5000
+    s.sock.settimeout(30)
+    r = s.recv()
+    assert not r["ok"] and r["cmd"] == "token" and "no token within 5000 ms" in r["error"]
+    assert s.closed()
+    assert page(master).request("status all")["ok"]
