@@ -143,6 +143,15 @@ struct ReconfigItem {
     std::string arg;  ///< passed to the method as task.arg()
 };
 
+/// One violation of §3.3.1 in a configuration (Subsystem::verification_problems).
+struct VerifyProblem {
+    enum class Kind { two_producers, no_producer };
+    Kind kind = Kind::no_producer;
+    std::string variable;
+    std::vector<std::string> tasks;  ///< the two producers, or the reader with no producer
+    std::string message;             ///< as verify() / VerifyError says it
+};
+
 /// Result of reconfig(): ok, or the index of the item that failed and why.
 /// Items before `failed` were applied; it and those after it were not sent.
 struct [[nodiscard]] ReconfigResult {
@@ -278,6 +287,16 @@ public:
     /// §3.3.1 over a set of tasks: throws VerifyError naming the variable and
     /// the modules when two produce one variable or an input has no producer.
     void verify(std::span<const TaskId> tasks) const;
+    /// The same check, every violation (verify() throws the first), for a
+    /// view that marks them all; empty when the set verifies.
+    std::vector<VerifyProblem> verification_problems(std::span<const TaskId> tasks) const;
+    /// The violations of the configuration reconfig(items) would leave (the
+    /// check reconfig() runs before sending anything); nothing is sent.
+    /// Throws Error for an item naming no task.
+    std::vector<VerifyProblem> reconfig_problems(std::span<const ReconfigItem> items) const;
+    std::vector<VerifyProblem> reconfig_problems(std::initializer_list<ReconfigItem> items) const {
+        return reconfig_problems(std::span<const ReconfigItem>(items.begin(), items.size()));
+    }
 
     /// sbsFreqGet / sbsFreqSet (Hz; takes effect at the next release).
     double freq_get(TaskId task) const;

@@ -389,23 +389,34 @@ std::optional<TaskId> Subsystem::find(std::string_view rmod) const {
 namespace {
 
 // §3.3.1: (1) no variable has two producers; (2) every input has a producer.
-void verify_set(const std::vector<detail::TaskCore*>& set) {
+// Every violation, two-producer ones first, in task order: verify() throws
+// the first, the web console's port graph marks them all.
+std::vector<VerifyProblem> problems_of(const std::vector<detail::TaskCore*>& set) {
+    std::vector<VerifyProblem> out;
     std::map<std::string, std::string> producer;
     for (auto* t : set) {
         for (const auto& v : t->out_vars) {
             auto [it, fresh] = producer.emplace(v, t->name);
             if (!fresh)
-                throw VerifyError("illegal configuration: variable " + v + " is produced by both " + it->second +
-                                  " and " + t->name);
+                out.push_back({VerifyProblem::Kind::two_producers, v, {it->second, t->name},
+                               "illegal configuration: variable " + v + " is produced by both " + it->second +
+                                   " and " + t->name});
         }
     }
     for (auto* t : set) {
         for (const auto& v : t->in_vars) {
             if (!producer.count(v))
-                throw VerifyError("illegal configuration: variable " + v + " read by " + t->name +
-                                  " is produced by no module in the configuration");
+                out.push_back({VerifyProblem::Kind::no_producer, v, {t->name},
+                               "illegal configuration: variable " + v + " read by " + t->name +
+                                   " is produced by no module in the configuration"});
         }
     }
+    return out;
+}
+
+void verify_set(const std::vector<detail::TaskCore*>& set) {
+    const auto problems = problems_of(set);
+    if (!problems.empty()) throw VerifyError(problems.front().message);
 }
 
 }  // namespace
@@ -414,6 +425,12 @@ void Subsystem::verify(std::span<const TaskId> ids) const {
     std::vector<detail::TaskCore*> set;
     for (TaskId id : ids) set.push_back(core_->task(id));
     verify_set(set);
+}
+
+std::vector<VerifyProblem> Subsystem::verification_problems(std::span<const TaskId> ids) const {
+    std::vector<detail::TaskCore*> set;
+    for (TaskId id : ids) set.push_back(core_->task(id));
+    return problems_of(set);
 }
 
 void Subsystem::control(TaskId id, Control signal, std::string_view a) {
@@ -439,10 +456,12 @@ void Subsystem::control(TaskId id, Control signal, std::string_view a) {
     if (!res.empty()) throw Error(std::string(to_string(signal)) + " " + t->name + ": " + res);
 }
 
-ReconfigResult Subsystem::reconfig(std::span<const ReconfigItem> items) {
-    auto& c = *core_;
-    ReconfigResult out;
-    // The configuration after the whole list, verified before anything runs.
+namespace {
+
+// The tasks ON once `items` would be applied, in creation order; throws
+// Error for an item naming no task (the message and `bad_item` say which).
+std::vector<detail::TaskCore*> on_after(detail::SubsystemCore& c, std::span<const ReconfigItem> items,
+                                        std::size_t& bad_item) {
     std::map<detail::TaskCore*, State> after;
     std::vector<detail::TaskCore*> order;
     {
@@ -458,10 +477,8 @@ ReconfigResult Subsystem::reconfig(std::span<const ReconfigItem> items) {
         try {
             t = c.task(items[i].task);
         } catch (const Error& e) {
-            out.ok = false;
-            out.failed = i;
-            out.message = "item " + std::to_string(i) + ": " + e.what();
-            return out;
+            bad_item = i;
+            throw Error("item " + std::to_string(i) + ": " + e.what());
         }
         State& s = after[t];
         switch (items[i].signal) {
@@ -474,6 +491,30 @@ ReconfigResult Subsystem::reconfig(std::span<const ReconfigItem> items) {
     std::vector<detail::TaskCore*> on_set;
     for (auto* t : order)
         if (after[t] == State::ON) on_set.push_back(t);
+    return on_set;
+}
+
+}  // namespace
+
+std::vector<VerifyProblem> Subsystem::reconfig_problems(std::span<const ReconfigItem> items) const {
+    std::size_t bad_item = 0;
+    return problems_of(on_after(*core_, items, bad_item));
+}
+
+ReconfigResult Subsystem::reconfig(std::span<const ReconfigItem> items) {
+    auto& c = *core_;
+    ReconfigResult out;
+    // The configuration after the whole list, verified before anything runs.
+    std::vector<detail::TaskCore*> on_set;
+    std::size_t bad_item = 0;
+    try {
+        on_set = on_after(c, items, bad_item);
+    } catch (const Error& e) {
+        out.ok = false;
+        out.failed = bad_item;
+        out.message = e.what();
+        return out;
+    }
     try {
         verify_set(on_set);
     } catch (const VerifyError& e) {

@@ -437,6 +437,37 @@ TEST_F(Sbs, VerificationNamesTheVariableAndTheModules) {
     }
 }
 
+// The web console marks every §3.3.1 problem; verify() and reconfig() report
+// the first, in the same words, and reconfig_problems() sends nothing.
+TEST_F(Sbs, VerificationProblemsListEveryViolationInVerifysWords) {
+    auto& s = init();
+    auto a = s.spawn(rmod("ctlA", "SVARALIAS OUT=B\nOUTVAR OUT\n"));
+    auto b = s.spawn(rmod("ctlB", "SVARALIAS OUT=B\nOUTVAR OUT\n"));
+    auto r = s.spawn(rmod("reader", "SVARALIAS IN=C\nINVAR IN\n"));
+    TaskId all[] = {a, b, r};
+    const auto problems = s.verification_problems(all);
+    ASSERT_EQ(problems.size(), 2u);
+    EXPECT_EQ(problems[0].kind, chimera::sbs::VerifyProblem::Kind::two_producers);
+    EXPECT_EQ(problems[0].variable, "B");
+    EXPECT_EQ(problems[0].tasks, (std::vector<std::string>{"ctlA", "ctlB"}));
+    EXPECT_EQ(problems[1].kind, chimera::sbs::VerifyProblem::Kind::no_producer);
+    EXPECT_EQ(problems[1].variable, "C");
+    EXPECT_EQ(problems[1].tasks, std::vector<std::string>{"reader"});
+    EXPECT_EQ(what_of([&] { s.verify(all); }), problems[0].message);
+    TaskId one[] = {a};
+    EXPECT_TRUE(s.verification_problems(one).empty());
+
+    const auto planned = s.reconfig_problems({{a, Control::on}, {b, Control::on}});
+    ASSERT_EQ(planned.size(), 1u);
+    const auto res = s.reconfig({{a, Control::on}, {b, Control::on}});
+    ASSERT_FALSE(res);
+    EXPECT_TRUE(has(res.message, planned[0].message)) << res.message;
+    EXPECT_TRUE(s.reconfig_problems({{a, Control::on}}).empty());
+    // Checking sent nothing.
+    EXPECT_EQ(methods("ctlA"), std::vector<std::string>{"init"});
+    EXPECT_EQ(s.status(a).state, State::OFF);
+}
+
 TEST_F(Sbs, ReconfigStopsAtTheFailingItemAndSaysWhich) {
     auto& s = init();
     auto a = s.spawn(rmod("a", ""));

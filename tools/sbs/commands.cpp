@@ -182,13 +182,13 @@ const std::vector<CommandInfo>& command_table() {
         {"on", "on [RMOD]", "send the on signal"},
         {"peer", "peer NAME --pid PID [--out VAR...] [--in VAR...] [--program TEXT...]", "declare a process outside the master (a Python program) that produces the --out and consumes the --in variables in its own loop: a background task NAME (module peer) that verification counts as their producer and status lists; it goes to ERROR when the process is gone; `kill NAME` removes it"},
         {"quit", "quit", "leave this interface (at the prompt: finish the subsystem and exit)"},
-        {"reconfig", "reconfig SIG RMOD [, SIG RMOD ...]", "apply an ordered list of signals (on off kill clear); stops at the first failure"},
+        {"reconfig", "reconfig SIG RMOD [, SIG RMOD ...] | reconfig --check SIG RMOD [, ...]", "apply an ordered list of signals (on off kill clear); stops at the first failure; --check: verify the configuration it would leave (§3.3.1) and send nothing"},
         {"record", "record VAR[IDX]... DURATION FILE.csv [--rate HZ] [--rtpu RTPU]", "record state variables (VAR, VAR[i], VAR[i:j]) at a task's rate for DURATION (5s, 500ms, 2min) into a CSV file: a `sample` task, read by this sbs program, killed at the end; the reply counts lost samples (not over the network: a peer runs `sample` and reads the ring itself)"},
         {"sample", "sample VAR[IDX]... [--rate HZ] [--rtpu RTPU] [--capacity N]", "start a sampler task: chosen elements of state variables read at HZ (default: the fastest producer's rate) into a shared-memory ring for any number of readers (scope, record, Python's chimera.record); `kill` the task to stop it"},
         {"save", "save FILE.sbs", "write the running configuration as a .sbs that starts the same subsystem: the RTPUs, a TASK line per task (its RTPU, ON when on) and a SET line per LOCAL value changed at run time (not over the network)"},
         {"set", "set [RMOD] [KEY [VALUE...]]", "show the LOCAL configuration of a task, one key, or change a key"},
         {"setvar", "setvar VAR[IDX] VALUE... [--force]", "write a state variable of the running table (halcmd setp): range-checked against the .svar MIN/MAX; refused while a task produces it unless --force"},
-        {"show", "show rtpu|svar [NAME...]", "show the RTPUs (CPU, policy, scheduler, tasks, planned utilisation) or the variables with producers and consumers (halcmd show thread / show sig)"},
+        {"show", "show rtpu|svar [NAME...] | show graph", "show the RTPUs (CPU, policy, scheduler, tasks, planned utilisation) or the variables with producers and consumers (halcmd show thread / show sig); graph: the port graph (tasks, their ports, states, RTPUs) and the §3.3.1 problems of the tasks ON"},
         {"sleep", "sleep SECONDS", "pause (lets the tasks run between the commands of a script; at most 60 s)"},
         {"spawn", "spawn RMOD[+RMOD...] [RTPU]", "create a task from RMOD.rmod on an RTPU (default: the MASTER RTPU); a+b+c: one combined task (§3.8.1), methods in that order"},
         {"status", "status [RMOD|all] | status reset | status set [FIELD...|default|all]", "show the status of the tasks, counted since this interface's last `status` (the prompt and a network peer each have their own; chimtop never changes it); times in us; `status reset` shows it and restarts profiling on every RTPU for every reader (the thesis's reset); `status set` picks the fields"},
@@ -234,6 +234,16 @@ std::vector<std::string> Interpreter::module_path() const {
 Reply Interpreter::execute(std::string_view command, Origin origin) {
     std::lock_guard lock(mutex_);
     origin_ = origin;
+    // The web console names every task it means: its requests (many pages,
+    // polling) must not move the prompt's default RMOD.
+    struct KeepDefault {
+        std::string& value;
+        std::string saved;
+        bool keep;
+        ~KeepDefault() {
+            if (keep) value = saved;
+        }
+    } keep_default{default_rmod_, default_rmod_, origin == Origin::web};
     // `complete LINE`: the TAB candidates for LINE, raw (a trailing blank
     // matters: it starts a new word), for a prompt attached over the network.
     if (command == "complete" || command.substr(0, 9) == "complete ") {
@@ -366,7 +376,7 @@ sbs::TaskId Interpreter::task_of(const std::string& rmod) {
 std::optional<std::string> Interpreter::find_rmod_file(const std::string& name) const {
     std::vector<std::string> names = {name};
     if (fs::path(name).extension() != ".rmod") names.push_back(name + ".rmod");
-    if (origin_ == Origin::network) {
+    if (origin_ != Origin::local) {
         if (name.find('/') != std::string::npos || name == "." || name == "..")
             throw CommandError("over the network only .rmod files on the master's module path can be named, "
                                "by name without a folder (" + name + " is a path)");
@@ -625,7 +635,7 @@ Reply Interpreter::cmd_status(const Words& w) {
     // window is shown and restarts; nobody else's counts move (issue 16.4).
     if (!prof_) prof_ = prof::StatusReader::try_attach(sbs_.name());
     if (prof_) {
-        const std::vector<prof::TaskStatus> window = windows_[origin_ == Origin::network ? 1 : 0].take(*prof_);
+        const std::vector<prof::TaskStatus> window = windows_[static_cast<int>(origin_)].take(*prof_);
         for (auto& row : tasks) {
             if (!profile_of(row)) continue;
             for (const auto& p : window)
@@ -942,7 +952,8 @@ Interpreter::Users Interpreter::users_of(const std::string& name) const {
 }
 
 Reply Interpreter::cmd_show(const Words& w) {
-    if (w.size() < 2 || (w[1] != "rtpu" && w[1] != "svar")) throw CommandError("usage: show rtpu|svar [NAME...]");
+    if (w.size() == 2 && w[1] == "graph") return show_graph();
+    if (w.size() < 2 || (w[1] != "rtpu" && w[1] != "svar")) throw CommandError("usage: show rtpu|svar|graph [NAME...]");
     const std::vector<std::string> names(w.begin() + 2, w.end());
     auto wanted = [&](const std::string& n) {
         return names.empty() || std::any_of(names.begin(), names.end(), [&](const std::string& p) { return glob_match(p, n); });
@@ -1010,6 +1021,49 @@ Reply Interpreter::cmd_show(const Words& w) {
     return r;
 }
 
+// The port graph (§3.3, Fig 3.7): every live task with its RTPU, state and
+// ports, every variable with its producers and consumers, and what §3.3.1
+// verification says of the tasks ON now (the web console draws this).
+Reply Interpreter::show_graph() {
+    nlohmann::json tasks = nlohmann::json::array();
+    std::vector<sbs::TaskId> on;
+    std::string text;
+    for (const auto& [name, f] : rmods_) {
+        const auto id = sbs_.find(name);
+        if (!id) continue;
+        const State state = sbs_.state(*id);
+        if (state == State::ON) on.push_back(*id);
+        const auto rtpu = rtpu_of_.find(name);
+        tasks.push_back({{"rmod", name}, {"module", f.module}, {"rtpu", rtpu == rtpu_of_.end() ? "" : rtpu->second},
+                         {"state", std::string(chimera::to_string(state))}, {"freq", f.freq},
+                         {"in", f.global_in_vars()}, {"in_const", f.global_in_consts()},
+                         {"out", f.global_out_vars()}, {"out_const", f.global_out_consts()}});
+        text += (text.empty() ? "" : "\n") + pad(name, 16) + " " + pad(std::string(chimera::to_string(state)), 11) + " " +
+                join(f.global_in_vars()) + " -> " + join(f.global_out_vars());
+    }
+    svar::Table& t = *table();
+    nlohmann::json vars = nlohmann::json::array();
+    for (std::size_t i = 0; i < t.size(); ++i) {
+        const std::string name(t.var(i).name());
+        const Users u = users_of(name);
+        vars.push_back({{"name", name}, {"type", type_text(t.var(i))}, {"producers", u.producers},
+                        {"consumers", u.consumers}});
+    }
+    nlohmann::json problems = nlohmann::json::array();
+    for (const auto& p : sbs_.verification_problems(on)) {
+        problems.push_back({{"kind", p.kind == sbs::VerifyProblem::Kind::two_producers ? "two_producers" : "no_producer"},
+                            {"var", p.variable}, {"tasks", p.tasks}, {"message", p.message}});
+        text += "\n" + p.message;
+    }
+    nlohmann::json rtpus = nlohmann::json::array();
+    for (const auto& spec : sbs_.file().rtpus) rtpus.push_back(spec.name);
+    Reply r;
+    r.text = text.empty() ? "no task spawned" : text;
+    r.data = {{"subsystem", sbs_.name()}, {"master", sbs_.file().master}, {"rtpus", rtpus}, {"tasks", tasks},
+              {"vars", vars}, {"problems", problems}, {"illegal_configuration", sbs_.illegal_configuration()}};
+    return r;
+}
+
 Reply Interpreter::cmd_setvar(const Words& w) {
     std::vector<std::string> args(w.begin() + 1, w.end());
     const auto force_at = std::find(args.begin(), args.end(), "--force");
@@ -1072,7 +1126,7 @@ Reply Interpreter::cmd_setvar(const Words& w) {
 
 Reply Interpreter::module_load(const Words& w) {
     if (w.size() != 3) throw CommandError("usage: module load PATH");
-    if (origin_ == Origin::network)
+    if (origin_ != Origin::local)
         throw CommandError("module load: over the network no library is loaded from a path; only the master's own "
                            "prompt or -c may (the module path it was started with serves the network)");
     const std::string name = sbs_.load_module(w[2]);
@@ -1194,8 +1248,11 @@ Reply Interpreter::cmd_module(const Words& w) {
 
 Reply Interpreter::cmd_reconfig(const Words& w) {
     // reconfig on a, off b  |  reconfig on a , off b: commas separate items.
+    // --check: verify the configuration the list would leave, send nothing
+    // (the web console shows a refusal before anything changes).
+    const bool check_only = w.size() > 1 && w[1] == "--check";
     std::vector<std::vector<std::string>> groups(1);
-    for (std::size_t i = 1; i < w.size(); ++i) {
+    for (std::size_t i = check_only ? 2 : 1; i < w.size(); ++i) {
         std::string word = w[i];
         while (!word.empty()) {
             const auto comma = word.find(',');
@@ -1220,6 +1277,7 @@ Reply Interpreter::cmd_reconfig(const Words& w) {
         items.emplace_back(*id, signal_of(g[0]));
         names.push_back(g[0] + " " + g[1]);
     }
+    if (check_only) return reconfig_check(items, names);
     default_rmod_ = groups.back()[1];
     const auto res = sbs_.reconfig(std::span<const sbs::ReconfigItem>(items));
     for (std::size_t i = 0; i < items.size(); ++i)
@@ -1236,6 +1294,24 @@ Reply Interpreter::cmd_reconfig(const Words& w) {
     }
     r.text = "reconfig: " + std::to_string(res.processed) + " items applied: " + join(names, ", ");
     r.data = {{"applied", applied}};
+    return r;
+}
+
+Reply Interpreter::reconfig_check(const std::vector<sbs::ReconfigItem>& items, const std::vector<std::string>& names) {
+    const auto problems = sbs_.reconfig_problems(std::span<const sbs::ReconfigItem>(items));
+    nlohmann::json jp = nlohmann::json::array();
+    for (const auto& p : problems)
+        jp.push_back({{"kind", p.kind == sbs::VerifyProblem::Kind::two_producers ? "two_producers" : "no_producer"},
+                      {"var", p.variable}, {"tasks", p.tasks}, {"message", p.message}});
+    Reply r;
+    if (!problems.empty()) {
+        // The words reconfig itself would refuse with.
+        r = Reply::failure("reconfig", "reconfig refused: verification before any item was sent: " +
+                                           problems.front().message + " (nothing sent: --check)");
+    } else {
+        r.text = "reconfig --check: " + join(names, ", ") + " verifies (nothing sent)";
+    }
+    r.data = {{"items", names}, {"verifies", problems.empty()}, {"problems", jp}};
     return r;
 }
 
@@ -1497,7 +1573,7 @@ std::string Interpreter::saved_sbs() const {
 
 Reply Interpreter::cmd_save(const Words& w) {
     if (w.size() != 2) throw CommandError("usage: save FILE.sbs");
-    if (origin_ == Origin::network)
+    if (origin_ != Origin::local)
         throw CommandError("save: over the network no file is written; save at the master's own prompt or with -c");
     const fs::path path(w[1]);
     if (path.extension() != ".sbs") throw CommandError("save: " + w[1] + ": the file name ends in .sbs");

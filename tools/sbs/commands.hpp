@@ -55,7 +55,9 @@ Reply values_reply(svar::Table& t, const std::vector<VarItem>& items, const std:
 /// Who sent a command. A network peer may name only .rmod files on the
 /// module path the master was started with (never a path, never the working
 /// folder), so it cannot get a library of its own choosing loaded.
-enum class Origin { local, network };
+/// The web console (--http) is a network origin with its own status window
+/// that leaves the prompt's default RMOD alone.
+enum class Origin { local, network, web };
 
 class Interpreter {
 public:
@@ -125,6 +127,8 @@ private:
     std::vector<std::string> local_keys(const std::string& rmod) const;
     Reply local_view(sbs::TaskId id);
     Reply cmd_show(const Words& w);
+    Reply show_graph();
+    Reply reconfig_check(const std::vector<sbs::ReconfigItem>& items, const std::vector<std::string>& names);
     Reply cmd_setvar(const Words& w);
     Reply cmd_save(const Words& w);
     Reply module_load(const Words& w);
@@ -143,9 +147,9 @@ private:
     std::map<std::string, std::vector<std::string>> files_of_;  // rmod name -> the .rmod paths it was spawned from
     std::optional<svar::Table> table_;
     std::optional<prof::StatusReader> prof_;
-    /// "Since the last status" per interface (issue 16.4): [0] the prompt and
-    /// -c scripts, [1] the network peer in control.
-    prof::StatusWindow windows_[2];
+    /// "Since the last status" per interface (issue 16.4), indexed by Origin:
+    /// [0] the prompt and -c scripts, [1] the network peer in control, [2] the web console.
+    prof::StatusWindow windows_[3];
     Origin origin_ = Origin::local;  // of the command being executed
     unsigned samplers_made_ = 0;     // `sample` names its tasks sample.1, sample.2, ...
     std::mutex mutex_;  // one command at a time, whichever interface sent it

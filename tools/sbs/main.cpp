@@ -16,6 +16,9 @@
 #include "commands.hpp"
 #include "server.hpp"
 #include "watcher.hpp"
+#ifdef CHIMERA_WEB
+#include "web.hpp"
+#endif
 
 #include <chimera/ipc/segment.hpp>
 #include <chimera/sbs.hpp>
@@ -205,6 +208,7 @@ struct NetworkSetup {
     bool listen = false;
     std::string unix_path;  // empty: the default
     std::string tcp;        // [host:]port
+    std::string http;       // [host:]port of the web console
     std::string token;
     double auth_timeout_s = 5.0;  // to send the token, then the connection is closed
 };
@@ -225,6 +229,35 @@ std::string read_token_file(const std::string& path) {
     return token;
 }
 
+/// "[HOST:]PORT" (HOST may be [v6]): the host (`host` unchanged when none is
+/// given) and the port; throws ServerError naming `option`.
+std::uint16_t parse_host_port(const std::string& text, const std::string& option, std::string& host) {
+    std::string port = text;
+    if (const auto colon = text.rfind(':'); colon != std::string::npos) {
+        host = text.substr(0, colon);
+        if (host.size() > 2 && host.front() == '[' && host.back() == ']') host = host.substr(1, host.size() - 2);
+        port = text.substr(colon + 1);
+    }
+    char* end = nullptr;
+    const long p = std::strtol(port.c_str(), &end, 10);
+    if (port.empty() || *end != '\0' || p < 0 || p > 65535)
+        throw cli::ServerError(option + ": '" + port + "' is not a port number (0-65535)");
+    return static_cast<std::uint16_t>(p);
+}
+
+#ifdef CHIMERA_WEB
+/// Where the page's files are: CHIMERA_WEB_DIR in the environment, the
+/// source tree's while this sbs runs from its build tree, else the installed ones.
+std::string web_asset_dir() {
+    if (const char* env = std::getenv("CHIMERA_WEB_DIR"); env != nullptr && *env != '\0') return env;
+    char exe[4096];
+    const ssize_t n = ::readlink("/proc/self/exe", exe, sizeof exe - 1);
+    const std::string root = std::string(CHIMERA_BUILD_ROOT) + "/";
+    if (n > 0 && std::string(exe, static_cast<std::size_t>(n)).rfind(root, 0) == 0) return CHIMERA_WEB_SOURCE_DIR;
+    return CHIMERA_WEB_DIR;
+}
+#endif
+
 class Master {
 public:
     Master(sbs::Subsystem& subsystem, cli::Interpreter& interp, NetworkSetup net, bool serve)
@@ -240,18 +273,7 @@ public:
                 o.unix_path = net_.unix_path.empty() ? cli::default_socket_path(sbs_.name()) : net_.unix_path;
             if (!net_.tcp.empty()) {
                 o.tcp = true;
-                std::string port = net_.tcp;
-                if (const auto colon = net_.tcp.rfind(':'); colon != std::string::npos) {
-                    o.tcp_host = net_.tcp.substr(0, colon);
-                    if (o.tcp_host.size() > 2 && o.tcp_host.front() == '[' && o.tcp_host.back() == ']')
-                        o.tcp_host = o.tcp_host.substr(1, o.tcp_host.size() - 2);
-                    port = net_.tcp.substr(colon + 1);
-                }
-                char* end = nullptr;
-                const long p = std::strtol(port.c_str(), &end, 10);
-                if (port.empty() || *end != '\0' || p < 0 || p > 65535)
-                    throw cli::ServerError("--tcp: '" + port + "' is not a port number (0-65535)");
-                o.tcp_port = static_cast<std::uint16_t>(p);
+                o.tcp_port = parse_host_port(net_.tcp, "--tcp", o.tcp_host);
                 o.token = net_.token;
                 o.auth_timeout = std::chrono::milliseconds(static_cast<long>(net_.auth_timeout_s * 1000));
             }
@@ -266,6 +288,27 @@ public:
             std::cerr << "sbs: subsystem " << sbs_.name() << " listening on " << where << std::endl;
         }
         return *server_;
+    }
+
+    /// Starts the web console (--http) beside the network server, whose
+    /// control slot its pages share.
+    void start_web() {
+#ifdef CHIMERA_WEB
+        cli::WebOptions o;
+        o.subsystem = sbs_.name();
+        o.port = parse_host_port(net_.http, "--http", o.host);
+        o.token = net_.token;
+        o.auth_timeout = std::chrono::milliseconds(static_cast<long>(net_.auth_timeout_s * 1000));
+        o.asset_dir = web_asset_dir();
+        o.chart_js = CHIMERA_CHART_JS;
+        web_ = std::make_unique<cli::WebConsole>(
+            o, [this](std::string_view line) { return execute(line, cli::Origin::web); }, server());
+        web_->start();
+        const bool v6 = o.host.find(':') != std::string::npos;
+        std::cerr << "sbs: web console of subsystem " << sbs_.name() << " on http://"
+                  << (v6 ? "[" + o.host + "]" : o.host) << ":" << web_->port() << "/ (the page asks for the token)"
+                  << std::endl;
+#endif
     }
 
     /// `network`: control goes to one peer until it quits or is lost (§4.4.2).
@@ -288,11 +331,17 @@ public:
     }
 
     void stop() {
+#ifdef CHIMERA_WEB
+        if (web_) web_->stop();
+#endif
         if (server_) server_->stop();
     }
 
 private:
-    Reply execute_network(std::string_view line) {
+    Reply execute_network(std::string_view line) { return execute(line, cli::Origin::network); }
+
+    /// One request of a network peer or a web page: exactly one command.
+    Reply execute(std::string_view line, cli::Origin origin) {
         std::vector<std::string> commands;
         try {
             commands = cli::split_commands(line);
@@ -307,7 +356,7 @@ private:
             r.rmod = interp_.default_rmod();
             return r;
         }
-        return interp_.execute(commands[0], cli::Origin::network);
+        return interp_.execute(commands[0], origin);
     }
 
     sbs::Subsystem& sbs_;
@@ -315,6 +364,9 @@ private:
     NetworkSetup net_;
     bool serve_;
     std::unique_ptr<cli::NetworkServer> server_;
+#ifdef CHIMERA_WEB
+    std::unique_ptr<cli::WebConsole> web_;  // declared after server_: stopped and destroyed first
+#endif
 };
 
 /// The prompt, with libedit when stdin is a terminal, plain lines otherwise.
@@ -485,8 +537,11 @@ int main(int argc, char** argv) {
                  "else /tmp/chimera-UID/NAME.sock)");
     app.add_option("--socket", net.unix_path, "the Unix socket path for --listen (implies --listen)");
     app.add_option("--tcp", net.tcp, "listen on TCP [host:]port as well (host: loopback unless given)");
+    app.add_option("--http", net.http,
+                   "serve the web console on [host:]port (host: loopback unless given; needs --token or "
+                   "--token-file, as --tcp)");
     std::string token_file;
-    app.add_option("--token", net.token, "token a TCP peer must send first (required with --tcp)");
+    app.add_option("--token", net.token, "token a TCP peer or web page must send first (required with --tcp, --http)");
     app.add_option("--token-file", token_file,
                    "read the token from the first line of this file (mode 0600; keeps it out of ps)");
     app.add_option("--auth-timeout", net.auth_timeout_s,
@@ -511,8 +566,22 @@ int main(int argc, char** argv) {
             return 2;
         }
     }
-    if (!net.token.empty() && net.tcp.empty()) {
-        std::cerr << "sbs: --token is for --tcp" << std::endl;
+#ifndef CHIMERA_WEB
+    if (!net.http.empty()) {
+        std::cerr << "sbs: --http: this sbs was built without the web console (civetweb not found at configure "
+                     "time: install libcivetweb-dev and reconfigure with -Dweb=enabled)"
+                  << std::endl;
+        return 2;
+    }
+#endif
+    if (!net.token.empty() && net.tcp.empty() && net.http.empty()) {
+        std::cerr << "sbs: --token is for --tcp and --http" << std::endl;
+        return 2;
+    }
+    if (!net.http.empty() && net.token.empty()) {
+        std::cerr << "sbs: --http needs --token or --token-file (every local user can reach a TCP port, "
+                     "loopback included)"
+                  << std::endl;
         return 2;
     }
     if (!net.tcp.empty() && net.token.empty()) {
@@ -570,7 +639,9 @@ int main(int argc, char** argv) {
             if (!json && !started.text.empty()) std::cout << started.text << std::endl;
         }
         if ((net.listen || !net.tcp.empty()) && !serve) master.server();
-        if (serve || !script.empty() || net.listen || !net.tcp.empty() || ::isatty(STDIN_FILENO))
+        // With --serve the pages, like the sockets, open once the script has run.
+        if (!net.http.empty() && !serve) master.start_web();
+        if (serve || !script.empty() || net.listen || !net.tcp.empty() || !net.http.empty() || ::isatty(STDIN_FILENO))
             catch_interrupts();
         if (!script.empty()) {
             const Reply r = run_line([&](std::string_view c) { return interp.execute(c); }, script, json, true);
@@ -581,6 +652,7 @@ int main(int argc, char** argv) {
             }
         }
         if (serve && status == 0) {
+            if (!net.http.empty()) master.start_web();
             const auto end = master.server().serve_forever(&g_interrupted);
             if (end == cli::NetworkServer::SessionEnd::interrupted)
                 std::cerr << "sbs: interrupted: finishing subsystem " << subsystem->name() << std::endl;

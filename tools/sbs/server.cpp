@@ -30,19 +30,6 @@ void set_cloexec_nonblock(int fd) {
     ::fcntl(fd, F_SETFL, ::fcntl(fd, F_GETFL) | O_NONBLOCK);
 }
 
-// A token comparison whose time does not depend on where the first
-// difference is, so the token cannot be guessed byte by byte.
-bool same_token(std::string_view a, std::string_view b) {
-    unsigned char diff = a.size() == b.size() ? 0 : 1;
-    const std::size_t n = a.size() > b.size() ? a.size() : b.size();
-    for (std::size_t i = 0; i < n; ++i) {
-        const unsigned char x = i < a.size() ? static_cast<unsigned char>(a[i]) : 0;
-        const unsigned char y = i < b.size() ? static_cast<unsigned char>(b[i]) : 0;
-        diff = static_cast<unsigned char>(diff | (x ^ y));
-    }
-    return diff == 0;
-}
-
 std::string error_line(std::string_view cmd, std::string message) {
     return to_json_line(Reply::failure(std::string(cmd), std::move(message)));
 }
@@ -70,6 +57,17 @@ std::string default_socket_path(std::string_view subsystem) {
                           " must belong to this user with mode 0700");
     }
     return dir + "/" + std::string(subsystem) + ".sock";
+}
+
+bool same_token(std::string_view a, std::string_view b) {
+    unsigned char diff = a.size() == b.size() ? 0 : 1;
+    const std::size_t n = a.size() > b.size() ? a.size() : b.size();
+    for (std::size_t i = 0; i < n; ++i) {
+        const unsigned char x = i < a.size() ? static_cast<unsigned char>(a[i]) : 0;
+        const unsigned char y = i < b.size() ? static_cast<unsigned char>(b[i]) : 0;
+        diff = static_cast<unsigned char>(diff | (x ^ y));
+    }
+    return diff == 0;
 }
 
 bool is_loopback_host(std::string_view host) {
@@ -401,24 +399,37 @@ void NetworkServer::admit(int fd, bool needs_token) {
     }
 }
 
+std::string NetworkServer::claim_locked() {
+    if (session_active_) return "another network peer has control of subsystem " + options_.subsystem;
+    if (!offered_)
+        return "the command line of subsystem " + options_.subsystem + " has control (pid " +
+               std::to_string(::getpid()) + "); type 'network' at its prompt to pass control";
+    session_active_ = true;
+    return {};
+}
+
 bool NetworkServer::take_control(Peer& peer) {
     std::unique_lock lock(mutex_);
-    std::string refusal;
-    if (session_active_) {
-        refusal = "another network peer has control of subsystem " + options_.subsystem;
-    } else if (!offered_) {
-        refusal = "the command line of subsystem " + options_.subsystem +
-                  " has control (pid " + std::to_string(::getpid()) +
-                  "); type 'network' at its prompt to pass control";
-    }
+    const std::string refusal = claim_locked();
     if (!refusal.empty()) {
         lock.unlock();
         send_line(peer.fd, error_line("hello", refusal));
         return false;
     }
-    session_active_ = true;
     peer.controlling = true;
     return true;
+}
+
+std::string NetworkServer::acquire_control() {
+    std::lock_guard lock(mutex_);
+    return claim_locked();
+}
+
+void NetworkServer::release_control(SessionEnd why) { end_session(why); }
+
+bool NetworkServer::control_wanted_back() const {
+    std::lock_guard lock(mutex_);
+    return take_back_;
 }
 
 void NetworkServer::close_peer(Peer& peer, SessionEnd why) {

@@ -67,6 +67,10 @@ struct Request {
 };
 Request parse_request(std::string_view line);
 
+/// A token comparison whose time does not depend on where the first
+/// difference is, so the token cannot be guessed byte by byte.
+bool same_token(std::string_view a, std::string_view b);
+
 /// True when `host` is a numeric loopback address (127.0.0.0/8, ::1) or "localhost".
 bool is_loopback_host(std::string_view host);
 
@@ -107,6 +111,17 @@ public:
     /// finish, when `*interrupt` becomes true, or when the server stops.
     SessionEnd serve_forever(const std::atomic<bool>* interrupt);
 
+    /// Another front end of the same master (the web console, tools/sbs/web.hpp)
+    /// takes the one control slot as a peer would, under the same rules:
+    /// refused while another peer has control or while the command line has
+    /// it. Returns "" when granted, else the refusal (the words a peer gets).
+    std::string acquire_control();
+    /// Ends that session: control returns as when a peer's session ends.
+    void release_control(SessionEnd why);
+    /// True while the command line wants control back (Ctrl-C after
+    /// `network`): the holder is to release it with SessionEnd::interrupted.
+    bool control_wanted_back() const;
+
     /// Number of sessions that have ended so far (for tests and the prompt).
     std::uint64_t sessions_ended() const;
 
@@ -116,6 +131,7 @@ private:
     void accept_from(int listen_fd);
     void admit(int fd, bool needs_token);
     bool take_control(Peer& peer);   // false: refused, the peer is to be closed
+    std::string claim_locked();      // mutex_ held: "" and the session is on, or the refusal
     void close_peer(Peer& peer, SessionEnd why);
     void expire_pending();
     bool handle_input(Peer& peer);   // false: the peer is to be closed
