@@ -347,7 +347,9 @@ TEST_P(MufFailures, DeadlineOfAJobThatEndsLateIsReportedAtItsEnd) {
     // Every job but the one stop() cut short (it ends after its task left).
     EXPECT_GE(probe.count[1].load(), 3);
     EXPECT_LE(st.cycles - static_cast<std::uint64_t>(probe.count[1].load()), 1u);
-    EXPECT_EQ(st.missed, st.deadline_failures);
+    // A miss per failure, but for the job stop() cut short: reported, never ended.
+    EXPECT_GE(st.deadline_failures, st.missed);
+    EXPECT_LE(st.deadline_failures - st.missed, 1u);
     EXPECT_EQ(st.aborted, 0u);
 }
 
@@ -838,7 +840,10 @@ TEST(MufDeadline, AReservedTaskStaysOnItsCpuAndCountsEachLateJobAsAMiss) {
     const RtTaskStatus st = sch.status(late.handle());
     EXPECT_EQ(wrong_cpu.load(), 0);
     EXPECT_GE(st.deadline_failures, 5u);
-    EXPECT_EQ(st.missed, st.deadline_failures) << st.cycles << " cycles";
+    // Equal, but for the job stop() may cut short after its deadline was
+    // reported (a miss is counted when a job ends).
+    EXPECT_GE(st.deadline_failures, st.missed) << st.cycles << " cycles";
+    EXPECT_LE(st.deadline_failures - st.missed, 1u) << st.missed << " missed, " << st.cycles << " cycles";
 }
 
 TEST(MufDeadline, RefusesAnInfeasibleSetNamingItsUtilisation) {
