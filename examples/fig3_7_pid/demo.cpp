@@ -156,7 +156,7 @@ void print_status_legend() {
     std::printf(
         "  S      task type: P periodic, Y synchronous, S sporadic, D deferrable server, B background\n"
         "  crit   MUF criticality (higher runs first; the critical set is guaranteed its deadlines)\n"
-        "  cycle  cycles run since the task was turned on;  miss  releases missed (late, skipped, aborted)\n"
+        "  cycle  cycles run since the task was turned on;  miss  deadlines missed (a job late or aborted, a release skipped)\n"
         "  refF   frequency asked for (Hz);  mezF  frequency measured (Hz)\n"
         "  minC avgC maxC  CPU time per cycle (us: every time is in microseconds);  avgU%%  share of the CPU\n"
         "  latP99 release lateness, 99th percentile (us): how late the task woke after its release\n"

@@ -174,7 +174,7 @@ struct TaskStatus {
     int crit = 0;
     State state = State::NOT_CREATED;
     std::uint64_t cycles = 0;   ///< since turned on
-    std::uint64_t misses = 0;   ///< releases missed: late, skipped or aborted cycles
+    std::uint64_t misses = 0;   ///< deadlines missed: jobs late or aborted, releases skipped
     /// Timing failures seen by the RTPU's scheduler (§6.3) since the task was
     /// spawned; for a server, DEADLINE is its replenishment time and MAXEXEC its
     /// capacity used up.

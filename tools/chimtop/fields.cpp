@@ -54,7 +54,7 @@ const std::vector<Field>& all_fields() {
         {"crit", 4, true, false, "criticality"},
         {"state", 11, false, false, "task state"},
         {"cycle", 8, true, false, "cycles in this window (since z, or the RTPU's last reset)"},
-        {"miss", 6, true, false, "missed cycles in this window"},
+        {"miss", 6, true, false, "deadlines missed in this window (a job late or aborted, a release skipped)"},
         {"refF", 9, true, false, "reference frequency (Hz)"},
         {"refT", 10, true, true, "reference period (us)"},
         {"mezF", 9, true, false, "measured frequency in this window (Hz)"},
