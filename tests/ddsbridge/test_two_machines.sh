@@ -29,6 +29,8 @@ cleanup() {
     ip netns del "$ns_robot" 2>/dev/null
     ip netns del "$ns_ctrl" 2>/dev/null
     rm -rf "$work"
+    # The two hosts are killed: their tables stay behind unless removed here.
+    rm -f /dev/shm/chimera.tmr$tag.* /dev/shm/chimera.tmc$tag.*
 }
 trap cleanup EXIT
 if ! reason=$(ip netns add "$ns_robot" 2>&1); then
