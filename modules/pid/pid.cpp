@@ -68,14 +68,7 @@ public:
     chimera::Result set(chimera::Task& t) override {
         // sbsSet of a gain or limit: the LOCAL entry is already updated; rebuild
         // the gains between cycles. A bad value leaves the old gains in place.
-        try {
-            rb::Pid fresh(n_, gains(t));
-            pid_ = std::move(fresh);
-        } catch (const std::invalid_argument& e) {
-            t.warning(e.what());
-            return chimera::Result::ERROR;
-        }
-        return chimera::Result::OK;
+        return rb::apply_local(t, [&] { pid_ = rb::Pid(n_, gains(t)); });
     }
 
 private:

@@ -54,13 +54,7 @@ public:
     }
 
     chimera::Result set(chimera::Task& t) override {
-        try {
-            read_target(t);
-        } catch (const std::invalid_argument& e) {
-            t.warning(e.what());
-            return chimera::Result::ERROR;
-        }
-        return chimera::Result::OK;
+        return rb::apply_local(t, [&] { read_target(t); });
     }
 
     chimera::Result on(chimera::Task&) override {

@@ -90,13 +90,7 @@ public:
     }
 
     chimera::Result set(chimera::Task& t) override {
-        try {
-            read_gains(t);
-        } catch (const std::invalid_argument& e) {
-            t.warning(e.what());
-            return chimera::Result::ERROR;
-        }
-        return chimera::Result::OK;
+        return rb::apply_local(t, [&] { read_gains(t); });
     }
 
     chimera::Result on(chimera::Task&) override {

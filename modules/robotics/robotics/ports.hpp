@@ -24,6 +24,20 @@ namespace chimera::robotics {
     throw std::invalid_argument(std::string(t.rmod()) + ".rmod: " + message);
 }
 
+/// What set() answers after `apply` took new LOCAL values: a bad one (`apply`
+/// throws std::invalid_argument) is warned and answered ERROR, and `apply`
+/// must then leave the values the module runs with as they were.
+template <typename Apply>
+Result apply_local(Task& t, Apply&& apply) {
+    try {
+        apply();
+    } catch (const std::invalid_argument& e) {
+        t.warning(e.what());
+        return Result::ERROR;
+    }
+    return Result::OK;
+}
+
 inline bool listed(const std::vector<std::string>& list, std::string_view port) {
     return std::find(list.begin(), list.end(), port) != list.end();
 }
