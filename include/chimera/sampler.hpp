@@ -298,9 +298,8 @@ public:
 
 private:
     struct Source {
-        const std::byte* local;  // the variable's first element in the local table
+        const std::byte* at;  // the sampled element in the local table
         svar::Type type;
-        std::uint32_t element;
     };
     std::vector<Channel> channels_;
     std::unique_ptr<svar::LocalTable> local_;

@@ -94,6 +94,9 @@ CHIMERA_API std::size_t type_size(Type type) noexcept;
 /// The values a fixed-size type can hold, as doubles (what INIT/MIN/MAX and
 /// `setvar` are checked against); unbounded for struct_.
 CHIMERA_API std::pair<double, double> type_range(Type type) noexcept;
+/// One element of a fixed-size type, at `element` (any alignment), as a
+/// double; 0 for struct_. No allocation, no lock: real-time safe.
+CHIMERA_API double element_value(Type type, const void* element) noexcept;
 /// The type written as in a .svar file: "double", "struct[32]".
 CHIMERA_API std::string type_spelling(Type type, std::size_t elem_size);
 

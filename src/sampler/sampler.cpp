@@ -4,7 +4,6 @@
 
 #include <algorithm>
 #include <charconv>
-#include <cstring>
 #include <optional>
 #include <utility>
 
@@ -79,27 +78,6 @@ std::vector<std::uint32_t> var_indices(const svar::Table& table, const std::vect
     return ix;
 }
 
-double element_value(const std::byte* p, svar::Type type, std::size_t k) noexcept {
-    using svar::Type;
-    auto load = [&]<typename T>(T) {
-        T v;
-        std::memcpy(&v, p + k * sizeof(T), sizeof(T));
-        return static_cast<double>(v);
-    };
-    switch (type) {
-        case Type::byte_: return load(std::uint8_t{});
-        case Type::char_: return load(char{});
-        case Type::word: return load(std::uint16_t{});
-        case Type::short_: return load(std::int16_t{});
-        case Type::unsigned_: return load(std::uint32_t{});
-        case Type::int_: return load(std::int32_t{});
-        case Type::float_: return load(float{});
-        case Type::double_: return load(double{});
-        case Type::struct_: break;
-    }
-    return 0.0;
-}
-
 }  // namespace
 
 Sampler::Sampler(svar::Table& table, std::vector<Channel> channels, const std::string& ring_name,
@@ -114,8 +92,8 @@ Sampler::Sampler(svar::Table& table, std::vector<Channel> channels, const std::s
         const svar::VarInfo info = table.var(c.var);
         if (info.type() == svar::Type::struct_ || c.element >= info.nelem())
             throw Error("sampler " + ring_name + ": " + c.name + " is not a number of the table");
-        sources_.push_back(Source{static_cast<const std::byte*>(local_->translate_any(c.var)), info.type(),
-                                  static_cast<std::uint32_t>(c.element)});
+        const auto* first = static_cast<const std::byte*>(local_->translate_any(c.var));
+        sources_.push_back(Source{first + c.element * svar::type_size(info.type()), info.type()});
     }
     ring_ = RingWriter::create(ring_name, channels_, var_indices(table, channels_), capacity, rate_hz, options);
 }
@@ -128,7 +106,7 @@ svar::Status Sampler::sample(std::int64_t time_ns, std::uint64_t cycle) noexcept
     if (!svar::transferred(s)) return s;
     double row[kMaxChannels];
     for (std::size_t i = 0; i < sources_.size(); ++i)
-        row[i] = element_value(sources_[i].local, sources_[i].type, sources_[i].element);
+        row[i] = svar::element_value(sources_[i].type, sources_[i].at);
     ring_.publish_row(time_ns, cycle, row);
     return s;
 }

@@ -38,7 +38,9 @@ double load_as(const void* src) noexcept {
     return static_cast<double>(v);
 }
 
-double load_value(Type t, const void* src) noexcept {
+}  // namespace
+
+double element_value(Type t, const void* src) noexcept {
     switch (t) {
         case Type::byte_: return load_as<std::uint8_t>(src);
         case Type::char_: return load_as<char>(src);
@@ -52,8 +54,6 @@ double load_value(Type t, const void* src) noexcept {
     }
     return 0.0;
 }
-
-}  // namespace
 
 const char* to_string(Status s) noexcept {
     switch (s) {
@@ -90,15 +90,15 @@ bool VarInfo::has_init() const noexcept { return (d_->flags & detail::kHasInit) 
 
 double VarInfo::init(std::size_t k) const noexcept {
     if (!d_->init_offset || k >= d_->nelem) return 0.0;
-    return load_value(type(), table_->seg_.at_bytes(d_->init_offset + k * d_->elem_size));
+    return element_value(type(), table_->seg_.at_bytes(d_->init_offset + k * d_->elem_size));
 }
 double VarInfo::min(std::size_t k) const noexcept {
     if (!d_->min_offset || k >= d_->nelem) return 0.0;
-    return load_value(type(), table_->seg_.at_bytes(d_->min_offset + k * d_->elem_size));
+    return element_value(type(), table_->seg_.at_bytes(d_->min_offset + k * d_->elem_size));
 }
 double VarInfo::max(std::size_t k) const noexcept {
     if (!d_->max_offset || k >= d_->nelem) return 0.0;
-    return load_value(type(), table_->seg_.at_bytes(d_->max_offset + k * d_->elem_size));
+    return element_value(type(), table_->seg_.at_bytes(d_->max_offset + k * d_->elem_size));
 }
 
 // --- Table -------------------------------------------------------------------
