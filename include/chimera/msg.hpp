@@ -180,7 +180,10 @@ public:
     /// Binds to a queue already laid over `memory` (validates the header).
     static Queue bind(void* memory, std::size_t size);
 
-    /// msgSend: `size` bytes, up to blksize*blknum.
+    /// msgSend: `size` bytes, up to blksize*blknum. Timeouts (here and in
+    /// receive): negative blocks, 0 never blocks (would_block), > 0 is counted
+    /// from the moment the call first has to wait (a call that need not wait
+    /// reads no clock).
     Status send(const void* data, std::size_t size, std::uint32_t type = 0,
                 std::int32_t priority = 0, std::int64_t timeout_ns = -1) noexcept;
     /// msgReceive into `buffer`; too_big (message left queued, its size in

@@ -81,7 +81,8 @@ public:
                           std::string_view label = "local");
     static Semaphore bind(void* memory);
 
-    /// semP. timeout: negative blocks, 0 never blocks (would_block), > 0 timed.
+    /// semP. timeout: negative blocks, 0 never blocks (would_block), > 0 timed
+    /// from the moment the call first has to wait.
     /// `priority`: waiters with a higher one get the next V first.
     Status p(std::int64_t timeout_ns = -1, std::int32_t priority = 0) noexcept;
     Status try_p() noexcept { return p(0); }

@@ -3,6 +3,7 @@
 // XM server calls. Not installed.
 #pragma once
 
+#include <algorithm>
 #include <string>
 #include <type_traits>
 
@@ -92,23 +93,52 @@ bool waiter_wake_checked(Waiter& w, const WaiterId& id) noexcept;
 /// (the look a sleeper takes every slice, without the lock).
 bool signalled_dead(const Waiter* slots, std::uint32_t n, const Waiter* self) noexcept;
 
-/// Sleeps (outside the lock) until the slot is signalled or the absolute
-/// deadline (negative: none) passes; at every slice that passes in vain it
-/// calls `on_slice()`, which passes on what dead waiters were given. True
-/// when signalled.
+/// The timeout of one blocking call. The clock is read only when the call has
+/// to wait (a send or receive that finds room or a message reads none; a round
+/// trip's calls used to read it eight times), and the timeout counts from that
+/// first wait. Afterwards the deadline is absolute, so sleeps need no read.
+class WaitDeadline {
+public:
+    /// `timeout_ns` < 0: no limit; 0 is the caller's non-blocking case.
+    explicit WaitDeadline(std::int64_t timeout_ns) noexcept : timeout_(timeout_ns) {}
+
+    /// Before each wait: true once the deadline has passed. Reads the clock.
+    bool passed() noexcept {
+        if (timeout_ < 0) return false;
+        now_ = ipc::now_ns();
+        if (at_ < 0) at_ = now_ + timeout_;
+        return now_ >= at_;
+    }
+    /// The absolute CLOCK_MONOTONIC deadline; -1 for none.
+    std::int64_t at() const noexcept { return timeout_ < 0 ? -1 : at_; }
+    /// The time read by the last passed(): where the next sleep's slices start.
+    std::int64_t last_read() const noexcept { return now_; }
+
+private:
+    std::int64_t timeout_;
+    std::int64_t at_ = -1;
+    std::int64_t now_ = 0;
+};
+
+/// Sleeps (outside the lock) until the slot is signalled or the deadline (see
+/// WaitDeadline::passed(), called just before) passes; at every slice that
+/// passes in vain it calls `on_slice()`, which passes on what dead waiters
+/// were given. True when signalled. Slices end at absolute times, so a sleep
+/// reads no clock.
 template <typename OnSlice>
-bool waiter_sleep(Waiter& w, std::int64_t deadline, OnSlice&& on_slice) noexcept {
+bool waiter_sleep(Waiter& w, const WaitDeadline& deadline, OnSlice&& on_slice) noexcept {
+    const std::int64_t at = deadline.at();
+    std::int64_t slice_end = at < 0 ? -1 : std::min(deadline.last_read() + kWaitSlice, at);
     for (;;) {
         if (w.word.load(std::memory_order_acquire) != 0) return true;
-        std::int64_t slice = kWaitSlice;
-        if (deadline >= 0) {
-            const std::int64_t left = deadline - ipc::now_ns();
-            if (left <= 0) return false;
-            if (left < slice) slice = left;
+        const ipc::FutexResult r = at < 0 ? ipc::futex_wait(w.word, 0, kWaitSlice)
+                                          : ipc::futex_wait_until(w.word, 0, slice_end);
+        if (r != ipc::FutexResult::timed_out || w.word.load(std::memory_order_acquire) != 0) continue;
+        if (at >= 0) {
+            if (slice_end == at) return false;
+            slice_end = std::min(slice_end + kWaitSlice, at);
         }
-        if (ipc::futex_wait(w.word, 0, slice) == ipc::FutexResult::timed_out &&
-            w.word.load(std::memory_order_acquire) == 0)
-            on_slice();
+        on_slice();
     }
 }
 std::uint32_t waiter_count(const Waiter* slots, std::uint32_t n) noexcept;
@@ -136,10 +166,6 @@ Status lock_object(ipc::LockWord& lock, std::uint32_t& recoveries, Repair&& repa
 /// the next locker takes a lock named after a dead or unknown thread over and
 /// repairs the object.
 inline void unlock_object(ipc::LockWord& lock) noexcept { (void)ipc::unlock(lock); }
-
-inline std::int64_t deadline_for(std::int64_t timeout_ns) noexcept {
-    return timeout_ns < 0 ? -1 : ipc::now_ns() + timeout_ns;
-}
 
 /// Factories run by the owning RTPU's XM server: create, initialise and
 /// publish the segment `segment` for object `full_name`.

@@ -467,7 +467,7 @@ Status Queue::send(const void* data, std::size_t size, std::uint32_t type, std::
     const std::uint64_t need64 = (size + g_.blksize - 1) / g_.blksize;
     if (need64 > g_.blknum) return Status::too_big;
     const auto need = static_cast<std::uint32_t>(need64);
-    const std::int64_t deadline = deadline_for(timeout_ns);
+    WaitDeadline deadline(timeout_ns);
     Waiter* me = nullptr;
     for (;;) {
         if (const Status s = lock(); s != Status::ok) return s;
@@ -479,7 +479,7 @@ Status Queue::send(const void* data, std::size_t size, std::uint32_t type, std::
         Status fail = Status::ok;
         if (timeout_ns == 0)
             fail = Status::would_block;
-        else if (deadline >= 0 && ipc::now_ns() >= deadline)
+        else if (deadline.passed())
             fail = Status::timed_out;
         else if (!(me = waiter_add(q->send_waiters, layout::kMaxWaiters, q->next_ticket, priority)))
             fail = Status::too_many_waiters;
@@ -602,7 +602,7 @@ Status Queue::receive(void* buffer, std::size_t capacity, Info* info, std::int64
     Ops ops{q, g_};
     // Polling an empty queue takes no lock (a hint: re-checked under the lock).
     if (timeout_ns == 0 && peek(q->nmsgs) == 0 && peek(q->nhanded) == 0) return Status::would_block;
-    const std::int64_t deadline = deadline_for(timeout_ns);
+    WaitDeadline deadline(timeout_ns);
     Waiter* me = nullptr;
     std::uint32_t off = 0;
     for (;;) {
@@ -652,7 +652,7 @@ Status Queue::receive(void* buffer, std::size_t capacity, Info* info, std::int64
         Status fail = Status::ok;
         if (timeout_ns == 0)
             fail = Status::would_block;
-        else if (deadline >= 0 && ipc::now_ns() >= deadline)
+        else if (deadline.passed())
             fail = Status::timed_out;
         else if (!(me = waiter_add(q->recv_waiters, layout::kMaxWaiters, q->next_ticket,
                                    task_priority)))

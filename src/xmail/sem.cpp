@@ -217,7 +217,7 @@ void Semaphore::pass_on_dead_grants(const Waiter* self) noexcept {
 
 Status Semaphore::p(std::int64_t timeout_ns, std::int32_t priority) noexcept {
     if (!h_) return Status::bad_argument;
-    const std::int64_t deadline = deadline_for(timeout_ns);
+    WaitDeadline deadline(timeout_ns);
     Waiter* me = nullptr;
     for (;;) {
         if (const Status s = lock(); s != Status::ok) return s;
@@ -239,7 +239,7 @@ Status Semaphore::p(std::int64_t timeout_ns, std::int32_t priority) noexcept {
         Status fail = Status::ok;
         if (timeout_ns == 0)
             fail = Status::would_block;
-        else if (deadline >= 0 && ipc::now_ns() >= deadline)
+        else if (deadline.passed())
             fail = Status::timed_out;
         else if (!(me = waiter_add(h_->waiters, layout::kMaxWaiters, h_->next_ticket, priority)))
             fail = Status::too_many_waiters;

@@ -14,11 +14,13 @@ namespace chimera::ipc {
 
 // GCC, inlining these into a caller whose object it knows the size of (an
 // 8-byte item), warns about the branch for larger sizes that the run-time
-// size never takes: not a real access.
+// size never takes (out of bounds, or reading bytes never set): not a real
+// access.
 #pragma GCC diagnostic push
 #pragma GCC diagnostic ignored "-Warray-bounds"
 #pragma GCC diagnostic ignored "-Wstringop-overread"
 #pragma GCC diagnostic ignored "-Wstringop-overflow"
+#pragma GCC diagnostic ignored "-Wmaybe-uninitialized"
 
 /// Copies 8 to 64 bytes (is_small(n)) inline.
 [[gnu::always_inline]] inline void copy_small(std::byte* dst, const std::byte* src,
