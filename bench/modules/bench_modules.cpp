@@ -148,8 +148,9 @@ void run_transfer(benchmark::State& state, TaskCore& t, bool in) {
 }
 
 // Figure 6.10's trackball for the whole run, made before the first task so that
-// it outlives them (jtball's line is closed at kill, in ~Bench). It sends idle
-// packets at 50 Hz until the process ends.
+// it outlives them (jtball's line is closed at kill, in ~Bench). Never started,
+// it sends idle packets at 50 Hz until the process ends (its one phase, required
+// by trackball_sim, never runs).
 fig6_10::SimulatedTrackball& trackball() {
     static fig6_10::SimulatedTrackball t(std::filesystem::temp_directory_path() /
                                              ("bench_modules." + std::to_string(::getpid())),
