@@ -2,18 +2,23 @@
 """Tables 1, 2 and 3 of the thesis (§6.6.1) regenerated on this machine, printed
 beside the thesis's numbers with the ratio (thesis time / today's time).
 
-    bench/thesis_tables.py [BUILD_DIR]        (default: build)
+    bench/thesis_tables.py [--quick] [BUILD_DIR]        (default: build)
 
 Runs, one after the other in one session (the numbers of one run belong together):
-  - build/bench/modules/bench_modules --benchmark_filter=table1/  (Table 1: the
-    modules of Figure 6.10 built by the runtime's own TaskCore; their in-var and
-    out-var transfers apart and one whole task cycle)
+  - build/bench/modules/bench_modules --benchmark_filter=^table1/  (Table 1: the
+    modules of Figure 6.10 as examples/fig6_10_teleop runs them, built by the
+    runtime's own TaskCore: puma_pidg (the simulated PUMA 560), grav_comp,
+    qrdiff, and jtball reading trackball_sim on a pseudo-terminal through the
+    SIO driver; their in-var and out-var transfers apart and one whole task cycle)
   - build/bench/svar/bench_svar, the locking, raw copy and transfer benchmarks
     (Tables 2 and 3: float[6], float[32], float[256], one to six variables)
-Medians of 5 repetitions of CPU time. Prints Markdown (the machine, the load
-before and after, the date, then the tables) for docs/thesis-results.md. Speed
-is never asserted: this is a measurement, not a test.
+Medians of 5 repetitions of CPU time. Prints Markdown (the machine, the build,
+the load before and after, the date, then the tables) for docs/thesis-results.md.
+--quick: 3 short repetitions (seconds, not minutes), for the smoke test
+(bench/test_thesis_tables.py): its numbers are not for the doc. Speed is never
+asserted: this is a measurement, not a test.
 """
+import argparse
 import json
 import os
 import platform
@@ -21,12 +26,14 @@ import subprocess
 import sys
 import time
 
-# Table 1, MC68030 rows (µs): N in-var, t in-vars, N out-var, t out-vars, task CPU time, percent.
+# Table 1, the thesis's rows (µs): module -> processor -> (N in-var, t in-vars,
+# N out-var, t out-vars, total CPU time of task, percent transfer time). jtball
+# used the MC68030 board's own serial port, so it has no MC68020 row.
 THESIS_TABLE1 = {
-    "puma_pidg": (3, 67, 2, 54, 840, 14.0),
-    "grav_comp": (1, 51, 1, 52, 1315, 7.8),
-    "diff": (1, 51, 1, 52, 240, 43.0),
-    "jtball": (0, 12, 1, 48, 250, 24.0),
+    "puma_pidg": {"MC68020": (3, 92, 2, 74, 1100, 15.0), "MC68030": (3, 67, 2, 54, 840, 14.0)},
+    "grav_comp": {"MC68020": (1, 60, 1, 60, 1632, 7.4), "MC68030": (1, 51, 1, 52, 1315, 7.8)},
+    "diff": {"MC68020": (1, 60, 1, 60, 296, 40.0), "MC68030": (1, 51, 1, 52, 240, 43.0)},
+    "jtball": {"MC68030": (0, 12, 1, 48, 250, 24.0)},
 }
 # Table 2 (µs).
 THESIS_LOCK = 5 + 2           # obtaining (TAS) + releasing the table lock
@@ -39,12 +46,16 @@ THESIS_TABLE3 = {
     (2, 6): (86, 64, 26), (2, 32): (130, 100, 23), (2, 256): (528, 505, 4),
     (6, 6): (258, 120, 53), (6, 32): (390, 250, 36), (6, 256): (1584, 1480, 9),
 }
-REPS = ["--benchmark_repetitions=5", "--benchmark_report_aggregates_only=true",
-        "--benchmark_min_time=0.2", "--benchmark_format=json"]
+REPS = {False: ["--benchmark_repetitions=5", "--benchmark_min_time=0.2"],
+        True: ["--benchmark_repetitions=3", "--benchmark_min_time=0.005"]}
+JSON = ["--benchmark_report_aggregates_only=true", "--benchmark_format=json"]
 
 
 def run_bench(cmd):
-    out = subprocess.run(cmd, check=True, capture_output=True, text=True).stdout
+    run = subprocess.run(cmd, capture_output=True, text=True)
+    if run.returncode != 0:
+        sys.exit(f"thesis_tables: {' '.join(cmd)} failed (exit {run.returncode}):\n{run.stderr}")
+    out = run.stdout
     medians = {}
     for b in json.loads(out)["benchmarks"]:
         if b.get("aggregate_name") == "median":
@@ -84,24 +95,27 @@ def ratio(thesis_us, today_ns):
 
 def table1(m):
     print("### Table 1: SVAR transfers of the Figure 6.10 modules\n")
-    print("Thesis: MC68030 (25 MHz), table on a remote VMEbus memory board. Today: the same modules "
-          "(examples/fig6_10_teleop; `jteleop` stands for `jtball` in this benchmark, its operator feed a "
-          "triple buffer), "
-          "the table in POSIX shared memory. *task*: in-vars copy + cycle + out-vars copy, as one "
-          "release minus the wake-up. Ratio: thesis time / today's.\n")
-    print("| module | N in | N out | in-vars: thesis µs / today ns / ratio | out-vars: thesis / today / ratio "
-          "| task: thesis µs / today ns / ratio | transfer % of task: thesis / today |")
-    print("|---|---|---|---|---|---|---|")
-    for mod, (n_in, t_in, n_out, t_out, t_task, pct) in THESIS_TABLE1.items():
+    print("Thesis: MC68020 and MC68030 boards, the table on a remote VMEbus memory board. Today: the "
+          "modules of examples/fig6_10_teleop with their .rmod files (`diff` is `qrdiff`; `jtball` reads "
+          "`trackball_sim` on a pseudo-terminal through the SIO driver, the trackball idle at 50 packets/s), "
+          "the table in POSIX shared memory. *in-vars*, *out-vars*: one multi-variable transfer with its "
+          "table lock. *task*: in-vars copy + cycle + out-vars copy, as one release minus the wake-up. "
+          "Each thesis row beside today's one measurement; ratio: thesis time / today's.\n")
+    print("| module | thesis processor | N in | N out | in-vars: thesis µs / today ns / ratio "
+          "| out-vars: thesis µs / today ns / ratio | task: thesis µs / today ns / ratio "
+          "| transfer % of task: thesis / today |")
+    print("|---|---|---|---|---|---|---|---|")
+    for mod, rows in THESIS_TABLE1.items():
         base = f"table1/{mod}"
         i, o, t = ns(m, base + "/in"), ns(m, base + "/out"), ns(m, base + "/task")
         counters = m[base + "/in"][1]
         got_in, got_out = int(counters.get("n_in", -1)), int(counters.get("n_out", -1))
-        n_in_s = f"{got_in}" + ("" if got_in == n_in else f" (thesis {n_in})")
-        n_out_s = f"{got_out}" + ("" if got_out == n_out else f" (thesis {n_out})")
-        print(f"| {mod} | {n_in_s} | {n_out_s} | {t_in} / {fmt(i)} / {ratio(t_in, i)} "
-              f"| {t_out} / {fmt(o)} / {ratio(t_out, o)} | {t_task} / {fmt(t)} / {ratio(t_task, t)} "
-              f"| {pct:.1f} / {100 * (i + o) / t:.1f} |")
+        for cpu, (n_in, t_in, n_out, t_out, t_task, pct) in rows.items():
+            n_in_s = f"{got_in}" + ("" if got_in == n_in else f" (thesis {n_in})")
+            n_out_s = f"{got_out}" + ("" if got_out == n_out else f" (thesis {n_out})")
+            print(f"| {mod} | {cpu} | {n_in_s} | {n_out_s} | {t_in} / {fmt(i)} / {ratio(t_in, i)} "
+                  f"| {t_out} / {fmt(o)} / {ratio(t_out, o)} | {t_task} / {fmt(t)} / {ratio(t_task, t)} "
+                  f"| {pct:.1f} / {100 * (i + o) / t:.1f} |")
     print()
 
 
@@ -143,19 +157,41 @@ def table3(s):
     print()
 
 
+def build_type(build):
+    """The build's buildtype and C++ compiler, from meson's introspection files."""
+    info = os.path.join(build, "meson-info")
+    try:
+        with open(os.path.join(info, "intro-buildoptions.json")) as f:
+            buildtype = {o["name"]: o["value"] for o in json.load(f)}.get("buildtype", "?")
+        with open(os.path.join(info, "intro-targets.json")) as f:
+            cxx = next(src["compiler"] for t in json.load(f) for src in t.get("target_sources", [])
+                       if src.get("language") == "cpp")
+        version = subprocess.run(cxx + ["--version"], capture_output=True, text=True).stdout.splitlines()[0]
+        return f"{buildtype}, {version}"
+    except (OSError, KeyError, ValueError, StopIteration, IndexError):
+        return "?"
+
+
 def main():
-    build = sys.argv[1] if len(sys.argv) > 1 else "build"
+    ap = argparse.ArgumentParser(description="Regenerate the thesis's Tables 1, 2 and 3 on this machine.")
+    ap.add_argument("--quick", action="store_true", help="short runs for the smoke test; numbers not for the doc")
+    ap.add_argument("build", nargs="?", default="build", help="the meson build folder (default: build)")
+    args = ap.parse_args()
+    build = args.build
     modules = os.path.join(build, "bench/modules/bench_modules")
     svar = os.path.join(build, "bench/svar/bench_svar")
     for exe in (modules, svar):
         if not os.access(exe, os.X_OK):
             sys.exit(f"thesis_tables: {exe} is not built (ninja -C {build} {os.path.relpath(exe, build)})")
+    reps = REPS[args.quick] + JSON
     start = (time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()), load())
-    m = run_bench([modules, "--benchmark_filter=^table1/"] + REPS)
+    m = run_bench([modules, "--benchmark_filter=^table1/"] + reps)
     s = run_bench([svar, "--benchmark_filter=^BM_(TableLockUnlock|Memcpy|SvarRead|SvarWrite|SvarCopyFrom|SvarCopyTo)"]
-                  + REPS)
-    print(f"Machine: {machine()}. Run {start[0]}; load average (1/5/15 min) {start[1]} at the start, "
-          f"{load()} at the end. Medians of 5 repetitions of CPU time (`bench/thesis_tables.py {build}`).\n")
+                  + reps)
+    how = "3 short repetitions (--quick: not for the doc)" if args.quick else "5 repetitions"
+    print(f"Machine: {machine()}. Build: {build_type(build)}. Run {start[0]}; load average (1/5/15 min) "
+          f"{start[1]} at the start, {load()} at the end. Medians of {how} of CPU time "
+          f"(`bench/thesis_tables.py{' --quick' if args.quick else ''} {build}`).\n")
     table1(m)
     table2(s)
     table3(s)

@@ -13,8 +13,14 @@
 // The robot interface (robotsim, PUMA 560) is made first: it produces the NDOF
 // and DH in-consts the others configure from (§3.5).
 //
+// Table 1 (table1/<module>/in, /out, /task) measures the modules of Figure 6.10
+// as examples/fig6_10_teleop runs them: puma_pidg, grav_comp, qrdiff and
+// jtball, which reads trackball_sim on a pseudo-terminal through the SIO
+// driver (the example's SimulatedTrackball, idle: the operator not touching it).
+//
 //   build/bench/modules/bench_modules --benchmark_repetitions=5
 //       --benchmark_report_aggregates_only=true   (one command line)
+#include "fig6_10.hpp"
 #include "internal.hpp"
 
 #include <chimera/sbs_files.hpp>
@@ -25,6 +31,8 @@
 
 #include <cstdio>
 #include <cstdlib>
+#include <exception>
+#include <filesystem>
 #include <memory>
 #include <string>
 #include <vector>
@@ -80,15 +88,10 @@ public:
         core_->table.destroy();
     }
 
-    /// A task of these objects, initialised and turned on. A TBUF named in
-    /// LOCAL (jteleop's operator feed) gets a name of this process's own.
+    /// A task of these objects, initialised and turned on.
     TaskCore& make(const std::vector<std::string>& rmods) {
         std::vector<RmodFile> files;
-        for (const auto& p : rmods) {
-            files.push_back(read_rmod(p));
-            if (files.back().local.has("TBUF"))
-                files.back().local.set("TBUF", {"bench_modules" + std::to_string(::getpid())});
-        }
+        for (const auto& p : rmods) files.push_back(read_rmod(p));
         auto t = std::make_unique<TaskCore>(*core_, static_cast<int>(tasks_.size()), core_->file.rtpus[0],
                                             std::move(files));
         auto copied = [](svar::Status s, const char* what) {
@@ -144,6 +147,17 @@ void run_transfer(benchmark::State& state, TaskCore& t, bool in) {
     }
 }
 
+// Figure 6.10's trackball for the whole run, made before the first task so that
+// it outlives them (jtball's line is closed at kill, in ~Bench). Never started,
+// it sends idle packets at 50 Hz until the process ends (its one phase, required
+// by trackball_sim, never runs).
+fig6_10::SimulatedTrackball& trackball() {
+    static fig6_10::SimulatedTrackball t(std::filesystem::temp_directory_path() /
+                                             ("bench_modules." + std::to_string(::getpid())),
+                                         {"idle", "1"});
+    return t;
+}
+
 TaskCore* make_or_exit(const std::string& label, const std::vector<std::string>& rmods) {
     try {
         return &bench().make(rmods);
@@ -180,6 +194,12 @@ void register_table1(const std::string& label, const std::string& rmod) {
 }  // namespace
 
 int main(int argc, char** argv) {
+    try {
+        trackball();
+    } catch (const std::exception& e) {
+        std::fprintf(stderr, "bench_modules: Figure 6.10's trackball: %s\n", e.what());
+        return 1;
+    }
     // Each module on its own, with its library .rmod.
     register_module("robotsim_puma_torque", {rmod_path("robotsim/puma_torque.rmod")});
     register_module("trajgen_jtraj", {rmod_path("trajgen/jtraj.rmod")});
@@ -203,12 +223,12 @@ int main(int argc, char** argv) {
     // simple functions per joint (signal generator, differentiator, PID with
     // its limiter), no rigid-body dynamics.
     register_module("combined_6joint_nograv", {here("c_traj.rmod"), here("c_diff.rmod"), here("c_pid_nograv.rmod")});
-    // Table 1: the modules of Figure 6.10 (examples/fig6_10_teleop), jteleop
-    // standing for jtball (its operator feed a triple buffer, not a serial port).
-    register_table1("puma_pidg", rmod_path("robotsim/puma_pidg.rmod"));
-    register_table1("grav_comp", rmod_path("dyn/grav_comp.rmod"));
-    register_table1("diff", rmod_path("diff/qrdiff.rmod"));
-    register_table1("jtball", rmod_path("teleop/jteleop.rmod"));
+    // Table 1: the modules of Figure 6.10, the .rmod files examples/fig6_10_teleop
+    // spawns (jtball's copy reads the trackball's line).
+    register_table1("puma_pidg", fig6_10::rmod("puma_pidg"));
+    register_table1("grav_comp", fig6_10::rmod("grav_comp"));
+    register_table1("diff", fig6_10::rmod("qrdiff"));
+    register_table1("jtball", trackball().rmod_path());
     benchmark::Initialize(&argc, argv);
     benchmark::RunSpecifiedBenchmarks();
     benchmark::Shutdown();

@@ -6,6 +6,7 @@
 
 #include "example_files.hpp"
 
+#include <fcntl.h>
 #include <signal.h>
 #include <spawn.h>
 #include <sys/wait.h>
@@ -94,8 +95,15 @@ public:
         std::vector<char*> argv;
         for (auto& a : args) argv.push_back(a.data());
         argv.push_back(nullptr);
-        if (const int rc = ::posix_spawn(&pid_, argv[0], nullptr, nullptr, argv.data(), environ); rc != 0)
-            throw chimera::sbs::Error("starting " + args[0] + ": " + std::strerror(rc));
+        // Its "ready LINK" line is for a person at a terminal; here the link is
+        // waited for below, and the owner's stdout stays its own (bench_modules
+        // prints JSON there). Its warnings still go to stderr.
+        posix_spawn_file_actions_t quiet;
+        ::posix_spawn_file_actions_init(&quiet);
+        ::posix_spawn_file_actions_addopen(&quiet, STDOUT_FILENO, "/dev/null", O_WRONLY, 0);
+        const int rc = ::posix_spawn(&pid_, argv[0], &quiet, nullptr, argv.data(), environ);
+        ::posix_spawn_file_actions_destroy(&quiet);
+        if (rc != 0) throw chimera::sbs::Error("starting " + args[0] + ": " + std::strerror(rc));
         for (int i = 0; i < 500 && !std::filesystem::is_symlink(link); ++i)
             std::this_thread::sleep_for(std::chrono::milliseconds(10));
         if (!std::filesystem::is_symlink(link)) {
