@@ -1,6 +1,7 @@
 #include "web.hpp"
 
 #include "command_line.hpp"
+#include "scope_stream.hpp"
 
 #include <civetweb.h>
 
@@ -100,6 +101,9 @@ struct Page {
     bool discarding = false;    // inside an oversized message
     std::string partial;        // a fragmented message so far
     std::chrono::steady_clock::time_point deadline;
+    // The page's scope (issue 17.5): its own sampler task and the thread that
+    // streams its ring. Touched only by this connection's civetweb thread.
+    std::unique_ptr<ScopeStream> scope;
 };
 
 struct WebConsole::Impl {
@@ -135,6 +139,10 @@ struct WebConsole::Impl {
     void closed(const mg_connection* conn);
     bool handle_message(Page& page, std::string_view line);
     Reply run_command(Page& page, const std::string& command);
+    Reply scope_command(Page& page, const std::vector<std::string>& w);
+    Reply start_scope(Page& page, const std::vector<std::string>& w);
+    void stop_scope(Page& page);
+    void kill_sampler(const std::string& rmod);
     void tick();
     void run_ticker();
 };
@@ -265,6 +273,7 @@ bool WebConsole::Impl::handle_message(Page& page, std::string_view line) {
     }
     const Reply reply = run_command(page, request.command);
     write(page.conn, to_json_line(reply, request.id));
+    if (page.scope) page.scope->start();  // a new scope streams after its reply
     {
         std::lock_guard lock(mu);
         poke = true;  // a command may have changed the graph: look now
@@ -303,6 +312,7 @@ Reply WebConsole::Impl::run_command(Page& page, const std::string& command) {
         }
         return simple("release", "watching (read-only)", {{"control", false}});
     }
+    if (word == "scope") return scope_command(page, w);
     if (!controlling && !read_only(w)) {
         if (word == "quit") {
             Reply r = simple("quit", "");
@@ -329,15 +339,102 @@ Reply WebConsole::Impl::run_command(Page& page, const std::string& command) {
     return reply;
 }
 
+// ------------------------------------------------------------------ the scope
+
+namespace {
+
+// A channel word or an option of `sample`: nothing that could end the
+// command or start another.
+bool scope_word(const std::string& w) {
+    return !w.empty() && w.find_first_of(";'\"#\\ \t") == std::string::npos;
+}
+
+constexpr const char* kScopeUsage =
+    "usage: scope start VAR[IDX]... [--rate HZ] [--rtpu RTPU] [--capacity N] | scope stop | scope ack BATCH";
+
+}  // namespace
+
+// A scope only watches, so a read-only page may open one (halscope watches
+// any signal). Its sampler task is the page's own: killed when the page
+// stops the scope, starts another, or closes.
+Reply WebConsole::Impl::scope_command(Page& page, const std::vector<std::string>& w) {
+    const std::string sub = w.size() > 1 ? w[1] : "";
+    if (sub == "ack" && w.size() == 3) {
+        if (!page.scope) return Reply::failure("scope", "scope ack: no scope running");
+        char* end = nullptr;
+        const unsigned long long batch = std::strtoull(w[2].c_str(), &end, 10);
+        if (end == w[2].c_str() || *end != '\0') return Reply::failure("scope", "scope ack: " + w[2] + " is not a batch number");
+        page.scope->ack(batch);
+        return simple("scope", "");
+    }
+    if (sub == "stop" && w.size() == 2) {
+        const std::string rmod = page.scope ? page.scope->rmod() : "";
+        stop_scope(page);
+        return simple("scope", rmod.empty() ? "no scope running" : "scope stopped, " + rmod + " killed",
+                      {{"rmod", rmod}});
+    }
+    if (sub == "start" && w.size() > 2) return start_scope(page, w);
+    return Reply::failure("scope", kScopeUsage);
+}
+
+// `sample` for the page, then a stream of its ring; the stream starts
+// sending once the reply (naming the channels) has gone (handle_message).
+Reply WebConsole::Impl::start_scope(Page& page, const std::vector<std::string>& w) {
+    stop_scope(page);
+    std::string sample = "sample";
+    for (std::size_t i = 2; i < w.size(); ++i) {
+        if (!scope_word(w[i])) return Reply::failure("scope", "scope: " + w[i] + " is not a variable or an option");
+        sample += " " + w[i];
+    }
+    Reply started;
+    try {
+        started = execute(sample);
+    } catch (const std::exception& e) {
+        started = Reply::failure("sample", e.what());
+    }
+    if (!started.ok) return Reply::failure("scope", started.error);
+    const std::string rmod = started.data.value("rmod", "");
+    mg_connection* conn = page.conn;
+    try {
+        page.scope = std::make_unique<ScopeStream>(rmod, started.data.value("ring", ""),
+                                                   [conn](const std::string& text) { write(conn, text); });
+    } catch (const std::exception& e) {
+        kill_sampler(rmod);  // nothing left half-built
+        return Reply::failure("scope", "scope: " + std::string(e.what()));
+    }
+    Reply r = started;
+    r.command = "scope";
+    r.text = "scope: " + started.text;
+    return r;
+}
+
+void WebConsole::Impl::kill_sampler(const std::string& rmod) {
+    try {
+        (void)execute("kill " + rmod);  // already gone (killed by hand, master finishing): nothing to do
+    } catch (const std::exception&) {
+    }
+}
+
+void WebConsole::Impl::stop_scope(Page& page) {
+    if (!page.scope) return;
+    const std::string rmod = page.scope->rmod();
+    page.scope->stop();  // no batch is written after this
+    page.scope.reset();
+    kill_sampler(rmod);
+}
+
 void WebConsole::Impl::closed(const mg_connection* conn) {
     bool was_controlling = false;
+    std::unique_ptr<Page> page;
     {
         std::lock_guard lock(mu);
         const auto it = pages.find(conn);
         if (it == pages.end()) return;
         was_controlling = it->second->controlling;
+        page = std::move(it->second);
         pages.erase(it);
     }
+    stop_scope(*page);  // the page's sampler task dies with it
     // A page closed or lost holding control: control returns (§4.4.2).
     if (was_controlling)
         control.release_control(stopping ? NetworkServer::SessionEnd::stopped : NetworkServer::SessionEnd::peer_lost);
