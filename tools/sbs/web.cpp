@@ -521,6 +521,7 @@ void WebConsole::start() {
     const std::pair<const char*, const char*> files[] = {
         {"/index.html", "text/html; charset=utf-8"},
         {"/console.js", "text/javascript; charset=utf-8"},
+        {"/scope.js", "text/javascript; charset=utf-8"},
         {"/console.css", "text/css; charset=utf-8"},
     };
     for (const auto& [name, mime] : files) {

@@ -2,7 +2,8 @@
 // It speaks the network protocol of docs/cli.md over one WebSocket: the
 // greeting, `token T` first, then one command per message, one JSON reply
 // each ({"cmd": ..., "id": n} -> {"ok", "id", "text", "data" | "error"}),
-// plus the pushed stream {"stream": "graph", "data": <show graph>}.
+// plus the pushed streams {"stream": "graph", "data": <show graph>} and
+// {"stream": "scope", ...} (scope.js).
 // No framework and nothing from the internet: Chart.js comes from Debian.
 'use strict';
 
@@ -57,6 +58,7 @@ function connect(token) {
 
 function onMessage(m, token) {
   if (m.stream === 'graph') return drawGraph(m.data);
+  if (m.stream === 'scope') return scopeBatch(m.data);
   if (m.cmd === 'hello') {
     if (!m.ok) return loginError(m.error);
     $('subsystem').textContent = m.subsystem;
@@ -119,6 +121,7 @@ function setControl(on) {
 function start() {
   request('module').then(showLibrary);
   startStatus();
+  scopeInit();
 }
 
 window.addEventListener('DOMContentLoaded', () => {
