@@ -337,3 +337,15 @@ def test_bad_scope_requests_are_refused_with_nothing_left(master):
         r = s.request(cmd)
         assert not r["ok"] and why in r["error"], (cmd, r)
     assert task_names(watcher) == before
+
+
+def test_master_finishing_with_a_page_scoping_leaves_nothing():
+    m = Master("f")
+    try:
+        s = page(m)
+        rmod = s.request("scope start Q_MEZ")["data"]["rmod"]
+        assert scope_batches(s, 10)
+        assert ring_exists(m, rmod)
+    finally:
+        assert m.close() == 0, m.proc.stderr.read()
+    assert not ring_exists(m, rmod)
