@@ -210,9 +210,10 @@ def stream_samples(driver):
 
 
 def scope_task(master):
+    """The sampler tasks running, with their RTPUs."""
     r = master.command_line("status all")
     assert r.returncode == 0, r.stderr
-    return [line.split()[0] for line in r.stdout.splitlines() if line.startswith("sample.")]
+    return [tuple(line.split()[:2]) for line in r.stdout.splitlines() if line.startswith("sample.")]
 
 
 def test_scope_plots_triggers_and_exports_the_stream(master, browser):
@@ -247,8 +248,10 @@ def test_scope_plots_triggers_and_exports_the_stream(master, browser):
     # Stopping the scope kills its sampler task; so does leaving the page.
     browser.find_element(By.ID, "sc-stop").click()
     wait(browser, lambda d: not scope_task(master), timeout=20)
+    Select(browser.find_element(By.ID, "sc-rtpu")).select_by_visible_text("robot")
     browser.find_element(By.ID, "sc-run").click()
     wait(browser, lambda d: scope_task(master), timeout=20)
+    assert scope_task(master)[0][1] == "robot"
     browser.get("about:blank")
     wait(browser, lambda d: not scope_task(master), timeout=20)
 

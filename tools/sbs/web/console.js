@@ -311,6 +311,7 @@ function drawGraph(g) {
   $('rc-task').replaceChildren(...g.tasks.map((t) => el('option', {}, t.rmod)));
   if (taskOf.has(current)) $('rc-task').value = current;
   $('spawn-rtpu').replaceChildren(...g.rtpus.map((r) => el('option', {}, r)));
+  scopeRtpus(g.rtpus);
   if (ui.selected && !taskOf.has(ui.selected)) selectTask(null);
   else if (ui.selected) $('task-name').textContent = `${ui.selected} (${taskOf.get(ui.selected).state})`;
   if (ui.rcItems.length) checkReconfig();

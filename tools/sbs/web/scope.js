@@ -95,12 +95,21 @@ function showTraces() {
   $('sc-run').disabled = sc.traces.length === 0;
 }
 
+/// Where the sampler task runs: under RM it outranks the slower tasks of its
+/// RTPU, so an RTPU of its own keeps the controllers' timing as it was.
+function scopeRtpus(rtpus) {
+  const sel = $('sc-rtpu'), was = sel.value;
+  sel.replaceChildren(el('option', { value: '' }, "the master's"), ...rtpus.map((r) => el('option', { value: r }, r)));
+  if (rtpus.includes(was)) sel.value = was;
+}
+
 // ------------------------------------------------------------------ running
 
 async function runScope() {
   if (!sc.traces.length) return;
   const rate = $('sc-rate').value.trim();
-  const r = await command('scope start ' + sc.traces.join(' ') + (rate ? ' --rate ' + rate : ''));
+  const rtpu = $('sc-rtpu').value;
+  const r = await command('scope start ' + sc.traces.join(' ') + (rate ? ' --rate ' + rate : '') + (rtpu ? ' --rtpu ' + rtpu : ''));
   if (!r.ok) return;
   sc.run = { rmod: r.data.rmod, channels: r.data.channels, rate: r.data.rate };
   sc.buf = { n: [], tns: [], t: [], v: r.data.channels.map(() => []) };
