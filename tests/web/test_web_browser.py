@@ -243,6 +243,7 @@ def test_scope_plots_triggers_and_exports_the_stream(master, browser):
     browser.save_screenshot(os.path.join(SHOTS, "web-console-scope.png"))
     check_cursors(browser, s)
     check_export(browser, master, s, names)
+    check_single(browser)
     check_decimation(browser)
     assert browser.find_element(By.ID, "sc-lost").text == "0"
     # Stopping the scope kills its sampler task; so does leaving the page.
@@ -297,6 +298,17 @@ def check_export(browser, master, s, names):
         assert [float(x) for x in row[1:]] == values
     assert rows[1][0] == "0"
     browser.find_element(By.ID, "sc-pause").click()
+
+
+def check_single(browser):
+    # Single: the newest complete crossing, captured once and held.
+    Select(browser.find_element(By.ID, "sc-mode")).select_by_visible_text("single")
+    wait(browser, lambda d: d.find_element(By.ID, "sc-state").text.startswith("single: captured"))
+    held = shown(browser)
+    assert held["triggered"]
+    received = int(browser.find_element(By.ID, "sc-received").text)
+    wait(browser, lambda d: int(d.find_element(By.ID, "sc-received").text) > received + 200)  # samples keep coming
+    assert shown(browser)["t0"] == held["t0"]
 
 
 def check_decimation(browser):
