@@ -12,7 +12,9 @@
 
 #include <atomic>
 #include <condition_variable>
+#include <deque>
 #include <fstream>
+#include <future>
 #include <map>
 #include <mutex>
 #include <sstream>
@@ -77,6 +79,61 @@ Reply simple(std::string cmd, std::string text, nlohmann::json data = nullptr) {
     return r;
 }
 
+// Runs the master's commands for the pages, one at a time (the interpreter
+// serialises them anyway), on a thread of its own with an ordinary stack:
+// civetweb's workers have small ones (Debian builds them with 100 KB), too
+// small for a spawn (the module loader, the rmod parser) under
+// AddressSanitizer and tight without it.
+class CommandThread {
+public:
+    explicit CommandThread(NetworkServer::Executor execute) : execute_(std::move(execute)) {
+        thread_ = std::thread([this] { serve(); });
+    }
+    ~CommandThread() {
+        {
+            std::lock_guard lock(mu_);
+            stopping_ = true;
+        }
+        wake_.notify_all();
+        thread_.join();
+    }
+    CommandThread(const CommandThread&) = delete;
+    CommandThread& operator=(const CommandThread&) = delete;
+
+    /// The command's reply (or its exception), from the command thread.
+    Reply run(std::string_view command) {
+        std::packaged_task<Reply()> job([this, c = std::string(command)] { return execute_(c); });
+        std::future<Reply> reply = job.get_future();
+        {
+            std::lock_guard lock(mu_);
+            jobs_.push_back(std::move(job));
+        }
+        wake_.notify_all();
+        return reply.get();
+    }
+
+private:
+    void serve() {
+        std::unique_lock lock(mu_);
+        for (;;) {
+            wake_.wait(lock, [&] { return stopping_ || !jobs_.empty(); });
+            if (jobs_.empty()) return;  // stopping, and every caller answered
+            std::packaged_task<Reply()> job = std::move(jobs_.front());
+            jobs_.pop_front();
+            lock.unlock();
+            job();
+            lock.lock();
+        }
+    }
+
+    NetworkServer::Executor execute_;
+    std::mutex mu_;
+    std::condition_variable wake_;
+    std::deque<std::packaged_task<Reply()>> jobs_;
+    bool stopping_ = false;
+    std::thread thread_;
+};
+
 }  // namespace
 
 bool web_host_allowed(std::string_view host_header, std::string_view bound_host) {
@@ -108,7 +165,8 @@ struct Page {
 
 struct WebConsole::Impl {
     WebOptions o;
-    NetworkServer::Executor execute;
+    CommandThread commands;
+    NetworkServer::Executor execute;  // runs on `commands`
     NetworkServer& control;
     mg_context* ctx = nullptr;
     std::map<std::string, std::pair<std::string, std::string>> assets;  // path -> (mime, body)
@@ -122,7 +180,10 @@ struct WebConsole::Impl {
     std::thread ticker;
 
     Impl(WebOptions opts, NetworkServer::Executor ex, NetworkServer& ctl)
-        : o(std::move(opts)), execute(std::move(ex)), control(ctl) {}
+        : o(std::move(opts)),
+          commands(std::move(ex)),
+          execute([this](std::string_view c) { return commands.run(c); }),
+          control(ctl) {}
 
     static void write(mg_connection* conn, const std::string& text) {
         // civetweb serialises writes to one connection (it locks it).
