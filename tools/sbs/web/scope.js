@@ -252,6 +252,7 @@ function draw() {
   c.options.scales.x.min = s.t0 - s.tRef;
   c.options.scales.x.max = s.t1 - s.tRef;
   c.options.scales.x.ticks.stepSize = Number($('sc-tdiv').value);
+  c.options.scales.x.title.text = s.triggered ? 'time from trigger [s]' : 'time from the window\'s start (untriggered) [s]';
   c.update('none');
   $('scope-chart').dataset.points = c.data.datasets.map((d) => d.data.length).join(' ');
   $('scope-chart').dataset.samples = s.data.n.length;
@@ -271,7 +272,8 @@ function stats() {
 
 function setState() {
   const state = !sc.run && !sc.shown ? 'off' : sc.paused ? 'paused' : sc.stopped ? 'single: captured (arm again)'
-    : !sc.run ? 'stopped' : sc.shown && sc.shown.triggered ? 'triggered' : 'armed, waiting for a trigger';
+    : !sc.run ? 'stopped' : sc.shown && sc.shown.triggered ? 'triggered'
+    : sc.shown && $('sc-mode').value === 'auto' ? 'auto: no trigger, rolling' : 'armed, waiting for a trigger';
   $('sc-state').textContent = state;
   $('sc-pause').textContent = sc.paused ? 'resume' : 'pause';
 }
