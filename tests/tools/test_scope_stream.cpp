@@ -190,6 +190,21 @@ TEST(ScopeStream, NothingIsSentAfterStop) {
     EXPECT_TRUE(page.taken().empty());
 }
 
+TEST(ScopeStream, ManyChannelsMakeSmallerBatches) {
+    const test::SegmentGuard cleanup(prefix());
+    const std::string name = unique_name("wide");
+    sampler::RingWriter w = make_ring(name, 64);  // two channels
+    publish(w, 0, 50);
+    Page page;
+    ScopeSettings settings = fast(100, 40);
+    settings.max_values = 20;  // 10 samples of 2 channels
+    ScopeStream s("sample.7", name, page.sender(), settings);
+    s.start();
+    ASSERT_TRUE(page.wait([&] { return page.samples() == 50; }));
+    s.stop();
+    for (const auto& b : page.taken()) EXPECT_LE(b["n"].size(), 10u);
+}
+
 TEST(ScopeStream, AMissingRingIsAnErrorNamingIt) {
     Page page;
     try {

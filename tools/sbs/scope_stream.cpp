@@ -5,18 +5,26 @@
 #include <pthread.h>
 #include <sched.h>
 
+#include <algorithm>
+
 namespace chimera::cli {
 
 ScopeStream::ScopeStream(std::string rmod, const std::string& ring, Send send, ScopeSettings settings)
     : rmod_(std::move(rmod)),
       reader_(sampler::RingReader::attach(ring)),
       send_(std::move(send)),
-      settings_(settings),
-      numbers_(settings.max_batch),
-      time_ns_(settings.max_batch),
-      cycles_(settings.max_batch),
-      values_(settings.max_batch * reader_.channels()) {
+      settings_(bounded(settings, reader_.channels())),
+      numbers_(settings_.max_batch),
+      time_ns_(settings_.max_batch),
+      cycles_(settings_.max_batch),
+      values_(settings_.max_batch * reader_.channels()) {
     reader_.rewind();  // from the task's first sample: the page misses none
+}
+
+// Fewer samples per batch when there are many channels: one message stays small.
+ScopeSettings ScopeStream::bounded(ScopeSettings s, std::size_t channels) {
+    s.max_batch = std::max<std::size_t>(1, std::min(s.max_batch, s.max_values / std::max<std::size_t>(1, channels)));
+    return s;
 }
 
 void ScopeStream::start() {

@@ -30,6 +30,7 @@ struct ScopeSettings {
     std::chrono::milliseconds period{40};  ///< how often the ring is read (25 batches/s at most per window slot)
     std::uint64_t window = 8;              ///< batches sent and not yet acknowledged
     std::size_t max_batch = 4096;          ///< samples per batch
+    std::size_t max_values = 65536;        ///< samples x channels per batch (about 1.5 MB of JSON)
 };
 
 /// Follows one ring and sends its samples as {"stream":"scope","data":{...}}
@@ -61,6 +62,7 @@ public:
     void stop();
 
 private:
+    static ScopeSettings bounded(ScopeSettings s, std::size_t channels);
     void run();
     struct Taken {
         std::size_t samples = 0;
