@@ -165,18 +165,19 @@ function indexAt(t) {
 }
 
 /// The newest crossing of the level on the trigger trace after `from` whose
-/// whole window (after the pre-trigger) has arrived, or -1.
+/// whole window (after the pre-trigger) has arrived, or -1; `searched`: the
+/// last sample looked at (the next search starts there).
 function findTrigger(from) {
   const b = sc.buf, i = Number($('sc-trig-trace').value || 0), v = b.v[i];
-  if (!v || !b.t.length) return -1;
+  if (!v || !b.t.length) return { k: -1, searched: from };
   const level = Number($('sc-level').value), rising = $('sc-slope').value === 'rising';
-  const last = indexAt(b.t[b.t.length - 1] - (windowSeconds() - preTrigger()) + 1e-12) - 1;
-  for (let k = Math.min(last, b.t.length - 1); k > Math.max(from, 0); --k) {
+  const last = Math.min(indexAt(b.t[b.t.length - 1] - (windowSeconds() - preTrigger()) + 1e-12) - 1, b.t.length - 1);
+  for (let k = last; k > Math.max(from, 0); --k) {
     const a = v[k - 1], c = v[k];
     if (a === null || c === null) continue;
-    if (rising ? a < level && c >= level : a > level && c <= level) return k;
+    if (rising ? a < level && c >= level : a > level && c <= level) return { k, searched: last };
   }
-  return -1;
+  return { k: -1, searched: Math.max(from, last) };
 }
 
 function preTrigger() { return PRE_TRIGGER_DIVS * Number($('sc-tdiv').value); }
@@ -192,7 +193,8 @@ function extract(t0, t1) {
 function nextWindow() {
   const b = sc.buf, W = windowSeconds(), mode = $('sc-mode').value;
   if (!b.t.length) return sc.shown;
-  const k = findTrigger(sc.searchFrom);
+  const { k, searched } = findTrigger(sc.searchFrom);
+  if (k < 0) sc.searchFrom = searched;  // each sample is searched once
   const tEnd = b.t[b.t.length - 1];
   if (k >= 0) {
     const tRef = b.t[k];
