@@ -27,6 +27,7 @@ from selenium.webdriver.support.ui import Select, WebDriverWait  # noqa: E402
 CHROMEDRIVER = "/usr/bin/chromedriver"
 SHOTS = os.environ.get("WEB_SCREENSHOT_DIR", ".")
 DOWNLOADS = os.path.join(SHOTS, "downloads-%d" % os.getpid())
+PROFILE = "/tmp/chimera-web-chrome-%d" % os.getpid()
 
 if not os.path.exists(CHROMEDRIVER) or not (shutil.which("chromium") or os.path.exists("/usr/bin/chromium")):
     pytest.skip("chromium and chromium-driver are not installed", allow_module_level=True)
@@ -44,7 +45,7 @@ def browser():
     opts = webdriver.ChromeOptions()
     opts.binary_location = "/usr/bin/chromium"
     for a in ("--headless=new", "--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage", "--window-size=1500,1300",
-              "--user-data-dir=/tmp/chimera-web-chrome-%d" % os.getpid()):
+              "--user-data-dir=" + PROFILE):
         opts.add_argument(a)
     os.makedirs(DOWNLOADS, exist_ok=True)
     opts.add_experimental_option("prefs", {"download.default_directory": DOWNLOADS,
@@ -52,8 +53,9 @@ def browser():
     driver = webdriver.Chrome(service=Service(executable_path=CHROMEDRIVER), options=opts)
     driver.execute_cdp_cmd("Browser.setDownloadBehavior", {"behavior": "allow", "downloadPath": DOWNLOADS})
     yield driver
-    shutil.rmtree(DOWNLOADS, ignore_errors=True)
     driver.quit()
+    shutil.rmtree(DOWNLOADS, ignore_errors=True)
+    shutil.rmtree(PROFILE, ignore_errors=True)
 
 
 def wait(driver, what, timeout=20):
