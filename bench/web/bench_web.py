@@ -7,10 +7,13 @@ lateness is the status field latP99 (release lateness's 99th percentile in a
 window, docs/prof.md), read through the master's Unix socket, whose status
 window is its own (the pages' requests do not reset it). Rounds alternate
 0 and 5 pages so both see the same machine load; the figure per task is the
-median over rounds.
+median over rounds. With --scope each page also runs a scope of four traces
+(issue 17.5): its own sampler task at 500 Hz on the master's RTPU, streamed
+to the page and drawn at 25 frames/s, so the figure includes the sampler
+tasks' own share of the RTPU.
 
     SBS_EXE=build/tools/sbs/sbs FIG3_7_DIR=examples/fig3_7_pid \\
-        /usr/bin/python3 bench/web/bench_web.py --rounds 5 --seconds 10
+        /usr/bin/python3 bench/web/bench_web.py --rounds 5 --seconds 10 [--scope]
 """
 
 import argparse
@@ -63,12 +66,24 @@ def browser(n):
     return d, handles
 
 
-def open_pages(d, handles, url):
+def open_pages(d, handles, url, scope):
     for h in handles:
         d.switch_to.window(h)
         d.get(url + "#token=" + TOKEN)
         WebDriverWait(d, 30).until(lambda d: len(d.find_elements(By.CSS_SELECTOR, "#status tr[data-rmod]")) >= 4)
         Select(d.find_element(By.ID, "status-rate")).select_by_value("250")
+        if scope:
+            run_scope(d)
+
+
+def run_scope(d):
+    WebDriverWait(d, 30).until(lambda d: len(d.find_elements(By.CSS_SELECTOR, "#sc-var option")) > 3)
+    for var, element in (("Q_REF", "0"), ("Q_MEZ", "0"), ("Q_REF", "1"), ("Q_MEZ", "1")):
+        Select(d.find_element(By.ID, "sc-var")).select_by_visible_text(var)
+        Select(d.find_element(By.ID, "sc-elem")).select_by_visible_text(element)
+        d.find_element(By.ID, "sc-add").click()
+    d.find_element(By.ID, "sc-run").click()
+    WebDriverWait(d, 30).until(lambda d: int(d.find_element(By.ID, "sc-received").text) > 0)
 
 
 def close_pages(d, handles):
@@ -89,6 +104,7 @@ def main():
     ap.add_argument("--rounds", type=int, default=5)
     ap.add_argument("--seconds", type=float, default=10)
     ap.add_argument("--pages", type=int, default=5)
+    ap.add_argument("--scope", action="store_true", help="each page runs a scope of four traces")
     a = ap.parse_args()
     master = Master("bench")
     try:
@@ -99,7 +115,7 @@ def main():
             for r in range(a.rounds):
                 for pages in (0, a.pages):
                     if pages:
-                        open_pages(d, handles, master.url)
+                        open_pages(d, handles, master.url, a.scope)
                     else:
                         close_pages(d, handles)
                     time.sleep(1)

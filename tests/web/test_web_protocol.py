@@ -192,3 +192,160 @@ def test_a_silent_socket_is_closed_at_the_auth_timeout(master):
     assert not r["ok"] and r["cmd"] == "token" and "no token within 5000 ms" in r["error"]
     assert s.closed()
     assert page(master).request("status all")["ok"]
+
+
+# ------------------------------------------------------------------ the scope (item 5)
+
+def scope_batches(s, samples, ack=True, timeout=30):
+    """Scope batches from `s` until `samples` samples have come, each
+    acknowledged as the page does (unless `ack` is false); replies skipped."""
+    got, count = [], 0
+    deadline = time.time() + timeout
+    s.sock.settimeout(timeout)
+    while count < samples:
+        assert time.time() < deadline, "only %d of %d samples streamed" % (count, samples)
+        m = s.recv(skip_streams=False)
+        if m.get("stream") != "scope":
+            continue
+        got.append(m["data"])
+        count += len(m["data"]["n"])
+        if ack:
+            s.send("scope ack %d" % m["data"]["batch"])
+        if m["data"]["closed"]:
+            break
+    return got
+
+
+def numbers(batches):
+    return [n for b in batches for n in b["n"]]
+
+
+def task_names(s):
+    return {t["rmod"] for t in s.request("status all")["data"]["tasks"]}
+
+
+def wait_gone(s, rmod, timeout=20):
+    deadline = time.time() + timeout
+    while time.time() < deadline:
+        if rmod not in task_names(s):
+            return True
+        time.sleep(0.1)
+    return False
+
+
+def ring_exists(master, rmod):
+    import os
+    return os.path.exists("/dev/shm/chimera.%s.%s" % (master.name, rmod))
+
+
+def test_scope_streams_every_sample_once_in_order(master):
+    s = page(master)  # watching: a scope only watches
+    r = s.request("scope start Q_MEZ[0] Q_REF[0] Q_MEZ[1] Q_REF[1] T_REF[0]")
+    assert r["ok"], r
+    d = r["data"]
+    assert d["channels"] == ["Q_MEZ[0]", "Q_REF[0]", "Q_MEZ[1]", "Q_REF[1]", "T_REF[0]"]
+    assert d["rmod"] in task_names(page(master)) and ring_exists(master, d["rmod"])
+    batches = scope_batches(s, 600)
+    n = numbers(batches)
+    assert n == list(range(len(n))), "a gap or a repeat in the sample numbers"
+    cycles = [c for b in batches for c in b["cycle"]]
+    assert all(b > a for a, b in zip(cycles, cycles[1:])), "cycle counters not increasing"
+    assert sum(b["lost"] for b in batches) == 0 and batches[-1]["lost_total"] == 0
+    assert [b["batch"] for b in batches] == list(range(1, len(batches) + 1))
+    for b in batches:
+        assert len(b["values"]) == 5 and all(len(col) == len(b["n"]) for col in b["values"])
+        assert len(b["t"]) == len(b["n"])
+    t = [x for b in batches for x in b["t"]]
+    assert t[0] == 0 and all(b > a for a, b in zip(t, t[1:]))
+    # The joint moves along its trajectory: the trace changes.
+    assert any(len({v for b in batches for v in b["values"][i]}) > 1 for i in range(5)), [batches[-1]["values"][i][-1] for i in range(5)]
+    s.sock.close()
+
+
+def test_scope_counts_loss_when_the_page_stalls(master):
+    s = page(master)
+    r = s.request("scope start Q_MEZ[0] --capacity 256")
+    assert r["ok"], r
+    first = scope_batches(s, 50)
+    # Stop acknowledging: the server sends at most its window of batches, then
+    # stops reading; the ring (256 entries) laps this reader.
+    stalled = scope_batches(s, 10, ack=False)
+    time.sleep(3 * 256 / r["data"]["rate"])
+    s.send("scope ack %d" % stalled[-1]["batch"])
+    after = scope_batches(s, 300)
+    batches = first + stalled + after
+    lost = sum(b["lost"] for b in batches)
+    assert lost > 0
+    assert batches[-1]["lost_total"] == lost
+    # Every sample number delivered or counted lost, none twice.
+    n = numbers(batches)
+    assert len(set(n)) == len(n) and n == sorted(n)
+    assert n[-1] + 1 == len(n) + lost
+    jump = next(b for b in after if b["lost"] > 0)
+    assert jump["n"][0] == numbers(batches[:batches.index(jump)])[-1] + 1 + jump["lost"]
+    assert s.request("scope stop")["ok"]
+
+
+def test_closing_the_page_kills_its_sampler_task(master):
+    s, watcher = page(master), page(master)
+    rmod = s.request("scope start Q_MEZ")["data"]["rmod"]
+    assert scope_batches(s, 10)
+    assert rmod in task_names(watcher)
+    s.sock.close()
+    assert wait_gone(watcher, rmod), "sampler task left running after its page closed"
+    assert not ring_exists(master, rmod)
+
+
+def test_two_pages_scope_at_once_and_stop_or_restart_kills(master):
+    a, b, watcher = page(master), page(master), page(master)
+    ra = a.request("scope start Q_MEZ[0]")["data"]["rmod"]
+    rb = b.request("scope start Q_REF[0] Q_REF[1]")["data"]["rmod"]
+    assert ra != rb
+    assert numbers(scope_batches(a, 100))[:100] == list(range(100))
+    assert numbers(scope_batches(b, 100))[:100] == list(range(100))
+    # Starting another scope replaces the page's first: its task is killed.
+    rb2 = b.request("scope start T_REF[0]")["data"]["rmod"]
+    assert rb2 != rb and wait_gone(watcher, rb) and not ring_exists(master, rb)
+    r = a.request("scope stop")
+    assert r["ok"] and r["data"]["rmod"] == ra
+    assert wait_gone(watcher, ra)
+    assert rb2 in task_names(watcher)
+    b.sock.close()
+    assert wait_gone(watcher, rb2)
+
+
+def test_scope_ends_when_its_task_is_killed_elsewhere(master):
+    s, ctl = page(master), page(master)
+    rmod = s.request("scope start Q_MEZ[2]")["data"]["rmod"]
+    assert scope_batches(s, 20)
+    assert ctl.request("control")["ok"]
+    try:
+        assert ctl.request("kill " + rmod)["ok"]
+    finally:
+        ctl.request("release")
+    last = scope_batches(s, 10 ** 9)
+    assert last[-1]["closed"] and last[-1]["n"] == []
+    assert s.request("scope stop")["ok"]  # the task is already gone: nothing to kill, no error
+
+
+def test_bad_scope_requests_are_refused_with_nothing_left(master):
+    s, watcher = page(master), page(master)
+    before = task_names(watcher)
+    for cmd, why in (("scope start NOSUCH", "NOSUCH"), ("scope start Q_MEZ[99]", "Q_MEZ"),
+                     ("scope start Q_MEZ --rate -5", "--rate"), ("scope start Q_MEZ;off jpid", "not a variable"),
+                     ("scope", "usage"), ("scope ack 1", "no scope running")):
+        r = s.request(cmd)
+        assert not r["ok"] and why in r["error"], (cmd, r)
+    assert task_names(watcher) == before
+
+
+def test_master_finishing_with_a_page_scoping_leaves_nothing():
+    m = Master("f")
+    try:
+        s = page(m)
+        rmod = s.request("scope start Q_MEZ")["data"]["rmod"]
+        assert scope_batches(s, 10)
+        assert ring_exists(m, rmod)
+    finally:
+        assert m.close() == 0, m.proc.stderr.read()
+    assert not ring_exists(m, rmod)

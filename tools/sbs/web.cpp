@@ -1,6 +1,7 @@
 #include "web.hpp"
 
 #include "command_line.hpp"
+#include "scope_stream.hpp"
 
 #include <civetweb.h>
 
@@ -11,7 +12,9 @@
 
 #include <atomic>
 #include <condition_variable>
+#include <deque>
 #include <fstream>
+#include <future>
 #include <map>
 #include <mutex>
 #include <sstream>
@@ -76,6 +79,61 @@ Reply simple(std::string cmd, std::string text, nlohmann::json data = nullptr) {
     return r;
 }
 
+// Runs the master's commands for the pages, one at a time (the interpreter
+// serialises them anyway), on a thread of its own with an ordinary stack:
+// civetweb's workers have small ones (Debian builds them with 100 KB), too
+// small for a spawn (the module loader, the rmod parser) under
+// AddressSanitizer and tight without it.
+class CommandThread {
+public:
+    explicit CommandThread(NetworkServer::Executor execute) : execute_(std::move(execute)) {
+        thread_ = std::thread([this] { serve(); });
+    }
+    ~CommandThread() {
+        {
+            std::lock_guard lock(mu_);
+            stopping_ = true;
+        }
+        wake_.notify_all();
+        thread_.join();
+    }
+    CommandThread(const CommandThread&) = delete;
+    CommandThread& operator=(const CommandThread&) = delete;
+
+    /// The command's reply (or its exception), from the command thread.
+    Reply run(std::string_view command) {
+        std::packaged_task<Reply()> job([this, c = std::string(command)] { return execute_(c); });
+        std::future<Reply> reply = job.get_future();
+        {
+            std::lock_guard lock(mu_);
+            jobs_.push_back(std::move(job));
+        }
+        wake_.notify_all();
+        return reply.get();
+    }
+
+private:
+    void serve() {
+        std::unique_lock lock(mu_);
+        for (;;) {
+            wake_.wait(lock, [&] { return stopping_ || !jobs_.empty(); });
+            if (jobs_.empty()) return;  // stopping, and every caller answered
+            std::packaged_task<Reply()> job = std::move(jobs_.front());
+            jobs_.pop_front();
+            lock.unlock();
+            job();
+            lock.lock();
+        }
+    }
+
+    NetworkServer::Executor execute_;
+    std::mutex mu_;
+    std::condition_variable wake_;
+    std::deque<std::packaged_task<Reply()>> jobs_;
+    bool stopping_ = false;
+    std::thread thread_;
+};
+
 }  // namespace
 
 bool web_host_allowed(std::string_view host_header, std::string_view bound_host) {
@@ -100,11 +158,15 @@ struct Page {
     bool discarding = false;    // inside an oversized message
     std::string partial;        // a fragmented message so far
     std::chrono::steady_clock::time_point deadline;
+    // The page's scope (issue 17.5): its own sampler task and the thread that
+    // streams its ring. Touched only by this connection's civetweb thread.
+    std::unique_ptr<ScopeStream> scope;
 };
 
 struct WebConsole::Impl {
     WebOptions o;
-    NetworkServer::Executor execute;
+    CommandThread commands;
+    NetworkServer::Executor execute;  // runs on `commands`
     NetworkServer& control;
     mg_context* ctx = nullptr;
     std::map<std::string, std::pair<std::string, std::string>> assets;  // path -> (mime, body)
@@ -118,7 +180,10 @@ struct WebConsole::Impl {
     std::thread ticker;
 
     Impl(WebOptions opts, NetworkServer::Executor ex, NetworkServer& ctl)
-        : o(std::move(opts)), execute(std::move(ex)), control(ctl) {}
+        : o(std::move(opts)),
+          commands(std::move(ex)),
+          execute([this](std::string_view c) { return commands.run(c); }),
+          control(ctl) {}
 
     static void write(mg_connection* conn, const std::string& text) {
         // civetweb serialises writes to one connection (it locks it).
@@ -135,6 +200,10 @@ struct WebConsole::Impl {
     void closed(const mg_connection* conn);
     bool handle_message(Page& page, std::string_view line);
     Reply run_command(Page& page, const std::string& command);
+    Reply scope_command(Page& page, const std::vector<std::string>& w);
+    Reply start_scope(Page& page, const std::vector<std::string>& w);
+    void stop_scope(Page& page);
+    void kill_sampler(const std::string& rmod);
     void tick();
     void run_ticker();
 };
@@ -265,6 +334,7 @@ bool WebConsole::Impl::handle_message(Page& page, std::string_view line) {
     }
     const Reply reply = run_command(page, request.command);
     write(page.conn, to_json_line(reply, request.id));
+    if (page.scope) page.scope->start();  // a new scope streams after its reply
     {
         std::lock_guard lock(mu);
         poke = true;  // a command may have changed the graph: look now
@@ -303,6 +373,7 @@ Reply WebConsole::Impl::run_command(Page& page, const std::string& command) {
         }
         return simple("release", "watching (read-only)", {{"control", false}});
     }
+    if (word == "scope") return scope_command(page, w);
     if (!controlling && !read_only(w)) {
         if (word == "quit") {
             Reply r = simple("quit", "");
@@ -329,15 +400,102 @@ Reply WebConsole::Impl::run_command(Page& page, const std::string& command) {
     return reply;
 }
 
+// ------------------------------------------------------------------ the scope
+
+namespace {
+
+// A channel word or an option of `sample`: nothing that could end the
+// command or start another.
+bool scope_word(const std::string& w) {
+    return !w.empty() && w.find_first_of(";'\"#\\ \t") == std::string::npos;
+}
+
+constexpr const char* kScopeUsage =
+    "usage: scope start VAR[IDX]... [--rate HZ] [--rtpu RTPU] [--capacity N] | scope stop | scope ack BATCH";
+
+}  // namespace
+
+// A scope only watches, so a read-only page may open one (halscope watches
+// any signal). Its sampler task is the page's own: killed when the page
+// stops the scope, starts another, or closes.
+Reply WebConsole::Impl::scope_command(Page& page, const std::vector<std::string>& w) {
+    const std::string sub = w.size() > 1 ? w[1] : "";
+    if (sub == "ack" && w.size() == 3) {
+        if (!page.scope) return Reply::failure("scope", "scope ack: no scope running");
+        char* end = nullptr;
+        const unsigned long long batch = std::strtoull(w[2].c_str(), &end, 10);
+        if (end == w[2].c_str() || *end != '\0') return Reply::failure("scope", "scope ack: " + w[2] + " is not a batch number");
+        page.scope->ack(batch);
+        return simple("scope", "");
+    }
+    if (sub == "stop" && w.size() == 2) {
+        const std::string rmod = page.scope ? page.scope->rmod() : "";
+        stop_scope(page);
+        return simple("scope", rmod.empty() ? "no scope running" : "scope stopped, " + rmod + " killed",
+                      {{"rmod", rmod}});
+    }
+    if (sub == "start" && w.size() > 2) return start_scope(page, w);
+    return Reply::failure("scope", kScopeUsage);
+}
+
+// `sample` for the page, then a stream of its ring; the stream starts
+// sending once the reply (naming the channels) has gone (handle_message).
+Reply WebConsole::Impl::start_scope(Page& page, const std::vector<std::string>& w) {
+    stop_scope(page);
+    std::string sample = "sample";
+    for (std::size_t i = 2; i < w.size(); ++i) {
+        if (!scope_word(w[i])) return Reply::failure("scope", "scope: " + w[i] + " is not a variable or an option");
+        sample += " " + w[i];
+    }
+    Reply started;
+    try {
+        started = execute(sample);
+    } catch (const std::exception& e) {
+        started = Reply::failure("sample", e.what());
+    }
+    if (!started.ok) return Reply::failure("scope", started.error);
+    const std::string rmod = started.data.value("rmod", "");
+    mg_connection* conn = page.conn;
+    try {
+        page.scope = std::make_unique<ScopeStream>(rmod, started.data.value("ring", ""),
+                                                   [conn](const std::string& text) { write(conn, text); });
+    } catch (const std::exception& e) {
+        kill_sampler(rmod);  // nothing left half-built
+        return Reply::failure("scope", "scope: " + std::string(e.what()));
+    }
+    Reply r = started;
+    r.command = "scope";
+    r.text = "scope: " + started.text;
+    return r;
+}
+
+void WebConsole::Impl::kill_sampler(const std::string& rmod) {
+    try {
+        (void)execute("kill " + rmod);  // already gone (killed by hand, master finishing): nothing to do
+    } catch (const std::exception&) {
+    }
+}
+
+void WebConsole::Impl::stop_scope(Page& page) {
+    if (!page.scope) return;
+    const std::string rmod = page.scope->rmod();
+    page.scope->stop();  // no batch is written after this
+    page.scope.reset();
+    kill_sampler(rmod);
+}
+
 void WebConsole::Impl::closed(const mg_connection* conn) {
     bool was_controlling = false;
+    std::unique_ptr<Page> page;
     {
         std::lock_guard lock(mu);
         const auto it = pages.find(conn);
         if (it == pages.end()) return;
         was_controlling = it->second->controlling;
+        page = std::move(it->second);
         pages.erase(it);
     }
+    stop_scope(*page);  // the page's sampler task dies with it
     // A page closed or lost holding control: control returns (§4.4.2).
     if (was_controlling)
         control.release_control(stopping ? NetworkServer::SessionEnd::stopped : NetworkServer::SessionEnd::peer_lost);
@@ -424,6 +582,7 @@ void WebConsole::start() {
     const std::pair<const char*, const char*> files[] = {
         {"/index.html", "text/html; charset=utf-8"},
         {"/console.js", "text/javascript; charset=utf-8"},
+        {"/scope.js", "text/javascript; charset=utf-8"},
         {"/console.css", "text/css; charset=utf-8"},
     };
     for (const auto& [name, mime] : files) {

@@ -2,7 +2,8 @@
 // It speaks the network protocol of docs/cli.md over one WebSocket: the
 // greeting, `token T` first, then one command per message, one JSON reply
 // each ({"cmd": ..., "id": n} -> {"ok", "id", "text", "data" | "error"}),
-// plus the pushed stream {"stream": "graph", "data": <show graph>}.
+// plus the pushed streams {"stream": "graph", "data": <show graph>} and
+// {"stream": "scope", ...} (scope.js).
 // No framework and nothing from the internet: Chart.js comes from Debian.
 'use strict';
 
@@ -57,6 +58,7 @@ function connect(token) {
 
 function onMessage(m, token) {
   if (m.stream === 'graph') return drawGraph(m.data);
+  if (m.stream === 'scope') return scopeBatch(m.data);
   if (m.cmd === 'hello') {
     if (!m.ok) return loginError(m.error);
     $('subsystem').textContent = m.subsystem;
@@ -119,6 +121,7 @@ function setControl(on) {
 function start() {
   request('module').then(showLibrary);
   startStatus();
+  scopeInit();
 }
 
 window.addEventListener('DOMContentLoaded', () => {
@@ -308,6 +311,7 @@ function drawGraph(g) {
   $('rc-task').replaceChildren(...g.tasks.map((t) => el('option', {}, t.rmod)));
   if (taskOf.has(current)) $('rc-task').value = current;
   $('spawn-rtpu').replaceChildren(...g.rtpus.map((r) => el('option', {}, r)));
+  scopeRtpus(g.rtpus);
   if (ui.selected && !taskOf.has(ui.selected)) selectTask(null);
   else if (ui.selected) $('task-name').textContent = `${ui.selected} (${taskOf.get(ui.selected).state})`;
   if (ui.rcItems.length) checkReconfig();
