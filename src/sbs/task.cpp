@@ -328,8 +328,8 @@ void Task::set_illegal_configuration(bool illegal) noexcept {
 bool Task::command_pending() const noexcept {
     return core_->cmd_pending.load(std::memory_order_acquire) || core_->stopping.load(std::memory_order_relaxed);
 }
-void Task::error(int code, std::string_view message, const char* file, int line) const {
-    err::invoke(code, module(), message, file, line);
+Result Task::error(int code, std::string_view message, const char* file, int line) const {
+    return err::invoke(code, module(), message, file, line) ? Result::CONTINUE : Result::ERROR;
 }
 namespace {
 // Into a fixed buffer, cut to fit: the warning path never allocates.
