@@ -29,7 +29,9 @@
 //
 // Handlers are installed per error code, per module, or for a scope (an RAII
 // HandlerScope that removes itself at the end of the block), or any combination.
-// Installing allocates; invoke() allocates nothing.
+// Installing allocates, and so does a thread's first use of err (its chain and
+// abort slot are made then: a task thread's when the runtime installs the task's
+// handler, before any method runs); after that invoke() allocates nothing.
 #pragma once
 
 #include "chimera/export.hpp"
@@ -143,8 +145,8 @@ private:
 /// from inside a handler goes straight to the default handler, and the outer
 /// error aborts too, whatever the handler answers. While an abort is pending on
 /// the thread (the caller went on instead of returning), invoke() returns false
-/// at once and keeps the first error: it is the cause. Never throws, never
-/// allocates (but a handler may).
+/// at once and keeps the first error: it is the cause. Never throws (but a
+/// handler may), and allocates nothing once the thread has used err.
 [[nodiscard]] CHIMERA_API bool invoke(int code, std::string_view module, std::string_view message,
                                       const char* file = nullptr, int line = 0);
 

@@ -32,7 +32,18 @@ struct ThreadState {
     void* printer_context = nullptr;
 };
 
-thread_local ThreadState t_state;
+// Held through a pointer, made on the thread's first use (a task thread's is
+// its task handler's install, before any cycle): libchimera's TLS block is
+// static (ipc's initial-exec owner id), so a program that dlopens it (Python)
+// takes that block from glibc's small static surplus, and the 1.4 KB abort slot
+// there left no room for other libraries' (libgomp: "cannot allocate memory in
+// static TLS block").
+thread_local std::unique_ptr<ThreadState> t_state;
+
+ThreadState& state() {
+    if (!t_state) t_state = std::make_unique<ThreadState>();
+    return *t_state;
+}
 std::atomic<HandlerId> g_next_id{1};
 
 bool initial_debug() {
@@ -109,12 +120,13 @@ std::shared_ptr<const Installed> find_handler(const ThreadState& st, const Error
 
 HandlerId install(Match match, Handler handler) {
     const HandlerId id = g_next_id.fetch_add(1, std::memory_order_relaxed);
-    t_state.chain.push_back(std::make_shared<const Installed>(Installed{id, std::move(match), std::move(handler)}));
+    state().chain.push_back(std::make_shared<const Installed>(Installed{id, std::move(match), std::move(handler)}));
     return id;
 }
 
 void remove(HandlerId id) noexcept {
-    auto& chain = t_state.chain;
+    if (!t_state) return;
+    auto& chain = t_state->chain;
     for (auto it = chain.begin(); it != chain.end(); ++it) {
         if ((*it)->id == id) {
             chain.erase(it);
@@ -123,7 +135,7 @@ void remove(HandlerId id) noexcept {
     }
 }
 
-std::size_t chain_size() noexcept { return t_state.chain.size(); }
+std::size_t chain_size() noexcept { return t_state ? t_state->chain.size() : 0; }
 
 void set_debug(bool on) noexcept { g_debug.store(on, std::memory_order_relaxed); }
 bool debug() noexcept { return g_debug.load(std::memory_order_relaxed); }
@@ -180,7 +192,7 @@ std::size_t format_to(char* buffer, std::size_t size, const Error& e, bool with_
 }
 
 Outcome default_handler(const Error& e) {
-    const ThreadState& st = t_state;
+    const ThreadState& st = state();
     if (st.printer) {
         char line[Abort::kMessageSize + Abort::kModuleSize + Abort::kFileSize + 64];
         const std::size_t n = format_to(line, sizeof line, e, debug());
@@ -192,29 +204,33 @@ Outcome default_handler(const Error& e) {
 }
 
 void set_thread_printer(ThreadPrinter printer, void* context) noexcept {
-    t_state.printer = printer;
-    t_state.printer_context = context;
+    if (!t_state && printer == nullptr) return;
+    ThreadState& st = state();  // a task thread's exists already (its handler is installed first)
+    st.printer = printer;
+    st.printer_context = context;
 }
 
-const Abort* pending() noexcept { return t_state.aborting ? &t_state.abort : nullptr; }
-void clear_pending() noexcept { t_state.aborting = false; }
+const Abort* pending() noexcept { return t_state && t_state->aborting ? &t_state->abort : nullptr; }
+void clear_pending() noexcept {
+    if (t_state) t_state->aborting = false;
+}
 
 namespace detail {
 void push_mark(int id) noexcept {
     // A failed push would lose the mark; marks are few and set up off the
     // real-time path, so reserve generously once.
-    auto& m = t_state.marks;
+    auto& m = state().marks;
     if (m.capacity() == 0) m.reserve(16);
     m.push_back(id);
 }
 void pop_mark() noexcept {
-    if (!t_state.marks.empty()) t_state.marks.pop_back();
+    if (t_state && !t_state->marks.empty()) t_state->marks.pop_back();
 }
 }  // namespace detail
 
 bool invoke(int code, std::string_view module, std::string_view message, const char* file, int line) {
     const Error e{code, module, message, file, line};
-    ThreadState& st = t_state;
+    ThreadState& st = state();
     if (st.aborting) return false;  // the caller went on after an abort: the first error stands
 
     Outcome outcome = Outcome::abort();
