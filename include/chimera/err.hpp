@@ -16,9 +16,9 @@
 //                  it and reports MarkExit::jumped (the setjmp/longjmp of §8.2.1,
 //                  done with ordinary returns so destructors and locks are released).
 //
-// invoke() never throws and never allocates (a handler may, and a handler's own
-// exception passes through): an error on a real-time thread costs no heap, no
-// unwinding, no stdio. The slot is fixed storage per thread; text too long for
+// invoke() never throws and allocates nothing once the thread has used err (see
+// below; a handler may allocate, and a handler's own exception passes through):
+// an error on a real-time thread costs no heap, no unwinding, no stdio. The slot is fixed storage per thread; text too long for
 // it is cut and ends with kCutMark. A thread with no boundary of its own (not a
 // task) reads the abort with pending() and clears it with clear_pending().
 //
