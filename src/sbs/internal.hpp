@@ -287,7 +287,8 @@ public:
 
     // Errors and warnings per the RTPU's ERRPRINT. A task thread only queues
     // its line (no stdio, no allocation, no wait); the reporter thread, not
-    // real-time, prints it. A full queue drops the line and counts it.
+    // real-time, prints it. A full queue drops the line and counts it; a
+    // line longer than a slot is cut and ends with err::kCutMark.
     void print(const RtpuSpec& rtpu, bool is_error, std::initializer_list<std::string_view> parts) noexcept;
     struct Report {
         char text[248];
