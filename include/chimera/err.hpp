@@ -6,27 +6,37 @@
 // chain — newest handler first, and runs the first one whose filter matches the
 // error's code and module. The handler ends with one of three outcomes:
 //
-//   continue       invoke() returns and execution goes on at the line after it;
-//   abort          invoke() throws err::Aborted; the task runtime catches it at
-//                  the method boundary and aborts the method (§3.6: routed to the
-//                  task's error() method), a plain thread unwinds like any throw;
-//   jump to mark   invoke() throws err::MarkJump, caught by the err::mark() call
-//                  with that id further up the stack (the setjmp/longjmp of §8.2.1,
-//                  done with unwinding so destructors run).
+//   continue       invoke() returns true and execution goes on at the line after it;
+//   abort          invoke() records the error in the calling thread's abort slot
+//                  (err::pending()) and returns false: the caller returns at once,
+//                  and so does every caller up to the boundary that takes the
+//                  abort — the task runtime at the module method's boundary, which
+//                  aborts the method (§3.6: routed to the task's error() method);
+//   jump to mark   the same, up to the err::mark() call with that id, which takes
+//                  it and reports MarkExit::jumped (the setjmp/longjmp of §8.2.1,
+//                  done with ordinary returns so destructors and locks are released).
+//
+// invoke() never throws and allocates nothing once the thread has used err (see
+// below; a handler may allocate, and a handler's own exception passes through):
+// an error on a real-time thread costs no heap, no unwinding, no stdio. The slot is fixed storage per thread; text too long for
+// it is cut and ends with kCutMark. A thread with no boundary of its own (not a
+// task) reads the abort with pending() and clears it with clear_pending().
 //
 // With no matching handler the default handler prints a detailed message — with
 // the source file and line when debug mode is on — and aborts: the task, never
-// the process.
+// the process. On a thread that set a thread printer (a task thread: the line
+// goes to the subsystem's report ring) it prints there, without stdio or lock.
 //
 // Handlers are installed per error code, per module, or for a scope (an RAII
 // HandlerScope that removes itself at the end of the block), or any combination.
-// Installing allocates; invoke() on a `continue` path allocates nothing.
+// Installing allocates, and so does a thread's first use of err (its chain and
+// abort slot are made then: a task thread's when the runtime installs the task's
+// handler, before any method runs); after that invoke() allocates nothing.
 #pragma once
 
 #include "chimera/export.hpp"
 
 #include <cstdint>
-#include <exception>
 #include <functional>
 #include <optional>
 #include <string>
@@ -78,35 +88,29 @@ struct Match {
     }
 };
 
-/// Thrown by invoke() when the handler (or the default) aborts. Owns a copy of
-/// the error so it survives unwinding.
-class CHIMERA_API Aborted : public std::exception {
-public:
-    Aborted(const Error& e);
-    const char* what() const noexcept override { return text_.c_str(); }
-    int code() const noexcept { return code_; }
-    const std::string& module() const noexcept { return module_; }
-    const std::string& message() const noexcept { return message_; }
-    const std::string& file() const noexcept { return file_; }
-    int line() const noexcept { return line_; }
-    /// The error again, as a view into this object.
-    Error error() const noexcept { return {code_, module_, message_, file_.empty() ? nullptr : file_.c_str(), line_}; }
+/// Ends a text that was cut to fit a fixed buffer (an abort slot, a report line).
+inline constexpr std::string_view kCutMark = "[...]";
 
-private:
-    int code_;
-    std::string module_, message_, file_;
-    int line_;
-    std::string text_;
-};
+/// The error that aborted the calling thread's current operation, kept in fixed
+/// storage so that recording it allocates nothing (the abort slot). Texts are
+/// NUL-terminated; one cut to fit ends with kCutMark.
+struct Abort {
+    static constexpr std::size_t kModuleSize = 64;
+    static constexpr std::size_t kMessageSize = 1024;
+    static constexpr std::size_t kFileSize = 256;
 
-/// Thrown by invoke() for a jump-to-mark outcome; caught by err::mark().
-class CHIMERA_API MarkJump : public Aborted {
-public:
-    MarkJump(const Error& e, int mark_id) : Aborted(e), mark_(mark_id) {}
-    int mark() const noexcept { return mark_; }
+    Outcome::Action action = Outcome::Action::Abort;  ///< Abort, or Jump to `mark`
+    int mark = 0;
+    int code = 0;
+    int line = 0;
+    char module[kModuleSize] = {};
+    char message[kMessageSize] = {};
+    char file[kFileSize] = {};  ///< "" when unknown
 
-private:
-    int mark_;
+    /// The error again, as views into this object.
+    Error error() const noexcept {
+        return {code, module, message, file[0] != '\0' ? file : nullptr, line};
+    }
 };
 
 /// Handle of an installed handler.
@@ -134,18 +138,36 @@ private:
     HandlerId id_;
 };
 
-/// Raises an error (errInvoke). Returns only when the chosen handler says
-/// continue; otherwise throws Aborted or MarkJump. A jump to a mark that is not
-/// active on this thread becomes an abort (the message says so). An error
-/// raised from inside a handler goes straight to the default handler.
-CHIMERA_API void invoke(int code, std::string_view module, std::string_view message, const char* file = nullptr,
-                        int line = 0);
+/// Raises an error (errInvoke). Returns true when the chosen handler says
+/// continue. Otherwise records the error in the thread's abort slot and returns
+/// false: return at once (see the header comment). A jump to a mark that is not
+/// active on this thread becomes an abort (the message says so). An error raised
+/// from inside a handler goes straight to the default handler, and the outer
+/// error aborts too, whatever the handler answers. While an abort is pending on
+/// the thread (the caller went on instead of returning), invoke() returns false
+/// at once and keeps the first error: it is the cause. Never throws (but a
+/// handler may), and allocates nothing once the thread has used err.
+[[nodiscard]] CHIMERA_API bool invoke(int code, std::string_view module, std::string_view message,
+                                      const char* file = nullptr, int line = 0);
 
-/// Runs `body` under a mark: a handler returning Outcome::jump(id) unwinds to
-/// here. Returns true when body completed, false when it was left by a jump.
-/// Marks nest; a jump goes to the innermost mark with that id.
+/// The calling thread's pending abort or jump; nullptr when there is none.
+CHIMERA_API const Abort* pending() noexcept;
+/// Forgets the calling thread's pending abort (the boundary took it).
+CHIMERA_API void clear_pending() noexcept;
+
+/// How err::mark() ended.
+enum class [[nodiscard]] MarkExit : std::uint8_t {
+    completed,  ///< the body returned and nothing is pending
+    jumped,     ///< a handler's jump to this mark ended the body; nothing is pending
+    aborting,   ///< an abort (or a jump to an outer mark) is pending: return at once
+};
+
+/// Runs `body` under a mark: a handler answering Outcome::jump(id) makes
+/// invoke() return false, the body returns (as every caller between does), and
+/// mark() takes the jump. Marks nest; a jump goes to the innermost mark with
+/// that id.
 template <typename F>
-[[nodiscard]] bool mark(int id, F&& body);
+MarkExit mark(int id, F&& body);
 
 /// Debug mode: the default handler prints FILE:LINE with the message (§8.2).
 /// Initially on in builds without NDEBUG and when CHIMERA_ERR_DEBUG=1.
@@ -163,6 +185,17 @@ CHIMERA_API std::string format(const Error& e, bool with_location);
 /// The default handler itself: prints, then returns Outcome::abort().
 CHIMERA_API Outcome default_handler(const Error& e);
 
+/// Where the default handler prints on the calling thread instead of the
+/// process's printer: a plain function (so setting it allocates nothing) that
+/// must not block — a task thread's sends the line to its subsystem's report
+/// ring. `line` is valid during the call only. nullptr: back to the printer.
+using ThreadPrinter = void (*)(void* context, std::string_view line) noexcept;
+CHIMERA_API void set_thread_printer(ThreadPrinter printer, void* context) noexcept;
+
+/// format() into a fixed buffer: writes at most size - 1 bytes and a NUL; a
+/// line cut to fit ends with kCutMark. Returns the length written.
+CHIMERA_API std::size_t format_to(char* buffer, std::size_t size, const Error& e, bool with_location) noexcept;
+
 namespace detail {
 CHIMERA_API void push_mark(int id) noexcept;
 CHIMERA_API void pop_mark() noexcept;
@@ -175,15 +208,18 @@ struct MarkGuard {
 }  // namespace detail
 
 template <typename F>
-bool mark(int id, F&& body) {
-    try {
+MarkExit mark(int id, F&& body) {
+    {
         detail::MarkGuard guard(id);
         body();
-        return true;
-    } catch (const MarkJump& j) {
-        if (j.mark() != id) throw;
-        return false;
     }
+    const Abort* p = pending();
+    if (!p) return MarkExit::completed;
+    if (p->action == Outcome::Action::Jump && p->mark == id) {
+        clear_pending();
+        return MarkExit::jumped;
+    }
+    return MarkExit::aborting;
 }
 
 }  // namespace chimera::err

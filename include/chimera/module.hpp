@@ -41,9 +41,25 @@
 //   reinit: in-consts -> reinit, when a task producing one of this task's
 //           in-consts is replaced by one producing a different value
 // A method reports an error by returning Result::ERROR, by calling
-// task.error(...) / CHIMERA_ERR (global error handling, err.hpp; a handler may
-// let it continue), or by throwing. Signals and other commands are applied only
+// task.error(...) (global error handling, err.hpp; a handler may let it
+// continue), or by throwing. Signals and other commands are applied only
 // between method calls, never inside one.
+//
+// task.error() never throws: when the error aborts (error() answers ERROR or
+// OFF, a module's own err handler answers abort or jumps to a mark that is not
+// set, or an error is raised inside a handler) it records the abort in the
+// thread's fixed abort slot and returns Result::ERROR, and the method must
+// return at once — `return t.error(code, "what failed");`. Code after it runs
+// only when it returns CONTINUE. Returning runs the method's destructors and
+// releases its locks as any return does; the runtime then takes the recorded
+// abort at the method's boundary and it decides the outcome, whatever the
+// method returned. The task ends as error() said: ERROR halts it in ERROR (the
+// message in its status, sig::ERROR, the illegal-configuration flag), OFF turns
+// it off; an abort decided by a module's own handler, or by the default handler
+// for an error raised inside a handler, is routed to error() then. The runtime's
+// part allocates nothing, takes no lock but priority-inheriting ones and writes
+// nothing on the task thread: the ERROR> lines (the default handler's too) go
+// through the subsystem's report ring (tests/sbs/test_task_io.cpp counts it).
 //
 // Real-time path: cycle() (and sync() for synchronous tasks) should not allocate,
 // block, or take locks other than through the runtime.
@@ -207,8 +223,13 @@ public:
 
     // --- errors and warnings -------------------------------------------------
     /// Raises an error through global error handling (errInvoke) with this
-    /// module's name. Returns only if a handler (or error()) says continue.
-    void error(int code, std::string_view message, const char* file = nullptr, int line = 0) const;
+    /// module's name. Returns CONTINUE when a handler (or error()) says
+    /// continue: go on after the call. Returns ERROR when the error aborts the
+    /// method: return at once (`return t.error(...);` reads well) — the runtime
+    /// acts on the recorded abort whatever the method then returns. Nothing is
+    /// thrown and nothing allocated (err.hpp); the message is kept up to 1023
+    /// bytes (cut with err::kCutMark).
+    Result error(int code, std::string_view message, const char* file = nullptr, int line = 0) const;
     /// Records a warning (count, message), sends sig::WARNING, prints it when
     /// the RTPU's ERRPRINT asks for warnings. The task carries on.
     void warning(std::string_view message) noexcept;
@@ -332,7 +353,9 @@ struct ChimeraModuleAbi {
     void (*destroy)(Module*);
 };
 inline constexpr std::uint32_t CHIMERA_MODULE_MAGIC = 0x43484d4dU;  // "CHMM"
-inline constexpr std::uint32_t CHIMERA_MODULE_ABI_VERSION = 3;  // 2: timing_failure, abortable; 3: local_keys
+// 2: timing_failure, abortable; 3: local_keys; 4: Task::error() returns (Result::ERROR) on an
+// abort instead of throwing err::Aborted, so a module built for 3 would run on after it.
+inline constexpr std::uint32_t CHIMERA_MODULE_ABI_VERSION = 4;
 
 /// Symbol name looked up for MODULE `name`: "chimera_module_<name>".
 CHIMERA_API std::string module_symbol(std::string_view name);

@@ -195,9 +195,8 @@ public:
                     if (d.error) why += " with error " + hex(d.error) + " " + std::string(error_name(d.error));
                     if (!d.seen_tpdo2) why += ", no position (TPDO2) received";
                 }
-                t.error(kErrDriveState, "cannot enable the drives within ENABLE_TIMEOUT " +
+                return t.error(kErrDriveState, "cannot enable the drives within ENABLE_TIMEOUT " +
                                             std::to_string(enable_timeout_) + " s: " + why);
-                return chimera::Result::ERROR;
             }
             for (std::size_t j = 0; j < n_; ++j) {
                 Node& d = nodes_[j];
@@ -219,8 +218,7 @@ public:
                     std::snprintf(m, sizeof m, "Q_REF of joint %zu is %.4f rad from the arm (%.4f vs %.4f), more than "
                                   "ON_TOLERANCE %.4f: refusing to jump",
                                   j + 1, std::fabs(q_ref_[j] - nodes_[j].q), q_ref_[j], nodes_[j].q, on_tolerance_);
-                    t.error(kErrDriveState, m);
-                    return chimera::Result::ERROR;
+                    return t.error(kErrDriveState, m);
                 }
             }
         }
@@ -230,8 +228,7 @@ public:
 
     chimera::Result cycle(chimera::Task& t) override {
         if (const int failed = check_feedback()) {
-            t.error(failed, failure_);
-            return chimera::Result::ERROR;
+            return t.error(failed, failure_);
         }
         publish();
 
@@ -254,8 +251,7 @@ public:
         if (unsent_cycles_ > feedback_misses_) {
             std::snprintf(failure_, sizeof failure_, "cannot send on %s for %d cycles (bus down, or no other node ACKs?)",
                           bus_.interface.c_str(), unsent_cycles_);
-            t.error(kErrBus, failure_);
-            return chimera::Result::ERROR;
+            return t.error(kErrBus, failure_);
         }
         return chimera::Result::OK;
     }
@@ -264,8 +260,7 @@ public:
         // Shutdown: ready to switch on, no torque, brakes — confirmed by every
         // drive, or the task errs (and error() tries a quick stop).
         if (!switch_all_confirmed(kCwShutdown)) {
-            t.error(kErrDriveState, failure_);
-            return chimera::Result::ERROR;
+            return t.error(kErrDriveState, failure_);
         }
         publish();
         return chimera::Result::OK;

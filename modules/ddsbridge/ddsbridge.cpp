@@ -118,7 +118,11 @@ public:
         for (const Pub& p : pubs_) (void)link_->buffer(p.link_index).write(p.var, now);
         if (!pubs_.empty() && config_.notify == Notify::wake) link_->notify();
         bool ok = true;
-        for (Sub& s : subs_) ok = take(t, s, now) && ok;
+        aborted_ = false;
+        for (Sub& s : subs_) {
+            ok = take(t, s, now) && ok;
+            if (aborted_) break;  // t.error() aborted the cycle: return at once (module.hpp)
+        }
         return ok ? chimera::Result::OK : chimera::Result::ERROR;
     }
 
@@ -180,7 +184,7 @@ private:
     }
 
     // The newest value of a subscription into its port, or the stale action.
-    // Not noexcept: t.error() leaves by an exception (err.hpp).
+    // Not noexcept: an err handler the user installed may throw (err.hpp).
     bool take(chimera::Task& t, Sub& s, std::int64_t now) {
         const bool ok = take_value(t, s, now);
         if (s.stamp) {
@@ -214,7 +218,8 @@ private:
         if (!s.stale) {
             s.stale = true;
             if (s.action == StaleAction::error) {
-                t.error(chimera::err::code::timeout, s.stale_text);  // the task goes to ERROR, naming the port
+                // The task goes to ERROR, naming the port; continued by a handler, the cycle still fails.
+                if (t.error(chimera::err::code::timeout, s.stale_text) != chimera::Result::CONTINUE) aborted_ = true;
                 return false;
             }
             t.warning(s.stale_text);
@@ -243,6 +248,7 @@ private:
     std::vector<Sub> subs_;
     std::int64_t on_ns_ = 0;
     bool raised_illegal_ = false;
+    bool aborted_ = false;  // this cycle's t.error() aborted it
 };
 
 }  // namespace

@@ -129,8 +129,7 @@ private:
     Result io_failed(chimera::Task& t, const char* what, long rc) {
         std::snprintf(msg_, sizeof msg_, "%s of device %s ports %d..%d failed: %s", what, cfg_.device.name.c_str(),
                       cfg_.first_port, cfg_.last_port, std::strerror(static_cast<int>(-rc)));
-        t.error(dio::kErrIo, msg_);
-        return Result::OK;  // a handler said continue: DIN keeps its last values
+        return t.error(dio::kErrIo, msg_);  // CONTINUE when a handler said so: DIN keeps its last values
     }
 
     dio::Config cfg_;

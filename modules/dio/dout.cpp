@@ -129,8 +129,7 @@ private:
     Result io_failed(chimera::Task& t, const char* what, long rc) {
         std::snprintf(msg_, sizeof msg_, "%s on device %s ports %d..%d failed: %s", what, cfg_.device.name.c_str(),
                       cfg_.first_port, cfg_.last_port, std::strerror(static_cast<int>(-rc)));
-        t.error(dio::kErrIo, msg_);
-        return Result::OK;
+        return t.error(dio::kErrIo, msg_);  // CONTINUE when a handler said so
     }
 
     Result bad_command(chimera::Task& t, std::size_t k) {
@@ -139,8 +138,7 @@ private:
         std::snprintf(msg_, sizeof msg_, "DOUT[%zu] is %s, not a value of the %d-bit port %d (0..%u): all ports driven SAFE",
                       k, value, cfg_.device.width, cfg_.first_port + static_cast<int>(k), cfg_.port_mask());
         drive_safe();  // not only the bad port: the command set as a whole is suspect
-        t.error(dio::kErrCommand, msg_);
-        return Result::OK;  // a handler said continue: SAFE this cycle, the next commands next cycle
+        return t.error(dio::kErrCommand, msg_);  // CONTINUE: SAFE this cycle, the next commands next cycle
     }
 
     void format_element(std::size_t k, char* buf, std::size_t size) const noexcept {

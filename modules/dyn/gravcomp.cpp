@@ -40,8 +40,7 @@ public:
         const auto n = static_cast<Eigen::Index>(n_);
         Eigen::Map<Eigen::VectorXd> tg(tg_, n);
         if (!dyn_->gravity(Eigen::Map<const Eigen::VectorXd>(q_, n), tg)) {
-            t.error(1, "gravity computation failed");
-            return chimera::Result::ERROR;
+            return t.error(1, "gravity computation failed");
         }
         tg *= scale_;
         return chimera::Result::OK;

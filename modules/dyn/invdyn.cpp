@@ -39,8 +39,7 @@ public:
         using CMap = Eigen::Map<const Eigen::VectorXd>;
         Eigen::Map<Eigen::VectorXd> tau(tau_, n);
         if (!dyn_->inverse(CMap(q_, n), CMap(qd_, n), CMap(u_, n), tau)) {
-            t.error(1, "inverse dynamics failed");
-            return chimera::Result::ERROR;
+            return t.error(1, "inverse dynamics failed");
         }
         return chimera::Result::OK;
     }

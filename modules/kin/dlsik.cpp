@@ -64,8 +64,7 @@ public:
         const KDL::Frame target = rb::pose_to_frame(Eigen::Map<const rb::Vector6d>(x_ref_));
         const rb::Vector6d e = gain_ * rb::pose_error(now, target);
         if (!ik_->solve_velocity(q, e, dq_)) {
-            t.error(1, "damped least squares failed (non-finite solution)");
-            return chimera::Result::ERROR;
+            return t.error(1, "damped least squares failed (non-finite solution)");
         }
         Eigen::Map<Eigen::VectorXd>(qd_ref_, n) = dq_.cwiseMax(-vmax_).cwiseMin(vmax_);
         return chimera::Result::OK;

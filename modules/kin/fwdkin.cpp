@@ -33,8 +33,7 @@ public:
         const Eigen::Map<const Eigen::VectorXd> q(jpos_, static_cast<Eigen::Index>(n_));
         Eigen::Map<rb::Vector6d> x(xpos_);
         if (!kin_->fk(q, x)) {
-            t.error(1, "forward kinematics failed");
-            return chimera::Result::ERROR;
+            return t.error(1, "forward kinematics failed");
         }
         if (jac_) {
             Eigen::Map<rb::Matrix6Xd> j(jac_, 6, static_cast<Eigen::Index>(n_));

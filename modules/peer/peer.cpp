@@ -46,8 +46,7 @@ public:
 private:
     chimera::Result check(chimera::Task& t) {
         if (alive(pid_)) return chimera::Result::OK;
-        t.error(chimera::err::code::user + 1, "peer process " + std::to_string(pid_) + " is gone");
-        return chimera::Result::ERROR;
+        return t.error(chimera::err::code::user + 1, "peer process " + std::to_string(pid_) + " is gone");
     }
     long pid_ = 0;
 };

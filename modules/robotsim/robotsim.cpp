@@ -145,8 +145,7 @@ public:
             }
         }
         if (!sim_->step(tau_, t.period(), substeps_)) {
-            t.error(1, "simulation diverged (non-finite state): torques too large for the step size");
-            return chimera::Result::ERROR;
+            return t.error(1, "simulation diverged (non-finite state): torques too large for the step size");
         }
         publish();
         return chimera::Result::OK;

@@ -106,20 +106,27 @@ struct Object {
     std::unique_ptr<Task> view;
 };
 
-/// Text of at most N - 1 bytes in place (longer is cut): an error's module and
-/// message are kept so on the task thread, which must not allocate.
+/// Text of at most N - 1 bytes in place (longer is cut, and then ends with
+/// err::kCutMark): an error's module and message are kept so on the task
+/// thread, which must not allocate.
 template <std::size_t N>
 struct FixedText {
+    static_assert(N > err::kCutMark.size() + 1);
     char text[N] = {};
     std::size_t size = 0;
-    void assign(std::string_view v) noexcept {
-        size = v.copy(text, N - 1);
-        text[size] = '\0';
-    }
+    void assign(std::string_view v) noexcept { assign({v}); }
     /// Appends the parts in order (cut at N - 1 bytes).
     void assign(std::initializer_list<std::string_view> parts) noexcept {
         size = 0;
-        for (std::string_view part : parts) size += part.copy(text + size, N - 1 - size);
+        std::size_t whole = 0;
+        for (std::string_view part : parts) {
+            size += part.copy(text + size, N - 1 - size);
+            whole += part.size();
+        }
+        if (whole > size) {  // cut: the text says so at its end
+            const std::size_t keep = N - 1 - err::kCutMark.size();
+            size = keep + err::kCutMark.copy(text + keep, err::kCutMark.size());
+        }
         text[size] = '\0';
     }
     void clear() noexcept { assign(std::string_view{}); }
@@ -280,7 +287,8 @@ public:
 
     // Errors and warnings per the RTPU's ERRPRINT. A task thread only queues
     // its line (no stdio, no allocation, no wait); the reporter thread, not
-    // real-time, prints it. A full queue drops the line and counts it.
+    // real-time, prints it. A full queue drops the line and counts it; a
+    // line longer than a slot is cut and ends with err::kCutMark.
     void print(const RtpuSpec& rtpu, bool is_error, std::initializer_list<std::string_view> parts) noexcept;
     struct Report {
         char text[248];

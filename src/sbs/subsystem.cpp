@@ -194,11 +194,14 @@ void SubsystemCore::print(const RtpuSpec& r, bool is_error, std::initializer_lis
     if (r.errprint == ErrPrint::none) return;
     if (!is_error && r.errprint != ErrPrint::warnings) return;
     Report rep;
-    std::size_t n = 0;
+    std::size_t n = 0, whole = 0;
     for (std::string_view p : parts) {  // cut to the slot: a line never allocates
-        const std::size_t k = std::min(p.size(), sizeof rep.text - 1 - n);
-        std::memcpy(rep.text + n, p.data(), k);
-        n += k;
+        n += p.copy(rep.text + n, sizeof rep.text - 1 - n);
+        whole += p.size();
+    }
+    if (whole > n) {  // cut: the line says so at its end
+        const std::size_t keep = sizeof rep.text - 1 - err::kCutMark.size();
+        n = keep + err::kCutMark.copy(rep.text + keep, err::kCutMark.size());
     }
     rep.text[n] = '\0';
     if (!reports.push(rep)) {

@@ -328,8 +328,15 @@ void Task::set_illegal_configuration(bool illegal) noexcept {
 bool Task::command_pending() const noexcept {
     return core_->cmd_pending.load(std::memory_order_acquire) || core_->stopping.load(std::memory_order_relaxed);
 }
-void Task::error(int code, std::string_view message, const char* file, int line) const {
-    err::invoke(code, module(), message, file, line);
+Result Task::error(int code, std::string_view message, const char* file, int line) const {
+    // Timing-failure handlers are held off while the error chain runs: an
+    // abandoned cycle would jump over a handler half-way (its depth count, an
+    // abort half recorded).
+    struct Critical {
+        Critical() noexcept { muf::enter_critical(); }
+        ~Critical() { muf::leave_critical(); }
+    } critical;
+    return err::invoke(code, module(), message, file, line) ? Result::CONTINUE : Result::ERROR;
 }
 namespace {
 // Into a fixed buffer, cut to fit: the warning path never allocates.

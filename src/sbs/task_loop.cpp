@@ -223,6 +223,7 @@ private:
     template <typename Fn> Outcome call(Phase p, std::size_t i, Fn&& fn);
     template <typename Fn> Outcome call_all(Phase p, Fn&& fn);
     Outcome crashed(Phase p, std::size_t i, int signo);
+    Outcome take_abort();
     Outcome route(const err::Error& e);
     err::Outcome handle(const err::Error& e);
     void record(const err::Error& e);
@@ -234,6 +235,10 @@ private:
     // and every signal of the loop goes through one of them.
     void report_error(std::string_view object, std::string_view message, const char* phase = nullptr, int code = 0);
     void post(int signal) noexcept { t_.sbs.post_signal(t_, signal); }
+    static void print_line(void* loop, std::string_view line) noexcept {
+        TaskCore& t = static_cast<TaskLoop*>(loop)->t_;
+        t.sbs.print(t.rtpu, true, {line});
+    }
 
     TaskCore& t_;
     const sigset_t& normal_mask_;
@@ -241,6 +246,7 @@ private:
     Phase phase_ = Phase::init;
     std::size_t current_ = 0;           // the object whose method runs
     std::optional<Outcome> decided_;    // set by the task's error handler before it aborts
+    err::Abort abort_;                  // an abort taken from the thread's slot, while error() runs
     // The last error, kept in place: the error path of a cycle allocates nothing.
     FixedText<64> err_module_;
     FixedText<1024> err_message_;
@@ -264,6 +270,11 @@ TaskLoop::TaskLoop(TaskCore& task, const sigset_t& normal_mask) : t_(task), norm
 // between jobs, whatever the state; ON runs jobs; OFF and ERROR sleep.
 void TaskLoop::run() {
     err::HandlerScope task_handler([this](const err::Error& e) { return handle(e); });
+    // The default handler (an error raised inside a handler) prints through the report ring.
+    err::set_thread_printer(&TaskLoop::print_line, this);
+    struct PrinterReset {
+        ~PrinterReset() { err::set_thread_printer(nullptr, nullptr); }
+    } printer_reset;
     if (!spawn()) return;
     while (alive_) {
         const std::uint32_t seen = t_.word.load(std::memory_order_acquire);
@@ -670,20 +681,24 @@ Outcome TaskLoop::call(Phase p, std::size_t i, Fn&& fn) {
     phase_ = p;
     current_ = i;
     decided_.reset();
+    err::clear_pending();  // one left by a cycle a timing failure abandoned is not this method's
     Result r = Result::OK;
+    bool threw = false;
     try {
         auto method = [&] { r = fn(*t_.objects[i].module, *t_.objects[i].view); };
         sigjmp_buf crash_mark;
         if (const int signo = run_contained(crash_mark, normal_mask_, method); signo != 0) return crashed(p, i, signo);
-    } catch (const err::Aborted& a) {
-        if (decided_) return *decided_;
-        return route(a.error());  // a user handler aborted: still the module's error()
     } catch (const std::exception& ex) {
+        threw = true;
         failure_.assign({"exception: ", ex.what()});
-        return route(err::Error{err::code::exception, t_.objects[i].rmod.module, failure_.view(), nullptr, 0});
     } catch (...) {
-        return route(err::Error{err::code::exception, t_.objects[i].rmod.module, "unknown exception", nullptr, 0});
+        threw = true;
+        failure_.assign("unknown exception");
     }
+    // An errInvoke that aborted the method comes first: it is the cause, and
+    // what the method returned (or threw) after it does not count.
+    if (err::pending()) return take_abort();
+    if (threw) return route(err::Error{err::code::exception, t_.objects[i].rmod.module, failure_.view(), nullptr, 0});
     switch (r) {
         case Result::OK:
         case Result::CONTINUE: return Outcome::ok;
@@ -693,6 +708,22 @@ Outcome TaskLoop::call(Phase p, std::size_t i, Fn&& fn) {
             return route(err::Error{err::code::method_failed, t_.objects[i].rmod.module, failure_.view(), nullptr, 0});
     }
     return Outcome::error_halt;
+}
+
+// The method returned after an errInvoke aborted it (err.hpp: invoke() records
+// the abort and returns false; nothing is thrown). The task's own handler has
+// already routed it (decided_); an abort by a module's handler, or by the
+// default handler for an error raised inside a handler, goes to error() now.
+Outcome TaskLoop::take_abort() {
+    if (decided_) {
+        err::clear_pending();
+        return *decided_;
+    }
+    abort_ = *err::pending();  // copied: error() may raise errors of its own
+    err::clear_pending();
+    const Outcome o = route(abort_.error());
+    err::clear_pending();
+    return o;
 }
 
 // Runs a method over every object in order; stops at the first non-ok.
@@ -708,6 +739,7 @@ Outcome TaskLoop::call_all(Phase p, Fn&& fn) {
 // The module's state is unknown after a crash: error() is not called, the task halts.
 Outcome TaskLoop::crashed(Phase p, std::size_t i, int signo) {
     t_.pacer->disarm_abort();
+    err::clear_pending();
     failure_.assign({"crashed with ", sigabbrev_np(signo), " (", sigdescr_np(signo), ") in ", phase_name(p), "()"});
     record(err::Error{err::code::exception, t_.objects[i].rmod.module, failure_.view(), nullptr, 0});
     report_error(t_.objects[i].rmod.name, failure_.view());

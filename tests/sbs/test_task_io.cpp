@@ -13,6 +13,7 @@
 #include <gtest/gtest.h>
 #include <sys/ioctl.h>
 
+#include <atomic>
 #include <chrono>
 #include <cstdlib>
 #include <filesystem>
@@ -220,4 +221,102 @@ TEST_F(TaskIo, ACycleThatThrowsAllocatesOnlyTheModulesOwnException) {
     if (!chimera::test::kSanitizer) {
         EXPECT_EQ(c.writes, 0u);
     }
+}
+
+namespace {
+// The process's err printer (err::set_printer: a lock and stdio), watched: on
+// a task thread the default handler must print through the report ring instead.
+struct ProcessPrinterWatch {
+    std::atomic<int> calls{0};
+    ProcessPrinterWatch() {
+        chimera::err::set_printer([this](std::string_view) { calls.fetch_add(1); });
+    }
+    ~ProcessPrinterWatch() { chimera::err::set_printer(nullptr); }
+};
+
+// The ERROR> line the loop queues for an error of object `w` in cycle(), as the
+// report ring prints it: cut to its 247 bytes with err::kCutMark when longer.
+std::string report_line(const std::string& message, int code) {
+    std::string line = "ERROR> w: " + message + " (code " + std::to_string(code) + ", in cycle)";
+    constexpr std::size_t kLine = 247;
+    if (line.size() > kLine) line = line.substr(0, kLine - chimera::err::kCutMark.size()) + std::string(chimera::err::kCutMark);
+    return line + "\n";
+}
+
+// The warner's INVOKE_BYTES-long message (tests/sbs/modules/warner.cpp).
+std::string invoke_text(std::size_t bytes) {
+    std::string s = "joint 3 following error exceeds its limit:";
+    for (int k = 0; s.size() < bytes; ++k) s += " " + std::to_string(k);
+    s.resize(bytes);
+    return s;
+}
+}  // namespace
+
+// task.error() whose answer is abort (error() says ERROR), on a real task
+// thread in steady state (issue #14.7): nothing thrown — the abort is recorded
+// in the thread's fixed slot and task.error() returns ERROR — so the runtime
+// makes 0 allocations (a throw would allocate its exception object), 0
+// write(2), and never reaches the process's err printer; the task ends in
+// ERROR with the whole message in its status, and the ERROR> line, longer
+// than a report line, arrives cut with the mark.
+TEST_F(TaskIo, AnAbortingErrInvokeNeitherAllocatesNorWritesOnTheTaskThread) {
+    testing::internal::CaptureStderr();
+    ProcessPrinterWatch printer;
+    auto& s = init("errors");
+    const FailureCount c = count_until_error(s, rmod("INVOKE_AT 100\n"), syscall_id_);
+    s.finish();
+    const std::string err = testing::internal::GetCapturedStderr();
+    ASSERT_GE(c.allocations, 0) << "no ERROR signal, or no write counter";
+    EXPECT_EQ(c.status.state, State::ERROR);
+    EXPECT_EQ(c.status.error, invoke_text(300));  // intact: the slot and the status keep 1023 bytes
+    EXPECT_EQ(c.status.cycles, 99u);              // the aborted cycle wrote nothing and is not counted
+    EXPECT_EQ(c.allocations, 0);
+    if (!chimera::test::kSanitizer) {
+        EXPECT_EQ(c.writes, 0u);
+    }
+    EXPECT_EQ(printer.calls.load(), 0);
+    EXPECT_NE(err.find(report_line(invoke_text(300), chimera::err::code::user + 7)), std::string::npos) << err;
+}
+
+// A message longer than the abort slot: cut to 1023 bytes, ending with the mark.
+TEST_F(TaskIo, AnErrInvokeMessageLongerThanTheSlotArrivesCutWithAMark) {
+    testing::internal::CaptureStderr();
+    auto& s = init("errors");
+    const FailureCount c = count_until_error(s, rmod("INVOKE_AT 60\nINVOKE_BYTES 1500\n"), syscall_id_);
+    s.finish();
+    (void)testing::internal::GetCapturedStderr();
+    ASSERT_GE(c.allocations, 0) << "no ERROR signal, or no write counter";
+    EXPECT_EQ(c.status.state, State::ERROR);
+    const std::string cut = invoke_text(1500).substr(0, chimera::err::Abort::kMessageSize - 1 - chimera::err::kCutMark.size()) +
+                            std::string(chimera::err::kCutMark);
+    EXPECT_EQ(c.status.error, cut);
+    EXPECT_EQ(c.allocations, 0);
+}
+
+// An error raised inside an err handler on a task thread goes to the default
+// handler, which prints it through the report ring (not the process printer's
+// lock and stdio), and aborts the method: error() answers ERROR, the task
+// halts in ERROR naming the inner error. 0 allocations, 0 write(2).
+TEST_F(TaskIo, AnErrorInsideAHandlerIsPrintedThroughTheRingWithoutAllocating) {
+    testing::internal::CaptureStderr();
+    ProcessPrinterWatch printer;
+    auto& s = init("errors");
+    const FailureCount c = count_until_error(s, rmod("HANDLER_ERROR_AT 100\n"), syscall_id_);
+    s.finish();
+    const std::string err = testing::internal::GetCapturedStderr();
+    ASSERT_GE(c.allocations, 0) << "no ERROR signal, or no write counter";
+    EXPECT_EQ(c.status.state, State::ERROR);
+    EXPECT_EQ(c.status.error, "the handler's own check failed");
+    EXPECT_EQ(c.allocations, 0);
+    if (!chimera::test::kSanitizer) {
+        EXPECT_EQ(c.writes, 0u);
+    }
+    EXPECT_EQ(printer.calls.load(), 0);
+    const int code = chimera::err::code::user + 9;
+    // The default handler's line (no location: the handler gave none), then the runtime's.
+    const auto inner = err.find("ERROR> warner-handler: the handler's own check failed (code " + std::to_string(code) + ")\n");
+    const auto routed = err.find(report_line("the handler's own check failed", code));
+    EXPECT_NE(inner, std::string::npos) << err;
+    EXPECT_NE(routed, std::string::npos) << err;
+    EXPECT_LT(inner, routed) << err;
 }

@@ -33,8 +33,7 @@ public:
         if (!f.in_vars.empty()) in_ = t.translate<double>(f.in_vars[0]);
         if (!f.out_vars.empty()) out_ = t.translate<double>(f.out_vars[0]);
         if (t.local().number("INITFAIL", 0.0) != 0.0) {
-            t.error(chimera::err::code::user + 2, "INITFAIL is set");
-            return Result::ERROR;
+            return t.error(chimera::err::code::user + 2, "INITFAIL is set");
         }
         return Result::OK;
     }
@@ -44,8 +43,7 @@ public:
     }
     Result cycle(Task& t) override {
         if (t.local().number("FAIL", 0.0) != 0.0) {
-            t.error(chimera::err::code::user + 1, "FAIL is set");
-            return Result::ERROR;
+            return t.error(chimera::err::code::user + 1, "FAIL is set");
         }
         if (out_ == nullptr) return Result::OK;
         if (in_ != nullptr) *out_ = t.local().number("GAIN", 2.0) * *in_;
