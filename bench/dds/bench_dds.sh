@@ -10,20 +10,12 @@ config=$(cd "$here/../../examples/two_machines" && pwd)/cyclone.xml
 DUR=${DUR:-10} WARM=${WARM:-2} ROUNDS=${ROUNDS:-3}
 SIZE=152  # the CDR size of the bridge's JointState sample (6 names "jointN", 6 positions; README of bench/results/dds.md)
 tag=$$
-ns_pub=bdp$tag ns_sub=bds$tag veth_pub=vbp$tag veth_sub=vbs$tag
+. "$here/../../scripts/netns_pair.sh"
 work=$(mktemp -d /tmp/bench_dds.XXXXXX)
-cleanup() { ip netns del "$ns_pub" 2>/dev/null; ip netns del "$ns_sub" 2>/dev/null; rm -rf "$work"; }
+cleanup() { netns_pair_down; rm -rf "$work"; }
 trap cleanup EXIT
-ip netns add "$ns_pub" || exit 1
-ip netns add "$ns_sub"
-ip link add "$veth_pub" type veth peer name "$veth_sub"
-ip link set "$veth_pub" netns "$ns_pub"
-ip link set "$veth_sub" netns "$ns_sub"
-ip -n "$ns_pub" addr add 10.219.2.1/30 dev "$veth_pub"
-ip -n "$ns_sub" addr add 10.219.2.2/30 dev "$veth_sub"
-for ns in "$ns_pub" "$ns_sub"; do ip -n "$ns" link set lo up; done
-ip -n "$ns_pub" link set "$veth_pub" up
-ip -n "$ns_sub" link set "$veth_sub" up
+netns_pair_up bd 10.219.2 || exit 1
+ns_pub=$NETNS_A ns_sub=$NETNS_B veth_pub=$VETH_A veth_sub=$VETH_B
 domain=$((1 + tag % 230))
 sed -e "s/^DOMAIN .*/DOMAIN    $domain/" -e "s|^CONFIG .*|CONFIG    $config|" "$here/bench_bridge.rmod" > "$work/bench_bridge.rmod"
 in_pub() { CHIMERA_DDS_INTERFACE=$veth_pub CYCLONEDDS_URI=file://$config ip netns exec "$ns_pub" "$@"; }
@@ -31,8 +23,8 @@ in_sub() { CHIMERA_DDS_INTERFACE=$veth_sub CYCLONEDDS_URI=file://$config ip netn
 median() { sort -g | awk '{ v[NR] = $1 } END { print (NR % 2) ? v[(NR + 1) / 2] : (v[NR / 2] + v[NR / 2 + 1]) / 2 }'; }
 
 echo "# $(date -u '+%Y-%m-%d %H:%M') UTC, load $(cut -d' ' -f1-3 /proc/loadavg), DUR=$DUR WARM=$WARM ROUNDS=$ROUNDS, payload $SIZE bytes, 1 kHz"
-echo "| round | ddsperf one-way p50 | ddsperf p99 | bridge, NOTIFY poll: transfer p50 | p99 | bridge, NOTIFY wake: transfer p50 | p99 | consumer's wait p50 | p99 |"
-echo "|---|---|---|---|---|---|---|---|---|"
+echo "| round | ddsperf one-way p50 | ddsperf p99 | bridge, NOTIFY poll: transfer p50 | p99 | NOTIFY wake: p50 | p99 | NOTIFY spin: p50 | p99 | consumer's wait p50 | p99 |"
+echo "|---|---|---|---|---|---|---|---|---|---|---|"
 # The bridge: stamp + ddsbridge in one 1 kHz task, the bridge's receiving code read at 1 kHz.
 # Prints "P50 P99 WAIT50 WAIT99" of the transfer.
 bridge_run() {  # bridge_run NOTIFY
@@ -43,6 +35,10 @@ bridge_run() {  # bridge_run NOTIFY
     in_sub "$build/bench/dds/bench_dds_consumer" "$domain" "$config" bench/joint_states "$WARM" "$DUR" > "$work/consumer.log" 2>&1
     wait $producer
     echo "  NOTIFY $1: $(tr '\n' ' ' < "$work/producer.log") $(grep '^received' "$work/consumer.log")" >&2
+    # The transfer's legs (p50 p99 of each), for the second table.
+    awk -v round="$round" -v notify="$1" '/^(transfer|leg_)/ { v[$1] = $5 " | " $7 }
+        END { print "| " round " | " notify " | " v["leg_write"] " | " v["leg_handoff"] " | " v["leg_dds"] " | " v["leg_store"] " | " v["transfer"] " |" }' \
+        "$work/consumer.log" >> "$work/legs.md"
     awk '/^transfer/ { t50 = $5; t99 = $7 } /^wait/ { w50 = $5; w99 = $7 } END { print t50, t99, w50, w99 }' "$work/consumer.log"
 }
 for round in $(seq "$ROUNDS"); do
@@ -57,8 +53,17 @@ for round in $(seq "$ROUNDS"); do
     p99=$(sed -n 's/.* 99% \([0-9.]*\)us.*/\1/p' <<< "$windows" | median)
     read -r poll50 poll99 w50 w99 <<< "$(bridge_run poll)"
     read -r wake50 wake99 _ _ <<< "$(bridge_run wake)"
-    if [ -z "$poll50" ] || [ -z "$wake50" ] || [ -z "$p50" ]; then
+    read -r spin50 spin99 _ _ <<< "$(bridge_run spin)"
+    if [ -z "$poll50" ] || [ -z "$wake50" ] || [ -z "$spin50" ] || [ -z "$p50" ]; then
         echo "round $round failed:"; cat "$work/ping.log" "$work/producer.log" "$work/consumer.log"; exit 1
     fi
-    echo "| $round | $p50 | $p99 | $poll50 | $poll99 | $wake50 | $wake99 | $w50 | $w99 |"
+    echo "| $round | $p50 | $p99 | $poll50 | $poll99 | $wake50 | $wake99 | $spin50 | $spin99 | $w50 | $w99 |"
 done
+echo
+echo "The bridge's transfer by legs (p50 | p99, µs): write = table write -> the bridge's TBUF write;"
+echo "hand-off = -> the bridge thread's dds_write; dds = -> the listener's entry; store = -> the consumer's TBUF write."
+echo
+echo "| round | NOTIFY | write p50 | p99 | hand-off p50 | p99 | dds p50 | p99 | store p50 | p99 | transfer p50 | p99 |"
+echo "|---|---|---|---|---|---|---|---|---|---|---|---|"
+cat "$work/legs.md"
+echo "# load at the end: $(cut -d' ' -f1-3 /proc/loadavg)"
