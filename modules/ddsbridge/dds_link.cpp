@@ -282,11 +282,13 @@ void WriteSchedule::seen(std::int64_t write_ns, std::int64_t period_ns) noexcept
     if (origin_ == 0 || period_ns != period_ || write_ns - last_ > 3 * period_ns || write_ns < last_) {
         origin_ = write_ns;  // a new grid
         earliest_ = 0;
+        typical_ = 0;
     } else {
         // The phase on the grid, in [-period/2, period/2): the jitter is less than half a period.
         const std::int64_t half = period_ns / 2;
         const std::int64_t phase = ((write_ns - origin_ + half) % period_ns + period_ns) % period_ns - half;
         earliest_ = std::min(std::min(earliest_ + kRelax, std::int64_t{0}), phase);
+        typical_ += (phase - typical_) / kAverage;
     }
     period_ = period_ns;
     last_ = write_ns;
@@ -299,6 +301,11 @@ std::int64_t WriteSchedule::next_due(std::int64_t write_ns) const noexcept {
     const std::int64_t since = write_ns - base + period_ / 2;
     const std::int64_t k = since >= 0 ? since / period_ : -((-since + period_ - 1) / period_);
     return base + (k + 1) * period_;
+}
+
+std::int64_t WriteSchedule::next_typical(std::int64_t write_ns) const noexcept {
+    const std::int64_t due = next_due(write_ns);
+    return due == 0 ? 0 : due + std::max(typical_ - earliest_, std::int64_t{0});
 }
 
 struct Link::Messages {
@@ -409,7 +416,8 @@ void Link::wait_for_write(const WriteSchedule& schedule, Clock newest) noexcept 
             chimera::ipc::seqlock::cpu_relax();
         }
     }
-    sleep_until(due + kPollLag > now ? due + kPollLag : now + kPollStep);
+    const Clock look = schedule.next_typical(newest) + kPollLag;
+    sleep_until(look > now ? look : now + kPollStep);
 }
 
 }  // namespace ddsbridge

@@ -10,10 +10,10 @@
 // spin, never makes a system call for it: the bridge thread learns of a new
 // value by looking at the TBUF. It predicts when the task's next write is due
 // from the task's release grid (WriteSchedule: the period and the earliest
-// phase of the recent writes) and
-//   - poll: sleeps until kPollLag after that, looks, and looks again every
-//     kPollStep while the write is late: the value leaves up to about kPollLag
-//     plus the thread's wake-up latency after the write;
+// and typical phases of the recent writes) and
+//   - poll: sleeps until kPollLag after the typical time, looks, and looks
+//     again every kPollStep while the write is late: the value leaves about
+//     kPollLag plus the thread's wake-up latency after a typical write;
 //   - spin: sleeps until kSpinLead before that and then keeps looking (a busy
 //     wait, for at most kSpinLimit past the due time) until the write appears:
 //     the value leaves within about a microsecond of the write, for the CPU
@@ -47,31 +47,39 @@ struct ReceivedHeader {
 };
 static_assert(sizeof(ReceivedHeader) == 16);
 
-inline constexpr std::int64_t kPollLag = 20'000;     ///< poll: ns after the task's write is due
-inline constexpr std::int64_t kPollStep = 50'000;    ///< poll: ns between looks while it is late
+inline constexpr std::int64_t kPollLag = 10'000;     ///< poll: ns after the task's typical write time
+inline constexpr std::int64_t kPollStep = 20'000;    ///< poll: ns between looks while it is late
 inline constexpr std::int64_t kSpinLead = 20'000;    ///< spin: ns before the write is due (the thread's own wake-up lateness)
 inline constexpr std::int64_t kSpinLimit = 200'000;  ///< spin: ns past the due time before it sleeps in poll steps
 
 /// When the task's next write is due. The task is released on a grid (one
 /// period apart) and writes some jitter after each release; the earliest
 /// phase of its writes on that grid, relaxed by kRelax per write so that one
-/// unusually early write is forgotten, is when the next one can come first.
+/// unusually early write is forgotten, is when the next one can come first;
+/// the typical phase (a moving average over about kAverage writes) is when it
+/// usually comes.
 /// Starts afresh when the period changes or writes stop for over 3 periods
 /// (the task turned OFF and ON: a new grid). Pure arithmetic: tested exactly.
 class WriteSchedule {
 public:
     static constexpr std::int64_t kRelax = 100;  ///< ns per write
+    static constexpr std::int64_t kAverage = 8;  ///< writes
 
     /// The task wrote at `write_ns` (its TBUF stamp); its period is `period_ns`.
     void seen(std::int64_t write_ns, std::int64_t period_ns) noexcept;
     /// The earliest time the write after `write_ns` is due; 0 before any write.
     std::int64_t next_due(std::int64_t write_ns) const noexcept;
+    /// The typical time of the write after `write_ns`: next_due() or later; 0 before any write.
+    std::int64_t next_typical(std::int64_t write_ns) const noexcept;
     /// The earliest phase on the grid (ns after the first write of this grid; <= 0).
     std::int64_t earliest() const noexcept { return earliest_; }
+    /// The typical phase on the grid (ns after the first write of this grid).
+    std::int64_t typical() const noexcept { return typical_; }
 
 private:
     std::int64_t origin_ = 0;    // the first write of this grid
     std::int64_t earliest_ = 0;  // the earliest phase seen, relative to origin_, in (-period/2, 0]
+    std::int64_t typical_ = 0;   // the moving average of the phases
     std::int64_t last_ = 0;      // the newest write
     std::int64_t period_ = 0;
 };

@@ -176,6 +176,21 @@ TEST(WriteSchedule, TheNextWriteIsDueOnePeriodOnAtTheEarliestPhaseSeen) {
     EXPECT_EQ(s.next_due(t0 + 4 * P + 6'000), t0 + 5 * P + 5'000 + 2 * WriteSchedule::kRelax);
 }
 
+TEST(WriteSchedule, TheTypicalTimeIsTheMovingAverageOfThePhases) {
+    constexpr std::int64_t P = 1'000'000, t0 = 5'000'000'000;
+    WriteSchedule s;
+    EXPECT_EQ(s.next_typical(t0), 0) << "nothing known before the first write";
+    s.seen(t0 + 10'000, P);
+    EXPECT_EQ(s.next_typical(t0 + 10'000), t0 + P + 10'000);
+    s.seen(t0 + P + 90'000, P);  // phase +80 µs: the average moves an eighth of the way
+    EXPECT_EQ(s.typical(), 80'000 / WriteSchedule::kAverage);
+    EXPECT_EQ(s.next_due(t0 + P + 90'000), t0 + 2 * P + 10'000) << "the earliest phase is still the first write's";
+    EXPECT_EQ(s.next_typical(t0 + P + 90'000), t0 + 2 * P + 10'000 + 10'000);
+    for (int k = 2; k < 200; ++k) s.seen(t0 + k * P + 90'000, P);
+    EXPECT_NEAR(static_cast<double>(s.typical()), 80'000, WriteSchedule::kAverage) << "settles on the writes' phase";
+    EXPECT_GE(s.next_typical(t0 + 199 * P + 90'000), s.next_due(t0 + 199 * P + 90'000));
+}
+
 TEST(WriteSchedule, TheEarliestPhaseIsForgottenSlowly) {
     constexpr std::int64_t P = 1'000'000, t0 = 5'000'000'000;
     WriteSchedule s;
