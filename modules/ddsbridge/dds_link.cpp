@@ -366,7 +366,7 @@ void Link::publish_loop() noexcept {
     WriteSchedule schedule;
     Clock newest = 0;  // stamp of the newest value the task wrote
     while (!stop_.load(std::memory_order_relaxed)) {
-        keep_off_task_cpus();
+        if (config_.notify == Notify::spin) keep_off_task_cpus();
         const std::uint32_t seen = wakeups_.load();  // before the look: a write after it ends the wait at once
         if (const Clock wrote = publish_fresh(); wrote != 0) {
             newest = wrote;

@@ -406,9 +406,9 @@ TEST_F(Bridge, WithNotifySpinTheTaskThreadsStillMakeOnlyTheReleaseWait) {
     count_task_threads("spin");
 }
 
-// The bridge threads keep off the CPU the task is pinned to, while another
-// one is left, so that their looks and dds_write neither wait for the task nor
-// delay it; OFF, they may use every CPU again.
+// NOTIFY spin: the bridge threads keep off the CPU the task is pinned to,
+// while another one is left, so that the task never preempts their looks;
+// OFF, they may use every CPU again.
 TEST_F(Bridge, TheBridgeThreadsKeepOffTheTasksCpu) {
     cpu_set_t process;
     ASSERT_EQ(sched_getaffinity(0, sizeof process, &process), 0);
