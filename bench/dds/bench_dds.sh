@@ -10,12 +10,15 @@
 # default) holds /dev/cpu_dma_latency at 0 for the whole run, as the runtime
 # does for a real-time subsystem (so ddsperf gets the same shallow idle as the
 # bridge); IDLE=free holds nothing and tells the runtime not to either.
+# BESIDE=1 adds ddsperf run again beside the producer's 1 kHz task (stamp and
+# a bridge publishing to no reader, so nothing is sent): the peer under the
+# same CPU load as the bridge's own runs.
 set -u
 build=$(cd "${1:?usage: bench_dds.sh BUILD_DIR}" && pwd)
 here=$(cd "$(dirname "$0")" && pwd)
 config=$(cd "$here/../../examples/two_machines" && pwd)/cyclone.xml
 DUR=${DUR:-10} WARM=${WARM:-2} ROUNDS=${ROUNDS:-3} NOTIFY=${NOTIFY:-poll wake spin} BEFORE=${BEFORE:-}
-IDLE=${IDLE:-held}
+IDLE=${IDLE:-held} BESIDE=${BESIDE:-0}
 variants=$NOTIFY
 [ -n "$BEFORE" ] && variants="$variants poll@before wake@before"
 SIZE=152  # the CDR size of the bridge's JointState sample (6 names "jointN", 6 positions; README of bench/results/dds.md)
@@ -57,18 +60,33 @@ bridge_run() {  # bridge_run NOTIFY[@before]
 }
 header="| round | ddsperf one-way p50 | p99 |" rule="|---|---|---|"
 for v in $variants; do header="$header bridge $v: transfer p50 | p99 |" rule="$rule---|---|"; done
+# ddsperf: ping at 1 kHz, best effort, one-way = round trip / 2 (as ddsperf prints it);
+# the median over its one-second windows after the warm-up. Prints "P50 P99".
+ddsperf_run() {
+    in_pub ddsperf -D $((DUR + WARM + 3)) -u pong > "$work/pong.log" 2>&1 &
+    local pong=$!
+    in_sub ddsperf -D $((DUR + WARM)) -u ping 1kHz size $SIZE > "$work/ping.log" 2>&1
+    wait $pong
+    local windows
+    windows=$(grep " size $SIZE mean " "$work/ping.log" | awk -v w="$WARM" '$2 + 0 > w')
+    echo "$(sed -n 's/.* 50% \([0-9.]*\)us.*/\1/p' <<< "$windows" | median)" \
+         "$(sed -n 's/.* 99% \([0-9.]*\)us.*/\1/p' <<< "$windows" | median)"
+}
+# ddsperf beside the producer's task: its bridge publishes on a domain no one reads.
+ddsperf_beside_task() {
+    sed -e "s/^DOMAIN .*/DOMAIN    $(( (domain + 1) % 230 + 1 ))/" "$work/bench_bridge.rmod" > "$work/bench_alone.rmod"
+    in_pub "$build/bench/dds/bench_dds_producer" "$here/bench.sbs" "bdda$tag" "$here/stamp.rmod" \
+        "$work/bench_alone.rmod" "$build/bench/dds" "$build/modules/ddsbridge" $((DUR + WARM + 6)) > "$work/alone.log" 2>&1 &
+    local producer=$!
+    sleep 2
+    ddsperf_run
+    wait $producer
+}
+[ "$BESIDE" = 1 ] && { header="$header ddsperf beside the task p50 | p99 |"; rule="$rule---|---|"; }
 echo "$header"
 echo "$rule"
 for round in $(seq "$ROUNDS"); do
-    # ddsperf: ping at 1 kHz, best effort, one-way = round trip / 2 (as ddsperf prints it);
-    # the median over its one-second windows after the warm-up.
-    in_pub ddsperf -D $((DUR + WARM + 3)) -u pong > "$work/pong.log" 2>&1 &
-    pong=$!
-    in_sub ddsperf -D $((DUR + WARM)) -u ping 1kHz size $SIZE > "$work/ping.log" 2>&1
-    wait $pong
-    windows=$(grep " size $SIZE mean " "$work/ping.log" | awk -v w="$WARM" '$2 + 0 > w')
-    p50=$(sed -n 's/.* 50% \([0-9.]*\)us.*/\1/p' <<< "$windows" | median)
-    p99=$(sed -n 's/.* 99% \([0-9.]*\)us.*/\1/p' <<< "$windows" | median)
+    read -r p50 p99 <<< "$(ddsperf_run)"
     [ -n "$p50" ] || { echo "round $round: ddsperf failed:"; cat "$work/ping.log" "$work/pong.log"; exit 1; }
     row="| $round | $p50 | $p99 |"
     for v in $variants; do
@@ -76,6 +94,10 @@ for round in $(seq "$ROUNDS"); do
         [ -n "$t50" ] || { echo "round $round: the bridge ($v) failed:"; cat "$work/producer.log" "$work/consumer.log"; exit 1; }
         row="$row $t50 | $t99 |"
     done
+    if [ "$BESIDE" = 1 ]; then
+        read -r b50 b99 <<< "$(ddsperf_beside_task)"
+        row="$row $b50 | $b99 |"
+    fi
     echo "$row"
 done
 echo
