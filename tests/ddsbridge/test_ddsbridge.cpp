@@ -406,9 +406,10 @@ TEST_F(Bridge, WithNotifySpinTheTaskThreadsStillMakeOnlyTheReleaseWait) {
     count_task_threads("spin");
 }
 
-// NOTIFY spin: the bridge threads keep off the CPU the task is pinned to,
-// while another one is left, so that the task never preempts their looks;
-// OFF, they may use every CPU again.
+// NOTIFY spin: the bridge thread keeps off the CPU the task is pinned to,
+// while another one is left, so that the task never preempts its looks; OFF,
+// it may use every CPU again. NOTIFY poll (the subscriber here) leaves its
+// thread free.
 TEST_F(Bridge, TheBridgeThreadsKeepOffTheTasksCpu) {
     cpu_set_t process;
     ASSERT_EQ(sched_getaffinity(0, sizeof process, &process), 0);
@@ -428,7 +429,15 @@ TEST_F(Bridge, TheBridgeThreadsKeepOffTheTasksCpu) {
         cpu_set_t cpus;
         return sched_getaffinity(static_cast<pid_t>(tid), sizeof cpus, &cpus) == 0 && CPU_ISSET(0, &cpus);
     };
-    for (const long tid : bridges) EXPECT_TRUE(eventually([&] { return !uses_cpu0(tid); })) << "thread " << tid;
+    auto off_cpu0 = [&] {
+        int n = 0;
+        for (const long tid : bridges) n += uses_cpu0(tid) ? 0 : 1;
+        return n;
+    };
+    // The publisher's bridge spins and keeps off; the subscriber's polls and does not.
+    EXPECT_TRUE(eventually([&] { return off_cpu0() == 1; })) << off_cpu0() << " bridge threads off CPU 0";
+    std::this_thread::sleep_for(50ms);
+    EXPECT_EQ(off_cpu0(), 1) << "NOTIFY poll leaves its thread on every CPU";
     sbs_->control(pub_, Control::off);
     sbs_->control(sub_, Control::off);
     for (const long tid : bridges) EXPECT_TRUE(eventually([&] { return uses_cpu0(tid); })) << "thread " << tid << " OFF";
