@@ -6,6 +6,8 @@
 # Each round runs ddsperf, then the bridge with each NOTIFY of $NOTIFY (poll
 # wake spin). BEFORE=DIR adds, in the same rounds, the ddsbridge.so of DIR
 # (another build of the module: "before" a change) with NOTIFY poll and wake.
+# A variant NOTIFY:StateVar sends the bridge's chimera_msgs/StateVar (no
+# strings) instead of the JointState.
 # The CPUs' idle states are the same for every measurement: IDLE=held (the
 # default) holds /dev/cpu_dma_latency at 0 for the whole run, as the runtime
 # does for a real-time subsystem (so ddsperf gets the same shallow idle as the
@@ -43,14 +45,17 @@ median() { sort -g | awk '{ v[NR] = $1 } END { print (NR % 2) ? v[(NR + 1) / 2] 
 echo "# $(date -u '+%Y-%m-%d %H:%M') UTC, load $(cut -d' ' -f1-3 /proc/loadavg), DUR=$DUR WARM=$WARM ROUNDS=$ROUNDS IDLE=$IDLE, payload $SIZE bytes, 1 kHz, cpuidle $(cat /sys/devices/system/cpu/cpuidle/current_driver 2>/dev/null)"
 # The bridge: stamp + ddsbridge in one 1 kHz task, the bridge's receiving code read at 1 kHz.
 # Appends its line to the legs table; prints "TRANSFER_P50 TRANSFER_P99".
-bridge_run() {  # bridge_run NOTIFY[@before]
-    local notify=${1%@*} modules=$build/modules/ddsbridge
+bridge_run() {  # bridge_run NOTIFY[:StateVar][@before]
+    local notify=${1%@*} modules=$build/modules/ddsbridge message=JointState
     [ "$1" != "$notify" ] && modules=$BEFORE
+    [ "${notify#*:}" != "$notify" ] && message=${notify#*:}
+    notify=${notify%:*}
     sed -e "s/^NOTIFY .*/NOTIFY    $notify/" "$work/bench_bridge.rmod" > "$work/bench_bridge_$notify.rmod"
+    [ "$message" = StateVar ] && sed -i -e "s/JointState.position/StateVar/" "$work/bench_bridge_$notify.rmod"
     in_pub "$build/bench/dds/bench_dds_producer" "$here/bench.sbs" "bdds$tag" "$here/stamp.rmod" \
         "$work/bench_bridge_$notify.rmod" "$build/bench/dds" "$modules" $((DUR + WARM + 3)) > "$work/producer.log" 2>&1 &
     local producer=$!
-    in_sub "$build/bench/dds/bench_dds_consumer" "$domain" "$config" bench/joint_states "$WARM" "$DUR" > "$work/consumer.log" 2>&1
+    in_sub "$build/bench/dds/bench_dds_consumer" "$domain" "$config" bench/joint_states "$WARM" "$DUR" "$message" > "$work/consumer.log" 2>&1
     wait $producer
     echo "  round $round $1: $(tr '\n' ' ' < "$work/producer.log") $(grep '^received' "$work/consumer.log")" >&2
     awk -v round="$round" -v variant="$1" '/^(transfer|wait|leg_)/ { v[$1] = $5 " | " $7 }

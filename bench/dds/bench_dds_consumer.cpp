@@ -13,7 +13,7 @@
 //   dds      = the listener's entry - dds_write: Cyclone, the network, the receive thread;
 //   store    = the TBUF write - the listener's entry: take and copy.
 // Prints "NAME n N p50 US p99 US max US" for transfer, wait and each leg.
-//   bench_dds_consumer DOMAIN CONFIG TOPIC WARMUP DURATION
+//   bench_dds_consumer DOMAIN CONFIG TOPIC WARMUP DURATION [JointState|StateVar]
 #include "dds_link.hpp"
 
 #include <chimera/ipc/clock.hpp>
@@ -24,6 +24,7 @@
 #include <cstdio>
 #include <cstdlib>
 #include <ctime>
+#include <string>
 #include <vector>
 
 namespace {
@@ -84,8 +85,8 @@ std::int64_t realtime_minus_monotonic() {
 }  // namespace
 
 int main(int argc, char** argv) {
-    if (argc != 6) {
-        std::fprintf(stderr, "usage: bench_dds_consumer DOMAIN CONFIG TOPIC WARMUP DURATION\n");
+    if (argc != 6 && argc != 7) {
+        std::fprintf(stderr, "usage: bench_dds_consumer DOMAIN CONFIG TOPIC WARMUP DURATION [JointState|StateVar]\n");
         return 2;
     }
     using namespace ddsbridge;
@@ -96,7 +97,7 @@ int main(int argc, char** argv) {
     port.spec.port = "Q";
     port.spec.ros_name = argv[3];
     port.spec.direction = Direction::sub;
-    port.spec.message = Message::joint_position;
+    port.spec.message = argc == 7 && std::string(argv[6]) == "StateVar" ? Message::state_var : Message::joint_position;
     port.spec.qos = Qos::state;
     port.spec.age_limit = 1;
     port.global_name = "Q";
