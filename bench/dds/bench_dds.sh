@@ -7,7 +7,10 @@
 # wake spin). BEFORE=DIR adds, in the same rounds, the ddsbridge.so of DIR
 # (another build of the module: "before" a change) with NOTIFY poll and wake.
 # A variant NOTIFY:StateVar sends the bridge's chimera_msgs/StateVar (no
-# strings) instead of the JointState.
+# strings) instead of the JointState. The variant "plain" (PLAIN=1 puts it
+# first) is a second peer: bench_dds_writer, Cyclone's own writer sending the
+# bridge's exact sample from a 1 kHz loop, read by the same consumer: DDS's
+# one-way time on one clock, where ddsperf gives half a round trip.
 # The CPUs' idle states are the same for every measurement: IDLE=held (the
 # default) holds /dev/cpu_dma_latency at 0 for the whole run, as the runtime
 # does for a real-time subsystem (so ddsperf gets the same shallow idle as the
@@ -20,8 +23,9 @@ build=$(cd "${1:?usage: bench_dds.sh BUILD_DIR}" && pwd)
 here=$(cd "$(dirname "$0")" && pwd)
 config=$(cd "$here/../../examples/two_machines" && pwd)/cyclone.xml
 DUR=${DUR:-10} WARM=${WARM:-2} ROUNDS=${ROUNDS:-3} NOTIFY=${NOTIFY:-poll wake spin} BEFORE=${BEFORE:-}
-IDLE=${IDLE:-held} BESIDE=${BESIDE:-0}
+IDLE=${IDLE:-held} BESIDE=${BESIDE:-0} PLAIN=${PLAIN:-0}
 variants=$NOTIFY
+[ "$PLAIN" = 1 ] && variants="plain $variants"
 [ -n "$BEFORE" ] && variants="$variants poll@before wake@before"
 SIZE=152  # the CDR size of the bridge's JointState sample (6 names "jointN", 6 positions; README of bench/results/dds.md)
 tag=$$
@@ -52,8 +56,12 @@ bridge_run() {  # bridge_run NOTIFY[:StateVar][@before]
     notify=${notify%:*}
     sed -e "s/^NOTIFY .*/NOTIFY    $notify/" "$work/bench_bridge.rmod" > "$work/bench_bridge_$notify.rmod"
     [ "$message" = StateVar ] && sed -i -e "s/JointState.position/StateVar/" "$work/bench_bridge_$notify.rmod"
-    in_pub "$build/bench/dds/bench_dds_producer" "$here/bench.sbs" "bdds$tag" "$here/stamp.rmod" \
-        "$work/bench_bridge_$notify.rmod" "$build/bench/dds" "$modules" $((DUR + WARM + 3)) > "$work/producer.log" 2>&1 &
+    if [ "$1" = plain ]; then
+        in_pub "$build/bench/dds/bench_dds_writer" "$domain" bench/joint_states $((DUR + WARM + 3)) > "$work/producer.log" 2>&1 &
+    else
+        in_pub "$build/bench/dds/bench_dds_producer" "$here/bench.sbs" "bdds$tag" "$here/stamp.rmod" \
+            "$work/bench_bridge_$notify.rmod" "$build/bench/dds" "$modules" $((DUR + WARM + 3)) > "$work/producer.log" 2>&1 &
+    fi
     local producer=$!
     in_sub "$build/bench/dds/bench_dds_consumer" "$domain" "$config" bench/joint_states "$WARM" "$DUR" "$message" > "$work/consumer.log" 2>&1
     wait $producer
