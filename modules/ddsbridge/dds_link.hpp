@@ -3,7 +3,7 @@
 // threads, which inherit their creator's scheduling, are SCHED_OTHER too), and
 // one triple buffer (TBUF, §5.6) per bridged variable between it and the task:
 //
-//   pub:  task cycle --tbuf write--> [TBUF] --poll--> bridge thread --dds_write--> network
+//   pub:  task cycle --tbuf write--> [TBUF] --look (or wake)--> bridge thread --dds_write--> network
 //   sub:  network --> Cyclone receive thread (listener) --tbuf write--> [TBUF] --read--> task cycle
 //
 // The task never waits for the bridge and, with NOTIFY poll (the default) or
@@ -14,10 +14,11 @@
 //   - poll: sleeps until kPollLag after the typical time, looks, and looks
 //     again every kPollStep while the write is late: the value leaves about
 //     kPollLag plus the thread's wake-up latency after a typical write;
-//   - spin: sleeps until kSpinLead before that and then keeps looking (a busy
-//     wait, for at most kSpinLimit past the due time) until the write appears:
-//     the value leaves within about a microsecond of the write, for the CPU
-//     time of the lead plus the write's jitter each period.
+//   - spin: sleeps until kSpinLead before the earliest due time and then keeps
+//     looking (a busy wait, for at most kSpinLimit past the due time, on a CPU
+//     other than the task's) until the write appears: the value leaves a few
+//     µs after the write, for the CPU time of the lead plus the write's jitter
+//     each period.
 // With NOTIFY wake the task wakes the thread after writing (one futex(2) call
 // per cycle): the lag is one thread wake-up. bench/results/dds.md measures
 // the three.
