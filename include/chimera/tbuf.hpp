@@ -236,6 +236,12 @@ public:
             ipc::copy_var(static_cast<std::byte*>(item), static_cast<const std::byte*>(p), item_size_);
         return r;
     }
+    /// True when an item this reader has not read is waiting: one load, no
+    /// change to the buffer (a reader polling for a new item looks with it,
+    /// then reads).
+    bool fresh_pending() const noexcept {
+        return (h_->state.load(std::memory_order_relaxed) & detail::kFresh) != 0;
+    }
     /// Zero-copy reading: the newest item in place, valid until the next read
     /// (nullptr when the state word is damaged).
     const void* read_view(ReadResult& r) noexcept {

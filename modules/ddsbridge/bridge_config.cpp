@@ -127,10 +127,12 @@ BridgeConfig parse_config(const chimera::RmodFile& rmod) {
     if (const auto* e = lc.find("NOTIFY"); e && !e->values.empty()) {
         if (e->values.front() == "poll") {
             c.notify = Notify::poll;
+        } else if (e->values.front() == "spin") {
+            c.notify = Notify::spin;
         } else if (e->values.front() == "wake") {
             c.notify = Notify::wake;
         } else {
-            fail(rmod, e->line, "NOTIFY '" + e->values.front() + "': expected poll or wake");
+            fail(rmod, e->line, "NOTIFY '" + e->values.front() + "': expected poll, spin or wake");
         }
     }
     if (const auto* e = lc.find("JOINT_NAMES")) c.joint_names = e->values;

@@ -6,7 +6,7 @@
 //   DOMAIN    17                      DDS domain id (default 0)
 //   CONFIG    cyclone.xml             Cyclone DDS XML configuration, relative to the .rmod (default: Cyclone's own)
 //   AGE_CLOCK receive                 receive | source (see README: which clock the age is on)
-//   NOTIFY    poll                    poll | wake: how the bridge thread learns of a value to publish
+//   NOTIFY    poll                    poll | spin | wake: how the bridge thread learns of a value to publish
 //   JOINT_NAMES j1 j2 j3 j4 j5 j6     JointState.name of what is published (default: none)
 //   TOPIC_Q_MEZ  puma/joint_positions  pub  JointState.position  state
 //   TOPIC_T_REF  puma/joint_torques    sub  JointState.effort    command  0.02 illegal
@@ -48,6 +48,9 @@ enum class AgeClock : std::uint8_t {
 /// How the bridge thread learns that the task wrote a value to publish.
 enum class Notify : std::uint8_t {
     poll,  ///< it looks at the TBUFs when the task's write is due: no system call on the task thread
+    spin,  ///< as poll, but from just before the write is due it keeps looking (a busy wait on
+           ///< another CPU, a few % of one) until the write appears: no system call on the task
+           ///< thread, and no wake-up between the write and dds_write
     wake,  ///< the task wakes it (futex) after writing: one more system call per cycle, a
            ///< thread wake-up instead of the poll's lag (bench/results/dds.md compares them)
 };

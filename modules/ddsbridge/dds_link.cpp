@@ -2,12 +2,15 @@
 #include "dds_link.hpp"
 
 #include <chimera/ipc/clock.hpp>
+#include <chimera/ipc/seqlock.hpp>
 
 #include <dds/dds.h>
 #include <sched.h>
+#include <sys/prctl.h>
 #include <sys/syscall.h>
 #include <unistd.h>
 
+#include <algorithm>
 #include <cerrno>
 #include <cstring>
 #include <ctime>
@@ -27,6 +30,8 @@ struct Link::Slot {
     std::vector<std::byte> item;  // the listener's staging item
     std::vector<char*> names;     // JointState.name (pub)
     const Port* port = nullptr;
+    ReceiveProbeFn probe = nullptr;  // set and called under listener_mu
+    void* probe_context = nullptr;
 };
 
 namespace {
@@ -119,6 +124,7 @@ Clock stamp_ns(const std_msgs_msg_dds__Header_& h) noexcept {
 // arrival on this machine's CLOCK_MONOTONIC; a sample of the wrong length is
 // counted and dropped (never half-copied).
 void on_data_available(dds_entity_t reader, void* arg) {
+    const Clock entered = chimera::ipc::now_ns();
     auto& slot = *static_cast<Link::Slot*>(arg);
     std::lock_guard<std::mutex> lock(slot.listener_mu);
     const Port& port = *slot.port;
@@ -142,8 +148,12 @@ void on_data_available(dds_entity_t reader, void* arg) {
             } else {
                 std::memcpy(slot.item.data(), &head, sizeof head);
                 std::memcpy(slot.item.data() + sizeof head, data->_buffer, port.nelem * sizeof(double));
-                (void)slot.tbuf.write(slot.item.data(), chimera::ipc::now_ns());
+                const Clock stored = chimera::ipc::now_ns();
+                (void)slot.tbuf.write(slot.item.data(), stored);
                 slot.counts.received.fetch_add(1, std::memory_order_relaxed);
+                if (slot.probe)
+                    slot.probe(slot.probe_context, {data->_buffer, port.nelem, head.source_ns, info.source_timestamp,
+                                                    entered, stored});
             }
         }
         dds_return_loan(reader, samples, 1);
@@ -194,6 +204,12 @@ Link::Link(const BridgeConfig& config, std::vector<Port> ports) : config_(config
 
 chimera::tbuf::Tbuf& Link::buffer(std::size_t i) noexcept { return slots_[i]->tbuf; }
 const SubCounts& Link::counts(std::size_t i) const noexcept { return slots_[i]->counts; }
+
+void Link::set_receive_probe(std::size_t i, ReceiveProbeFn fn, void* context) noexcept {
+    std::lock_guard<std::mutex> lock(slots_[i]->listener_mu);
+    slots_[i]->probe = fn;
+    slots_[i]->probe_context = context;
+}
 
 Link::~Link() {
     stop_.store(true);
@@ -261,42 +277,100 @@ void Link::close() noexcept {
     release_domain(config_.domain, config_.config_file);
 }
 
-void Link::publish_loop() noexcept {
+void WriteSchedule::seen(std::int64_t write_ns, std::int64_t period_ns) noexcept {
+    if (period_ns <= 0) return;
+    if (origin_ == 0 || period_ns != period_ || write_ns - last_ > 3 * period_ns || write_ns < last_) {
+        origin_ = write_ns;  // a new grid
+        earliest_ = 0;
+        typical_ = 0;
+    } else {
+        // The phase on the grid, in [-period/2, period/2): the jitter is less than half a period.
+        const std::int64_t half = period_ns / 2;
+        const std::int64_t phase = ((write_ns - origin_ + half) % period_ns + period_ns) % period_ns - half;
+        earliest_ = std::min(std::min(earliest_ + kRelax, std::int64_t{0}), phase);
+        typical_ += (phase - typical_) / kAverage;
+    }
+    period_ = period_ns;
+    last_ = write_ns;
+}
+
+std::int64_t WriteSchedule::next_due(std::int64_t write_ns) const noexcept {
+    if (origin_ == 0) return 0;
+    // The grid point this write belongs to (nearest), then the next one.
+    const std::int64_t base = origin_ + earliest_;
+    const std::int64_t since = write_ns - base + period_ / 2;
+    const std::int64_t k = since >= 0 ? since / period_ : -((-since + period_ - 1) / period_);
+    return base + (k + 1) * period_;
+}
+
+std::int64_t WriteSchedule::next_typical(std::int64_t write_ns) const noexcept {
+    const std::int64_t due = next_due(write_ns);
+    return due == 0 ? 0 : due + std::max(typical_ - earliest_, std::int64_t{0});
+}
+
+struct Link::Messages {
     sensor_msgs_msg_dds__JointState_ joint{};
     chimera_msgs_msg_dds__StateVar_ var{};
-    char empty[] = "";
-    joint.header.frame_id = empty;
+    char empty[1] = {'\0'};
+};
+
+std::int64_t Link::publish_fresh() noexcept {
+    Messages& m = *messages_;
+    Clock newest = 0;
+    for (auto& s : slots_) {
+        const Port& p = *s->port;
+        if (p.spec.direction != Direction::pub) continue;
+        chimera::tbuf::ReadResult r;
+        const void* data = s->tbuf.read_view(r);
+        if (r.status != chimera::tbuf::ReadStatus::fresh) continue;
+        newest = std::max(newest, r.time_ns);
+        // ROS time: the task's write, moved from CLOCK_MONOTONIC to CLOCK_REALTIME.
+        const Clock realtime = clock_ns(CLOCK_REALTIME) - (clock_ns(CLOCK_MONOTONIC) - r.time_ns);
+        dds_sequence_double seq{static_cast<uint32_t>(p.nelem), static_cast<uint32_t>(p.nelem),
+                                static_cast<double*>(const_cast<void*>(data)), false};
+        dds_return_t rc;
+        if (p.spec.message == Message::state_var) {
+            set_stamp(m.var.header, realtime);
+            m.var.header.frame_id = const_cast<char*>(p.global_name.c_str());
+            m.var.counter = r.counter;
+            m.var.data = seq;
+            rc = dds_write(s->endpoint, &m.var);
+        } else {
+            m.joint = sensor_msgs_msg_dds__JointState_{};
+            m.joint.header.frame_id = m.empty;
+            set_stamp(m.joint.header, realtime);
+            m.joint.name = {static_cast<uint32_t>(s->names.size()), static_cast<uint32_t>(s->names.size()),
+                            s->names.data(), false};
+            *joint_field(m.joint, p.spec.message) = seq;
+            rc = dds_write(s->endpoint, &m.joint);
+        }
+        if (rc == DDS_RETCODE_OK) published_.fetch_add(1, std::memory_order_relaxed);
+    }
+    return newest;
+}
+
+namespace {
+
+void sleep_until(Clock t) noexcept {
+    const timespec ts{static_cast<time_t>(t / 1'000'000'000), static_cast<long>(t % 1'000'000'000)};
+    while (clock_nanosleep(CLOCK_MONOTONIC, TIMER_ABSTIME, &ts, nullptr) == EINTR) {}
+}
+
+}  // namespace
+
+void Link::publish_loop() noexcept {
+    // Its sleeps end when asked, not up to 50 µs later (the default timer
+    // slack of a SCHED_OTHER thread); Cyclone's threads keep theirs.
+    prctl(PR_SET_TIMERSLACK, 1UL, 0UL, 0UL, 0UL);
+    messages_ = std::make_unique<Messages>();
+    WriteSchedule schedule;
     Clock newest = 0;  // stamp of the newest value the task wrote
     while (!stop_.load(std::memory_order_relaxed)) {
+        if (config_.notify == Notify::spin) keep_off_task_cpus();
         const std::uint32_t seen = wakeups_.load();  // before the look: a write after it ends the wait at once
-        for (auto& s : slots_) {
-            const Port& p = *s->port;
-            if (p.spec.direction != Direction::pub) continue;
-            chimera::tbuf::ReadResult r;
-            const void* data = s->tbuf.read_view(r);
-            if (r.status != chimera::tbuf::ReadStatus::fresh) continue;
-            newest = std::max(newest, r.time_ns);
-            // ROS time: the task's write, moved from CLOCK_MONOTONIC to CLOCK_REALTIME.
-            const Clock realtime = clock_ns(CLOCK_REALTIME) - (clock_ns(CLOCK_MONOTONIC) - r.time_ns);
-            dds_sequence_double seq{static_cast<uint32_t>(p.nelem), static_cast<uint32_t>(p.nelem),
-                                    static_cast<double*>(const_cast<void*>(data)), false};
-            dds_return_t rc;
-            if (p.spec.message == Message::state_var) {
-                set_stamp(var.header, realtime);
-                var.header.frame_id = const_cast<char*>(p.global_name.c_str());
-                var.counter = r.counter;
-                var.data = seq;
-                rc = dds_write(s->endpoint, &var);
-            } else {
-                joint = sensor_msgs_msg_dds__JointState_{};
-                joint.header.frame_id = empty;
-                set_stamp(joint.header, realtime);
-                joint.name = {static_cast<uint32_t>(s->names.size()), static_cast<uint32_t>(s->names.size()),
-                              s->names.data(), false};
-                *joint_field(joint, p.spec.message) = seq;
-                rc = dds_write(s->endpoint, &joint);
-            }
-            if (rc == DDS_RETCODE_OK) published_.fetch_add(1, std::memory_order_relaxed);
+        if (const Clock wrote = publish_fresh(); wrote != 0) {
+            newest = wrote;
+            schedule.seen(wrote, period_ns_.load(std::memory_order_relaxed));
         }
         if (config_.notify == Notify::wake) {
             // Until the task's notify(), at most 10 ms (to see stop_).
@@ -305,19 +379,45 @@ void Link::publish_loop() noexcept {
             sleeping_.store(false);
             continue;
         }
-        // Sleep until just after the task's next write is due; look every
-        // kPollStep while it is late, every period while the task is OFF.
-        const Clock period = period_ns_.load(std::memory_order_relaxed);
-        const Clock now = chimera::ipc::now_ns();
-        Clock wake = now + (period > 0 ? period : 10'000'000);
-        if (period > 0 && newest > 0) {
-            const Clock due = newest + period + kPollLag;
-            if (due > now) wake = due;
-            else if (now - newest < 2 * period + kPollLag) wake = now + kPollStep;
-        }
-        const timespec ts{static_cast<time_t>(wake / 1'000'000'000), static_cast<long>(wake % 1'000'000'000)};
-        while (clock_nanosleep(CLOCK_MONOTONIC, TIMER_ABSTIME, &ts, nullptr) == EINTR) {}
+        wait_for_write(schedule, newest);
     }
+}
+
+void Link::keep_off_task_cpus() noexcept {
+    const std::uint64_t task = task_cpus_.load(std::memory_order_relaxed);
+    if (task == avoided_cpus_) return;
+    avoided_cpus_ = task;
+    cpu_set_t cpus;
+    if (sched_getaffinity(::getpid(), sizeof cpus, &cpus) != 0) return;  // the process's CPUs
+    cpu_set_t others = cpus;
+    for (int c = 0; c < 64; ++c)
+        if ((task >> c) & 1u) CPU_CLR(c, &others);
+    (void)sched_setaffinity(0, sizeof cpus, CPU_COUNT(&others) > 0 ? &others : &cpus);
+}
+
+// NOTIFY poll and spin: until the task's next write is due (spin: until it
+// appears); every period while the task is OFF.
+void Link::wait_for_write(const WriteSchedule& schedule, Clock newest) noexcept {
+    const Clock period = period_ns_.load(std::memory_order_relaxed);
+    const Clock now = chimera::ipc::now_ns();
+    const Clock due = period > 0 ? schedule.next_due(newest) : 0;
+    if (due == 0 || now - due > 2 * period + kPollLag) {  // OFF, not yet written, or long silent
+        sleep_until(now + (period > 0 ? period : 10'000'000));
+        return;
+    }
+    if (config_.notify == Notify::spin && now < due + kSpinLimit) {
+        if (due - kSpinLead > now) sleep_until(due - kSpinLead);
+        // A look is one relaxed load per TBUF until the write appears (the TBUF
+        // then takes it: publish_fresh publishes it next).
+        for (;;) {
+            for (auto& s : slots_)
+                if (s->port->spec.direction == Direction::pub && s->tbuf.fresh_pending()) return;
+            if (stop_.load(std::memory_order_relaxed) || chimera::ipc::now_ns() > due + kSpinLimit) return;
+            chimera::ipc::seqlock::cpu_relax();
+        }
+    }
+    const Clock look = schedule.next_typical(newest) + kPollLag;
+    sleep_until(look > now ? look : now + kPollStep);
 }
 
 }  // namespace ddsbridge

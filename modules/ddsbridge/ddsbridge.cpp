@@ -15,6 +15,9 @@
 #include <chimera/ipc/clock.hpp>
 #include <chimera/module.hpp>
 
+#include <pthread.h>
+#include <sched.h>
+
 #include <cstring>
 #include <memory>
 #include <optional>
@@ -35,7 +38,8 @@ constexpr chimera::LocalKey kKeys[] = {
     {"AGE_CLOCK", chimera::LocalType::word, -chimera::unbounded, chimera::unbounded, false,
      "receive | source: a received value's age since its arrival here, or since the sender's stamp", "receive"},
     {"NOTIFY", chimera::LocalType::word, -chimera::unbounded, chimera::unbounded, false,
-     "poll | wake: the bridge thread looks when the task's write is due, or the task wakes it (one system call)", "poll"},
+     "poll | spin | wake: the bridge thread looks when the task's write is due, keeps looking from just before "
+     "it is due, or is woken by the task (one system call)", "poll"},
     {"JOINT_NAMES", chimera::LocalType::text, -chimera::unbounded, chimera::unbounded, false,
      "JointState.name of the joint vectors published", ""},
     {"STAMP_*", chimera::LocalType::word, -chimera::unbounded, chimera::unbounded, false,
@@ -43,6 +47,16 @@ constexpr chimera::LocalKey kKeys[] = {
     {"TOPIC_*", chimera::LocalType::text, -chimera::unbounded, chimera::unbounded, false,
      "TOPIC_<port> TOPIC pub|sub MESSAGE state|command [AGE_LIMIT warn|zero|illegal|error]", ""},
 };
+
+// The CPUs this (the task's) thread may run on, as a mask of the first 64; 0 if unknown.
+std::uint64_t task_cpus() noexcept {
+    cpu_set_t cpus;
+    if (pthread_getaffinity_np(pthread_self(), sizeof cpus, &cpus) != 0) return 0;
+    std::uint64_t mask = 0;
+    for (int c = 0; c < 64; ++c)
+        if (CPU_ISSET(c, &cpus)) mask |= std::uint64_t{1} << c;
+    return mask;
+}
 
 std::int64_t realtime_ns() noexcept {
     timespec ts{};
@@ -110,6 +124,7 @@ public:
         for (Sub& s : subs_) s.stale = false;
         raised_illegal_ = false;
         link_->set_period_ns(static_cast<std::int64_t>(t.period() * 1e9));
+        link_->set_task_cpus(task_cpus());
         return chimera::Result::OK;
     }
 
@@ -128,6 +143,7 @@ public:
 
     chimera::Result off(chimera::Task& t) override {
         link_->set_period_ns(0);
+        link_->set_task_cpus(0);
         if (raised_illegal_) t.set_illegal_configuration(false);
         raised_illegal_ = false;
         return chimera::Result::OK;

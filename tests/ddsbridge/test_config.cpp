@@ -2,6 +2,7 @@
 // well-formed LOCAL section gives, and the message for each mistake, naming
 // the file, the line and the key — checked before anything touches the network.
 #include "bridge_config.hpp"
+#include "dds_link.hpp"
 
 #include <gtest/gtest.h>
 
@@ -149,6 +150,77 @@ TEST(DdsBridgeConfig, EachMistakeIsNamedWithFileLineAndKey) {
     EXPECT_EQ(parse_config(clock).notify, Notify::poll);
     set(clock, "NOTIFY", "wake", 10);
     EXPECT_EQ(parse_config(clock).notify, Notify::wake);
+    set(clock, "NOTIFY", "spin", 10);
+    EXPECT_EQ(parse_config(clock).notify, Notify::spin);
     set(clock, "NOTIFY", "signal", 10);
-    EXPECT_EQ(error_of(clock), "bridge.rmod:10: NOTIFY 'signal': expected poll or wake");
+    EXPECT_EQ(error_of(clock), "bridge.rmod:10: NOTIFY 'signal': expected poll, spin or wake");
+}
+
+// WriteSchedule (dds_link.hpp): when the task's next write is due, from its
+// release grid and the earliest phase of its recent writes.
+TEST(WriteSchedule, TheNextWriteIsDueOnePeriodOnAtTheEarliestPhaseSeen) {
+    constexpr std::int64_t P = 1'000'000, t0 = 5'000'000'000;
+    WriteSchedule s;
+    EXPECT_EQ(s.next_due(t0), 0) << "nothing known before the first write";
+    s.seen(t0 + 30'000, P);  // released at t0, wrote 30 µs late: the grid's origin
+    EXPECT_EQ(s.next_due(t0 + 30'000), t0 + P + 30'000);
+    s.seen(t0 + P + 5'000, P);  // 25 µs earlier in its period than the first
+    EXPECT_EQ(s.earliest(), -25'000);
+    EXPECT_EQ(s.next_due(t0 + P + 5'000), t0 + 2 * P + 5'000);
+    s.seen(t0 + 2 * P + 50'000, P);  // late: the earliest phase stays, relaxed by kRelax
+    EXPECT_EQ(s.earliest(), -25'000 + WriteSchedule::kRelax);
+    EXPECT_EQ(s.next_due(t0 + 2 * P + 50'000), t0 + 3 * P + 5'000 + WriteSchedule::kRelax)
+        << "a late write does not push the next one's due time back";
+    // A write skipped (the task missed a release): still the same grid.
+    s.seen(t0 + 4 * P + 6'000, P);
+    EXPECT_EQ(s.next_due(t0 + 4 * P + 6'000), t0 + 5 * P + 5'000 + 2 * WriteSchedule::kRelax);
+}
+
+TEST(WriteSchedule, TheTypicalTimeIsTheMovingAverageOfThePhases) {
+    constexpr std::int64_t P = 1'000'000, t0 = 5'000'000'000;
+    WriteSchedule s;
+    EXPECT_EQ(s.next_typical(t0), 0) << "nothing known before the first write";
+    s.seen(t0 + 10'000, P);
+    EXPECT_EQ(s.next_typical(t0 + 10'000), t0 + P + 10'000);
+    s.seen(t0 + P + 90'000, P);  // phase +80 µs: the average moves an eighth of the way
+    EXPECT_EQ(s.typical(), 80'000 / WriteSchedule::kAverage);
+    EXPECT_EQ(s.next_due(t0 + P + 90'000), t0 + 2 * P + 10'000) << "the earliest phase is still the first write's";
+    EXPECT_EQ(s.next_typical(t0 + P + 90'000), t0 + 2 * P + 10'000 + 10'000);
+    for (int k = 2; k < 200; ++k) s.seen(t0 + k * P + 90'000, P);
+    EXPECT_NEAR(static_cast<double>(s.typical()), 80'000, WriteSchedule::kAverage) << "settles on the writes' phase";
+    EXPECT_GE(s.next_typical(t0 + 199 * P + 90'000), s.next_due(t0 + 199 * P + 90'000));
+}
+
+TEST(WriteSchedule, TheEarliestPhaseIsForgottenSlowly) {
+    constexpr std::int64_t P = 1'000'000, t0 = 5'000'000'000;
+    WriteSchedule s;
+    s.seen(t0 + 40'000, P);
+    s.seen(t0 + P + 10'000, P);  // one early write: -30 µs
+    for (int k = 2; k < 12; ++k) s.seen(t0 + k * P + 40'000, P);
+    EXPECT_EQ(s.earliest(), -30'000 + 10 * WriteSchedule::kRelax);
+    for (int k = 12; k < 400; ++k) s.seen(t0 + k * P + 40'000, P);
+    EXPECT_EQ(s.earliest(), 0) << "never later than the writes themselves";
+}
+
+TEST(WriteSchedule, ANewPeriodOrALongSilenceStartsANewGrid) {
+    constexpr std::int64_t P = 1'000'000, t0 = 5'000'000'000;
+    WriteSchedule s;
+    s.seen(t0 + 40'000, P);
+    s.seen(t0 + P + 10'000, P);
+    ASSERT_EQ(s.earliest(), -30'000);
+    s.seen(t0 + 10 * P + 700'000, P);  // OFF and ON again: released on another grid
+    EXPECT_EQ(s.earliest(), 0);
+    EXPECT_EQ(s.next_due(t0 + 10 * P + 700'000), t0 + 11 * P + 700'000);
+    s.seen(t0 + 11 * P + 700'000, 2 * P);  // a new period: a new grid
+    EXPECT_EQ(s.next_due(t0 + 11 * P + 700'000), t0 + 13 * P + 700'000);
+}
+
+TEST(WriteSchedule, WritesEitherSideOfTheGridPointBelongToIt) {
+    constexpr std::int64_t P = 1'000'000, t0 = 5'000'000'000;
+    WriteSchedule s;
+    s.seen(t0 + 400'000, P);  // the first write was 400 µs late
+    s.seen(t0 + P + 20'000, P);  // the next one nearly on time: phase -380 µs, the same grid point
+    EXPECT_EQ(s.earliest(), -380'000);
+    EXPECT_EQ(s.next_due(t0 + P + 20'000), t0 + 2 * P + 20'000);
+    EXPECT_EQ(s.next_due(t0 + P + 450'000), t0 + 2 * P + 20'000) << "a write late in its period";
 }

@@ -398,3 +398,47 @@ TEST_F(Bridge, WithNotifyWakeThePublishingTaskAddsOneWakePerCycle) {
     if (!syscall_counter_available()) GTEST_SKIP() << "no raw_syscalls tracepoint: tracefs not mounted (see tests/prof/in_tracefs_namespace.sh)";
     count_task_threads("wake");
 }
+
+// NOTIFY spin keeps the task thread's count of NOTIFY poll: the busy wait is
+// the bridge thread's alone.
+TEST_F(Bridge, WithNotifySpinTheTaskThreadsStillMakeOnlyTheReleaseWait) {
+    if (!syscall_counter_available()) GTEST_SKIP() << "no raw_syscalls tracepoint: tracefs not mounted (see tests/prof/in_tracefs_namespace.sh)";
+    count_task_threads("spin");
+}
+
+// NOTIFY spin: the bridge thread keeps off the CPU the task is pinned to,
+// while another one is left, so that the task never preempts its looks; OFF,
+// it may use every CPU again. NOTIFY poll (the subscriber here) leaves its
+// thread free.
+TEST_F(Bridge, TheBridgeThreadsKeepOffTheTasksCpu) {
+    cpu_set_t process;
+    ASSERT_EQ(sched_getaffinity(0, sizeof process, &process), 0);
+    if (!CPU_ISSET(0, &process) || CPU_COUNT(&process) < 2) GTEST_SKIP() << "needs CPU 0 and another one";
+    write("t.sbs", "SUBSYSTEM " + name_ + "\nSVARFILE t.svar\nRTPU cpu0 0\nERRPRINT none\nEOF\n");
+    const std::set<long> before = thread_ids();
+    start("warn", "warn", "spin");
+    std::vector<long> bridges;
+    for (const long tid : thread_ids()) {
+        std::ifstream comm("/proc/self/task/" + std::to_string(tid) + "/comm");
+        std::string name;
+        std::getline(comm, name);
+        if (!before.count(tid) && name == "ddsbridge") bridges.push_back(tid);
+    }
+    ASSERT_EQ(bridges.size(), 2u) << "one per bridge (pub and sub)";
+    auto uses_cpu0 = [](long tid) {
+        cpu_set_t cpus;
+        return sched_getaffinity(static_cast<pid_t>(tid), sizeof cpus, &cpus) == 0 && CPU_ISSET(0, &cpus);
+    };
+    auto off_cpu0 = [&] {
+        int n = 0;
+        for (const long tid : bridges) n += uses_cpu0(tid) ? 0 : 1;
+        return n;
+    };
+    // The publisher's bridge spins and keeps off; the subscriber's polls and does not.
+    EXPECT_TRUE(eventually([&] { return off_cpu0() == 1; })) << off_cpu0() << " bridge threads off CPU 0";
+    std::this_thread::sleep_for(50ms);
+    EXPECT_EQ(off_cpu0(), 1) << "NOTIFY poll leaves its thread on every CPU";
+    sbs_->control(pub_, Control::off);
+    sbs_->control(sub_, Control::off);
+    for (const long tid : bridges) EXPECT_TRUE(eventually([&] { return uses_cpu0(tid); })) << "thread " << tid << " OFF";
+}

@@ -20,41 +20,30 @@ prog=$1
 example=$(cd "$2" && pwd)
 if [ "$(id -u)" -ne 0 ]; then echo "SKIP: network namespaces need CAP_NET_ADMIN (run as root)"; exit 77; fi
 tag=$$
-ns_robot=chr$tag ns_ctrl=chc$tag veth_robot=vr$tag veth_ctrl=vc$tag
+. "$(dirname "$0")/../../scripts/netns_pair.sh"
 work=$(mktemp -d /tmp/two_machines.XXXXXX)
 pids=()
 cleanup() {
     for p in "${pids[@]}"; do kill "$p" 2>/dev/null; done
     wait 2>/dev/null
-    ip netns del "$ns_robot" 2>/dev/null
-    ip netns del "$ns_ctrl" 2>/dev/null
+    netns_pair_down
     rm -rf "$work"
     # The two hosts are killed: their tables stay behind unless removed here.
     rm -f /dev/shm/chimera.tmr$tag.* /dev/shm/chimera.tmc$tag.*
 }
 trap cleanup EXIT
-if ! reason=$(ip netns add "$ns_robot" 2>&1); then
-    echo "SKIP: cannot create a network namespace: $reason"
+if ! netns_pair_up tm 10.219.0 2> "$work/netns.err"; then
+    echo "SKIP: cannot create a network namespace: $(cat "$work/netns.err")"
     exit 77
 fi
-set -e
-ip netns add "$ns_ctrl"
-ip link add "$veth_robot" type veth peer name "$veth_ctrl"
-ip link set "$veth_robot" netns "$ns_robot"
-ip link set "$veth_ctrl" netns "$ns_ctrl"
-ip -n "$ns_robot" addr add 10.219.0.1/30 dev "$veth_robot"
-ip -n "$ns_ctrl" addr add 10.219.0.2/30 dev "$veth_ctrl"
-for ns in "$ns_robot" "$ns_ctrl"; do ip -n "$ns" link set lo up; done
-ip -n "$ns_robot" link set "$veth_robot" up
-ip -n "$ns_ctrl" link set "$veth_ctrl" up
-set +e
+ns_robot=$NETNS_A ns_ctrl=$NETNS_B veth_robot=$VETH_A veth_ctrl=$VETH_B
 
 fail=0
 check() {  # check CONDITION MESSAGE
     if eval "$1"; then echo "ok: $2"; else echo "FAILED: $2"; fail=1; fi
 }
 # No way out: each namespace holds loopback and its end of the pair, nothing else.
-links() { ip -n "$1" -o link show | awk -F': ' '{print $2}' | sed 's/@.*//' | sort | tr '\n' ' '; }
+links() { netns_pair_links "$1"; }
 check '[ "$(links $ns_robot)" = "lo $veth_robot " ]' "namespace $ns_robot holds only lo and $veth_robot ($(links $ns_robot))"
 check '[ "$(links $ns_ctrl)" = "lo $veth_ctrl " ]' "namespace $ns_ctrl holds only lo and $veth_ctrl ($(links $ns_ctrl))"
 

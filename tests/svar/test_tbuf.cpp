@@ -133,6 +133,35 @@ TEST(Tbuf, StampsNewestReuseAndMissed) {
     EXPECT_FALSE(ipc::Segment::exists(name));
 }
 
+// fresh_pending(): a reader's look for a new item (the DDS bridge's spin)
+// that leaves the buffer as it was: true from a write until the next read.
+TEST(Tbuf, FreshPendingFromAWriteUntilTheNextRead) {
+    const std::string name = unique_name("tbp");
+    Tbuf w = Tbuf::create(name, sizeof(Item));
+    Tbuf r = Tbuf::attach(name);
+    Item in{}, out{};
+    EXPECT_FALSE(r.fresh_pending()) << "nothing written yet";
+    make_item(in, 0);
+    (void)w.write(&in);
+    EXPECT_TRUE(r.fresh_pending());
+    EXPECT_TRUE(r.fresh_pending()) << "looking does not take the item";
+    EXPECT_EQ(r.read(&out).status, ReadStatus::fresh);
+    EXPECT_FALSE(r.fresh_pending());
+    EXPECT_EQ(r.read(&out).status, ReadStatus::reused);
+    EXPECT_FALSE(r.fresh_pending());
+    make_item(in, 1);
+    (void)w.write(&in);
+    make_item(in, 2);
+    (void)w.write(&in);
+    EXPECT_TRUE(r.fresh_pending());
+    const ReadResult res = r.read(&out);
+    EXPECT_EQ(res.status, ReadStatus::fresh);
+    EXPECT_EQ(res.counter, 2u);
+    EXPECT_FALSE(r.fresh_pending());
+    r.detach();
+    w.destroy();
+}
+
 TEST(Tbuf, FirstReadAfterSeveralWritesCountsTheMissedOnes) {
     const std::string name = unique_name("tb2");
     Tbuf w = Tbuf::create(name, 8);
