@@ -1,15 +1,18 @@
 // The per-RTPU dispatcher of the fifo backend (and of the non-critical tasks of
-// the deadline backend), and the DEADLINE watchdog of every backend. Under
-// dynamic ranking it owns the release timeline, computes every ready
-// task's urgency (Figure 6.2) at each release, completion seen, criticality or
-// deadline change, and gives the task threads SCHED_FIFO priorities in urgency
-// order, changing only those that move (thesis §6.2.3, ARCHITECTURE §5).
+// the deadline backend), and the DEADLINE watchdog of every backend. It is not
+// on the release path: every task sleeps to its own release and the kernel
+// wakes that task itself. The dispatcher re-ranks when the set, a criticality
+// or a deadline changes, computing every ready task's urgency (Figure 6.2) and
+// giving the task threads SCHED_FIFO priorities in urgency order, changing only
+// those that move (thesis §6.2.3, ARCHITECTURE §5). Under dynamic ranking a
+// task also ranks at its own release (stand_by_for_release(), rt.cpp).
 //
 // It runs pinned to the RTPU's CPU at options.fifo_high, above every task of
 // the band, so while it re-ranks no task of its CPU runs: the priorities change
-// as one step. It sleeps on a futex with an absolute CLOCK_MONOTONIC timeout
-// (FUTEX_WAIT_BITSET: the same hrtimer as clock_nanosleep(TIMER_ABSTIME)), so
-// that a criticality change from a failure handler can wake it at once.
+// as one step (a task ranking at its release runs at that same priority). It
+// sleeps on a futex with an absolute CLOCK_MONOTONIC timeout (FUTEX_WAIT_BITSET:
+// the same hrtimer as clock_nanosleep(TIMER_ABSTIME)), so that a criticality
+// change from a failure handler can wake it at once.
 #include <algorithm>
 
 #include "chimera/ipc/futex.hpp"
@@ -86,10 +89,10 @@ void RtpuScheduler::Impl::dispatcher_main() noexcept {
         if (stopping.load(std::memory_order_acquire)) return;
         const std::int64_t now = clock_ns();
         std::int64_t next = infinity;
-        // Under static ranking only an event (set, period, criticality) re-ranks;
-        // a watchdog wake-up does not.
-        if (seen != ranked || !static_ranking.load(std::memory_order_acquire)) {
-            next = dispatch_once(now);
+        // Only an event (set, period, criticality, a task's own deadline)
+        // re-ranks; a watchdog wake-up does not.
+        if (seen != ranked) {
+            rank_and_apply(now);
             ranked = seen;
         }
         next = std::min(next, watch_deadlines(now));
@@ -105,11 +108,22 @@ void RtpuScheduler::Impl::dispatcher_main() noexcept {
 // the handler runs in the task's own thread (failure.cpp).
 std::int64_t RtpuScheduler::Impl::watch_deadlines(std::int64_t now) noexcept {
     std::int64_t next = now + options.watchdog_ns;
+    // Under dynamic ranking the watch is exact also for jobs not yet released
+    // (a task's next job is due at its next release plus its deadline), as when
+    // the dispatcher released them: EDF's overload drops a job exactly at its
+    // deadline (Figure 6.1). Under static ranking one look per watchdog_ns is
+    // the documented bound, and keeps the dispatcher asleep at high rates.
+    const bool ahead = !static_ranking.load(std::memory_order_acquire);
     const int count = std::min(slot_count_seen.load(std::memory_order_acquire), detail::kMaxTasks);
     for (int h = 0; h < count; ++h) {
         TaskSlot& s = slots[static_cast<std::size_t>(h)];
         if (s.state.load(std::memory_order_acquire) != SlotState::attached) continue;
-        if (s.phase.load(std::memory_order_acquire) != Phase::job) continue;
+        if (s.phase.load(std::memory_order_acquire) != Phase::job) {
+            if (ahead && s.period_ns.load(std::memory_order_relaxed) > 0)
+                next = std::min(next, s.next_release_ns.load(std::memory_order_relaxed) +
+                                          s.rel_deadline_ns.load(std::memory_order_relaxed));
+            continue;
+        }
         const std::int64_t deadline = s.job_deadline_ns.load(std::memory_order_acquire);
         if (deadline == infinity) continue;
         if (deadline > now) {
@@ -122,53 +136,8 @@ std::int64_t RtpuScheduler::Impl::watch_deadlines(std::int64_t now) noexcept {
     return next;
 }
 
-std::int64_t RtpuScheduler::Impl::dispatch_once(std::int64_t now) noexcept {
-    if (static_ranking.load(std::memory_order_acquire)) {
-        // Off the release path: the tasks release themselves.
-        rank_and_apply(now);
-        return infinity;
-    }
-    std::array<int, detail::kMaxTasks> released;
-    std::size_t n_released = 0;
-    std::int64_t next = infinity;
-    const int count = std::min(slot_count_seen.load(std::memory_order_acquire), detail::kMaxTasks);
-    for (int h = 0; h < count; ++h) {
-        TaskSlot& s = slots[static_cast<std::size_t>(h)];
-        if (s.state.load(std::memory_order_acquire) != SlotState::attached) continue;
-        if (s.pacing.load(std::memory_order_relaxed) != Pacing::dispatched) continue;
-        if (s.self_timed.load(std::memory_order_relaxed)) continue;  // paces itself: ranked only
-        std::int64_t release = s.next_release_ns.load(std::memory_order_relaxed);
-        const std::int64_t period = s.period_ns.load(std::memory_order_relaxed);
-        if (release <= now && period > 0) {
-            Phase phase = s.phase.load(std::memory_order_acquire);
-            // Of the releases due, the latest starts the job; earlier ones are missed.
-            const std::int64_t late = (now - release) / period;
-            if (late > 0) s.missed.fetch_add(static_cast<std::uint64_t>(late), std::memory_order_relaxed);
-            release += late * period;
-            if (phase == Phase::waiting) {
-                s.job_release_ns.store(release, std::memory_order_relaxed);
-                s.job_deadline_ns.store(release + s.rel_deadline_ns.load(std::memory_order_relaxed),
-                                        std::memory_order_relaxed);
-                if (s.phase.compare_exchange_strong(phase, Phase::job, std::memory_order_acq_rel))
-                    released[n_released++] = h;
-            } else if (phase == Phase::job) {
-                s.missed.fetch_add(1, std::memory_order_relaxed);  // the cycle still runs
-            }
-            release += period;
-            s.next_release_ns.store(release, std::memory_order_relaxed);
-        }
-        if (period > 0) next = std::min(next, release);
-    }
-    rank_and_apply(now);
-    for (std::size_t i = 0; i < n_released; ++i) {
-        TaskSlot& s = slots[static_cast<std::size_t>(released[i])];
-        s.release_word.fetch_add(1, std::memory_order_acq_rel);
-        ipc::futex_wake(s.release_word, 1);
-    }
-    return next;
-}
-
-void RtpuScheduler::Impl::rank_and_apply(std::int64_t now) noexcept {
+void RtpuScheduler::Impl::rank_and_apply(std::int64_t now, int self) noexcept {
+    std::lock_guard<ipc::PiMutex> lock(rank_mutex);
     std::array<detail::RankEntry, detail::kMaxTasks> entries;
     std::size_t n = 0;
     const bool dynamic = uses_deadline.load(std::memory_order_relaxed);
@@ -202,22 +171,35 @@ void RtpuScheduler::Impl::rank_and_apply(std::int64_t now) noexcept {
         e.current_prio = s.fifo_prio.load(std::memory_order_relaxed);
         e.new_prio = e.current_prio;
     }
-    apply_ranking(std::span(entries.data(), n));
+    apply_ranking(std::span(entries.data(), n), self);
 }
 
-void RtpuScheduler::Impl::apply_ranking(std::span<detail::RankEntry> entries) noexcept {
-    const std::size_t n = entries.size();
+void RtpuScheduler::Impl::apply_ranking(std::span<detail::RankEntry> entries, int self) noexcept {
     detail::rank_priorities(entries, options.fifo_low, options.fifo_high);
-    for (std::size_t i = 0; i < n; ++i) {
-        const detail::RankEntry& e = entries[i];
-        if (e.new_prio == e.current_prio) continue;
+    const auto apply = [this](const detail::RankEntry& e) {
+        if (e.new_prio == e.current_prio) return;
         TaskSlot& s = slots[static_cast<std::size_t>(e.handle)];
         if (detail::set_fifo(s.tid.load(std::memory_order_relaxed), e.new_prio) == 0) {
             s.fifo_prio.store(e.new_prio, std::memory_order_relaxed);
             priority_changes.fetch_add(1, std::memory_order_relaxed);
         }
+    };
+    // The caller's own change last: lowering itself may hand its CPU over.
+    const detail::RankEntry* mine = nullptr;
+    for (const detail::RankEntry& e : entries) {
+        if (e.handle == self) mine = &e;
+        else apply(e);
     }
+    if (mine) apply(*mine);
     reschedules.fetch_add(1, std::memory_order_relaxed);
+}
+
+void RtpuScheduler::Impl::stand_by_for_release(TaskSlot& s) noexcept {
+    if (s.fifo_prio.load(std::memory_order_relaxed) == options.fifo_high) return;
+    if (detail::set_fifo(0, options.fifo_high) == 0) {
+        s.fifo_prio.store(options.fifo_high, std::memory_order_relaxed);
+        priority_changes.fetch_add(1, std::memory_order_relaxed);
+    }
 }
 
 }  // namespace chimera::muf

@@ -68,6 +68,10 @@ struct ThreadState {
     volatile sig_atomic_t abort_armed = 0;
     volatile sig_atomic_t skip_next = 0;
     volatile sig_atomic_t cycle_aborted = 0;
+    // A job released and not yet begun (between its release and the cycle's
+    // start, e.g. waiting for the CPU): an abort at its deadline drops it.
+    volatile sig_atomic_t job_unstarted = 0;
+    volatile sig_atomic_t drop_job = 0;
 
     std::int64_t reported_deadline = infinity;  // the job deadline whose failure was delivered
     bool maxexec_timer_set = false;             // the CPU-time timer holds a budget
@@ -161,6 +165,8 @@ FailureAction run_handler(ThreadState& t, Failure kind) noexcept {
         for (unsigned more = t.pending.exchange(0); more != 0; more = t.pending.exchange(0))
             for (Failure k : {Failure::deadline, Failure::maxexec, Failure::minexec})
                 if (more & bit(k)) run_handler(t, k);
+    if (action == FailureAction::abort_cycle && !t.abort_armed && t.job_unstarted && kind == Failure::deadline)
+        t.drop_job = 1;  // never begun: it is dropped when its cycle would start
     if (action == FailureAction::abort_cycle && t.abort_armed) {
         t.abort_armed = 0;
         t.cycle_aborted = 1;
@@ -364,9 +370,26 @@ void clear_abort() noexcept {
 }
 
 void set_abort_armed() noexcept {
-    tl.cycle_aborted = 0;
+    ThreadState& t = tl;
+    t.cycle_aborted = 0;
     std::atomic_signal_fence(std::memory_order_seq_cst);
-    tl.abort_armed = 1;
+    t.abort_armed = 1;
+    t.job_unstarted = 0;
+    std::atomic_signal_fence(std::memory_order_seq_cst);
+    if (t.drop_job && t.slot) {
+        // Aborted at its deadline before it began: not run, counted as aborted.
+        t.drop_job = 0;
+        t.abort_armed = 0;
+        t.cycle_aborted = 1;
+        t.slot->aborted.fetch_add(1, std::memory_order_relaxed);
+        siglongjmp(t.slot->mark, 1);
+    }
+}
+
+void mark_job_unstarted() noexcept {
+    tl.drop_job = 0;
+    std::atomic_signal_fence(std::memory_order_seq_cst);
+    tl.job_unstarted = 1;
 }
 
 bool take_cycle_aborted() noexcept {

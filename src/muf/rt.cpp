@@ -521,15 +521,8 @@ Wake RtpuScheduler::wait_release(TaskHandle h, const std::atomic<std::uint32_t>*
         const Phase phase = s.phase.load(std::memory_order_acquire);
         if (phase == Phase::detached || s.state.load(std::memory_order_acquire) != SlotState::attached)
             return Wake::detached;
-        if (s.pacing.load(std::memory_order_relaxed) == Pacing::dispatched &&
-            !impl_->static_ranking.load(std::memory_order_acquire)) {
-            if (phase == Phase::job) break;  // released (perhaps while we were away)
-            if (word && word->load(std::memory_order_acquire) != seen) return Wake::command;
-            wait_words(s.release_word, rw, word, seen, infinity);
-            continue;
-        }
-        // Self-paced: the thread keeps its own timeline.
-        if (phase == Phase::job) break;  // released by the dispatcher before a switch to static ranking
+        // The thread keeps its own timeline: the kernel wakes it at its release.
+        if (phase == Phase::job) break;  // a job begun by set_deadline()
         std::int64_t release = s.next_release_ns.load(std::memory_order_relaxed);
         if (!slept) {
             // Straight to sleep without reading the clock: a release already
@@ -537,6 +530,7 @@ Wake RtpuScheduler::wait_release(TaskHandle h, const std::atomic<std::uint32_t>*
             // cycle, after the wake-up (where the vDSO cannot serve it, as
             // under emulation, every read is a system call).
             if (word && word->load(std::memory_order_acquire) != seen) return Wake::command;
+            if (impl_->ranks_at_release(s)) impl_->stand_by_for_release(s);
             wait_words(s.release_word, rw, word, seen, release);
             slept = true;
             continue;
@@ -555,6 +549,9 @@ Wake RtpuScheduler::wait_release(TaskHandle h, const std::atomic<std::uint32_t>*
                                     std::memory_order_relaxed);
             s.next_release_ns.store(release + period, std::memory_order_relaxed);
             s.phase.store(Phase::job, std::memory_order_release);
+            detail::mark_job_unstarted();
+            // Dynamic ranking: this release may change the MUF order.
+            if (impl_->ranks_at_release(s)) impl_->rank_and_apply(now, h);
             break;
         }
         if (word && word->load(std::memory_order_acquire) != seen) return Wake::command;

@@ -36,7 +36,7 @@ enum class SlotState : std::uint32_t { free, added, attached, removed };
 
 /// How the task thread waits for its releases.
 enum class Pacing : std::uint32_t {
-    dispatched,  ///< the dispatcher releases it (fifo backend; non-critical on deadline)
+    dispatched,  ///< SCHED_FIFO by the MUF ranking (fifo backend; non-critical on deadline)
     self_paced,  ///< it sleeps to its own release (other backend, SCHED_DEADLINE, no privilege)
 };
 
@@ -120,6 +120,10 @@ struct CHIMERA_LOCAL RtpuScheduler::Impl {
     std::atomic<bool> static_ranking{false};
     std::int64_t epoch_ns = 0;              // origin of the release timeline
 
+    // Taken by whoever ranks (the dispatcher; under dynamic ranking each task
+    // at its own release): one ranking at a time. Inherits priority.
+    ipc::PiMutex rank_mutex;
+
     // Dispatcher wake-up word: bumped on criticality, deadline and set changes.
     std::atomic<std::uint32_t> event_word{0};
     std::atomic<bool> stopping{false};
@@ -141,14 +145,24 @@ struct CHIMERA_LOCAL RtpuScheduler::Impl {
     void dispatcher_main() noexcept;
     /// Signals the jobs found past their deadlines; returns when to look again.
     std::int64_t watch_deadlines(std::int64_t now) noexcept;
-    /// One pass: releases due tasks, ranks, applies; returns the next release time.
-    std::int64_t dispatch_once(std::int64_t now) noexcept;
     /// Ranks the tasks and applies their priorities, changing only those that
     /// move: under static ranking every attached task by its fixed urgency,
     /// otherwise the tasks with a pending job by their urgency at `now`.
-    void rank_and_apply(std::int64_t now) noexcept;
+    /// `self`: the calling task's handle (its own change is made last), or -1.
+    /// Takes rank_mutex.
+    void rank_and_apply(std::int64_t now, int self = -1) noexcept;
     /// Gives the entries priorities by rank and applies the changes.
-    void apply_ranking(std::span<detail::RankEntry> entries) noexcept;
+    void apply_ranking(std::span<detail::RankEntry> entries, int self) noexcept;
+    /// Dynamic ranking, before a task sleeps to its release: it waits at the
+    /// dispatcher's priority (fifo_high), so that the kernel's wake-up at the
+    /// release runs it at once, above every task of the band, to rank itself.
+    void stand_by_for_release(detail::TaskSlot& s) noexcept;
+    /// True when the task ranks at its own release: a dispatched task under
+    /// dynamic ranking (static ranking never changes at a release).
+    bool ranks_at_release(const detail::TaskSlot& s) const noexcept {
+        return s.pacing.load(std::memory_order_relaxed) == detail::Pacing::dispatched &&
+               !static_ranking.load(std::memory_order_acquire);
+    }
     /// The first release of a task attached now: the next instant of the
     /// timeline epoch + k·period.
     std::int64_t aligned_release(std::int64_t period_ns) const noexcept;
@@ -222,6 +236,8 @@ bool take_skip_next() noexcept;
 /// Called by cycle_complete: a late abort turns into resume.
 void clear_abort() noexcept;
 void set_abort_armed() noexcept;
+/// At a release: the job is pending and not begun (see set_abort_armed()).
+void mark_job_unstarted() noexcept;
 /// True (once) when the cycle that just ended was aborted by a handler.
 bool take_cycle_aborted() noexcept;
 

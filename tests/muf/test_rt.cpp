@@ -656,19 +656,34 @@ TEST(MufFifo, TheMostUrgentTaskIsPlacedAtTheTopOfTheBand) {
         SCOPED_TRACE(harmonic ? "static ranking" : "dynamic ranking");
         RtpuScheduler sch(options(Backend::fifo));
         if (!sch.privileged()) GTEST_SKIP() << "SCHED_FIFO refused on this machine";
+        // Each job notes the priority it runs at (under dynamic ranking a task
+        // waits for its release at the dispatcher's, fifo_high, to rank itself).
+        std::array<std::atomic<int>, 2> running_at{};
+        const auto note = [](std::atomic<int>& at) { return [&at] { at.store(fifo_priority_of(0)); }; };
         std::vector<std::unique_ptr<Runner>> runners;
-        runners.push_back(std::make_unique<Runner>(sch, task("lone", 10 * ms, 0), [] {}));
+        runners.push_back(std::make_unique<Runner>(sch, task("lone", 10 * ms, 0), note(running_at[0])));
         ASSERT_TRUE(runners[0]->start()) << runners[0]->error();
         ASSERT_TRUE(eventually([&] { return sch.status(runners[0]->handle()).cycles >= 2; }));
-        EXPECT_EQ(fifo_priority_of(runners[0]->tid()), sch.options().fifo_high - 1);
+        EXPECT_EQ(running_at[0].load(), sch.options().fifo_high - 1);
         // A second, less urgent (longer period; non-harmonic: dynamic ranking).
-        runners.push_back(std::make_unique<Runner>(sch, task("second", harmonic ? 20 * ms : 15 * ms, 0), [] {}));
+        runners.push_back(std::make_unique<Runner>(sch, task("second", harmonic ? 20 * ms : 15 * ms, 0),
+                                                   note(running_at[1])));
         ASSERT_TRUE(runners[1]->start()) << runners[1]->error();
-        ASSERT_TRUE(eventually([&] { return sch.status(runners[1]->handle()).cycles >= 2; }));
+        const std::uint64_t lone_now = sch.status(runners[0]->handle()).cycles;
+        ASSERT_TRUE(eventually([&] {
+            return sch.status(runners[1]->handle()).cycles >= 2 && sch.status(runners[0]->handle()).cycles >= lone_now + 2;
+        }));
         EXPECT_EQ(sch.static_ranking(), harmonic);
-        EXPECT_EQ(fifo_priority_of(runners[0]->tid()), sch.options().fifo_high - 1);
-        EXPECT_GT(fifo_priority_of(runners[1]->tid()), sch.options().fifo_low);
-        EXPECT_LT(fifo_priority_of(runners[1]->tid()), fifo_priority_of(runners[0]->tid()));
+        EXPECT_EQ(running_at[0].load(), sch.options().fifo_high - 1);
+        EXPECT_GT(running_at[1].load(), sch.options().fifo_low);
+        EXPECT_LT(running_at[1].load(), sch.options().fifo_high);
+        // Fixed ranks: the second below the first. Dynamic ranking orders only
+        // the jobs pending together, so a job running alone is at the top
+        // (the order of pending jobs: DispatcherPrioritiesFollowTheUrgencyOrder).
+        if (harmonic) {
+            EXPECT_LT(running_at[1].load(), running_at[0].load());
+        }
+        runners.clear();
     }
 }
 

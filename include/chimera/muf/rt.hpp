@@ -24,12 +24,14 @@
 //    between (an hrtimer sleeper, which PREEMPT_RT expires in hard interrupt
 //    context for real-time tasks, unlike POSIX timers). The dispatcher thread
 //    then only re-ranks when the set or a criticality changes.
-//  - fifo, dynamic ranking (any other set): a dispatcher thread pinned to the
-//    RTPU at the top SCHED_FIFO priority of the band owns the release timeline. At every release (and whenever a
-//    task's criticality changes) it computes each task's urgency (Figure 6.2:
-//    criticality, then time to the current deadline, then user priority) and
-//    gives the task threads SCHED_FIFO priorities in urgency order, changing
-//    only those that move. RM and EDF are the special cases of MUF (§6.2.3).
+//  - fifo, dynamic ranking (any other set): each task still sleeps to its own
+//    release, waiting at the dispatcher's priority (fifo_high, above the band);
+//    at its release the kernel wakes it and it runs at once, computes each
+//    pending job's urgency (Figure 6.2: criticality, then time to the current
+//    deadline, then user priority) and gives the task threads SCHED_FIFO
+//    priorities in urgency order, changing only those that move and its own
+//    last. The dispatcher thread re-ranks on criticality and set changes and is
+//    the DEADLINE watchdog. RM and EDF are the special cases of MUF (§6.2.3).
 //  - deadline: tasks of the critical set become SCHED_DEADLINE reservations
 //    (runtime = C, or E for a soft task; deadline and period = T) and the
 //    kernel's admission control checks the set; a refusal is an error naming
