@@ -78,7 +78,10 @@ wait_for '[ "$(field "$(last ctrl)" measurements)" = fresh ] && [ "$(field "$(la
 sleep 3.5
 tracking=$(grep '^t=' "$work/ctrl.log" | tail -10 | awk '{for(i=1;i<=NF;i++) if ($i ~ /^error=/) {split($i,a,"="); if (a[2]>m) m=a[2]}} END {print m+0}')
 echo "worst tracking error over the last second before the cut: $tracking rad"
-check 'less "$tracking" 0.03' "the arm tracks across the link (worst |Q_REF - Q_MEZ| $tracking rad < 0.03 rad)"
+# The bound of Figure 3.7's own in-process test while moving (0.08 rad, with the
+# arm's Coulomb friction): across the link it measured 0.025-0.028 on a quiet
+# machine and 0.041 at load 14.
+check 'less "$tracking" 0.08' "the arm tracks across the link (worst |Q_REF - Q_MEZ| $tracking rad < 0.08 rad)"
 
 # 2. Cut the link for 4 s.
 before_robot=$(last robot)
@@ -118,7 +121,7 @@ if wait_for '[ "$(field "$(last robot)" torques)" = fresh ] && [ "$(field "$(las
 else
     check false "both hosts have fresh data again within 5 s of the link's return: robot [$(last robot)] controller [$(last ctrl)]"
 fi
-check 'wait_for "less \"\$(field \"\$(last ctrl)\" error)\" 0.03" 6' "the arm tracks the trajectory again after the link returned"
+check 'wait_for "less \"\$(field \"\$(last ctrl)\" error)\" 0.08" 6' "the arm tracks the trajectory again after the link returned"
 for p in "${pids[@]}"; do kill "$p" 2>/dev/null; done  # SIGTERM: each host finishes its subsystem
 wait
 pids=()
