@@ -72,6 +72,8 @@ template <typename Body>
 [[gnu::noinline]] bool run_abortable(Pacer& pacer, sigjmp_buf& mark, const sigset_t& normal_mask, Body& body) {
     if (sigsetjmp(mark, 0) != 0) {
         pthread_sigmask(SIG_SETMASK, &normal_mask, nullptr);
+        // An abort an errInvoke recorded in the abandoned method is not the next one's.
+        err::clear_pending();
         return false;
     }
     pacer.arm_abort();
@@ -681,7 +683,6 @@ Outcome TaskLoop::call(Phase p, std::size_t i, Fn&& fn) {
     phase_ = p;
     current_ = i;
     decided_.reset();
-    err::clear_pending();  // one left by a cycle a timing failure abandoned is not this method's
     Result r = Result::OK;
     bool threw = false;
     try {
