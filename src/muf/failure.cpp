@@ -137,6 +137,15 @@ void count_failure(TaskSlot& s, Failure kind) noexcept {
     }
 }
 
+// The cycle (or a job dropped before it began) is aborted: counted, and the
+// thread jumps back to the mark armed before the cycle.
+[[noreturn]] void abort_to_mark(ThreadState& t) noexcept {
+    t.abort_armed = 0;
+    t.cycle_aborted = 1;
+    t.slot->aborted.fetch_add(1, std::memory_order_relaxed);
+    siglongjmp(t.slot->mark, 1);
+}
+
 // Runs the user's handler at the handler priority and applies its action. May
 // not return (abort_cycle jumps to the cycle mark).
 FailureAction run_handler(ThreadState& t, Failure kind) noexcept {
@@ -167,12 +176,7 @@ FailureAction run_handler(ThreadState& t, Failure kind) noexcept {
                 if (more & bit(k)) run_handler(t, k);
     if (action == FailureAction::abort_cycle && !t.abort_armed && t.job_unstarted && kind == Failure::deadline)
         t.drop_job = 1;  // never begun: it is dropped when its cycle would start
-    if (action == FailureAction::abort_cycle && t.abort_armed) {
-        t.abort_armed = 0;
-        t.cycle_aborted = 1;
-        s.aborted.fetch_add(1, std::memory_order_relaxed);
-        siglongjmp(s.mark, 1);
-    }
+    if (action == FailureAction::abort_cycle && t.abort_armed) abort_to_mark(t);
     return action;
 }
 
@@ -379,10 +383,7 @@ void set_abort_armed() noexcept {
     if (t.drop_job && t.slot) {
         // Aborted at its deadline before it began: not run, counted as aborted.
         t.drop_job = 0;
-        t.abort_armed = 0;
-        t.cycle_aborted = 1;
-        t.slot->aborted.fetch_add(1, std::memory_order_relaxed);
-        siglongjmp(t.slot->mark, 1);
+        abort_to_mark(t);
     }
 }
 
