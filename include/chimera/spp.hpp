@@ -236,8 +236,12 @@ private:
     std::vector<std::unique_ptr<Slot>> slots_;
     Memory view_;
 
-    std::atomic<std::uint32_t> work_{0};   // bumped on every new command; the executive waits on it
-    std::atomic<bool> idle_{false};         // the executive is (about to be) asleep on work_
+    // The executive's wake-up word: bit 0 says it is (about to be) asleep on
+    // this word; the rest counts kicks (new commands, grants, stop) by 2. One
+    // word, so that a kick's count and its clearing of the idle bit are one
+    // change: a separate flag could be cleared by a kick the executive had
+    // already counted, leaving it asleep with every later kick skipping the wake.
+    std::atomic<std::uint32_t> work_{0};
     std::atomic<std::uint64_t> next_seq_{1};
     std::atomic<int> owner_{-1};           // slot holding the lock, or -1
     std::atomic<bool> stop_{false};

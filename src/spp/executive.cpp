@@ -159,13 +159,14 @@ std::size_t Processor::queued() const noexcept {
 // notify_one() alone is not enough to keep the promise of no system call
 // while the executive is busy: libstdc++ makes the futex call whenever any
 // thread waits on an address of work_'s hash bucket, not only the executive.
-// Sequentially consistent with run()'s idle_ store and work_ load: either
-// the executive sees this increment before it sleeps, or this sees idle_.
-// The first kick clears idle_: the rest of a burst (write, call, read, wait)
-// finds the executive already woken and makes no system call.
+// So the kick counts itself and clears the idle bit in one exchange, and only
+// the kick that cleared the bit wakes: the rest of a burst (write, call,
+// read, wait) finds the executive already woken and makes no system call.
 void Processor::kick() noexcept {
-    work_.fetch_add(1, std::memory_order_seq_cst);
-    if (idle_.exchange(false, std::memory_order_seq_cst)) work_.notify_one();
+    std::uint32_t word = work_.load(std::memory_order_relaxed);
+    while (!work_.compare_exchange_weak(word, (word + 2) & ~1u, std::memory_order_seq_cst)) {
+    }
+    if (word & 1u) work_.notify_one();
 }
 
 // The next task to serve. While a task holds the lock only its commands run;
@@ -230,13 +231,15 @@ int Processor::place() noexcept {
 
 void Processor::run() noexcept {
     for (;;) {
-        const std::uint32_t seen = work_.load(std::memory_order_acquire);
+        std::uint32_t seen = work_.load(std::memory_order_acquire);
         Slot* s = pick();
         if (!s) {
             if (stop_.load()) return;
-            idle_.store(true, std::memory_order_seq_cst);
-            work_.wait(seen, std::memory_order_seq_cst);  // returns at once if work_ moved
-            idle_.store(false, std::memory_order_relaxed);  // when no kick cleared it
+            // Sleep only if no kick came since seen (whose commands pick() saw):
+            // the bit is set in the same change that checks it, and the next
+            // kick clears it as it counts itself, and wakes.
+            if (work_.compare_exchange_strong(seen, seen | 1u, std::memory_order_seq_cst))
+                work_.wait(seen | 1u, std::memory_order_seq_cst);
             continue;
         }
         const std::uint64_t h = s->head.load(std::memory_order_relaxed);
