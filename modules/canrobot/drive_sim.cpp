@@ -474,9 +474,15 @@ void run_drive_bus(DriveSim& sim, const std::string& interface, const std::atomi
         // answers still leave late; the master sees that as missed feedback.)
         Frame f;
         std::int64_t arrived = 0;
+        // Timers that fall due end the batch: a bus that never goes quiet
+        // (a SYNC and 12 RPDOs every 5 ms, handled slowly by a loaded or
+        // emulated CPU) would otherwise keep the drives from ever sending a
+        // heartbeat, and the master would rightly declare them dead. The
+        // frames left queued are read right after the tick.
         while (bus.receive(f, arrived)) {
             sim.receive(f, arrived, out);
             bus.send(out);
+            if (monotonic_ns() >= sim.next_timer()) break;
         }
         sim.tick(monotonic_ns(), out);
         bus.send(out);
