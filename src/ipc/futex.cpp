@@ -1,4 +1,5 @@
-// Futex wait/wake (shared variants: the word is mapped by several processes).
+// Futex wait/wake: shared variants (the word is mapped by several processes)
+// unless a FutexScope says the word is this process's own.
 #include "chimera/ipc/futex.hpp"
 
 #include <linux/futex.h>
@@ -30,21 +31,41 @@ FutexResult result_of(long rc) noexcept {
     }
 }
 
+int with_scope(int op, FutexScope scope) noexcept {
+    return scope == FutexScope::process ? op | FUTEX_PRIVATE_FLAG : op;
+}
+
 }  // namespace
+
+FutexResult futex_wait(std::atomic<std::uint32_t>& word, std::uint32_t expected, std::int64_t timeout_ns,
+                       FutexScope scope) noexcept {
+    const int op = with_scope(FUTEX_WAIT, scope);
+    if (timeout_ns < 0) return result_of(sys_futex(word, op, expected, nullptr, 0));
+    const timespec ts = to_timespec(timeout_ns);
+    return result_of(sys_futex(word, op, expected, &ts, 0));
+}
+
+FutexResult futex_wait_until(std::atomic<std::uint32_t>& word, std::uint32_t expected, std::int64_t deadline_ns,
+                             FutexScope scope) noexcept {
+    // FUTEX_WAIT_BITSET takes an absolute CLOCK_MONOTONIC time.
+    const timespec ts = to_timespec(deadline_ns < 0 ? 0 : deadline_ns);
+    return result_of(
+        sys_futex(word, with_scope(FUTEX_WAIT_BITSET, scope), expected, &ts, FUTEX_BITSET_MATCH_ANY));
+}
+
+int futex_wake_all(std::atomic<std::uint32_t>& word, FutexScope scope) noexcept {
+    const long rc = sys_futex(word, with_scope(FUTEX_WAKE, scope), static_cast<std::uint32_t>(INT_MAX), nullptr, 0);
+    return rc < 0 ? 0 : static_cast<int>(rc);
+}
 
 FutexResult futex_wait(std::atomic<std::uint32_t>& word, std::uint32_t expected,
                        std::int64_t timeout_ns) noexcept {
-    if (timeout_ns < 0) return result_of(sys_futex(word, FUTEX_WAIT, expected, nullptr, 0));
-    const timespec ts = to_timespec(timeout_ns);
-    return result_of(sys_futex(word, FUTEX_WAIT, expected, &ts, 0));
+    return futex_wait(word, expected, timeout_ns, FutexScope::shared);
 }
 
 FutexResult futex_wait_until(std::atomic<std::uint32_t>& word, std::uint32_t expected,
                              std::int64_t deadline_ns) noexcept {
-    // FUTEX_WAIT_BITSET takes an absolute CLOCK_MONOTONIC time.
-    const timespec ts = to_timespec(deadline_ns < 0 ? 0 : deadline_ns);
-    return result_of(
-        sys_futex(word, FUTEX_WAIT_BITSET, expected, &ts, FUTEX_BITSET_MATCH_ANY));
+    return futex_wait_until(word, expected, deadline_ns, FutexScope::shared);
 }
 
 int futex_wake(std::atomic<std::uint32_t>& word, int count) noexcept {
@@ -53,7 +74,7 @@ int futex_wake(std::atomic<std::uint32_t>& word, int count) noexcept {
 }
 
 int futex_wake_all(std::atomic<std::uint32_t>& word) noexcept {
-    return futex_wake(word, INT_MAX);
+    return futex_wake_all(word, FutexScope::shared);
 }
 
 }  // namespace chimera::ipc

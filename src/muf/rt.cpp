@@ -45,16 +45,27 @@ std::string ms(std::int64_t ns) {
 
 // Waits until `release_word` moves from `rw`, `word` from `seen` (when given),
 // or the absolute CLOCK_MONOTONIC `until` (infinity: no limit). One system call.
+// A `word` of the task's own (wait_release's reference form) is the only futex:
+// the scheduler bumps it where it bumps release_word (interrupt_wait), so one
+// process-private futex serves both, with no page lookup and no allocation in
+// the kernel (futex_waitv allocates its vector on every call).
 void wait_words(std::atomic<std::uint32_t>& release_word, std::uint32_t rw,
                 const std::atomic<std::uint32_t>* word, std::uint32_t seen,
-                std::int64_t until) noexcept {
+                std::int64_t until, bool own_word) noexcept {
+    if (own_word) {
+        // The futex only reads the word; the reference form gave it non-const.
+        auto& w = const_cast<std::atomic<std::uint32_t>&>(*word);
+        if (until == infinity) ipc::futex_wait(w, seen, -1, ipc::FutexScope::process);
+        else ipc::futex_wait_until(w, seen, until, ipc::FutexScope::process);
+        return;
+    }
     if (!word) {
         if (until == infinity) ipc::futex_wait(release_word, rw);
         else ipc::futex_wait_until(release_word, rw, until);
         return;
     }
-    // Shared (not private) futexes, so the runtime's futex_wake on its command
-    // word in shared memory reaches us.
+    // Shared (not private) futexes, so that a word in shared memory, woken
+    // from another process, reaches us.
     futex_waitv waiters[2]{};
     waiters[0].val = rw;
     waiters[0].uaddr = reinterpret_cast<std::uintptr_t>(&release_word);
@@ -73,6 +84,19 @@ void wait_words(std::atomic<std::uint32_t>& release_word, std::uint32_t rw,
         // Kernels before 5.16: watch the command word by polling every millisecond.
         const std::int64_t poll = clock_ns() + 1'000'000;
         ipc::futex_wait_until(release_word, rw, until < poll ? until : poll);
+    }
+}
+
+// A thread in wait_release must look again: removed, or its ranking changed.
+// Sequentially consistent with wait_release's store of own_word and load of
+// release_word: either this sees the task's word and bumps it, or the task's
+// next look sees release_word moved.
+void interrupt_wait(TaskSlot& s) noexcept {
+    s.release_word.fetch_add(1, std::memory_order_seq_cst);
+    ipc::futex_wake_all(s.release_word);
+    if (std::atomic<std::uint32_t>* w = s.own_word.load(std::memory_order_seq_cst)) {
+        w->fetch_add(1, std::memory_order_release);
+        ipc::futex_wake_all(*w, ipc::FutexScope::process);
     }
 }
 
@@ -253,8 +277,7 @@ void RtpuScheduler::Impl::reassign() {
         for (int h = 0; h < count; ++h) {
             TaskSlot& s = slots[static_cast<std::size_t>(h)];
             if (s.state.load() != SlotState::attached) continue;
-            s.release_word.fetch_add(1, std::memory_order_acq_rel);
-            ipc::futex_wake_all(s.release_word);
+            interrupt_wait(s);
         }
     }
 }
@@ -356,8 +379,7 @@ void RtpuScheduler::remove_task(TaskHandle h) {
     TaskSlot& s = m.checked_slot(h, "remove_task");
     s.state.store(SlotState::removed, std::memory_order_release);
     s.phase.store(Phase::detached, std::memory_order_release);
-    s.release_word.fetch_add(1, std::memory_order_acq_rel);
-    ipc::futex_wake_all(s.release_word);
+    interrupt_wait(s);
     m.reassign();
     m.notify();
 }
@@ -483,6 +505,7 @@ void RtpuScheduler::attach_current_thread(TaskHandle h) {
     s.tid.store(tid);
     s.phase.store(Phase::waiting);
     s.self_timed.store(false);
+    s.own_word.store(nullptr);
     s.release_word.fetch_add(1);
     s.control_seen = s.release_word.load();
     const std::int64_t first =
@@ -498,6 +521,7 @@ void RtpuScheduler::detach_current_thread(TaskHandle h) noexcept {
     TaskSlot* s = m.slot(h);
     if (!s || s->tid.load() != static_cast<int>(syscall(SYS_gettid))) return;
     if (s->state.load() == SlotState::attached) s->state.store(SlotState::added);
+    s->own_word.store(nullptr);  // no later interrupt touches a word that may be gone
     detail::delete_budget_timer(*s);
     detail::bind_thread(nullptr, nullptr, -1);
     detail::set_other(0);
@@ -510,14 +534,26 @@ void RtpuScheduler::detach_current_thread(TaskHandle h) noexcept {
 // ------------------------------------------------------------------ real-time path
 
 Wake RtpuScheduler::wait_release(TaskHandle h, const std::atomic<std::uint32_t>* word,
-                                                std::uint32_t seen) noexcept {
+                                 std::uint32_t seen) noexcept {
+    return impl_->wait_for_release(h, word, seen, /*own_word=*/false);
+}
+
+Wake RtpuScheduler::wait_release(TaskHandle h, std::atomic<std::uint32_t>& word, std::uint32_t seen) noexcept {
     TaskSlot* sp = impl_->slot(h);
+    if (!sp) return Wake::detached;
+    sp->own_word.store(&word, std::memory_order_seq_cst);  // before release_word is read (interrupt_wait)
+    return impl_->wait_for_release(h, &word, seen, /*own_word=*/true);
+}
+
+Wake RtpuScheduler::Impl::wait_for_release(TaskHandle h, const std::atomic<std::uint32_t>* word,
+                                           std::uint32_t seen, bool own_word) noexcept {
+    TaskSlot* sp = slot(h);
     if (!sp) return Wake::detached;
     TaskSlot& s = *sp;
     bool slept = false;
     std::int64_t now = 0;
     for (;;) {
-        const std::uint32_t rw = s.release_word.load(std::memory_order_acquire);
+        const std::uint32_t rw = s.release_word.load(std::memory_order_seq_cst);
         const Phase phase = s.phase.load(std::memory_order_acquire);
         if (phase == Phase::detached || s.state.load(std::memory_order_acquire) != SlotState::attached)
             return Wake::detached;
@@ -530,8 +566,8 @@ Wake RtpuScheduler::wait_release(TaskHandle h, const std::atomic<std::uint32_t>*
             // cycle, after the wake-up (where the vDSO cannot serve it, as
             // under emulation, every read is a system call).
             if (word && word->load(std::memory_order_acquire) != seen) return Wake::command;
-            if (impl_->ranks_at_release(s)) impl_->stand_by_for_release(s);
-            wait_words(s.release_word, rw, word, seen, release);
+            if (ranks_at_release(s)) stand_by_for_release(s);
+            wait_words(s.release_word, rw, word, seen, release, own_word);
             slept = true;
             continue;
         }
@@ -551,11 +587,11 @@ Wake RtpuScheduler::wait_release(TaskHandle h, const std::atomic<std::uint32_t>*
             s.phase.store(Phase::job, std::memory_order_release);
             detail::mark_job_unstarted();
             // Dynamic ranking: this release may change the MUF order.
-            if (impl_->ranks_at_release(s)) impl_->rank_and_apply(now, h);
+            if (ranks_at_release(s)) rank_and_apply(now, h);
             break;
         }
         if (word && word->load(std::memory_order_acquire) != seen) return Wake::command;
-        wait_words(s.release_word, rw, word, seen, release);
+        wait_words(s.release_word, rw, word, seen, release, own_word);
     }
 
     // A release: the handler asked to skip it, or MINEXEC cannot be met.

@@ -50,6 +50,8 @@ struct TaskSlot {
     std::atomic<Pacing> pacing{Pacing::dispatched};
     std::atomic<Phase> phase{Phase::waiting};
     std::atomic<std::uint32_t> release_word{0};   ///< futex: bumped at each release and at removal
+    /// wait_release's reference form: the task's own word, bumped with release_word (interrupt_wait).
+    std::atomic<std::atomic<std::uint32_t>*> own_word{nullptr};
     std::atomic<std::int64_t> period_ns{0};
     std::atomic<std::int64_t> rel_deadline_ns{0};
     std::atomic<std::int64_t> next_release_ns{0};  ///< the dispatcher's (or self-paced task's) timeline
@@ -157,6 +159,9 @@ struct CHIMERA_LOCAL RtpuScheduler::Impl {
     /// dispatcher's priority (fifo_high), so that the kernel's wake-up at the
     /// release runs it at once, above every task of the band, to rank itself.
     void stand_by_for_release(detail::TaskSlot& s) noexcept;
+    /// wait_release's body; own_word: `word` is the task's own (the reference form).
+    Wake wait_for_release(TaskHandle h, const std::atomic<std::uint32_t>* word, std::uint32_t seen,
+                          bool own_word) noexcept;
     /// True when the task ranks at its own release: a dispatched task under
     /// dynamic ranking (static ranking never changes at a release).
     bool ranks_at_release(const detail::TaskSlot& s) const noexcept {

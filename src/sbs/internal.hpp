@@ -195,7 +195,9 @@ public:
     std::atomic<int> last_num{0};
 
     // --- request mailbox ---
-    std::atomic<std::uint32_t> word{0};  // bumped for every request and event (futex word)
+    // Bumped for every request and event; a process-private futex (the
+    // task's one wake-up word, also given to the MUF scheduler's wait).
+    std::atomic<std::uint32_t> word{0};
     std::atomic<bool> cmd_pending{false};  // a request waits (read by the loop without a lock)
     // cmd_mu guards the fields below; the task thread answers by bumping
     // `answered` and waking it (a futex: glibc condition variables inherit no

@@ -178,7 +178,7 @@ public:
         const muf::TaskHandle h = handle_.load(std::memory_order_relaxed);
         if (h < 0) return false;
         for (;;) {
-            const muf::Wake w = sched_.wait_release(h, &word, seen);
+            const muf::Wake w = sched_.wait_release(h, word, seen);
             missed = sched_.status(h).missed;
             switch (w) {
                 case muf::Wake::release:

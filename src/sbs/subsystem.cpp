@@ -647,7 +647,7 @@ void Subsystem::event(TaskId id) noexcept {
     if (!t) return;
     t->events.fetch_add(1, std::memory_order_acq_rel);
     t->word.fetch_add(1, std::memory_order_release);
-    ipc::futex_wake_all(t->word);
+    ipc::futex_wake_all(t->word, ipc::FutexScope::process);
 }
 
 namespace {

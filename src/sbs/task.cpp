@@ -237,7 +237,7 @@ std::string TaskCore::request(CmdKind kind, std::string a, std::string key, doub
     cmd_pending.store(true, std::memory_order_release);
     lock.unlock();
     word.fetch_add(1, std::memory_order_release);
-    ipc::futex_wake_all(word);
+    ipc::futex_wake_all(word, ipc::FutexScope::process);
     wait_answer(cmd_done);
     lock.lock();
     if (out) *out = cmd_reply;

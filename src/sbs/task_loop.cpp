@@ -210,6 +210,10 @@ private:
     void periodic_release(std::uint32_t seen);
     void synchronous_release();
     void aperiodic_release(std::uint32_t seen);
+    // Sleeps until the request word moves from `seen` (returns at once when it has).
+    void wait_for_request(std::uint32_t seen) noexcept {
+        ipc::futex_wait(t_.word, seen, -1, ipc::FutexScope::process);
+    }
 
     // ---- the steps of one job and of off ----
     void job();                   // read in-vars, cycle, write out-vars
@@ -289,7 +293,7 @@ void TaskLoop::run() {
         } else if (t_.state.load(std::memory_order_relaxed) == State::ON) {
             run_on_state(seen);
         } else {
-            ipc::futex_wait(t_.word, seen);
+            wait_for_request(seen);
         }
     }
 }
@@ -561,7 +565,7 @@ void TaskLoop::run_on_state(std::uint32_t seen) {
 // Sleeps until the next release (or a request), then runs the job.
 void TaskLoop::periodic_release(std::uint32_t seen) {
     if (!t_.pacer->wait(t_.word, seen, missed_)) {  // a request came in
-        ipc::futex_wait(t_.word, seen);             // (returns at once when it did)
+        wait_for_request(seen);                     // (returns at once when it did)
         return;
     }
     if (const std::uint64_t before = t_.misses.load(std::memory_order_relaxed); missed_ != before) {
@@ -581,7 +585,7 @@ void TaskLoop::synchronous_release() {
 // Sporadic, deferrable and background tasks: one job per event.
 void TaskLoop::aperiodic_release(std::uint32_t seen) {
     if (t_.events.load(std::memory_order_acquire) == 0) {
-        ipc::futex_wait(t_.word, seen);
+        wait_for_request(seen);
         return;
     }
     t_.events.fetch_sub(1, std::memory_order_acq_rel);

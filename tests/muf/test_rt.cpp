@@ -30,6 +30,7 @@
 #include <thread>
 #include <vector>
 
+#include "chimera/ipc/futex.hpp"
 #include "chimera/ipc/lock.hpp"
 #include "chimera/muf.hpp"
 #include "cpu_partition.hpp"
@@ -260,6 +261,42 @@ TEST(MufRank, EqualUrgencyIsFirstComeFirstServedAndTheBandIsKept) {
     EXPECT_EQ(e[0].new_prio, 12);
     EXPECT_EQ(e[1].new_prio, 11);
     EXPECT_EQ(e[2].new_prio, 10);
+}
+
+// wait_release's reference form: the task's own word is the one futex it
+// sleeps on (process-private). A change of the word made by another thread
+// ends the wait as a command; a removal reaches the sleeping thread through
+// the same word, long before its next release (a 10 s period here).
+TEST(MufRt, TheTasksOwnWordEndsTheWaitForACommandAndForARemoval) {
+    RtpuScheduler sch(options(Backend::other));
+    const TaskHandle h = sch.add_task(task("own_word", 10'000 * ms, 0));
+    std::atomic<std::uint32_t> word{0};
+    std::atomic<int> commands{0}, waiting{0};
+    std::atomic<bool> detached{false};
+    std::thread t([&] {
+        sch.attach_current_thread(h);
+        for (;;) {
+            const std::uint32_t seen = word.load();
+            waiting.fetch_add(1);
+            const Wake w = sch.wait_release(h, word, seen);
+            if (w == Wake::detached) break;
+            if (w == Wake::command) commands.fetch_add(1);
+            if (w == Wake::release) sch.cycle_complete(h);
+        }
+        detached.store(true);
+        sch.detach_current_thread(h);
+    });
+    ASSERT_TRUE(eventually([&] { return waiting.load() >= 1; }));
+    std::this_thread::sleep_for(50ms);  // asleep in the futex, most likely
+    const int before = commands.load();
+    word.fetch_add(1);
+    chimera::ipc::futex_wake_all(word, chimera::ipc::FutexScope::process);
+    EXPECT_TRUE(eventually([&] { return commands.load() > before; })) << "a command did not end the wait";
+    ASSERT_TRUE(eventually([&] { return waiting.load() >= 2; }));
+    std::this_thread::sleep_for(50ms);
+    sch.remove_task(h);
+    EXPECT_TRUE(eventually([&] { return detached.load(); })) << "the removal did not reach the sleeping thread";
+    t.join();
 }
 
 TEST(MufRt, BackendNamesAndBadParameters) {

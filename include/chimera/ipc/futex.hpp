@@ -1,8 +1,9 @@
 // chimera/ipc/futex.hpp — futex wait/wake on a 32-bit word in shared memory.
 //
 // The Linux form of the thesis's mailbox interrupt / xmWakeup (§5.3). The
-// operations are the shared (not FUTEX_PRIVATE) variants, because the word
-// lives in a segment that several processes map, each at its own address.
+// operations without a FutexScope are the shared (not FUTEX_PRIVATE) variants,
+// because the word lives in a segment that several processes map, each at its
+// own address.
 #pragma once
 
 #include "chimera/export.hpp"
@@ -37,5 +38,18 @@ CHIMERA_API int futex_wake(std::atomic<std::uint32_t>& word, int count = 1) noex
 
 /// Wakes every waiter on `word`.
 CHIMERA_API int futex_wake_all(std::atomic<std::uint32_t>& word) noexcept;
+
+/// Who may wait on and wake a word. `process`: only threads of this process
+/// (FUTEX_PRIVATE_FLAG): the kernel finds the word without looking up its
+/// page, a cheaper call on a real-time path. A waiter and its wakers must use
+/// the same scope: a private wake does not reach a shared waiter.
+enum class FutexScope : std::uint8_t { shared, process };
+
+/// The same operations in a given scope.
+CHIMERA_API FutexResult futex_wait(std::atomic<std::uint32_t>& word, std::uint32_t expected,
+                                   std::int64_t timeout_ns, FutexScope scope) noexcept;
+CHIMERA_API FutexResult futex_wait_until(std::atomic<std::uint32_t>& word, std::uint32_t expected,
+                                         std::int64_t deadline_ns, FutexScope scope) noexcept;
+CHIMERA_API int futex_wake_all(std::atomic<std::uint32_t>& word, FutexScope scope) noexcept;
 
 }  // namespace chimera::ipc

@@ -207,6 +207,13 @@ public:
     /// DEADLINE and MAXEXEC timers are armed; MINEXEC is checked here.
     Wake wait_release(TaskHandle h, const std::atomic<std::uint32_t>* word = nullptr,
                       std::uint32_t seen = 0) noexcept;
+    /// The same for a runtime whose commands come from this process, and the
+    /// cheaper form: `word` is the task's own wake-up word, the one futex the
+    /// thread sleeps on (process-private: whoever changes it wakes it with
+    /// ipc::futex_wake_all(word, ipc::FutexScope::process)). The scheduler
+    /// bumps it too when the thread must look again (removed: Wake::detached
+    /// at the next call), so a change the caller did not make is possible.
+    Wake wait_release(TaskHandle h, std::atomic<std::uint32_t>& word, std::uint32_t seen) noexcept;
     /// In the task's thread, after cycle: disarms the timers, counts the cycle.
     void cycle_complete(TaskHandle h) noexcept;
 
