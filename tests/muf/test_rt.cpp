@@ -355,7 +355,9 @@ TEST_P(MufFailures, DeadlineRunsTheHandlerInTheTaskThread) {
     const RtTaskStatus st = sch.status(r.handle());
     EXPECT_EQ(probe.wrong_thread.load(), 0);
     EXPECT_EQ(probe.count[2].load(), 0);
-    EXPECT_EQ(st.deadline_failures, static_cast<std::uint64_t>(probe.count[1].load()));
+    // One handler call per late job, for every deadline that passed while it
+    // ran (more than one where a job overran a whole period: a loaded machine).
+    EXPECT_GE(st.deadline_failures, static_cast<std::uint64_t>(probe.count[1].load()));
     // Every job but the one cut short by stop() completed; none was aborted.
     EXPECT_GE(st.cycles, 2u);
     EXPECT_EQ(st.aborted, 0u);
@@ -386,10 +388,12 @@ TEST_P(MufFailures, DeadlineOfAJobThatEndsLateIsReportedAtItsEnd) {
     // One report per late job, counting every deadline that passed while it
     // ran (more than one where a job overran a whole period: a loaded machine).
     EXPECT_GE(st.deadline_failures, static_cast<std::uint64_t>(probe.count[1].load()));
-    EXPECT_LE(static_cast<std::uint64_t>(probe.count[1].load()), st.cycles);
-    // Every job but the one stop() cut short (it ends after its task left).
-    EXPECT_GE(probe.count[1].load(), 3);
-    EXPECT_LE(st.cycles - static_cast<std::uint64_t>(probe.count[1].load()), 1u);
+    // Every job was reported, but the one stop() cut short, which may be
+    // reported or counted as a cycle, not both (it ends after its task left).
+    const auto reports = static_cast<std::uint64_t>(probe.count[1].load());
+    EXPECT_GE(reports, 3u);
+    EXPECT_LE(std::max(reports, st.cycles) - std::min(reports, st.cycles), 1u)
+        << reports << " reports, " << st.cycles << " cycles";
     // A miss per failure, but for the job stop() cut short: reported, never ended.
     EXPECT_GE(st.deadline_failures, st.missed);
     EXPECT_LE(st.deadline_failures - st.missed, 1u);
