@@ -38,6 +38,7 @@ struct ThreadState {
 // takes that block from glibc's small static surplus, and the 1.4 KB abort slot
 // there left no room for other libraries' (libgomp: "cannot allocate memory in
 // static TLS block").
+// Initial-exec, with its guard: src/err/meson.build.
 thread_local std::unique_ptr<ThreadState> t_state;
 
 ThreadState& state() {

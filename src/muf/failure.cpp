@@ -83,7 +83,9 @@ struct ThreadState {
     std::int64_t exec_start_cpu = 0;
 };
 
-thread_local ThreadState tl;
+// Initial-exec: libchimera's TLS block is static already (ipc's owner id),
+// so no access needs __tls_get_addr — the task loop reads this every cycle.
+[[gnu::tls_model("initial-exec")]] thread_local ThreadState tl;
 
 int g_timer_signal = 0;
 std::once_flag g_signals_once;

@@ -90,7 +90,8 @@ template <typename Body>
 // disposition is restored and the fault happens again, as it would have.
 // Best effort by nature: a module that corrupted shared state (the heap, a
 // lock it held) can still bring the process down later.
-thread_local sigjmp_buf* t_crash_mark = nullptr;
+// Initial-exec, as muf's per-thread state: read around every module call.
+[[gnu::tls_model("initial-exec")]] constinit thread_local sigjmp_buf* t_crash_mark = nullptr;
 constexpr int kCrashSignals[] = {SIGSEGV, SIGBUS, SIGFPE, SIGILL};
 struct sigaction g_previous_action[NSIG];
 
