@@ -318,23 +318,15 @@ TEST_F(Bridge, TheBridgeThreadAndCycloneThreadsAreNotRealTime) {
 
 namespace {
 
-// A kernel counter of one thread of this process: every system call, or
-// futex(2) alone (the table lock found busy).
-int open_thread_counter(long tid, bool futex_only) {
-    std::ifstream f("/sys/kernel/tracing/events/raw_syscalls/sys_enter/id");
-    long id = -1;
-    if (!(f >> id)) return -1;
+// A kernel counter of every system call of one thread of this process.
+int open_thread_counter(long tid) {
+    const long id = chimera::test::tracepoint_id("raw_syscalls/sys_enter");
+    if (id < 0) return -1;
     perf_event_attr a{};
     a.size = sizeof a;
     a.type = PERF_TYPE_TRACEPOINT;
     a.config = static_cast<std::uint64_t>(id);
-    const int fd = static_cast<int>(::syscall(SYS_perf_event_open, &a, static_cast<pid_t>(tid), -1, -1, PERF_FLAG_FD_CLOEXEC));
-    const std::string filter = "id == " + std::to_string(SYS_futex);
-    if (fd >= 0 && futex_only && ::ioctl(fd, PERF_EVENT_IOC_SET_FILTER, filter.c_str()) != 0) {
-        ::close(fd);
-        return -1;
-    }
-    return fd;
+    return static_cast<int>(::syscall(SYS_perf_event_open, &a, static_cast<pid_t>(tid), -1, -1, PERF_FLAG_FD_CLOEXEC));
 }
 
 }  // namespace
@@ -355,7 +347,7 @@ void Bridge::count_task_threads(const std::string& notify) {
     for (const TaskId id : {pub_, sub_}) {
         const auto received0 = sbs_->get(sub_, "STATUS");  // get() runs on the task thread: not while counting
         const auto st0 = sbs_->status(id);
-        const int all = open_thread_counter(st0.tid, false), futex = open_thread_counter(st0.tid, true);
+        const int all = open_thread_counter(st0.tid), futex = chimera::test::open_other_futex_counter(st0.tid);
         ASSERT_GE(all, 0);
         ASSERT_GE(futex, 0);
         const std::uint64_t calls0 = chimera::test::read_syscall_counter(all);
@@ -377,7 +369,7 @@ void Bridge::count_task_threads(const std::string& notify) {
         EXPECT_EQ(allocations, 0) << st.rmod;
         // The status reads bracket the counting window: a cycle more at each end.
         EXPECT_GE(calls + 2, cycles) << st.rmod << ": the release wait alone is one per cycle";
-        // futex(2) counts the table lock found busy and, NOTIFY wake, the wake.
+        // futex(2) but the release wait: the table lock found busy and, NOTIFY wake, the wake.
         EXPECT_LE(calls, cycles + locks + switched + 2) << st.rmod;
         if (notify == "wake" && id == pub_) {
             EXPECT_GE(locks + 2, cycles) << "one wake per cycle";

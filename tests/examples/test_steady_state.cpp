@@ -11,7 +11,7 @@
 //     then, and a cycle switched out (preempted: by the RTPU's DEADLINE
 //     watchdog, or on this loaded 2-CPU machine) costs the profiler one read
 //     of its exact counter (issue #14 item 3 counts neither): the futex calls
-//     are counted apart (the same tracepoint filtered on futex(2)), switched
+//     are counted apart (futex(2) calls other than the release wait's), switched
 //     cycles come from the profile, and the rest is held to one per cycle
 //     (+2 for the counting window's edges). A timer call in every cycle fails it.
 // Needs tracefs for the system-call counter: registered under
@@ -35,6 +35,7 @@
 #include <vector>
 
 #include "alloc_counter.hpp"
+#include "syscall_counter.hpp"
 
 namespace {
 
@@ -42,15 +43,6 @@ using chimera::sbs::Control;
 using chimera::sbs::Subsystem;
 using chimera::sbs::TaskId;
 using namespace std::chrono_literals;
-
-long tracepoint_id(const char* event) {
-    for (const char* root : {"/sys/kernel/tracing/events/", "/sys/kernel/debug/tracing/events/"}) {
-        std::ifstream f(std::string(root) + event + "/id");
-        long id = -1;
-        if (f >> id) return id;
-    }
-    return -1;
-}
 
 // A kernel counter of one thread of this process.
 int open_counter(std::uint32_t type, std::uint64_t config, long tid) {
@@ -60,18 +52,6 @@ int open_counter(std::uint32_t type, std::uint64_t config, long tid) {
     a.type = type;
     a.config = config;
     return static_cast<int>(syscall(SYS_perf_event_open, &a, static_cast<pid_t>(tid), -1, -1, PERF_FLAG_FD_CLOEXEC));
-}
-
-// The same tracepoint counting only futex(2) calls: the table lock found busy
-// (FUTEX_WAIT/WAKE); the release wait of these tasks is futex_waitv, not futex.
-int open_lock_counter(std::uint64_t syscall_id, long tid) {
-    const int fd = open_counter(PERF_TYPE_TRACEPOINT, syscall_id, tid);
-    const std::string filter = "id == " + std::to_string(SYS_futex);
-    if (fd >= 0 && ::ioctl(fd, PERF_EVENT_IOC_SET_FILTER, filter.c_str()) != 0) {
-        ::close(fd);
-        return -1;
-    }
-    return fd;
 }
 
 std::uint64_t read_counter(int fd) {
@@ -84,7 +64,7 @@ std::string unique_name() { return "steady" + std::to_string(::getpid()); }
 }  // namespace
 
 TEST(SteadyState, Figure3_7TaskThreadsMakeNoAllocationNoPageFaultAndOneSystemCallPerCycle) {
-    const long syscall_id = tracepoint_id("raw_syscalls/sys_enter");
+    const long syscall_id = chimera::test::tracepoint_id("raw_syscalls/sys_enter");
     if (syscall_id < 0) {
         if (std::getenv("CHIMERA_REQUIRE_SYSCALL_COUNTER"))
             FAIL() << "the raw_syscalls tracepoint cannot be opened (tracefs not mounted?)";
@@ -117,7 +97,7 @@ TEST(SteadyState, Figure3_7TaskThreadsMakeNoAllocationNoPageFaultAndOneSystemCal
         c.faults_fd = open_counter(PERF_TYPE_SOFTWARE, PERF_COUNT_SW_PAGE_FAULTS, c.tid);
         ASSERT_GE(c.syscalls_fd, 0) << c.name << ": perf_event_open: " << std::strerror(errno);
         ASSERT_GE(c.faults_fd, 0) << c.name << ": perf_event_open: " << std::strerror(errno);
-        c.lock_fd = open_lock_counter(static_cast<std::uint64_t>(syscall_id), c.tid);
+        c.lock_fd = chimera::test::open_other_futex_counter(c.tid);
         ASSERT_GE(c.lock_fd, 0) << c.name << ": perf_event_open with a futex filter: " << std::strerror(errno);
         c.syscalls0 = read_counter(c.syscalls_fd);
         c.lock0 = read_counter(c.lock_fd);
