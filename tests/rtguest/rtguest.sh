@@ -14,7 +14,7 @@
 # What it does (everything downloaded or built is cached under
 # $CHIMERA_RTGUEST_CACHE, default /var/cache/chimera-rtguest, so a second run
 # starts the guest straight away):
-#   1. installs qemu-system-x86, busybox-static and the linux-headers package
+#   1. installs qemu-system-x86, busybox-static, xz-utils and the linux-headers package
 #      matching Debian's linux-image-rt-amd64 (apt-get), downloads the kernel
 #      image and linux-source packages (apt-get download) and unpacks the
 #      kernel and the few modules the guest loads into the cache (the host's
@@ -31,7 +31,8 @@
 #   5. returns the tests' status, read from the marker line the guest prints
 #      on its serial console. Exit 77 (meson's "skipped") when the guest
 #      cannot be prepared here (not x86_64, no root and nothing installed, no
-#      apt, no network), unless --require.
+#      apt, no network), unless --require or the CI variable is set.
+# The guest's emulated CPUs run at host nice -10 (CHIMERA_RTGUEST_NICE).
 #
 # Timing numbers measured inside a TCG guest mean nothing; the guest tests
 # assert behaviour only.
@@ -54,6 +55,9 @@ while [[ "${1:-}" == --* ]]; do
     shift
 done
 tests=("$@")
+# Under CI (the CI variable set, as CI systems do) a missing prerequisite is a
+# failure with its reason, never a silent skip: a green CI must mean the guest ran.
+if [[ -n "${CI:-}" && "${CI}" != false && "${CI}" != 0 ]]; then require=1; fi
 if ((${#tests[@]} == 0)); then
     echo "usage: $0 [--keep] [--require] TEST_PROGRAM[@GTEST_FILTER]..." >&2; exit 2
 fi
@@ -108,6 +112,7 @@ say "kernel $kver, cache $cache"
 need_pkgs=()
 command -v qemu-system-x86_64 >/dev/null || need_pkgs+=(qemu-system-x86)
 [[ -x /bin/busybox ]] || need_pkgs+=(busybox-static)
+command -v xz >/dev/null || need_pkgs+=(xz-utils)  # the kernel source is a .tar.xz (minbase Debian lacks it)
 [[ -e "/lib/modules/$kver/build/Makefile" ]] || need_pkgs+=("linux-headers-$kver")
 command -v make >/dev/null || need_pkgs+=(make)
 command -v gcc >/dev/null || need_pkgs+=(gcc)
