@@ -437,7 +437,13 @@ void RtpuScheduler::attach_current_thread(TaskHandle h) {
             throw SchedError(who + "cannot pin to CPU " + std::to_string(m.options.cpu) + " of RTPU " +
                              m.options.name + " (" + detail::process_cpus_text() + "): " + std::strerror(pin));
         const std::int64_t runtime = std::max<std::int64_t>(budget, 1024);
-        const int rc = detail::set_deadline_policy(0, runtime, s.rel_deadline_ns.load(), s.period_ns.load());
+        // The whole critical set shares the CPU's bandwidth: a set that cannot
+        // fit is refused here, whatever the kernel says of this one reservation
+        // (it admits per root domain, and a partition just made may not have
+        // its own yet: the guest once admitted 0.97 on one).
+        const int rc = m.current_assignment.critical.utilisation > detail::deadline_bandwidth_per_cpu()
+                           ? EBUSY
+                           : detail::set_deadline_policy(0, runtime, s.rel_deadline_ns.load(), s.period_ns.load());
         if (rc == 0) {
             reserved = true;
             note = " (CPU " + std::to_string(m.options.cpu) + ", a root domain of its own)";
