@@ -105,21 +105,32 @@ struct Bench {
     RtpuScheduler::Impl impl;
 };
 
-// One release under dynamic ranking: task 0 begins a job and, in its own
-// thread, ranks the n tasks (itself last); no priority moves (the order is
-// unchanged). The dispatcher is no longer on the release path.
+// One cycle of a task under dynamic ranking, the ranking work its own thread
+// does (the calling thread is task 0): its job ends, it is released, and it
+// looks at the ranking before its job begins. Its place does not change (its
+// deadline stays the earliest), so the ranking holds and no priority moves:
+// no system call. (Before issue #14 item 3, the task waited at fifo_high and
+// ranked itself down at each release: two priority changes of its own per
+// cycle; bench/results/muf.md has both, measured in one sitting.)
 void BM_RankAtRelease(benchmark::State& state) {
     const int n = static_cast<int>(state.range(0));
     Bench b(n);
     detail::TaskSlot& s0 = b.impl.slots[0];
+    s0.tid = static_cast<int>(syscall(SYS_gettid));
+    detail::set_fifo(0, s0.fifo_prio.load());
+    const std::int64_t period = s0.period_ns.load(), deadline = s0.rel_deadline_ns.load();
     const std::uint64_t changes0 = b.impl.priority_changes.load();
     for (auto _ : state) {
         const std::int64_t now = clock_ns();
+        s0.phase.store(detail::Phase::waiting);
+        s0.next_release_ns.store(now);
         s0.job_release_ns.store(now);
-        s0.job_deadline_ns.store(now + s0.rel_deadline_ns.load());
+        s0.job_deadline_ns.store(now + deadline);
         s0.phase.store(detail::Phase::job);
-        b.impl.rank_and_apply(now, 0);
+        s0.next_release_ns.store(now + period);
+        b.impl.rank_at_release(now, 0);
     }
+    detail::set_other(0);
     state.counters["prio_changes/iter"] = benchmark::Counter(
         static_cast<double>(b.impl.priority_changes.load() - changes0) /
         static_cast<double>(state.iterations()));

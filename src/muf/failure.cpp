@@ -168,7 +168,12 @@ FailureAction run_handler(ThreadState& t, Failure kind) noexcept {
         // watchdog sees the new deadline).
         const std::int64_t period = s.period_ns.load(std::memory_order_relaxed);
         const std::int64_t d = s.job_deadline_ns.load(std::memory_order_acquire);
-        if (period > 0 && d != infinity) s.job_deadline_ns.store(d + period, std::memory_order_release);
+        if (period > 0 && d != infinity) {
+            s.job_deadline_ns.store(d + period, std::memory_order_release);
+            // Under dynamic ranking the job now ranks by the later deadline:
+            // the dispatcher re-ranks (no release may come to do it).
+            if (t.impl && t.impl->ranks_at_release(s)) t.impl->notify();
+        }
     }
     if (action == FailureAction::skip_next) t.skip_next = 1;
     // Failures raised while the handler ran (set_deadline's MINEXEC) follow it.
@@ -345,6 +350,14 @@ void releases_skipped(TaskSlot& s, std::int64_t first_release, std::int64_t coun
     t.reported_deadline = first_deadline + (count - 1) * period;
     if (uncovered > 1)
         s.deadline_failures.fetch_add(static_cast<std::uint64_t>(uncovered - 1), std::memory_order_relaxed);
+    raise_failure_here(Failure::deadline);
+}
+
+void deadline_passed_unstarted(TaskSlot& s, std::int64_t now) noexcept {
+    ThreadState& t = tl;
+    const std::int64_t d = s.job_deadline_ns.load(std::memory_order_acquire);
+    if (d == infinity || d > now || d == t.reported_deadline) return;
+    t.reported_deadline = d;
     raise_failure_here(Failure::deadline);
 }
 

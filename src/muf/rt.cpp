@@ -572,7 +572,6 @@ Wake RtpuScheduler::Impl::wait_for_release(TaskHandle h, const std::atomic<std::
             // cycle, after the wake-up (where the vDSO cannot serve it, as
             // under emulation, every read is a system call).
             if (word && word->load(std::memory_order_acquire) != seen) return Wake::command;
-            if (ranks_at_release(s)) stand_by_for_release(s);
             wait_words(s.release_word, rw, word, seen, release, own_word);
             slept = true;
             continue;
@@ -586,14 +585,23 @@ Wake RtpuScheduler::Impl::wait_for_release(TaskHandle h, const std::atomic<std::
                 detail::releases_skipped(s, release, late);
             }
             release += late * period;
+            // The deadline before the phase, the next release after it: a
+            // ranking that looks meanwhile sees the same job either way (a
+            // release that came late, late > 0, ranks itself again below).
             s.job_release_ns.store(release, std::memory_order_relaxed);
             s.job_deadline_ns.store(release + s.rel_deadline_ns.load(std::memory_order_relaxed),
-                                    std::memory_order_relaxed);
-            s.next_release_ns.store(release + period, std::memory_order_relaxed);
+                                    std::memory_order_release);
             s.phase.store(Phase::job, std::memory_order_release);
+            s.next_release_ns.store(release + period, std::memory_order_release);
             detail::mark_job_unstarted();
-            // Dynamic ranking: this release may change the MUF order.
-            if (ranks_at_release(s)) rank_and_apply(now, h);
+            if (ranks_at_release(s)) {
+                // Dynamic ranking: the job was ranked before its release (by
+                // the job its release begins); the order is looked at again
+                // before it begins. It may have waited for the CPU behind more
+                // urgent jobs until its deadline passed.
+                rank_at_release(now, h);
+                detail::deadline_passed_unstarted(s, now);
+            }
             break;
         }
         if (word && word->load(std::memory_order_acquire) != seen) return Wake::command;

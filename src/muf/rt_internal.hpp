@@ -85,8 +85,26 @@ struct RankEntry {
     int handle = 0;
     int current_prio = 0;       ///< 0: none yet
     int new_prio = 0;
+    bool pending = false;       ///< its job is released (begun or not); else it waits for its release
 };
 
+/// The urgency a task keeps while its job (or, waiting, its next job) stands:
+/// Figure 6.2's fields with the deadline as an absolute time, in ticks from
+/// the RTPU's epoch (< 0: none), in the bits the criticality and user fields
+/// leave (52 by default), so that two tasks' order does not depend on when it
+/// is computed (Figure 6.2's field counts ticks to the deadline from now).
+std::uint64_t standing_urgency(const UrgencyEncoding& enc, int crit, std::int64_t deadline_ticks,
+                               int uprio) noexcept;
+/// Sorts the entries most urgent first (ties first come first served, then by
+/// handle). No allocation.
+void sort_by_urgency(std::span<RankEntry> entries) noexcept;
+/// Whether the current priorities already give MUF's order wherever it can
+/// matter (entries sorted by sort_by_urgency): each pending job above every
+/// less urgent pending job, each waiting task above every pending job less
+/// urgent than its next job, all placed in [low, high). A waiting task may
+/// stand above a more urgent pending job: released, it runs first and ranks
+/// itself down before its job begins (RtpuScheduler::Impl::rank_at_release).
+bool ranking_holds(std::span<const RankEntry> sorted, int low, int high) noexcept;
 /// Gives the entries SCHED_FIFO priorities in [low, high) in urgency order
 /// (highest urgency highest priority, ties first come first served), keeping a
 /// task's current priority wherever the order allows so that only the tasks
@@ -147,18 +165,21 @@ struct CHIMERA_LOCAL RtpuScheduler::Impl {
     void dispatcher_main() noexcept;
     /// Signals the jobs found past their deadlines; returns when to look again.
     std::int64_t watch_deadlines(std::int64_t now) noexcept;
-    /// Ranks the tasks and applies their priorities, changing only those that
-    /// move: under static ranking every attached task by its fixed urgency,
-    /// otherwise the tasks with a pending job by their urgency at `now`.
-    /// `self`: the calling task's handle (its own change is made last), or -1.
-    /// Takes rank_mutex.
-    void rank_and_apply(std::int64_t now, int self = -1) noexcept;
+    /// The ranking entries of the attached dispatched tasks (unsorted): under
+    /// static ranking by their fixed urgency, otherwise by the job each has
+    /// or, waiting, the job its next release begins (pending: released by `now`).
+    std::size_t collect_ranking(std::int64_t now,
+                                std::span<detail::RankEntry, detail::kMaxTasks> entries) noexcept;
+    /// The dispatcher's ranking (events): applies the priorities, changing only
+    /// those that move; under dynamic ranking only where the order does not
+    /// hold (ranking_holds). Takes rank_mutex.
+    void rank_and_apply(std::int64_t now) noexcept;
+    /// Dynamic ranking, a task when it first runs after its release (`now`),
+    /// before its job begins: nothing when the order holds (no lock, no system
+    /// call); otherwise ranks under rank_mutex, its own change (`self`) last.
+    void rank_at_release(std::int64_t now, int self) noexcept;
     /// Gives the entries priorities by rank and applies the changes.
     void apply_ranking(std::span<detail::RankEntry> entries, int self) noexcept;
-    /// Dynamic ranking, before a task sleeps to its release: it waits at the
-    /// dispatcher's priority (fifo_high), so that the kernel's wake-up at the
-    /// release runs it at once, above every task of the band, to rank itself.
-    void stand_by_for_release(detail::TaskSlot& s) noexcept;
     /// wait_release's body; own_word: `word` is the task's own (the reference form).
     Wake wait_for_release(TaskHandle h, const std::atomic<std::uint32_t>* word, std::uint32_t seen,
                           bool own_word) noexcept;
@@ -230,6 +251,11 @@ bool job_ended(TaskSlot& s) noexcept;
 /// busy): each deadline among them not reported yet is a DEADLINE failure
 /// (the handler runs once), so a task's misses and failures agree.
 void releases_skipped(TaskSlot& s, std::int64_t first_release, std::int64_t count) noexcept;
+/// Dynamic ranking, at a release: a job whose deadline passed before it began
+/// (it waited for the CPU behind more urgent jobs) is a DEADLINE failure, as
+/// the watchdog signals a job begun; the handler runs, and abort_cycle drops
+/// the job before it begins. Nothing when the deadline is ahead of `now`.
+void deadline_passed_unstarted(TaskSlot& s, std::int64_t now) noexcept;
 /// The watchdog's signal to task thread `tid`: its job is past its deadline.
 /// 0 or the errno.
 int signal_deadline(pid_t tid) noexcept;
