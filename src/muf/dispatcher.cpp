@@ -250,10 +250,13 @@ void RtpuScheduler::Impl::apply_ranking(std::span<detail::RankEntry> entries, in
     detail::rank_priorities(entries, options.fifo_low, options.fifo_high);
     const auto apply = [this](const detail::RankEntry& e) {
         TaskSlot& s = slots[static_cast<std::size_t>(e.handle)];
-        if (detail::set_fifo(s.tid.load(std::memory_order_relaxed), e.new_prio) == 0) {
-            s.fifo_prio.store(e.new_prio, std::memory_order_relaxed);
+        // Recorded before the call: a thread raised above the caller runs at
+        // once, inside the call, and looks at the ranking with its new place.
+        s.fifo_prio.store(e.new_prio, std::memory_order_relaxed);
+        if (detail::set_fifo(s.tid.load(std::memory_order_relaxed), e.new_prio) == 0)
             priority_changes.fetch_add(1, std::memory_order_relaxed);
-        }
+        else
+            s.fifo_prio.store(e.current_prio, std::memory_order_relaxed);
     };
     // A task ranking at its release runs at its own priority, above every
     // runnable task of the band. Those it lowers go first, least urgent first

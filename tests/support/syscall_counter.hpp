@@ -18,9 +18,10 @@
 
 namespace chimera::test {
 
-/// A counter of this thread's system calls from now on; -1 when the
-/// tracepoint is not available (no tracefs, no permission).
-inline int open_syscall_counter() {
+/// A counter of this thread's system calls from now on (or of thread `tid`
+/// of this process, read from another thread: the reads are not its calls);
+/// -1 when the tracepoint is not available (no tracefs, no permission).
+inline int open_syscall_counter(pid_t tid = 0) {
     std::ifstream f("/sys/kernel/tracing/events/raw_syscalls/sys_enter/id");
     if (!f) f.open("/sys/kernel/debug/tracing/events/raw_syscalls/sys_enter/id");
     long id = -1;
@@ -30,7 +31,7 @@ inline int open_syscall_counter() {
     a.size = sizeof a;
     a.type = PERF_TYPE_TRACEPOINT;
     a.config = static_cast<std::uint64_t>(id);
-    return static_cast<int>(syscall(SYS_perf_event_open, &a, 0, -1, -1, PERF_FLAG_FD_CLOEXEC));
+    return static_cast<int>(syscall(SYS_perf_event_open, &a, tid, -1, -1, PERF_FLAG_FD_CLOEXEC));
 }
 
 /// The id of a tracefs event ("raw_syscalls/sys_enter"), or -1.
