@@ -25,13 +25,16 @@
 //    context for real-time tasks, unlike POSIX timers). The dispatcher thread
 //    then only re-ranks when the set or a criticality changes.
 //  - fifo, dynamic ranking (any other set): each task still sleeps to its own
-//    release, waiting at the dispatcher's priority (fifo_high, above the band);
-//    at its release the kernel wakes it and it runs at once, computes each
-//    pending job's urgency (Figure 6.2: criticality, then time to the current
-//    deadline, then user priority) and gives the task threads SCHED_FIFO
-//    priorities in urgency order, changing only those that move and its own
-//    last. The dispatcher thread re-ranks on criticality and set changes and is
-//    the DEADLINE watchdog. RM and EDF are the special cases of MUF (§6.2.3).
+//    release, at the priority of the job that release begins: every task is
+//    ranked by its urgency (Figure 6.2: criticality, then the deadline of its
+//    job or, waiting, of its next job, then user priority). When it first runs
+//    after its release it looks at the ranking; only where the MUF order no
+//    longer holds does it give the task threads SCHED_FIFO priorities in
+//    urgency order, changing only those that move and its own last (counted
+//    in priority_changes()). Where the order holds, the release costs no
+//    system call beyond the wait. The dispatcher thread re-ranks on
+//    criticality and set changes and is the DEADLINE watchdog. RM and EDF are
+//    the special cases of MUF (§6.2.3).
 //  - deadline: tasks of the critical set become SCHED_DEADLINE reservations
 //    (runtime = C, or E for a soft task; deadline and period = T) and the
 //    kernel's admission control checks the set; a refusal is an error naming
@@ -238,7 +241,8 @@ public:
     std::int64_t job_release_ns(TaskHandle h) const noexcept;
     /// The assignment in force (per added task, in handle order).
     Assignment assignment() const;
-    /// Dispatcher counters: urgency recomputations and priority changes made.
+    /// Rankings applied (the dispatcher's, and a task's at a release where the
+    /// MUF order no longer held) and the priority changes they made.
     std::uint64_t reschedules() const noexcept;
     std::uint64_t priority_changes() const noexcept;
     /// DEADLINE signals the watchdog sent (jobs found running past their deadline).
