@@ -98,10 +98,14 @@ bool owner_alive(std::uint64_t word) noexcept {
     char path[64];
     std::snprintf(path, sizeof path, "/proc/%d/task/%d/stat", pid > 0 ? pid : tid, tid);
     const int fd = open(path, O_RDONLY | O_CLOEXEC);
-    if (fd < 0) return errno != ENOENT;  // without /proc, trust tgkill
+    if (fd < 0) return errno != ENOENT && errno != ESRCH;  // gone since tgkill
     char buf[512];
     const ssize_t n = read(fd, buf, sizeof buf - 1);
+    const int read_error = n < 0 ? errno : 0;
     close(fd);
+    // Reaped between the open and the read: the read fails with ESRCH. Gone,
+    // not alive (taking that for "alive" brought a dead one back to life).
+    if (read_error == ESRCH) return false;
     if (n <= 0) return true;
     buf[n] = '\0';
     // "pid (comm) S ...": the state follows the last ')'.
