@@ -310,8 +310,14 @@ Peer& Mailbox::peer(std::string_view rtpu) {
     auto it = peers_.find(rtpu);
     if (it != peers_.end()) {
         Peer& p = *it->second;
-        if (p.header_->alive.load() != 0 && process_alive(p.header_->owner_pid.load())) return p;
-        (void)dead_locked(p);  // died or restarted: count what it left unread, then look again
+        {
+            // Once found dead, dead for good (see write()), whatever a later probe says.
+            std::lock_guard local(p.write_mutex_);
+            if (!p.loss_counted_ && p.header_->alive.load() != 0 &&
+                process_alive(p.header_->owner_pid.load()))
+                return p;
+            (void)dead(p);  // died or restarted: count what it left unread, then look again
+        }
         retired_.push_back(std::move(it->second));
         peers_.erase(it);
     }
@@ -425,6 +431,11 @@ Status Mailbox::write(Peer& peer, const void* data, std::size_t length,
     if (need > size) return Status::too_big;
     if (!probe(peer)) return dead_locked(peer);
     std::lock_guard local(peer.write_mutex_);
+    // Its unread messages were counted when it was found dead: a message
+    // written now would be in no count, lost unreported. A probe may still
+    // say alive afterwards (a pid reused; or, before owner_alive() knew
+    // ESRCH from /proc, a process reaped while it was looked at).
+    if (peer.loss_counted_) return Status::not_alive;
     RingHeader& r = *peer.ring_;
     const std::uint64_t in = peer.in_;
     std::uint64_t out = r.out.load(std::memory_order_acquire);

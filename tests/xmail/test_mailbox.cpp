@@ -382,6 +382,34 @@ TEST(Mailbox, CheckPeersCountsTheLossWithoutAnotherWrite) {
     waitpid(child, nullptr, 0);
 }
 
+// A receiver found dead stays dead for its Peer, even if a later probe says
+// its owner lives: its pid reused, or (the kill loop's case) owner_alive()
+// reading /proc/PID/task/TID/stat of a process reaped between its tgkill and
+// its read, which failed with ESRCH and was taken for "alive". The loss had
+// been counted once; a message write() then accepted went into no count.
+TEST(Mailbox, APeerFoundDeadTakesNoMessageWhenItLooksAliveAgain) {
+    CHIMERA_NOT_UNDER_TSAN("a forked receiver killed");
+    const std::string sys = test_sys("undeliv4");
+    const chimera::test::SegmentGuard cleanup("chimera." + sys + ".");
+    Mailbox a(sys, "a", 0, small());
+    a.set_probe_period(0);
+    const pid_t child = idle_rtpu(sys, "c", 1);
+    auto& to_c = a.peer("c");
+    ASSERT_EQ(a.write(to_c, "one", 3), Status::ok);
+    ASSERT_EQ(a.write(to_c, "two", 3), Status::ok);
+    kill(child, SIGKILL);
+    waitpid(child, nullptr, 0);
+    a.check_peers();
+    ASSERT_EQ(a.undelivered(), 2u);
+    // The dead owner looks alive again: its pid now names a live process (ours).
+    auto& header = const_cast<xm::layout::MailboxHeader&>(to_c.header());
+    header.owner_pid.store(getpid());
+    ASSERT_TRUE(a.alive(to_c));
+    EXPECT_EQ(a.write(to_c, "three", 5), Status::not_alive) << "accepted, and counted nowhere";
+    EXPECT_EQ(a.undelivered(), 2u);
+    EXPECT_NE(&a.peer("c"), &to_c) << "the Peer found dead was handed out again";
+}
+
 TEST(Mailbox, AnRtpuServerCountsLossesOfItsTasksWithin100ms) {
     CHIMERA_NOT_UNDER_TSAN("a forked receiver killed");
     const std::string sys = test_sys("undeliv3");
