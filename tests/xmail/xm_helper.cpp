@@ -4,6 +4,7 @@
 
 #include <chrono>
 #include <cstdio>
+#include <cstdint>
 #include <cstdlib>
 #include <cstring>
 #include <string>
@@ -58,14 +59,33 @@ ipc::Segment mail_log(const char* name) {
     return ipc::Segment::attach(name, {ipc::ObjectType::test, 1});
 }
 
-int mb_send(const std::string& sys, const std::string& rtpu, std::uint32_t bid, int slot, const char* log_name) {
+// Writes numbered messages to RTPU "r" until told to stop (or, with `limit`,
+// until `limit` were written ok, then waits for the stop).
+int mb_send(const std::string& sys, const std::string& rtpu, std::uint32_t bid, int slot, const char* log_name,
+            std::uint64_t limit) {
     ipc::Segment seg = mail_log(log_name);
     auto* log = reinterpret_cast<kill_test::MailLog*>(static_cast<std::byte*>(seg.base()) + kill_test::kMailLogOffset);
     xm::Mailbox mb(sys, rtpu, bid);
     mb.set_probe_period(0);
     std::uint64_t seq = log->sent[slot].load(), payload[kill_test::kMaxWords];
     xm::Peer* to = nullptr;
+    // The receiver died: the last undelivered() we wrote to it are lost, and said so.
+    auto record_loss = [&] {
+        if (const std::uint64_t lost = to->undelivered()) {
+            const std::uint32_t k = log->ranges[slot].load();
+            if (k < kill_test::kRangeCap) {
+                log->undelivered[slot][k][0] = seq - lost;
+                log->undelivered[slot][k][1] = seq;
+                log->ranges[slot].store(k + 1);
+            }
+        }
+        to = nullptr;
+    };
     while (!log->stop.load()) {
+        if (seq >= limit) {
+            std::this_thread::sleep_for(std::chrono::microseconds(200));
+            continue;
+        }
         if (!to) {
             try {
                 to = &mb.peer("r");
@@ -81,21 +101,27 @@ int mb_send(const std::string& sys, const std::string& rtpu, std::uint32_t bid, 
         if (s == Status::ok) {
             log->sent[slot].store(++seq);
         } else if (s == Status::not_alive) {
-            // The receiver died: the last undelivered() we wrote to it are lost, and said so.
-            if (const std::uint64_t lost = to->undelivered()) {
-                const std::uint32_t k = log->ranges[slot].load();
-                if (k < kill_test::kRangeCap) {
-                    log->undelivered[slot][k][0] = seq - lost;
-                    log->undelivered[slot][k][1] = seq;
-                    log->ranges[slot].store(k + 1);
-                }
-            }
-            to = nullptr;
+            record_loss();
         } else if (s != Status::full) {
             log->corrupt.fetch_add(1);
             say(std::string("write failed: ") + xm::to_string(s));
             return 3;
         }
+    }
+    // Told to stop: the receiver we last wrote to may have died since our
+    // last write, which would have said so; ask, as an RTPU that stops
+    // sending must, or its last messages would go unaccounted.
+    mb.check_peers();
+    if (to && to->undelivered() != 0) record_loss();
+    // What we recorded is what the library counted, no more, no less.
+    std::uint64_t recorded = 0;
+    for (std::uint32_t k = 0; k < log->ranges[slot].load(); ++k)
+        recorded += log->undelivered[slot][k][1] - log->undelivered[slot][k][0];
+    if (recorded != mb.undelivered() && log->ranges[slot].load() < kill_test::kRangeCap) {
+        log->corrupt.fetch_add(1);
+        say("recorded " + std::to_string(recorded) + " lost, the mailbox counted " +
+            std::to_string(mb.undelivered()));
+        return 3;
     }
     return 0;
 }
@@ -192,7 +218,9 @@ int main(int argc, char** argv) {
     const auto bid = static_cast<std::uint32_t>(std::atoi(argv[4]));
     try {
         if (cmd == "xm-echo") return xm_echo(sys, rtpu, bid);
-        if (cmd == "mb-send" && argc >= 7) return mb_send(sys, rtpu, bid, std::atoi(argv[5]), argv[6]);
+        if (cmd == "mb-send" && argc >= 7)  // SLOT LOG [LIMIT]
+            return mb_send(sys, rtpu, bid, std::atoi(argv[5]), argv[6],
+                           argc >= 8 ? std::strtoull(argv[7], nullptr, 10) : UINT64_MAX);
         if (cmd == "mb-recv" && argc >= 6) return mb_recv(sys, rtpu, bid, argv[5]);
         xm::Rtpu self(sys, rtpu, bid);
         if (cmd == "serve") {  // an RTPU whose XM server owns objects: runs until killed
