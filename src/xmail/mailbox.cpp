@@ -310,14 +310,15 @@ Peer& Mailbox::peer(std::string_view rtpu) {
     auto it = peers_.find(rtpu);
     if (it != peers_.end()) {
         Peer& p = *it->second;
+        bool counted = false;  // once found dead, dead for good (see write()), whatever a probe says
         {
-            // Once found dead, dead for good (see write()), whatever a later probe says.
             std::lock_guard local(p.write_mutex_);
-            if (!p.loss_counted_ && p.header_->alive.load() != 0 &&
-                process_alive(p.header_->owner_pid.load()))
-                return p;
-            (void)dead(p);  // died or restarted: count what it left unread, then look again
+            counted = p.loss_counted_;
         }
+        // The probe's system calls outside the write lock: writers of this Peer go on meanwhile.
+        if (!counted && p.header_->alive.load() != 0 && process_alive(p.header_->owner_pid.load()))
+            return p;
+        (void)dead_locked(p);  // died or restarted: count what it left unread, then look again
         retired_.push_back(std::move(it->second));
         peers_.erase(it);
     }
