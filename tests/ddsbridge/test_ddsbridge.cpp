@@ -352,16 +352,19 @@ void Bridge::count_task_threads(const std::string& notify) {
         ASSERT_GE(futex, 0);
         const std::uint64_t calls0 = chimera::test::read_syscall_counter(all);
         const std::uint64_t futex0 = chimera::test::read_syscall_counter(futex);
+        // Cycles counted inside the counters' window (opening a filtered
+        // tracepoint counter can take tens of milliseconds).
+        const auto started = sbs_->status(id);
         chimera::test::alloc_count_start(chimera::test::AllocScope::thread, st0.tid);
         std::this_thread::sleep_for(1s);
         const long allocations = chimera::test::alloc_count_stop();
+        const auto st = sbs_->status(id);
         const std::uint64_t calls = chimera::test::read_syscall_counter(all) - calls0;
         const std::uint64_t locks = chimera::test::read_syscall_counter(futex) - futex0;
-        const auto st = sbs_->status(id);
         ::close(all);
         ::close(futex);
-        const std::uint64_t cycles = st.cycles - st0.cycles;
-        const std::uint64_t switched = st.profile.switched - st0.profile.switched;
+        const std::uint64_t cycles = st.cycles - started.cycles;
+        const std::uint64_t switched = st.profile.switched - started.profile.switched;
         std::printf("NOTIFY %s, %s: cycles %llu system calls %llu (futex %llu, switched %llu) allocations %ld\n", notify.c_str(),
                     st.rmod.c_str(), static_cast<unsigned long long>(cycles), static_cast<unsigned long long>(calls),
                     static_cast<unsigned long long>(locks), static_cast<unsigned long long>(switched), allocations);

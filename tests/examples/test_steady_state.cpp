@@ -102,8 +102,13 @@ TEST(SteadyState, Figure3_7TaskThreadsMakeNoAllocationNoPageFaultAndOneSystemCal
         c.syscalls0 = read_counter(c.syscalls_fd);
         c.lock0 = read_counter(c.lock_fd);
         c.faults0 = read_counter(c.faults_fd);
-        c.cycles0 = st.cycles;
-        c.switched0 = st.profile.switched;
+        // The cycles are counted inside the counters' window: after they are
+        // read here, and before they are read at the end (opening a filtered
+        // tracepoint counter can take tens of milliseconds: cycles counted
+        // before it looked like cycles without their system call).
+        const auto started = sbs->status(id);
+        c.cycles0 = started.cycles;
+        c.switched0 = started.profile.switched;
         threads.push_back(c);
     }
     // Allocations: one thread at a time, half a second each.
@@ -114,13 +119,13 @@ TEST(SteadyState, Figure3_7TaskThreadsMakeNoAllocationNoPageFaultAndOneSystemCal
     }
     for (std::size_t i = 0; i < threads.size(); ++i) {
         auto& c = threads[i];
+        const auto st = sbs->status(std::vector<TaskId>{robot, traj, jpid, grav}[i]);
+        c.cycles = st.cycles - c.cycles0;
+        c.switched = st.profile.switched - c.switched0;
         c.syscalls = read_counter(c.syscalls_fd) - c.syscalls0;
         c.faults = read_counter(c.faults_fd) - c.faults0;
         c.lock = read_counter(c.lock_fd) - c.lock0;
         ::close(c.lock_fd);
-        const auto st = sbs->status(std::vector<TaskId>{robot, traj, jpid, grav}[i]);
-        c.cycles = st.cycles - c.cycles0;
-        c.switched = st.profile.switched - c.switched0;
         ::close(c.syscalls_fd);
         ::close(c.faults_fd);
     }
