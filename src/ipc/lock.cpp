@@ -98,7 +98,13 @@ bool owner_alive(std::uint64_t word) noexcept {
     char path[64];
     std::snprintf(path, sizeof path, "/proc/%d/task/%d/stat", pid > 0 ? pid : tid, tid);
     const int fd = open(path, O_RDONLY | O_CLOEXEC);
-    if (fd < 0) return errno != ENOENT && errno != ESRCH;  // gone since tgkill
+    if (fd < 0) {
+        if (errno == ESRCH) return false;  // gone since tgkill
+        // ENOENT: gone since tgkill — or no /proc here at all (a container, a
+        // chroot), where only tgkill can answer, and it said alive.
+        if (errno == ENOENT) return access("/proc/self/stat", F_OK) != 0;
+        return true;
+    }
     char buf[512];
     const ssize_t n = read(fd, buf, sizeof buf - 1);
     const int read_error = n < 0 ? errno : 0;

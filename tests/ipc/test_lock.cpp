@@ -1,5 +1,8 @@
 #include <gtest/gtest.h>
 #include <signal.h>
+#include <sched.h>
+#include <sys/mount.h>
+#include <unistd.h>
 
 #include <cstdio>
 #include <string>
@@ -152,6 +155,24 @@ TEST_F(IpcLock, ZombieHolderCountsAsDead) {
     EXPECT_EQ(lock(s->lock), LockStatus::recovered);
     EXPECT_EQ(wait_child(child), 0);
     EXPECT_TRUE(unlock(s->lock));
+}
+
+// Without /proc (a chroot or container that does not mount it) a live holder
+// is still alive: only tgkill can answer there, and it says so. Taking its lock
+// over would let two holders in.
+TEST_F(IpcLock, ALiveHolderIsAliveWhereProcIsNotMounted) {
+    CHIMERA_NOT_UNDER_TSAN("a forked child in its own mount namespace");
+    if (geteuid() != 0) GTEST_SKIP() << "hiding /proc needs a mount namespace (root)";
+    const pid_t child = fork_child([] {
+        if (unshare(CLONE_NEWNS) != 0) return 77;
+        if (mount(nullptr, "/", nullptr, MS_REC | MS_PRIVATE, nullptr) != 0) return 77;
+        if (mount("none", "/proc", "tmpfs", 0, nullptr) != 0) return 77;  // an empty /proc
+        if (access("/proc/self/stat", F_OK) == 0) return 3;
+        return owner_alive(self_owner_id()) ? 0 : 4;
+    });
+    const int rc = wait_child(child);
+    if (rc == 77) GTEST_SKIP() << "no mount namespace here";
+    EXPECT_EQ(rc, 0) << "3: /proc still visible; 4: the live holder was taken for dead";
 }
 
 TEST_F(IpcLock, HolderThreadThatExitedIsRecovered) {
