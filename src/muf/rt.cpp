@@ -547,7 +547,10 @@ Wake RtpuScheduler::wait_release(TaskHandle h, const std::atomic<std::uint32_t>*
 Wake RtpuScheduler::wait_release(TaskHandle h, std::atomic<std::uint32_t>& word, std::uint32_t seen) noexcept {
     TaskSlot* sp = impl_->slot(h);
     if (!sp) return Wake::detached;
-    sp->own_word.store(&word, std::memory_order_seq_cst);  // before release_word is read (interrupt_wait)
+    // Registered before release_word is read (interrupt_wait); once is enough:
+    // an earlier store of this thread precedes its later reads all the same,
+    // and the same word comes every cycle (no atomic exchange per cycle).
+    if (sp->own_word.load(std::memory_order_relaxed) != &word) sp->own_word.store(&word, std::memory_order_seq_cst);
     return impl_->wait_for_release(h, &word, seen, /*own_word=*/true);
 }
 
