@@ -1230,6 +1230,23 @@ std::string describe(const DynamicCount& c, const std::vector<DynamicTask>& task
     return line;
 }
 
+// Up to three runs of the set (hyperperiods of 6 ms, counted from `from` to
+// `to`), until one is `clean`: a stall of the machine (another engineer's
+// real-time test on this CPU, the VM's vCPU descheduled for milliseconds)
+// leaves jobs pending together in another order, which a priority change
+// rightly follows. Stops at once on a set that does not rank dynamically.
+template <typename Clean>
+DynamicCount count_until_clean(const std::vector<DynamicTask>& tasks, int from, int to, Clean clean) {
+    DynamicCount c;
+    for (int attempt = 1; attempt <= 3; ++attempt) {
+        c = count_dynamic_cycles(tasks, 6 * ms, 5 * ms, from, to);
+        if (!c.dynamic) break;
+        std::printf("run %d: %s\n", attempt, describe(c, tasks).c_str());
+        if (clean(c)) break;
+    }
+    return c;
+}
+
 }  // namespace
 
 TEST(MufDynamic, OneSystemCallPerCycleWhereTheRankingHolds) {
@@ -1242,20 +1259,13 @@ TEST(MufDynamic, OneSystemCallPerCycleWhereTheRankingHolds) {
     const std::vector<DynamicTask> tasks = {
         {"a2d1", 2 * ms, 1 * ms, 0}, {"b2", 2 * ms, 0, 0}, {"c3", 3 * ms, 0, 0}};
     constexpr int from = 10, to = 60;  // hyperperiods of 6 ms: 300 ms, 350 cycles
-    // A stall of the machine (another engineer's real-time test on this CPU,
-    // the VM's vCPU descheduled for milliseconds) leaves jobs pending together
-    // in another order, which a priority change rightly follows: up to three
-    // runs, one must be clean.
-    DynamicCount c;
-    bool clean = false;
-    for (int attempt = 1; attempt <= 3 && !clean; ++attempt) {
-        c = count_dynamic_cycles(tasks, 6 * ms, 5 * ms, from, to);
-        ASSERT_TRUE(c.dynamic) << "the set must rank dynamically";
-        std::printf("run %d: %s\n", attempt, describe(c, tasks).c_str());
-        clean = c.on_time && c.changes == 0 && c.missed == 0;
+    const DynamicCount c = count_until_clean(tasks, from, to, [&](const DynamicCount& r) {
+        bool clean = r.on_time && r.changes == 0 && r.missed == 0;
         for (std::size_t i = 0; i < tasks.size(); ++i)
-            clean = clean && c.calls[i] == c.cycles[i] * (1 + 2 * clock_read);
-    }
+            clean = clean && r.calls[i] == r.cycles[i] * (1 + 2 * clock_read);
+        return clean;
+    });
+    ASSERT_TRUE(c.dynamic) << "the set must rank dynamically";
     EXPECT_EQ(c.changes, 0u);
     for (std::size_t i = 0; i < tasks.size(); ++i) {
         SCOPED_TRACE(tasks[i].name);
@@ -1276,16 +1286,13 @@ TEST(MufDynamic, WhereTheRankingChangesTheOnlyOtherCallsAreTheCountedPriorityCha
     // single one can move). Quiet at 5 ms.
     const std::vector<DynamicTask> tasks = {{"a3", 3 * ms, 0, 12 * ms / 10}, {"b2", 2 * ms, 0, 2 * ms / 10}};
     constexpr int from = 10, to = 60;
-    DynamicCount c;
-    bool clean = false;
-    for (int attempt = 1; attempt <= 3 && !clean; ++attempt) {
-        c = count_dynamic_cycles(tasks, 6 * ms, 5 * ms, from, to);
-        ASSERT_TRUE(c.dynamic) << "the set must rank dynamically";
-        std::printf("run %d: %s\n", attempt, describe(c, tasks).c_str());
-        const std::uint64_t calls = c.calls[0] + c.calls[1];
-        const std::uint64_t cycles = c.cycles[0] + c.cycles[1];
-        clean = c.on_time && c.missed == 0 && c.changes == 2u * (to - from) && calls == cycles * (1 + 2 * clock_read) + c.changes;
-    }
+    const DynamicCount c = count_until_clean(tasks, from, to, [&](const DynamicCount& r) {
+        const std::uint64_t calls = r.calls[0] + r.calls[1];
+        const std::uint64_t cycles = r.cycles[0] + r.cycles[1];
+        return r.on_time && r.missed == 0 && r.changes == 2u * (to - from) &&
+               calls == cycles * (1 + 2 * clock_read) + r.changes;
+    });
+    ASSERT_TRUE(c.dynamic) << "the set must rank dynamically";
     EXPECT_EQ(c.cycles[0], 2u * (to - from));
     EXPECT_EQ(c.cycles[1], 3u * (to - from));
     EXPECT_EQ(c.changes, 2u * (to - from)) << "two flips of the order per 6 ms, one change each";
