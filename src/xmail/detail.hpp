@@ -19,6 +19,13 @@ using layout::Waiter;
 
 enum WaiterState : std::uint32_t { kFree = 0, kWaiting = 1, kSignaled = 2 };
 
+/// Bits of a Waiter's word, the one its thread sleeps on.
+enum WaiterWord : std::uint32_t {
+    kWordSignalled = 1,  ///< waiter_signal(): what it waited for is there
+    kWordKicked = 2,     ///< another waiter joined the list: sleep in slices from now on
+    kWordUntimed = 4,    ///< asleep without a timer: the only waiter of its list
+};
+
 /// Longest single sleep of a waiter: it then re-checks its word, and passes
 /// on what a waiter that died after being signalled was given (a unit, a
 /// message, the turn to send), so a death delays the others by at most this.
@@ -50,7 +57,9 @@ inline void poke(T& field, std::type_identity_t<T> value) noexcept {
     __atomic_store_n(&field, value, __ATOMIC_RELAXED);
 }
 
-/// Takes a free slot for the calling thread (under the object's lock).
+/// Takes a free slot for the calling thread (under the object's lock), and
+/// kicks the list's untimed sleeper, if any, into slices (sleep_untimed()):
+/// with two waiters, one may be given something and die with it.
 Waiter* waiter_add(Waiter* slots, std::uint32_t n, std::uint32_t& next_ticket,
                    std::int32_t priority) noexcept;
 /// The waiting slot with the highest priority (earliest ticket among
@@ -59,7 +68,7 @@ Waiter* waiter_add(Waiter* slots, std::uint32_t n, std::uint32_t& next_ticket,
 Waiter* waiter_pick(Waiter* slots, std::uint32_t n) noexcept;
 inline void waiter_signal(Waiter& w) noexcept {
     poke(w.state, kSignaled);
-    w.word.store(1, std::memory_order_release);
+    w.word.store(kWordSignalled, std::memory_order_release);
 }
 inline void waiter_free(Waiter& w) noexcept {
     poke(w.state, kFree);
@@ -120,20 +129,53 @@ private:
     std::int64_t now_ = 0;
 };
 
+/// Another slot of the list in use (waiting or signalled), seen after the
+/// caller's own seq_cst mark (see sleep_untimed()).
+bool others_in(const Waiter* slots, std::uint32_t n, const Waiter* self) noexcept;
+
+/// The sleep of a waiter with no time limit, when it is the only one of its
+/// list: nobody else could be given something and die with it, so no slice
+/// (and no kernel timer: one cost fewer than a timed sleep, as an mqueue's
+/// or a pipe's blocking read) is needed. A waiter that joins the list later
+/// kicks it (waiter_add()) and it goes on in slices. True when it slept or
+/// its word changed (look again); false when others wait: sleep in slices.
+inline bool sleep_untimed(Waiter& w, const Waiter* slots, std::uint32_t n) noexcept {
+    std::uint32_t word = 0;
+    // seq_cst, then the look at the others: a waiter_add() that the look
+    // misses finds the mark and kicks (Dekker's pattern on both sides).
+    if (!w.word.compare_exchange_strong(word, kWordUntimed, std::memory_order_seq_cst)) return true;
+    if (others_in(slots, n, &w)) {
+        word = kWordUntimed;
+        // Fails only when signalled or kicked meanwhile: the caller looks again.
+        return !w.word.compare_exchange_strong(word, 0, std::memory_order_relaxed);
+    }
+    (void)ipc::futex_wait(w.word, kWordUntimed, -1);
+    return true;
+}
+
 /// Sleeps (outside the lock) until the slot is signalled or the deadline (see
-/// WaitDeadline::passed(), called just before) passes; at every slice that
-/// passes in vain it calls `on_slice()`, which passes on what dead waiters
-/// were given. True when signalled. Slices end at absolute times, so a sleep
-/// reads no clock.
+/// WaitDeadline::passed(), called just before) passes. Without a deadline,
+/// the only waiter of its list sleeps untimed (sleep_untimed()); otherwise
+/// at every slice that passes in vain it calls `on_slice()`, which passes on
+/// what dead waiters were given. True when signalled. Slices end at absolute
+/// times, so a sleep reads no clock. `slots`: the list `w` is in.
 template <typename OnSlice>
-bool waiter_sleep(Waiter& w, const WaitDeadline& deadline, OnSlice&& on_slice) noexcept {
+bool waiter_sleep(Waiter& w, const Waiter* slots, std::uint32_t n, const WaitDeadline& deadline,
+                  OnSlice&& on_slice) noexcept {
     const std::int64_t at = deadline.at();
     std::int64_t slice_end = at < 0 ? -1 : std::min(deadline.last_read() + kWaitSlice, at);
     for (;;) {
-        if (w.word.load(std::memory_order_acquire) != 0) return true;
+        std::uint32_t word = w.word.load(std::memory_order_acquire);
+        if (word & kWordSignalled) return true;
+        if (word != 0) {  // kicked, or the mark of an untimed sleep: start again from 0
+            w.word.compare_exchange_strong(word, 0, std::memory_order_relaxed);
+            continue;
+        }
+        if (at < 0 && sleep_untimed(w, slots, n)) continue;
         const ipc::FutexResult r = at < 0 ? ipc::futex_wait(w.word, 0, kWaitSlice)
                                           : ipc::futex_wait_until(w.word, 0, slice_end);
-        if (r != ipc::FutexResult::timed_out || w.word.load(std::memory_order_acquire) != 0) continue;
+        if (r != ipc::FutexResult::timed_out || (w.word.load(std::memory_order_acquire) & kWordSignalled))
+            continue;
         if (at >= 0) {
             if (slice_end == at) return false;
             slice_end = std::min(slice_end + kWaitSlice, at);

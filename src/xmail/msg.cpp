@@ -485,7 +485,7 @@ Status Queue::send(const void* data, std::size_t size, std::uint32_t type, std::
             fail = Status::too_many_waiters;
         unlock_object(q->mutex);
         if (fail != Status::ok) return fail;
-        waiter_sleep(*me, deadline, [&] { pass_on_dead(me); });
+        waiter_sleep(*me, q->send_waiters, layout::kMaxWaiters, deadline, [&] { pass_on_dead(me); });
     }
 
     // Check the header and the blocks it will take, and where it will go if
@@ -659,7 +659,7 @@ Status Queue::receive(void* buffer, std::size_t capacity, Info* info, std::int64
             fail = Status::too_many_waiters;
         unlock_object(q->mutex);
         if (fail != Status::ok) return fail;
-        waiter_sleep(*me, deadline, [&] { pass_on_dead(me); });
+        waiter_sleep(*me, q->recv_waiters, layout::kMaxWaiters, deadline, [&] { pass_on_dead(me); });
     }
 
     // Copy the message out of its blocks (checked above), then free header and blocks.
@@ -719,7 +719,7 @@ void Queue::repair() noexcept {
                 waiter_free(w);
                 ++q->reclaimed_waiters;
             } else if (w.state == kSignaled) {
-                w.word.store(1, std::memory_order_release);
+                w.word.store(kWordSignalled, std::memory_order_release);
             }
         }
     }

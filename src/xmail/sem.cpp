@@ -177,7 +177,7 @@ void Semaphore::repair() noexcept {
         Waiter& w = h_->waiters[i];
         if (w.state == kFree) continue;
         if (thread_alive(w.pid, w.tid)) {
-            if (w.state == kSignaled) w.word.store(1, std::memory_order_release);
+            if (w.state == kSignaled) w.word.store(kWordSignalled, std::memory_order_release);
             continue;
         }
         const bool granted = w.state == kSignaled;
@@ -245,7 +245,7 @@ Status Semaphore::p(std::int64_t timeout_ns, std::int32_t priority) noexcept {
             fail = Status::too_many_waiters;
         unlock_object(h_->mutex);
         if (fail != Status::ok) return fail;
-        waiter_sleep(*me, deadline, [&] { pass_on_dead_grants(me); });
+        waiter_sleep(*me, h_->waiters, layout::kMaxWaiters, deadline, [&] { pass_on_dead_grants(me); });
     }
 }
 

@@ -26,6 +26,27 @@ bool thread_alive(std::int32_t pid, std::int32_t tid) noexcept {
                             static_cast<std::uint32_t>(tid));
 }
 
+namespace {
+
+void kick_untimed(Waiter* slots, std::uint32_t n, const Waiter* self) noexcept {
+    for (std::uint32_t i = 0; i < n; ++i) {
+        Waiter& w = slots[i];
+        if (&w == self || peek(w.state) == kFree) continue;
+        if (w.word.load(std::memory_order_seq_cst) & kWordUntimed) {
+            w.word.fetch_or(kWordKicked, std::memory_order_relaxed);
+            ipc::futex_wake_all(w.word);
+        }
+    }
+}
+
+}  // namespace
+
+bool others_in(const Waiter* slots, std::uint32_t n, const Waiter* self) noexcept {
+    for (std::uint32_t i = 0; i < n; ++i)
+        if (&slots[i] != self && __atomic_load_n(&slots[i].state, __ATOMIC_SEQ_CST) != kFree) return true;
+    return false;
+}
+
 Waiter* waiter_add(Waiter* slots, std::uint32_t n, std::uint32_t& next_ticket,
                    std::int32_t priority) noexcept {
     for (std::uint32_t i = 0; i < n; ++i) {
@@ -38,7 +59,9 @@ Waiter* waiter_add(Waiter* slots, std::uint32_t n, std::uint32_t& next_ticket,
         w.priority = priority;
         w.ticket = next_ticket++;
         w.handed = 0;
-        poke(w.state, kWaiting);
+        // seq_cst, then the look at the others' words (see sleep_untimed()).
+        __atomic_store_n(&w.state, kWaiting, __ATOMIC_SEQ_CST);
+        kick_untimed(slots, n, &w);
         return &w;
     }
     // Full: free the slots of threads that were killed while waiting (a slot

@@ -48,10 +48,10 @@ inline long tracepoint_id(const char* event) {
 /// process-private command word (src/muf/rt.cpp, wait_words).
 constexpr int kReleaseWaitFutexOp = FUTEX_WAIT_BITSET | FUTEX_PRIVATE_FLAG;
 
-/// A counter of thread `tid`'s futex(2) calls other than the release wait —
-/// the table lock found busy, a wake — on the syscalls:sys_enter_futex
-/// tracepoint filtered by operation; -1 when it cannot be opened.
-inline int open_other_futex_counter(long tid) {
+/// A counter of thread `tid`'s futex(2) calls that pass `filter` (a tracefs
+/// filter over the tracepoint's fields: op, utime, ...) on the
+/// syscalls:sys_enter_futex tracepoint; -1 when it cannot be opened.
+inline int open_futex_counter(long tid, const std::string& filter) {
     const long id = tracepoint_id("syscalls/sys_enter_futex");
     if (id < 0) return -1;
     perf_event_attr a;
@@ -60,12 +60,17 @@ inline int open_other_futex_counter(long tid) {
     a.type = PERF_TYPE_TRACEPOINT;
     a.config = static_cast<std::uint64_t>(id);
     const int fd = static_cast<int>(syscall(SYS_perf_event_open, &a, static_cast<pid_t>(tid), -1, -1, PERF_FLAG_FD_CLOEXEC));
-    const std::string filter = "op != " + std::to_string(kReleaseWaitFutexOp);
     if (fd >= 0 && ioctl(fd, PERF_EVENT_IOC_SET_FILTER, filter.c_str()) != 0) {
         close(fd);
         return -1;
     }
     return fd;
+}
+
+/// A counter of thread `tid`'s futex(2) calls other than the release wait —
+/// the table lock found busy, a wake.
+inline int open_other_futex_counter(long tid) {
+    return open_futex_counter(tid, "op != " + std::to_string(kReleaseWaitFutexOp));
 }
 
 /// The count so far (itself one system call, after the value is taken).

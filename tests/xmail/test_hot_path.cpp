@@ -8,9 +8,15 @@
 // allocation end there) while a window is open on this thread.
 #include <gtest/gtest.h>
 
+#include <sys/syscall.h>
+#include <unistd.h>
+
+#include <atomic>
+#include <chrono>
 #include <cstddef>
 #include <cstdlib>
 #include <string>
+#include <thread>
 #include <vector>
 
 #include "alloc_counter.hpp"
@@ -18,6 +24,7 @@
 #include "chimera/sem.hpp"
 #include "chimera/xmail.hpp"
 #include "common.hpp"
+#include "syscall_counter.hpp"
 
 using namespace chimera;
 using xm::Status;
@@ -121,4 +128,46 @@ TEST(HotPath, ExpressMailDoesNotAllocateOnceAttached) {
     EXPECT_EQ(read, 2000);
     EXPECT_EQ(failed, 0);
     mb.release_task(task);
+}
+
+// A blocking receive without a time limit, while it is the only waiter,
+// sleeps as an mqueue's or a pipe's blocking read does: no kernel timer armed
+// (detail::sleep_untimed()). Counted by the kernel: the receiving thread's
+// futex calls that carry a timeout, over ~90 ms of waiting. The same wait
+// with a time limit is the control: it sleeps in 20 ms slices, each a timed
+// call.
+TEST(HotPath, ALoneReceiverWithoutATimeLimitArmsNoTimer) {
+    msg::Params p;
+    p.blknum = 4;
+    p.blksize = 64;
+    std::vector<std::uint64_t> memory(msg::Queue::memory_size(p) / 8 + 1);
+    msg::Queue q = msg::Queue::over(memory.data(), memory.size() * 8, p);
+    const auto timed_calls_while_waiting = [&](std::int64_t timeout) -> long {
+        std::atomic<long> tid{0};
+        Status got = Status::corrupt;
+        std::thread receiver([&] {
+            tid = syscall(SYS_gettid);
+            char buf[64];
+            got = q.receive(buf, sizeof buf, nullptr, timeout);
+        });
+        while (q.stats().receive_waiters == 0) std::this_thread::yield();
+        const int fd = chimera::test::open_futex_counter(tid, "utime != 0");
+        std::this_thread::sleep_for(std::chrono::milliseconds(90));
+        const char m[] = "x";
+        EXPECT_EQ(q.send(m, sizeof m, 0, 0, 0), Status::ok);
+        receiver.join();
+        EXPECT_EQ(got, Status::ok);
+        if (fd < 0) return -1;
+        const auto n = static_cast<long>(chimera::test::read_syscall_counter(fd));
+        close(fd);
+        return n;
+    };
+    const long control = timed_calls_while_waiting(10'000'000'000);
+    if (control < 0) {
+        if (std::getenv("CHIMERA_REQUIRE_SYSCALL_COUNTER"))
+            FAIL() << "the syscalls:sys_enter_futex tracepoint cannot be opened";
+        GTEST_SKIP() << "the syscalls:sys_enter_futex tracepoint cannot be opened (tracefs, permission)";
+    }
+    EXPECT_GE(control, 3) << "the control: a timed wait re-arms its timer every 20 ms slice";
+    EXPECT_EQ(timed_calls_while_waiting(-1), 0);
 }

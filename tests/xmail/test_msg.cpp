@@ -1,11 +1,13 @@
 // Message queues over a plain memory block: Figure 5.2 structure, policies,
 // multi-block messages, blocking variants, waiter ordering, journal repair.
 #include <gtest/gtest.h>
+#include <signal.h>
 #include <sys/mman.h>
 #include <sys/wait.h>
 #include <unistd.h>
 
 #include <algorithm>
+#include <atomic>
 #include <chrono>
 #include <cstring>
 #include <deque>
@@ -256,6 +258,51 @@ TEST(Msg, AMessageHandedToAKilledUnreapedReceiverIsTakenBack) {
     EXPECT_EQ(recv_str(q, 200'000'000), "lost?");
     EXPECT_EQ(q.check(), "");
     waitpid(child, nullptr, 0);
+    munmap(mem, size);
+}
+
+// A receiver that waits without a time limit sleeps without a timer while it
+// is the only one (detail::sleep_untimed()); a second receiver that joins
+// kicks it into slices, so a message handed to the second and lost with it
+// still reaches the first. Here the second (a child, higher priority) is
+// stopped, handed the message (a stopped thread passes the liveness check),
+// and killed: without the kick, the first would sleep on for good.
+TEST(Msg, AMessageLostWithALaterReceiverReachesTheOneThatWaitedAlone) {
+    CHIMERA_NOT_UNDER_TSAN("a forked receiver stopped and killed");
+    const auto p = params(8, 16, Policy::fifo);
+    const std::size_t size = Queue::memory_size(p);
+    void* mem = mmap(nullptr, size, PROT_READ | PROT_WRITE, MAP_SHARED | MAP_ANONYMOUS, -1, 0);
+    ASSERT_NE(mem, MAP_FAILED);
+    Queue q = Queue::over(mem, size, p);
+    std::atomic<bool> got_it{false};
+    std::string got;
+    std::thread first([&] {
+        got = recv_str(q, -1, nullptr, 1);
+        got_it = true;
+    });
+    while (q.stats().receive_waiters == 0) std::this_thread::yield();
+    std::this_thread::sleep_for(std::chrono::milliseconds(50));  // asleep, alone, untimed
+    const pid_t second = fork();
+    if (second == 0) {
+        Queue c = Queue::bind(mem, size);
+        recv_str(c, -1, nullptr, 5);
+        _exit(0);
+    }
+    while (q.stats().receive_waiters < 2) std::this_thread::yield();
+    kill(second, SIGSTOP);
+    siginfo_t info{};
+    ASSERT_EQ(waitid(P_PID, static_cast<id_t>(second), &info, WSTOPPED | WNOWAIT), 0);
+    ASSERT_EQ(send_str(q, "handed"), Status::ok);  // to the higher priority: the stopped child
+    kill(second, SIGKILL);
+    waitpid(second, nullptr, 0);
+    const std::int64_t deadline = ipc::now_ns() + 2'000'000'000;
+    while (!got_it && ipc::now_ns() < deadline) std::this_thread::sleep_for(std::chrono::milliseconds(5));
+    const bool in_time = got_it;
+    if (!in_time) ASSERT_EQ(send_str(q, "released by the test"), Status::ok);  // to join the thread
+    first.join();
+    EXPECT_TRUE(in_time) << "the lone receiver slept on while the message stayed with the dead one";
+    EXPECT_EQ(got, in_time ? "handed" : "released by the test");
+    EXPECT_EQ(q.check(), "");
     munmap(mem, size);
 }
 

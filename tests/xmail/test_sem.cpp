@@ -1,12 +1,14 @@
 // Remote semaphores over a plain memory block (§5.4.2): values, timed P,
 // blocking without spinning, waiter priority order, repair after a death.
 #include <gtest/gtest.h>
+#include <signal.h>
 #include <sys/mman.h>
 #include <sys/resource.h>
 #include <sys/wait.h>
 #include <unistd.h>
 
 #include <algorithm>
+#include <atomic>
 #include <chrono>
 #include <mutex>
 #include <thread>
@@ -154,6 +156,45 @@ TEST(Sem, AUnitGrantedToAKilledUnreapedWaiterIsTakenBack) {
     EXPECT_EQ(s.p(200'000'000), Status::ok) << "the unit stayed with the dead waiter";
     EXPECT_EQ(s.try_p(), Status::would_block);  // and it was one unit, not two
     waitpid(child, nullptr, 0);
+    munmap(mem, Semaphore::memory_size());
+}
+
+// As Msg.AMessageLostWithALaterReceiverReachesTheOneThatWaitedAlone: a P
+// without a time limit sleeps untimed while alone; the waiter that joins
+// kicks it into slices, so a unit granted to the newcomer (stopped, then
+// killed) is passed on to it.
+TEST(Sem, AUnitLostWithALaterWaiterReachesTheOneThatWaitedAlone) {
+    CHIMERA_NOT_UNDER_TSAN("a forked waiter stopped and killed");
+    void* mem = mmap(nullptr, Semaphore::memory_size(), PROT_READ | PROT_WRITE,
+                     MAP_SHARED | MAP_ANONYMOUS, -1, 0);
+    ASSERT_NE(mem, MAP_FAILED);
+    Semaphore s = Semaphore::over(mem, Kind::binary, 0);
+    std::atomic<bool> got_it{false};
+    std::thread first([&] {
+        EXPECT_EQ(s.p(-1, 1), Status::ok);
+        got_it = true;
+    });
+    while (s.waiting() == 0) std::this_thread::yield();
+    std::this_thread::sleep_for(std::chrono::milliseconds(50));  // asleep, alone, untimed
+    const pid_t second = fork();
+    if (second == 0) {
+        Semaphore c = Semaphore::bind(mem);
+        _exit(c.p(-1, 5) == Status::ok ? 0 : 2);
+    }
+    while (s.waiting() < 2) std::this_thread::yield();
+    kill(second, SIGSTOP);
+    siginfo_t info{};
+    ASSERT_EQ(waitid(P_PID, static_cast<id_t>(second), &info, WSTOPPED | WNOWAIT), 0);
+    EXPECT_EQ(s.v(), Status::ok);  // granted to the higher priority: the stopped child
+    kill(second, SIGKILL);
+    waitpid(second, nullptr, 0);
+    const std::int64_t deadline = ipc::now_ns() + 2'000'000'000;
+    while (!got_it && ipc::now_ns() < deadline) std::this_thread::sleep_for(std::chrono::milliseconds(5));
+    const bool in_time = got_it;
+    if (!in_time) EXPECT_EQ(s.v(), Status::ok);  // to join the thread
+    first.join();
+    EXPECT_TRUE(in_time) << "the lone waiter slept on while the unit stayed with the dead one";
+    EXPECT_EQ(s.try_p(), Status::would_block);  // one unit, not two
     munmap(mem, Semaphore::memory_size());
 }
 
