@@ -35,6 +35,10 @@
 // returns; a receiver killed after its wake-up reached it is found by the
 // receivers still blocked, which look every 20 ms, and by any receive that
 // finds the queue empty. The same holds for the turn of a waiting sender.
+// (A waiter without a time limit that is the only one of its list sleeps
+// without a timer, as a blocking mq_receive does; the next waiter to join
+// wakes it into the 20 ms looks, since only another waiter can die with what
+// it was given.)
 //
 // Untrusted memory (issue #15.3): the geometry is checked on attach and kept
 // in the handle; every link, index and size read from the segment is checked

@@ -14,7 +14,8 @@
 // on before returning. A waiter killed after its wake-up reached it is found
 // by the waiters still blocked, which look every kWaitSlice (20 ms) and pass
 // its unit on, and by any P that finds no unit; a holder of the lock that
-// died is repaired by the next user.
+// died is repaired by the next user. (The only waiter, without a time limit,
+// sleeps without a timer; the next waiter to join wakes it into the looks.)
 #pragma once
 
 #include "chimera/export.hpp"
