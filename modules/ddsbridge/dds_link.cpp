@@ -396,28 +396,43 @@ void Link::keep_off_task_cpus() noexcept {
 }
 
 // NOTIFY poll and spin: until the task's next write is due (spin: until it
-// appears); every period while the task is OFF.
+// appears; poll: until it appears near its typical time, or a poll step);
+// every period while the task is OFF.
 void Link::wait_for_write(const WriteSchedule& schedule, Clock newest) noexcept {
     const Clock period = period_ns_.load(std::memory_order_relaxed);
     const Clock now = chimera::ipc::now_ns();
     const Clock due = period > 0 ? schedule.next_due(newest) : 0;
-    if (due == 0 || now - due > 2 * period + kPollLag) {  // OFF, not yet written, or long silent
+    if (due == 0 || now - due > 2 * period + kPollWindow) {  // OFF, not yet written, or long silent
         sleep_until(now + (period > 0 ? period : 10'000'000));
         return;
     }
     if (config_.notify == Notify::spin && now < due + kSpinLimit) {
         if (due - kSpinLead > now) sleep_until(due - kSpinLead);
-        // A look is one relaxed load per TBUF until the write appears (the TBUF
-        // then takes it: publish_fresh publishes it next).
-        for (;;) {
-            for (auto& s : slots_)
-                if (s->port->spec.direction == Direction::pub && s->tbuf.fresh_pending()) return;
-            if (stop_.load(std::memory_order_relaxed) || chimera::ipc::now_ns() > due + kSpinLimit) return;
-            chimera::ipc::seqlock::cpu_relax();
-        }
+        look_until(due + kSpinLimit);
+        return;
     }
-    const Clock look = schedule.next_typical(newest) + kPollLag;
-    sleep_until(look > now ? look : now + kPollStep);
+    const Clock typical = schedule.next_typical(newest);
+    const Clock window_end = typical + std::min(kPollWindow, period / 20);
+    if (config_.notify == Notify::poll && now < window_end) {
+        const Clock wake = typical - kPollMargin - lateness_.average();
+        if (wake > now) {
+            sleep_until(wake);
+            lateness_.seen(chimera::ipc::now_ns() - wake);
+        }
+        if (look_until(window_end)) return;
+    }
+    sleep_until(chimera::ipc::now_ns() + kPollStep);  // late: a look every step
+}
+
+bool Link::look_until(Clock until) noexcept {
+    // A look is one relaxed load per TBUF until the write appears (the TBUF
+    // then takes it: publish_fresh publishes it next).
+    for (;;) {
+        for (auto& s : slots_)
+            if (s->port->spec.direction == Direction::pub && s->tbuf.fresh_pending()) return true;
+        if (stop_.load(std::memory_order_relaxed) || chimera::ipc::now_ns() > until) return false;
+        chimera::ipc::seqlock::cpu_relax();
+    }
 }
 
 }  // namespace ddsbridge

@@ -11,9 +11,11 @@
 // value by looking at the TBUF. It predicts when the task's next write is due
 // from the task's release grid (WriteSchedule: the period and the earliest
 // and typical phases of the recent writes) and
-//   - poll: sleeps until kPollLag after the typical time, looks, and looks
-//     again every kPollStep while the write is late: the value leaves about
-//     kPollLag plus the thread's wake-up latency after a typical write;
+//   - poll: sleeps until just before the typical time (less its own usual
+//     wake-up lateness, WakeLateness), then keeps looking for at most
+//     kPollWindow (a short busy wait: the write's jitter around its typical
+//     time), then looks every kPollStep while the write is late: a typical
+//     write leaves within a few µs, for a few µs of CPU time per period;
 //   - spin: sleeps until kSpinLead before the earliest due time and then keeps
 //     looking (a busy wait, for at most kSpinLimit past the due time, on a CPU
 //     other than the task's) until the write appears: the value leaves a few
@@ -48,7 +50,8 @@ struct ReceivedHeader {
 };
 static_assert(sizeof(ReceivedHeader) == 16);
 
-inline constexpr std::int64_t kPollLag = 10'000;     ///< poll: ns after the task's typical write time
+inline constexpr std::int64_t kPollMargin = 2'000;   ///< poll: ns before the typical write time it aims to wake
+inline constexpr std::int64_t kPollWindow = 20'000;  ///< poll: ns past the typical time it keeps looking (at most period/20)
 inline constexpr std::int64_t kPollStep = 20'000;    ///< poll: ns between looks while it is late
 inline constexpr std::int64_t kSpinLead = 20'000;    ///< spin: ns before the write is due (the thread's own wake-up lateness)
 inline constexpr std::int64_t kSpinLimit = 200'000;  ///< spin: ns past the due time before it sleeps in poll steps
@@ -83,6 +86,26 @@ private:
     std::int64_t typical_ = 0;   // the moving average of the phases
     std::int64_t last_ = 0;      // the newest write
     std::int64_t period_ = 0;
+};
+
+/// How late the bridge thread's timed sleeps end: a moving average over
+/// about kAverage sleeps of (when it ran - when it asked), each counted at
+/// most kMax (one stall is not its usual lateness). NOTIFY poll asks to be
+/// woken this much before it wants to look.
+class WakeLateness {
+public:
+    static constexpr std::int64_t kStart = 10'000;  ///< ns, before any sleep is seen
+    static constexpr std::int64_t kMax = 100'000;   ///< ns
+    static constexpr std::int64_t kAverage = 8;     ///< sleeps
+
+    void seen(std::int64_t late_ns) noexcept {
+        const std::int64_t late = late_ns < 0 ? 0 : late_ns > kMax ? kMax : late_ns;
+        average_ += (late - average_) / kAverage;
+    }
+    std::int64_t average() const noexcept { return average_; }
+
+private:
+    std::int64_t average_ = kStart;
 };
 
 /// One bridged variable.
@@ -157,6 +180,9 @@ private:
     void publish_loop() noexcept;
     std::int64_t publish_fresh() noexcept;  // the stamp of the newest write published, 0 if none
     void wait_for_write(const WriteSchedule& schedule, std::int64_t newest) noexcept;
+    // Looks at the published TBUFs until one holds a fresh item (true) or
+    // `until` passes or the link stops (false).
+    bool look_until(std::int64_t until) noexcept;
     void keep_off_task_cpus() noexcept;
     void close() noexcept;
 
@@ -168,6 +194,7 @@ private:
     std::atomic<bool> stop_{false};
     std::atomic<std::int64_t> period_ns_{0};
     std::atomic<std::uint64_t> task_cpus_{0};
+    WakeLateness lateness_;           // the bridge thread's (NOTIFY poll)
     std::uint64_t avoided_cpus_ = 0;  // the bridge thread's: task_cpus_ when it last set its affinity
     std::atomic<std::uint32_t> wakeups_{0};  // NOTIFY wake: bumped by the task
     std::atomic<bool> sleeping_{false};       // the bridge thread is (about to be) in futex_wait

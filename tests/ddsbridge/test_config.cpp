@@ -191,6 +191,21 @@ TEST(WriteSchedule, TheTypicalTimeIsTheMovingAverageOfThePhases) {
     EXPECT_GE(s.next_typical(t0 + 199 * P + 90'000), s.next_due(t0 + 199 * P + 90'000));
 }
 
+// WakeLateness (dds_link.hpp): how early NOTIFY poll asks to be woken.
+TEST(WakeLateness, IsTheMovingAverageOfHowLateSleepsEndedAndOneStallCountsLittle) {
+    WakeLateness w;
+    EXPECT_EQ(w.average(), WakeLateness::kStart) << "before any sleep";
+    w.seen(2'000);  // an eighth of the way from 10 µs to 2 µs
+    EXPECT_EQ(w.average(), 10'000 - 8'000 / WakeLateness::kAverage);
+    for (int k = 0; k < 200; ++k) w.seen(4'000);
+    EXPECT_NEAR(static_cast<double>(w.average()), 4'000, WakeLateness::kAverage) << "settles on the usual lateness";
+    const std::int64_t settled = w.average();
+    w.seen(50'000'000);  // a 50 ms stall counts as kMax
+    EXPECT_EQ(w.average(), settled + (WakeLateness::kMax - settled) / WakeLateness::kAverage);
+    w.seen(-5'000);  // a clock read before the asked time (cannot be late by less than 0)
+    EXPECT_GE(w.average(), 0);
+}
+
 TEST(WriteSchedule, TheEarliestPhaseIsForgottenSlowly) {
     constexpr std::int64_t P = 1'000'000, t0 = 5'000'000'000;
     WriteSchedule s;
