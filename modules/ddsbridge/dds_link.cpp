@@ -364,9 +364,13 @@ void Link::publish_loop() noexcept {
     prctl(PR_SET_TIMERSLACK, 1UL, 0UL, 0UL, 0UL);
     messages_ = std::make_unique<Messages>();
     WriteSchedule schedule;
+    const bool publishes = std::any_of(slots_.begin(), slots_.end(),
+                                       [](const auto& s) { return s->port->spec.direction == Direction::pub; });
     Clock newest = 0;  // stamp of the newest value the task wrote
     while (!stop_.load(std::memory_order_relaxed)) {
-        if (config_.notify == Notify::spin) keep_off_task_cpus();
+        // poll and spin look at the TBUFs without sleeping for a while each
+        // period: never where the task would preempt the looks (and them).
+        if (config_.notify != Notify::wake && publishes) keep_off_task_cpus();
         const std::uint32_t seen = wakeups_.load();  // before the look: a write after it ends the wait at once
         if (const Clock wrote = publish_fresh(); wrote != 0) {
             newest = wrote;

@@ -401,17 +401,20 @@ TEST_F(Bridge, WithNotifySpinTheTaskThreadsStillMakeOnlyTheReleaseWait) {
     count_task_threads("spin");
 }
 
-// NOTIFY spin: the bridge thread keeps off the CPU the task is pinned to,
-// while another one is left, so that the task never preempts its looks; OFF,
-// it may use every CPU again. NOTIFY poll (the subscriber here) leaves its
-// thread free.
-TEST_F(Bridge, TheBridgeThreadsKeepOffTheTasksCpu) {
+// NOTIFY spin and poll: the bridge thread of a publisher keeps off the CPU the
+// task is pinned to, while another one is left, so that the task never
+// preempts its looks; OFF, it may use every CPU again. A bridge that only
+// subscribes has nothing to look for and leaves its thread free.
+class BridgeLooking : public Bridge, public ::testing::WithParamInterface<const char*> {};
+
+TEST_P(BridgeLooking, ThePublishersThreadKeepsOffTheTasksCpu) {
     cpu_set_t process;
     ASSERT_EQ(sched_getaffinity(0, sizeof process, &process), 0);
     if (!CPU_ISSET(0, &process) || CPU_COUNT(&process) < 2) GTEST_SKIP() << "needs CPU 0 and another one";
     write("t.sbs", "SUBSYSTEM " + name_ + "\nSVARFILE t.svar\nRTPU cpu0 0\nERRPRINT none\nEOF\n");
+    const std::string notify = GetParam();
     const std::set<long> before = thread_ids();
-    start("warn", "warn", "spin");
+    start("warn", "warn", notify);
     std::vector<long> bridges;
     for (const long tid : thread_ids()) {
         std::ifstream comm("/proc/self/task/" + std::to_string(tid) + "/comm");
@@ -429,11 +432,12 @@ TEST_F(Bridge, TheBridgeThreadsKeepOffTheTasksCpu) {
         for (const long tid : bridges) n += uses_cpu0(tid) ? 0 : 1;
         return n;
     };
-    // The publisher's bridge spins and keeps off; the subscriber's polls and does not.
+    // The publisher's bridge keeps off; the subscriber's does not.
     EXPECT_TRUE(eventually([&] { return off_cpu0() == 1; })) << off_cpu0() << " bridge threads off CPU 0";
     std::this_thread::sleep_for(50ms);
-    EXPECT_EQ(off_cpu0(), 1) << "NOTIFY poll leaves its thread on every CPU";
+    EXPECT_EQ(off_cpu0(), 1) << "a bridge that only subscribes leaves its thread on every CPU";
     sbs_->control(pub_, Control::off);
     sbs_->control(sub_, Control::off);
     for (const long tid : bridges) EXPECT_TRUE(eventually([&] { return uses_cpu0(tid); })) << "thread " << tid << " OFF";
 }
+INSTANTIATE_TEST_SUITE_P(PollAndSpin, BridgeLooking, ::testing::Values("poll", "spin"));
