@@ -41,7 +41,7 @@ inline pid_t spawn_helper(const std::vector<std::string>& args, int out_fd = -1,
 /// Runs the helper to completion and returns (exit status, stdout).
 inline std::pair<int, std::string> run_helper(const std::vector<std::string>& args) {
     int p[2];
-    if (pipe(p) != 0) return {-1, ""};
+    if (pipe2(p, O_CLOEXEC) != 0) return {-1, ""};
     const pid_t pid = spawn_helper(args, p[1]);
     close(p[1]);
     std::string out;
@@ -63,7 +63,7 @@ struct Child {
     std::string buffered;
     explicit Child(const std::vector<std::string>& args, bool with_stdin = false) {
         int p[2], q[2] = {-1, -1};
-        if (pipe(p) != 0 || (with_stdin && pipe2(q, O_CLOEXEC) != 0)) return;
+        if (pipe2(p, O_CLOEXEC) != 0 || (with_stdin && pipe2(q, O_CLOEXEC) != 0)) return;
         pid = spawn_helper(args, p[1], q[0]);
         close(p[1]);
         if (q[0] >= 0) close(q[0]);
