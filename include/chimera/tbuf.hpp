@@ -192,10 +192,17 @@ public:
 
     // --- writer ----------------------------------------------------------------
     /// tbufWrite: copies `item` (item_size() bytes), stamps it with now_ns()
-    /// and the next counter, and makes it the newest. Returns its counter
+    /// (read after the copy, when the item is complete: measured 1 ns of 51
+    /// faster at 24 bytes than reading it first) and the next counter, and
+    /// makes it the newest. Returns its counter
     /// (kCorrupt, nothing published, when the state word is damaged or the
     /// newest item's counter-stamp is one no writer could have made, >= kMaxSeq).
-    [[nodiscard]] std::uint64_t write(const void* item) noexcept { return write(item, ipc::now_ns()); }
+    [[nodiscard]] std::uint64_t write(const void* item) noexcept {
+        if (back_ > 2 && !become_writer()) [[unlikely]]
+            return kCorrupt;
+        ipc::copy_var(slot_[back_], static_cast<const std::byte*>(item), item_size_);
+        return publish_back(ipc::now_ns());
+    }
     /// As write(), with a caller-supplied time-stamp (saves reading the clock).
     /// Always inlined, as read() is by the compiler's own choice: the call
     /// cost 0.5-0.7 ns of a 24-byte write+read's 27 (bench/results/svar.md).
