@@ -7,7 +7,15 @@
 # PEERS_DIR is a copy of ../shared/peers/ipc-baselines, built by its run.sh
 # (target/release/ipc_baselines, build/ipc_bench). Prints raw lines; no ratio
 # is computed here: read them round by round.
+# IDLE=held holds /dev/cpu_dma_latency at 0 for the whole sitting (every row,
+# the peers' too), as the runtime does for a real-time subsystem: the CPUs
+# then poll when idle instead of halting, and a cross-CPU wake-up costs a few
+# microseconds instead of the ~25 µs of waking a halted vCPU. Default: free.
 set -euo pipefail
+IDLE=${IDLE:-free}
+if [ "$IDLE" = held ]; then
+  exec 9> /dev/cpu_dma_latency && printf '0x00000000' >&9 || { echo "cannot hold /dev/cpu_dma_latency" >&2; exit 1; }
+fi
 build=${1:?build dir}
 peers=${2:?peers dir (a built copy of shared/peers/ipc-baselines)}
 rounds=${3:-3}
@@ -15,7 +23,7 @@ rb=$peers/target/release/ipc_baselines
 cb=$peers/build/ipc_bench
 [[ -x $rb && -x $cb ]] || { echo "build the peers first: (cd $peers && ./run.sh)" >&2; exit 2; }
 
-echo "host: $(uname -r), $(nproc) cpus, load $(cut -d' ' -f1-3 /proc/loadavg), $(date -u +%FT%TZ)"
+echo "host: $(uname -r), $(nproc) cpus, load $(cut -d' ' -f1-3 /proc/loadavg), $(date -u +%FT%TZ), IDLE=$IDLE"
 for ((r = 1; r <= rounds; r++)); do
   echo "== round $r (load $(cut -d' ' -f1-3 /proc/loadavg))"
   for s in 24 144; do taskset -c 1 "$rb" triple-buffer "$s" 2000000 7; done
