@@ -17,6 +17,7 @@
 
 #include <filesystem>
 #include <fstream>
+#include <iterator>
 #include <thread>
 
 using chimera::cli::ClientError;
@@ -289,9 +290,17 @@ namespace {
 
 // The attacker's folder: probe.rmod beside the probe library under every
 // name the loader tries (its constructor runs the moment dlopen() maps it).
-std::string plant_probe(const std::string& dir) {
-    std::filesystem::copy_file(sbs_test::env("PROBE_SO"), dir + "/probe.so");
-    std::filesystem::copy_file(sbs_test::env("PROBE_SO"), dir + "/libprobe.so");
+// The probe library's bytes, read by the test (root) before the attacker
+// forks: the attacker, as nobody, may not be able to read the build tree (a
+// clone under /root, mode 0700), and brings its library along anyway.
+std::string probe_library() {
+    std::ifstream in(sbs_test::env("PROBE_SO"), std::ios::binary);
+    return {std::istreambuf_iterator<char>(in), std::istreambuf_iterator<char>()};
+}
+
+std::string plant_probe(const std::string& dir, const std::string& library) {
+    for (const char* name : {"/probe.so", "/libprobe.so"})
+        std::ofstream(dir + name, std::ios::binary) << library;
     std::ofstream f(dir + "/probe.rmod");
     f << "MODULE probe\nDESC probe\nINVAR none\nOUTVAR none\nTASKTYPE periodic\nFREQ 10\nEOF\n";
     return dir + "/probe.rmod";
@@ -316,6 +325,8 @@ TEST(SbsNetwork, UnprivilegedUserCannotGetCodeLoadedByTheMaster) {
 
     // The attacker, as nobody: its own folder with the probe; then the
     // master, without the token, over TCP and over the owner's Unix socket.
+    const std::string probe_bytes = probe_library();
+    ASSERT_FALSE(probe_bytes.empty()) << sbs_test::env("PROBE_SO");
     int report[2];
     ASSERT_EQ(::pipe(report), 0);
     const pid_t attacker = ::fork();
@@ -328,7 +339,7 @@ TEST(SbsNetwork, UnprivilegedUserCannotGetCodeLoadedByTheMaster) {
         const std::string dir = tmpl;
         out += dir + "\n";
         try {
-            const std::string rmod = plant_probe(dir);
+            const std::string rmod = plant_probe(dir, probe_bytes);
             auto c = NetworkClient::connect_tcp("127.0.0.1", static_cast<std::uint16_t>(port));
             out += c.request("spawn " + rmod, 10000).dump() + "\n";
         } catch (const std::exception& e) {
