@@ -23,7 +23,14 @@ stage_build() {
   configure build
   ninja -C build
 }
-stage_suite() { meson test -C build --print-errorlogs --num-processes 2 "${meson_test_args[@]}"; }
+stage_suite() {
+  # The network tests and the browser's driver connect to "localhost"; where it
+  # does not resolve (a debootstrap root has no /etc/hosts) they would fail late
+  # and, the browser's, unclearly.
+  getent hosts localhost >/dev/null ||
+    { echo "test.sh: the host name localhost does not resolve: add '127.0.0.1 localhost' to /etc/hosts" >&2; return 1; }
+  meson test -C build --print-errorlogs --num-processes 2 "${meson_test_args[@]}"
+}
 
 # AddressSanitizer + UndefinedBehaviorSanitizer over the host suite; any report
 # ends the program (-fno-sanitize-recover=all), so the test fails. Not the
