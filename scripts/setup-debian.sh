@@ -22,6 +22,7 @@ packages=(
   python3-pytest mypy python3-pandas             # their tests: pytest, the stubs checked by mypy, to_dataframe()
   python3-matplotlib                             # examples/python/step_response.py's plot; docs/thesis_plots.py (the thesis's figures)
   cyclonedds-dev cyclonedds-tools                # ddsbridge: Cyclone DDS C API, idlc (the wire types from IDL) and ddsperf (bench) (optional: -Ddds)
+  iproute2                                       # ip: the two network namespaces and their veth pair of the two-machines test and bench/dds (a minbase Debian has none)
   libcivetweb-dev libjs-chart.js                 # the web console, sbs --http (optional: -Dweb): HTTP + WebSocket server, the page's charts
   chromium chromium-driver python3-selenium      # the web console's tests in headless Chromium (suite web; skipped without them)
 )
