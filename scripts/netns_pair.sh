@@ -10,8 +10,8 @@
 #       VETH_A VETH_B             #   their ends of the pair (PREFIXva<pid>, ...)
 #       ADDR_A ADDR_B             #   SUBNET.1 and SUBNET.2 (a /30)
 #     returns 1 with the reason on stderr when the first namespace cannot be
-#     made (no CAP_NET_ADMIN), leaving nothing behind; exits the caller on any
-#     later failure.
+#     made or entered (no CAP_NET_ADMIN; / not a mount point, as in a chroot),
+#     leaving nothing behind; exits the caller on any later failure.
 #   netns_pair_down               # deletes both (and so the pair); safe to call twice
 #   netns_pair_links NS           # "lo VETH ": the links a namespace holds, sorted
 
@@ -21,6 +21,12 @@ netns_pair_up() {
     VETH_A=${prefix}va$tag VETH_B=${prefix}vb$tag  # at most 15 characters: a short PREFIX
     ADDR_A=$subnet.1 ADDR_B=$subnet.2
     ip netns add "$NETNS_A" || return 1
+    # Entering it (ip -n) remounts / as a slave: where / is no mount point (a
+    # chroot) that fails, and no namespace can be used — the same "cannot".
+    if ! ip -n "$NETNS_A" link set lo up; then
+        ip netns del "$NETNS_A" 2>/dev/null
+        return 1
+    fi
     if ! { ip netns add "$NETNS_B" &&
            ip link add "$VETH_A" type veth peer name "$VETH_B" &&
            ip link set "$VETH_A" netns "$NETNS_A" &&

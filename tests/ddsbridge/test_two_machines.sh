@@ -27,6 +27,9 @@ cleanup() {
     for p in "${pids[@]}"; do kill "$p" 2>/dev/null; done
     wait 2>/dev/null
     netns_pair_down
+    # A pair that failed halfway exits the script from netns_pair_up: its
+    # reason went to netns.err, shown before the folder goes.
+    [ -s "$work/netns.err" ] && cat "$work/netns.err" >&2
     rm -rf "$work"
     # The two hosts are killed: their tables stay behind unless removed here.
     rm -f /dev/shm/chimera.tmr$tag.* /dev/shm/chimera.tmc$tag.*
