@@ -22,6 +22,7 @@ webdriver = pytest.importorskip("selenium.webdriver")
 from selenium.webdriver.chrome.service import Service  # noqa: E402
 from selenium.webdriver.common.action_chains import ActionChains  # noqa: E402
 from selenium.webdriver.common.by import By  # noqa: E402
+from selenium.common.exceptions import StaleElementReferenceException  # noqa: E402
 from selenium.webdriver.support.ui import Select, WebDriverWait  # noqa: E402
 
 CHROMEDRIVER = "/usr/bin/chromedriver"
@@ -122,7 +123,7 @@ def test_on_off_from_the_command_line_recolours_the_box(master, browser):
 
 def add_item(driver, sig, rmod):
     Select(driver.find_element(By.ID, "rc-sig")).select_by_visible_text(sig)
-    Select(driver.find_element(By.ID, "rc-task")).select_by_visible_text(rmod)
+    wait(driver, lambda d: choose(d, "rc-task", rmod))  # rebuilt on every graph push
     driver.find_element(By.ID, "rc-add").click()
 
 
@@ -160,7 +161,7 @@ def test_spawn_from_the_library_shows_its_box(master, browser):
     try:
         browser.find_element(By.CSS_SELECTOR, "#library li[data-rmod=qmdiff]").click()
         wait(browser, lambda d: "qmdiff" in d.find_element(By.ID, "rmod-title").text)
-        Select(browser.find_element(By.ID, "spawn-rtpu")).select_by_visible_text("ctrl")
+        wait(browser, lambda d: choose(d, "spawn-rtpu", "ctrl"))  # rebuilt on every graph push
         browser.find_element(By.ID, "spawn").click()
         wait(browser, lambda d: box_state(d, "qmdiff") is not None)
         lanes = dict(browser.execute_script(
@@ -251,12 +252,23 @@ def test_scope_plots_triggers_and_exports_the_stream(master, browser):
     # Stopping the scope kills its sampler task; so does leaving the page.
     browser.find_element(By.ID, "sc-stop").click()
     wait(browser, lambda d: not scope_task(master), timeout=20)
-    Select(browser.find_element(By.ID, "sc-rtpu")).select_by_visible_text("robot")
+    wait(browser, lambda d: choose(d, "sc-rtpu", "robot"))
     browser.find_element(By.ID, "sc-run").click()
     wait(browser, lambda d: scope_task(master), timeout=20)
     assert scope_task(master)[0][1] == "robot"
     browser.get("about:blank")
     wait(browser, lambda d: not scope_task(master), timeout=20)
+
+
+def choose(driver, select_id, text):
+    """Selects `text` in a <select> whose options the page may rebuild meanwhile
+    (scopeRtpus() replaces them on every status push, keeping the value): an
+    option found a moment before is then stale, so try again. True once chosen."""
+    try:
+        Select(driver.find_element(By.ID, select_id)).select_by_visible_text(text)
+        return Select(driver.find_element(By.ID, select_id)).first_selected_option.text == text
+    except StaleElementReferenceException:
+        return False
 
 
 def check_cursors(browser, s):
