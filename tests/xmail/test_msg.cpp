@@ -65,6 +65,20 @@ std::uint64_t dead_owner() {
     return static_cast<std::uint64_t>(child) << 32 | static_cast<std::uint32_t>(child);
 }
 
+// A child process blocked in a receive without a time limit on the queue in
+// shared memory `mem`, returned once it waits.
+pid_t child_receiving(void* mem, std::size_t size, Queue& q, std::int32_t priority = 0) {
+    const std::uint32_t before = q.stats().receive_waiters;
+    const pid_t child = fork();
+    if (child == 0) {
+        Queue c = Queue::bind(mem, size);
+        recv_str(c, -1, nullptr, priority);
+        _exit(0);
+    }
+    while (q.stats().receive_waiters <= before) std::this_thread::yield();
+    return child;
+}
+
 }  // namespace
 
 TEST(Msg, InitialStructureIsFigure52) {
@@ -244,13 +258,7 @@ TEST(Msg, AMessageHandedToAKilledUnreapedReceiverIsTakenBack) {
     void* mem = mmap(nullptr, size, PROT_READ | PROT_WRITE, MAP_SHARED | MAP_ANONYMOUS, -1, 0);
     ASSERT_NE(mem, MAP_FAILED);
     Queue q = Queue::over(mem, size, p);
-    const pid_t child = fork();
-    if (child == 0) {
-        Queue c = Queue::bind(mem, size);
-        recv_str(c, -1);
-        _exit(0);
-    }
-    while (q.stats().receive_waiters == 0) std::this_thread::yield();
+    const pid_t child = child_receiving(mem, size, q);
     kill(child, SIGKILL);
     siginfo_t info{};
     ASSERT_EQ(waitid(P_PID, static_cast<id_t>(child), &info, WEXITED | WNOWAIT), 0);  // a zombie now
@@ -282,13 +290,7 @@ TEST(Msg, AMessageLostWithALaterReceiverReachesTheOneThatWaitedAlone) {
     });
     while (q.stats().receive_waiters == 0) std::this_thread::yield();
     std::this_thread::sleep_for(std::chrono::milliseconds(50));  // asleep, alone, untimed
-    const pid_t second = fork();
-    if (second == 0) {
-        Queue c = Queue::bind(mem, size);
-        recv_str(c, -1, nullptr, 5);
-        _exit(0);
-    }
-    while (q.stats().receive_waiters < 2) std::this_thread::yield();
+    const pid_t second = child_receiving(mem, size, q, 5);
     kill(second, SIGSTOP);
     siginfo_t info{};
     ASSERT_EQ(waitid(P_PID, static_cast<id_t>(second), &info, WSTOPPED | WNOWAIT), 0);
@@ -298,7 +300,9 @@ TEST(Msg, AMessageLostWithALaterReceiverReachesTheOneThatWaitedAlone) {
     const std::int64_t deadline = ipc::now_ns() + 2'000'000'000;
     while (!got_it && ipc::now_ns() < deadline) std::this_thread::sleep_for(std::chrono::milliseconds(5));
     const bool in_time = got_it;
-    if (!in_time) ASSERT_EQ(send_str(q, "released by the test"), Status::ok);  // to join the thread
+    if (!in_time) {
+        ASSERT_EQ(send_str(q, "released by the test"), Status::ok);  // to join the thread
+    }
     first.join();
     EXPECT_TRUE(in_time) << "the lone receiver slept on while the message stayed with the dead one";
     EXPECT_EQ(got, in_time ? "handed" : "released by the test");

@@ -114,13 +114,14 @@ TEST(Sem, WaitersAreServedHighestPriorityFirst) {
 }
 
 // A child process blocked in P on `mem` (shared memory), returned once it waits.
-pid_t child_waiting_in_p(void* mem, Semaphore& s) {
+pid_t child_waiting_in_p(void* mem, Semaphore& s, std::int32_t priority = 10) {
+    const std::uint32_t before = s.waiting();
     const pid_t child = fork();
     if (child == 0) {
         Semaphore c = Semaphore::bind(mem);
-        _exit(c.p(-1, 10) == Status::ok ? 0 : 2);
+        _exit(c.p(-1, priority) == Status::ok ? 0 : 2);
     }
-    while (s.waiting() == 0) std::this_thread::yield();
+    while (s.waiting() <= before) std::this_thread::yield();
     return child;
 }
 
@@ -176,12 +177,7 @@ TEST(Sem, AUnitLostWithALaterWaiterReachesTheOneThatWaitedAlone) {
     });
     while (s.waiting() == 0) std::this_thread::yield();
     std::this_thread::sleep_for(std::chrono::milliseconds(50));  // asleep, alone, untimed
-    const pid_t second = fork();
-    if (second == 0) {
-        Semaphore c = Semaphore::bind(mem);
-        _exit(c.p(-1, 5) == Status::ok ? 0 : 2);
-    }
-    while (s.waiting() < 2) std::this_thread::yield();
+    const pid_t second = child_waiting_in_p(mem, s, 5);
     kill(second, SIGSTOP);
     siginfo_t info{};
     ASSERT_EQ(waitid(P_PID, static_cast<id_t>(second), &info, WSTOPPED | WNOWAIT), 0);
@@ -191,7 +187,9 @@ TEST(Sem, AUnitLostWithALaterWaiterReachesTheOneThatWaitedAlone) {
     const std::int64_t deadline = ipc::now_ns() + 2'000'000'000;
     while (!got_it && ipc::now_ns() < deadline) std::this_thread::sleep_for(std::chrono::milliseconds(5));
     const bool in_time = got_it;
-    if (!in_time) EXPECT_EQ(s.v(), Status::ok);  // to join the thread
+    if (!in_time) {
+        EXPECT_EQ(s.v(), Status::ok);  // to join the thread
+    }
     first.join();
     EXPECT_TRUE(in_time) << "the lone waiter slept on while the unit stayed with the dead one";
     EXPECT_EQ(s.try_p(), Status::would_block);  // one unit, not two
