@@ -200,8 +200,13 @@ public:
     [[nodiscard]] std::uint64_t write(const void* item) noexcept {
         if (back_ > 2 && !become_writer()) [[unlikely]]
             return kCorrupt;
-        ipc::copy_var(slot_[back_], static_cast<const std::byte*>(item), item_size_);
-        return publish_back(ipc::now_ns());
+        ipc::copy_var(slot_at(back_), static_cast<const std::byte*>(item), item_size_);
+        // What the swap needs is taken before the clock read (a call, after
+        // which the handle's fields would be loaded again on the way to the
+        // swap).
+        detail::Stamp& st = stamp(back_);
+        const std::uint32_t expected = guess_;
+        return swap_in(st, expected, ipc::now_ns());
     }
     /// As write(), with a caller-supplied time-stamp (saves reading the clock).
     /// Always inlined, as read() is by the compiler's own choice: the call
@@ -209,7 +214,7 @@ public:
     [[nodiscard, gnu::always_inline]] std::uint64_t write(const void* item, std::int64_t time_ns) noexcept {
         if (back_ > 2 && !become_writer()) [[unlikely]]
             return kCorrupt;
-        ipc::copy_var(slot_[back_], static_cast<const std::byte*>(item), item_size_);
+        ipc::copy_var(slot_at(back_), static_cast<const std::byte*>(item), item_size_);
         return publish_back(time_ns);
     }
     /// Zero-copy writing: the writer's private slot, to fill in place
@@ -217,7 +222,7 @@ public:
     [[nodiscard]] void* write_slot() noexcept {
         if (back_ > 2 && !become_writer()) [[unlikely]]
             return nullptr;
-        return slot_[back_];
+        return slot_at(back_);
     }
     /// The counter-stamp the next publish of this handle will carry (the
     /// newest item's + 1, also when a killed writer's successor goes on);
@@ -236,9 +241,9 @@ public:
 
     // --- reader ----------------------------------------------------------------
     /// tbufRead: the newest complete item, copied to `item` (unless empty or corrupt).
-    ReadResult read(void* item) noexcept {
-        ReadResult r;
-        const void* p = read_view(r);
+    [[gnu::always_inline]] ReadResult read(void* item) noexcept {
+        const void* p = nullptr;
+        const ReadResult r = take(p);
         if (r.status <= ReadStatus::reused)
             ipc::copy_var(static_cast<std::byte*>(item), static_cast<const std::byte*>(p), item_size_);
         return r;
@@ -251,44 +256,60 @@ public:
     }
     /// Zero-copy reading: the newest item in place, valid until the next read
     /// (nullptr when the state word is damaged).
-    const void* read_view(ReadResult& r) noexcept {
-        std::uint32_t s = h_->state.load(std::memory_order_relaxed);
-        if (!detail::state_valid(s)) [[unlikely]]
-            return refuse_read(s, r);
-        const bool fresh = (s & detail::kFresh) != 0;
-        std::uint64_t had = 0;  // the seq of the item the reader held before
-        if (fresh) {
-            // Before the swap: the old front slot is the writer's after it.
-            had = front_seq_ != kUnknownSeq ? front_seq_ : stamp(detail::front_of(s)).seq;
-            // Release: we are done with our old slot before the writer gets it;
-            // acquire: the item we take is complete. A failure means the writer
-            // published again meanwhile: take that one.
-            while (!h_->state.compare_exchange_weak(s, detail::taken(s), std::memory_order_acq_rel,
-                                                    std::memory_order_relaxed)) {
-                if (!detail::state_valid(s)) [[unlikely]]
-                    return refuse_read(s, r);
-            }
-            s = detail::taken(s);
-        }
-        const detail::Stamp& st = stamp(detail::front_of(s));
-        front_seq_ = st.seq;
-        r.counter = st.seq - 1;
-        r.time_ns = st.time_ns;
-        r.missed = 0;
-        if (st.seq == 0) {
-            r.status = ReadStatus::empty;
-            r.counter = 0;
-        } else if (fresh) {
-            r.status = ReadStatus::fresh;
-            r.missed = st.seq - had - 1;  // had == 0: every item before this one
-            missed_total_ += r.missed;
-        } else {
-            r.status = ReadStatus::reused;
-        }
-        return slot_[detail::front_of(s)];
+    [[gnu::always_inline]] const void* read_view(ReadResult& r) noexcept {
+        const void* p = nullptr;
+        r = take(p);
+        return p;
     }
 
 private:
+    // The reader's step: takes the middle slot if it holds a new item, and
+    // points `item` at the front slot (left alone when corrupt). The result is
+    // made at the end, not filled in before the swap: stores pending at a
+    // locked instruction make it wait.
+    [[gnu::always_inline]] ReadResult take(const void*& item) noexcept {
+        std::uint32_t s = h_->state.load(std::memory_order_relaxed);
+        // Predicted: the writer has published once since this handle's last
+        // take, so the word is take_guess_ (valid and fresh by construction).
+        // The swap's operands then come from the handle, not from the load:
+        // the predicted branch keeps the load off the swap's critical path.
+        std::uint32_t expected = take_guess_;
+        if (s != expected) [[unlikely]] {
+            if (!detail::state_valid(s))
+                return refuse_read(s);
+            if (!(s & detail::kFresh))
+                return view(detail::front_of(s), ReadStatus::reused, item);
+            expected = s;
+        }
+        // Before the swap: the old front slot is the writer's after it.
+        const std::uint64_t had = front_seq_ != kUnknownSeq ? front_seq_ : stamp(detail::front_of(expected)).seq;
+        // Release: we are done with our old slot before the writer gets it;
+        // acquire: the item we take is complete. A failure means the writer
+        // published again meanwhile: take that one.
+        while (!h_->state.compare_exchange_weak(expected, detail::taken(expected), std::memory_order_acq_rel,
+                                                std::memory_order_relaxed)) {
+            if (!detail::state_valid(expected)) [[unlikely]]
+                return refuse_read(expected);
+        }
+        take_guess_ = detail::published(detail::taken(expected));
+        ReadResult r = view(detail::middle_of(expected), ReadStatus::fresh, item);
+        if (r.status == ReadStatus::fresh) {
+            r.missed = front_seq_ - had - 1;  // had == 0: every item before this one
+            if (r.missed != 0)  // no store when none was missed, the usual case
+                missed_total_ += r.missed;
+        }
+        return r;
+    }
+    // The item in `slot`, now the reader's: `item` points at it; its stamps
+    // (empty when the slot never held an item; missed 0).
+    [[gnu::always_inline]] ReadResult view(std::uint32_t slot, ReadStatus status, const void*& item) noexcept {
+        const detail::Stamp& st = stamp(slot);
+        front_seq_ = st.seq;
+        item = slot_at(slot);
+        return st.seq == 0 ? ReadResult{ReadStatus::empty, 0, st.time_ns, 0}
+                           : ReadResult{status, st.seq - 1, st.time_ns, 0};
+    }
+
     explicit Tbuf(ipc::Segment seg);
     static detail::Header& init(void* memory, std::size_t size, std::size_t item_size);
     static void check(const std::string& where, const void* memory, std::size_t size);
@@ -302,15 +323,16 @@ private:
     bool become_writer() noexcept;
 
     // Stamps the back slot with the next counter and swaps it into the middle.
-    std::uint64_t publish_back(std::int64_t time_ns) noexcept {
-        detail::Stamp& st = stamp(back_);
+    std::uint64_t publish_back(std::int64_t time_ns) noexcept { return swap_in(stamp(back_), guess_, time_ns); }
+    // publish_back() with the back slot's stamps `st` and the expected word
+    // `s` (guess_) already at hand.
+    [[gnu::always_inline]] std::uint64_t swap_in(detail::Stamp& st, std::uint32_t s, std::int64_t time_ns) noexcept {
         st.time_ns = time_ns;
         st.seq = seq_ + 1;
         // Release: the item and its stamps are complete before the reader can
         // take them; acquire: the reader is done with the slot we get back.
         // The expected word is a guess (the reader took our last item, or not,
         // as last time); a wrong guess costs a second try with the real word.
-        std::uint32_t s = guess_;
         while (!h_->state.compare_exchange_weak(s, detail::published(s), std::memory_order_acq_rel,
                                                 std::memory_order_relaxed)) {
             if (!detail::state_valid(s) || detail::back_of(s) != back_) [[unlikely]]
@@ -326,20 +348,23 @@ private:
     std::uint64_t lost_writer_slot(std::uint32_t s) noexcept;
     // Record a damaged state word; kCorrupt / a corrupt result.
     std::uint64_t refuse(std::uint32_t s) noexcept;
-    const void* refuse_read(std::uint32_t s, ReadResult& r) noexcept {
+    ReadResult refuse_read(std::uint32_t s) noexcept {
         refuse(s);
-        r = ReadResult{ReadStatus::corrupt, 0, 0, 0};
-        return nullptr;
+        return ReadResult{ReadStatus::corrupt, 0, 0, 0};
     }
+    // Computed, not looked up in a table: after the reader's swap the slot
+    // number is known only then, and a multiply is quicker than a load.
+    std::byte* slot_at(std::uint32_t slot) const noexcept { return slots_ + slot * slot_stride_; }
     detail::Stamp& stamp(std::uint32_t slot) noexcept {
-        return *reinterpret_cast<detail::Stamp*>(slot_[slot] + stamp_offset_);
+        return *reinterpret_cast<detail::Stamp*>(slot_at(slot) + stamp_offset_);
     }
 
     ipc::Segment seg_;             // empty for caller-supplied memory
     detail::Header* h_ = nullptr;
     // Kept from the header checked on attach: later writes to the shared
     // header cannot move a copy outside the buffer.
-    std::byte* slot_[3] = {};
+    std::byte* slots_ = nullptr;
+    std::size_t slot_stride_ = 0;
     std::size_t item_size_ = 0;
     std::size_t stamp_offset_ = 0;
     std::uint64_t missed_total_ = 0;
@@ -347,6 +372,9 @@ private:
     // touches only the slot it takes (unknown until this handle first reads).
     static constexpr std::uint64_t kUnknownSeq = ~std::uint64_t{0};
     std::uint64_t front_seq_ = kUnknownSeq;
+    // The state word the reader expects to find: its last take, then one
+    // publish (any valid fresh state to begin with).
+    std::uint32_t take_guess_ = detail::make_state(0, 1, 2, true);
     // The writer's (see become_writer()): its slot (3: not known yet), the
     // seq of its last item, the expected state word.
     std::uint32_t back_ = 3;

@@ -66,11 +66,13 @@ Tbuf& Tbuf::operator=(Tbuf&& o) noexcept {
     if (this != &o) {
         seg_ = std::move(o.seg_);
         h_ = std::exchange(o.h_, nullptr);
-        for (int i = 0; i < 3; ++i) slot_[i] = std::exchange(o.slot_[i], nullptr);
+        slots_ = std::exchange(o.slots_, nullptr);
+        slot_stride_ = std::exchange(o.slot_stride_, 0);
         item_size_ = std::exchange(o.item_size_, 0);
         stamp_offset_ = std::exchange(o.stamp_offset_, 0);
         missed_total_ = std::exchange(o.missed_total_, 0);
         front_seq_ = std::exchange(o.front_seq_, kUnknownSeq);
+        take_guess_ = o.take_guess_;
         back_ = std::exchange(o.back_, 3);
         guess_ = o.guess_;
         seq_ = o.seq_;
@@ -90,7 +92,8 @@ void Tbuf::bind(std::byte* base) noexcept {
     h_ = reinterpret_cast<Header*>(base);
     item_size_ = h_->item_size;
     stamp_offset_ = h_->stamp_offset;
-    for (std::uint32_t i = 0; i < 3; ++i) slot_[i] = base + sizeof(Header) + i * stride_for(item_size_);
+    slots_ = base + sizeof(Header);
+    slot_stride_ = stride_for(item_size_);
 }
 
 std::uint64_t Tbuf::refuse(std::uint32_t s) noexcept {
@@ -213,14 +216,14 @@ void Tbuf::detach() noexcept {
     seg_.detach();
     h_ = nullptr;
     back_ = 3;
-    for (auto& p : slot_) p = nullptr;
+    slots_ = nullptr;
 }
 
 bool Tbuf::destroy() noexcept {
     const bool removed = seg_.valid() && seg_.detach_destroy_if_last();
     h_ = nullptr;
     back_ = 3;
-    for (auto& p : slot_) p = nullptr;
+    slots_ = nullptr;
     return removed;
 }
 

@@ -175,6 +175,38 @@ TEST(Tbuf, FirstReadAfterSeveralWritesCountsTheMissedOnes) {
     r.destroy();
 }
 
+// The reader expects the state word one publish after its last take; after
+// any other number of publishes (none, two, three...) its read still takes the
+// newest item once, counts the missed ones, and never takes an older item
+// back (each even count leaves the word as it was after the reader's take
+// but for the fresh bit).
+TEST(Tbuf, AnyNumberOfWritesBetweenReadsGivesTheNewestOnce) {
+    const std::string name = unique_name("tb3");
+    Tbuf w = Tbuf::create(name, sizeof(Item));
+    Tbuf r = Tbuf::attach(name);
+    Item in{}, out{};
+    std::uint64_t next = 0;
+    for (int writes : {1, 2, 0, 3, 4, 1, 1, 6, 0, 0, 5, 2}) {
+        for (int i = 0; i < writes; ++i) {
+            make_item(in, next);
+            ASSERT_EQ(w.write(&in, static_cast<std::int64_t>(next) + 100), next);
+            ++next;
+        }
+        const std::uint64_t before = r.missed_total();
+        const ReadResult res = r.read(&out);
+        EXPECT_EQ(res.status, writes > 0 ? ReadStatus::fresh : ReadStatus::reused) << writes << " writes";
+        EXPECT_EQ(res.counter, next - 1) << writes << " writes";
+        EXPECT_EQ(res.time_ns, static_cast<std::int64_t>(next) + 99);
+        EXPECT_EQ(res.missed, writes > 1 ? static_cast<std::uint64_t>(writes - 1) : 0u);
+        EXPECT_EQ(r.missed_total() - before, res.missed);
+        EXPECT_EQ(check_item(out, res), 0);
+        EXPECT_EQ(r.read(&out).status, ReadStatus::reused);  // taken once only
+        EXPECT_EQ(check_item(out, res), 0);
+    }
+    r.detach();
+    EXPECT_TRUE(w.destroy());
+}
+
 TEST(Tbuf, CallerSuppliedMemory) {
     auto* block = shared_anon<Block>();
     EXPECT_EQ(required_size(sizeof(Item)), 192u + 3u * 320u);  // 248-byte items: 256 + 16 stamps -> 320
