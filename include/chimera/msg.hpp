@@ -227,6 +227,7 @@ private:
     Status refuse(const ipc::Fault& fault) noexcept;
     Status unlock_and_wake(xm::layout::Waiter* w) noexcept;
     void pass_on_dead(const xm::layout::Waiter* self) noexcept;
+    void prefetch_hot_lines() const noexcept;
 
     layout::QueueHeader* q_ = nullptr;
     layout::Geometry g_;    // checked on attach: never re-read from the segment
@@ -234,6 +235,10 @@ private:
     std::string name_;
     std::string where_;     // the segment's name (or the caller memory's label), for faults
     ipc::Fault fault_;
+    // The header and first block this handle last sent or received (0: none):
+    // the free lists are LIFO, so the next operation on the queue most
+    // likely uses them again (see prefetch_hot_lines in msg.cpp).
+    std::uint32_t hint_head_ = 0, hint_block_ = 0;
 };
 
 }  // namespace chimera::msg
