@@ -18,6 +18,7 @@
 #include <pthread.h>
 #include <sched.h>
 
+#include <algorithm>
 #include <cstring>
 #include <memory>
 #include <optional>
@@ -221,6 +222,10 @@ private:
             std::memcpy(&head, item, sizeof head);
             s.counter = head.counter;
             age = config_.age_clock == AgeClock::receive ? now - r.time_ns : realtime_ns() - head.source_ns;
+            // A value that arrived after this cycle's release (`now`), or a
+            // sender's clock ahead of ours, is as new as can be: age 0, not a
+            // negative age that would read as "none" (-1).
+            age = std::max<std::int64_t>(age, 0);
             s.age_ns = age;
             if (age <= s.age_limit_ns) {
                 std::memcpy(s.var, item + sizeof head, s.nelem * sizeof(double));
