@@ -38,7 +38,9 @@
 // (A waiter without a time limit that is the only one of its list sleeps
 // without a timer, as a blocking mq_receive does; the next waiter to join
 // wakes it into the 20 ms looks, since only another waiter can die with what
-// it was given.)
+// it was given. A sender killed between handing a message over and its
+// wake-up leaves it woken by the kernel: the hand-off is marked in the
+// sender's robust-futex list while it lasts.)
 //
 // Untrusted memory (issue #15.3): the geometry is checked on attach and kept
 // in the handle; every link, index and size read from the segment is checked

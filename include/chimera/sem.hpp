@@ -15,7 +15,10 @@
 // by the waiters still blocked, which look every kWaitSlice (20 ms) and pass
 // its unit on, and by any P that finds no unit; a holder of the lock that
 // died is repaired by the next user. (The only waiter, without a time limit,
-// sleeps without a timer; the next waiter to join wakes it into the looks.)
+// sleeps without a timer; the next waiter to join wakes it into the looks. A
+// V killed between handing its unit over and its wake-up leaves the waiter
+// woken by the kernel: the hand-off is marked in V's robust-futex list while
+// it lasts.)
 #pragma once
 
 #include "chimera/export.hpp"

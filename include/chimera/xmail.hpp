@@ -160,7 +160,7 @@ struct MailboxGeometry {
 /// task sleeps on `word` (futex); the signaller sets it under the object's
 /// lock, so a dead waiter or signaller is repaired from these fields.
 struct Waiter {
-    std::atomic<std::uint32_t> word;  ///< the futex it sleeps on: bit 0 signalled, 1 kicked, 2 asleep untimed
+    std::atomic<std::uint32_t> word;  ///< the futex it sleeps on: bit 0 signalled, 1 kicked, 2 asleep untimed; or the signaller's thread id with bit 31 (handed over)
     std::uint32_t state;              ///< 0 free, 1 waiting, 2 signalled (atomic stores: read without the lock)
     std::int32_t pid, tid;            ///< the waiting thread (atomic stores: read without the lock)
     std::int32_t priority;            ///< higher is served first

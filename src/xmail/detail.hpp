@@ -21,10 +21,19 @@ enum WaiterState : std::uint32_t { kFree = 0, kWaiting = 1, kSignaled = 2 };
 
 /// Bits of a Waiter's word, the one its thread sleeps on.
 enum WaiterWord : std::uint32_t {
-    kWordSignalled = 1,  ///< waiter_signal(): what it waited for is there
+    kWordSignalled = 1,  ///< what it waited for is there (a repair's re-arm)
     kWordKicked = 2,     ///< another waiter joined the list: sleep in slices from now on
     kWordUntimed = 4,    ///< asleep without a timer: the only waiter of its list
+    /// waiter_signal()'s mark: the signaller's thread id with this bit (and
+    /// bit 30 once the kernel found that thread dead), the shape of a robust
+    /// futex held by it (see waiter_signal()). The small bits above are not
+    /// flags of such a word.
+    kWordHandedOver = 1u << 31,
 };
+/// True when the word says the waiter was given what it waited for.
+constexpr bool word_signalled(std::uint32_t word) noexcept {
+    return (word & (kWordSignalled | kWordHandedOver)) != 0;
+}
 
 /// Longest single sleep of a waiter: it then re-checks its word, and passes
 /// on what a waiter that died after being signalled was given (a unit, a
@@ -77,10 +86,17 @@ Waiter* waiter_add(Waiter* slots, std::uint32_t n, std::uint32_t& next_ticket,
 /// equals). No system call: a slot of a thread that died is found dead when
 /// the wake-up reaches nobody (waiter_wake_checked()).
 Waiter* waiter_pick(Waiter* slots, std::uint32_t n) noexcept;
-inline void waiter_signal(Waiter& w) noexcept {
-    poke(w.state, kSignaled);
-    w.word.store(kWordSignalled, std::memory_order_release);
-}
+/// Gives `w` what it waits for (its state, then its word), under the
+/// object's lock; waiter_wake() or waiter_wake_checked() follows, after the
+/// lock is let go. A signaller killed in between would leave a waiter that
+/// sleeps without a timer asleep for good, so the word is written as a robust
+/// futex held by the calling thread (its id, kWordHandedOver) and the thread's
+/// robust list (set_robust_list(2), the one glibc registers for every
+/// thread) names it as the operation in progress until the wake: if the
+/// thread dies first, the kernel, as it exits, marks the word and wakes its
+/// sleeper. No system call (but the first call in a thread reads where its
+/// robust list is).
+void waiter_signal(Waiter& w) noexcept;
 inline void waiter_free(Waiter& w) noexcept {
     poke(w.state, kFree);
     w.handed = 0;
@@ -88,7 +104,8 @@ inline void waiter_free(Waiter& w) noexcept {
     poke(w.tid, 0);
     w.word.store(0, std::memory_order_relaxed);
 }
-inline void waiter_wake(Waiter& w) noexcept { ipc::futex_wake_all(w.word); }
+/// Wakes a signalled waiter; the end of waiter_signal()'s hand-off.
+void waiter_wake(Waiter& w) noexcept;
 
 /// Who holds a slot: after the object's lock was let go, tells whether the
 /// slot is still the one signalled (its thread cannot free it if it died,
@@ -180,7 +197,7 @@ bool waiter_sleep(Waiter& w, const Waiter* slots, std::uint32_t n, const WaitDea
     std::int64_t slice_end = at < 0 ? -1 : std::min(deadline.last_read() + kWaitSlice, at);
     for (;;) {
         std::uint32_t word = w.word.load(std::memory_order_acquire);
-        if (word & kWordSignalled) return true;
+        if (word_signalled(word)) return true;
         if (word != 0) {  // kicked, or the mark of an untimed sleep: start again from 0
             w.word.compare_exchange_strong(word, 0, std::memory_order_relaxed);
             continue;
@@ -192,7 +209,7 @@ bool waiter_sleep(Waiter& w, const Waiter* slots, std::uint32_t n, const WaitDea
         const ipc::FutexResult r = at < 0 ? ipc::futex_wait(w.word, 0, kWaitSlice)
                                           : ipc::futex_wait_until(w.word, 0, slice_end);
         on_wake();
-        if (r != ipc::FutexResult::timed_out || (w.word.load(std::memory_order_acquire) & kWordSignalled))
+        if (r != ipc::FutexResult::timed_out || word_signalled(w.word.load(std::memory_order_acquire)))
             continue;
         if (at >= 0) {
             if (slice_end == at) return false;

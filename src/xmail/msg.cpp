@@ -752,7 +752,9 @@ void Queue::repair() noexcept {
                 waiter_free(w);
                 ++q->reclaimed_waiters;
             } else if (w.state == kSignaled) {
+                // Its signaller may have died before the wake too: wake it.
                 w.word.store(kWordSignalled, std::memory_order_release);
+                waiter_wake(w);
             }
         }
     }

@@ -1,5 +1,6 @@
 // Waitlists of SEM and MSG objects (thesis §5.4.2, §5.4.3.1: "the policy for
 // inserting tasks into the waitlist ... highest-priority-first").
+#include <linux/futex.h>
 #include <sys/syscall.h>
 #include <unistd.h>
 
@@ -32,7 +33,8 @@ void kick_untimed(Waiter* slots, std::uint32_t n, const Waiter* self) noexcept {
     for (std::uint32_t i = 0; i < n; ++i) {
         Waiter& w = slots[i];
         if (&w == self || peek(w.state) == kFree) continue;
-        if (w.word.load(std::memory_order_seq_cst) & kWordUntimed) {
+        const std::uint32_t word = w.word.load(std::memory_order_seq_cst);
+        if ((word & kWordUntimed) && !word_signalled(word)) {
             w.word.fetch_or(kWordKicked, std::memory_order_relaxed);
             ipc::futex_wake_all(w.word);
         }
@@ -90,9 +92,53 @@ Waiter* waiter_pick(Waiter* slots, std::uint32_t n) noexcept {
     return best;
 }
 
+static_assert(kWordHandedOver == FUTEX_WAITERS);
+
+namespace {
+
+// The calling thread's robust list, as the kernel knows it (nullptr when it
+// has none: then a hand-off is not covered).
+robust_list_head* robust_head() noexcept {
+    thread_local robust_list_head* head = nullptr;
+    thread_local bool looked = false;
+    if (!looked) {
+        std::size_t len = 0;
+        if (syscall(SYS_get_robust_list, 0, &head, &len) != 0) head = nullptr;
+        looked = true;
+    }
+    return head;
+}
+
+// The kernel finds the futex of list_op_pending at that pointer plus the
+// list's futex_offset (glibc's, for its mutexes).
+void hand_off_begins(std::atomic<std::uint32_t>& word) noexcept {
+    if (robust_list_head* head = robust_head())
+        head->list_op_pending = reinterpret_cast<robust_list*>(reinterpret_cast<char*>(&word) - head->futex_offset);
+}
+void hand_off_ends() noexcept {
+    if (robust_list_head* head = robust_head()) head->list_op_pending = nullptr;
+}
+
+}  // namespace
+
+void waiter_signal(Waiter& w) noexcept {
+    hand_off_begins(w.word);
+    poke(w.state, kSignaled);
+    // Release: the state and what was handed over are visible with the word
+    // (and the pending mark before it, for the kernel: the same thread).
+    const auto tid = static_cast<std::uint32_t>(ipc::owner_tid(ipc::self_owner_id()));
+    w.word.store((tid & FUTEX_TID_MASK) | kWordHandedOver, std::memory_order_release);
+}
+
+void waiter_wake(Waiter& w) noexcept {
+    ipc::futex_wake_all(w.word);
+    hand_off_ends();
+}
+
 bool waiter_wake_checked(Waiter& w, const WaiterId& id) noexcept {
-    if (ipc::futex_wake_all(w.word) > 0) return true;
-    return thread_alive(id.pid, id.tid);
+    const bool woke = ipc::futex_wake_all(w.word) > 0;
+    hand_off_ends();
+    return woke || thread_alive(id.pid, id.tid);
 }
 
 bool signalled_dead(const Waiter* slots, std::uint32_t n, const Waiter* self) noexcept {

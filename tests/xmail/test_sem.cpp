@@ -15,7 +15,10 @@
 #include <vector>
 
 #include "chimera/ipc/clock.hpp"
+#include "chimera/ipc/futex.hpp"
+#include "chimera/ipc/lock.hpp"
 #include "chimera/sem.hpp"
+#include "detail.hpp"
 #include "sanitizer.hpp"
 
 using namespace chimera;
@@ -193,6 +196,50 @@ TEST(Sem, AUnitLostWithALaterWaiterReachesTheOneThatWaitedAlone) {
     first.join();
     EXPECT_TRUE(in_time) << "the lone waiter slept on while the unit stayed with the dead one";
     EXPECT_EQ(s.try_p(), Status::would_block);  // one unit, not two
+    munmap(mem, Semaphore::memory_size());
+}
+
+// A V caller that dies after handing the unit to the lone waiter and before
+// its futex wake (the hand-off is stored under the lock, the wake comes after
+// letting it go) must not leave that waiter asleep: it slept without a timer,
+// so nothing of its own would look again. The child does what V does up to
+// the wake, with the library's own hand-off (waiter_signal), then exits: the
+// kernel, finding the hand-off pending in the exiting thread's robust list,
+// must wake the waiter.
+TEST(Sem, TheLoneWaiterGetsAUnitWhoseGiverDiedBeforeWakingIt) {
+    CHIMERA_NOT_UNDER_TSAN("a forked giver");
+    void* mem = mmap(nullptr, Semaphore::memory_size(), PROT_READ | PROT_WRITE,
+                     MAP_SHARED | MAP_ANONYMOUS, -1, 0);
+    ASSERT_NE(mem, MAP_FAILED);
+    Semaphore s = Semaphore::over(mem, Kind::binary, 0);
+    auto* h = static_cast<sem::layout::SemHeader*>(mem);
+    std::atomic<bool> got_it{false};
+    std::thread waiter([&] {
+        EXPECT_EQ(s.p(-1), Status::ok);
+        got_it = true;
+    });
+    while (s.waiting() == 0) std::this_thread::yield();
+    std::this_thread::sleep_for(std::chrono::milliseconds(50));  // asleep, alone, untimed
+    const pid_t giver = fork();
+    if (giver == 0) {
+        if (!ipc::holds(ipc::lock(h->mutex))) _exit(2);
+        xm::layout::Waiter* w = xm::detail::waiter_pick(h->waiters, sem::layout::kMaxWaiters);
+        if (w == nullptr) _exit(3);
+        xm::detail::waiter_signal(*w);  // the unit goes to the waiter, as in Semaphore::v()
+        if (!ipc::unlock(h->mutex)) _exit(4);
+        _exit(0);  // gone before its wake-up, as if killed there
+    }
+    int status = 0;
+    ASSERT_EQ(waitpid(giver, &status, 0), giver);
+    ASSERT_TRUE(WIFEXITED(status) && WEXITSTATUS(status) == 0) << status;
+    const std::int64_t deadline = ipc::now_ns() + 2'000'000'000;
+    while (!got_it && ipc::now_ns() < deadline) std::this_thread::sleep_for(std::chrono::milliseconds(5));
+    const bool in_time = got_it;
+    if (!in_time)
+        for (auto& w : h->waiters) ipc::futex_wake_all(w.word);  // to join the thread
+    waiter.join();
+    EXPECT_TRUE(in_time) << "the lone waiter slept on with the unit it was given";
+    EXPECT_EQ(s.try_p(), Status::would_block);  // the one unit, taken by the waiter
     munmap(mem, Semaphore::memory_size());
 }
 
