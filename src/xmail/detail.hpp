@@ -86,7 +86,7 @@ Waiter* waiter_add(Waiter* slots, std::uint32_t n, std::uint32_t& next_ticket,
 /// equals). No system call: a slot of a thread that died is found dead when
 /// the wake-up reaches nobody (waiter_wake_checked()).
 Waiter* waiter_pick(Waiter* slots, std::uint32_t n) noexcept;
-/// Gives `w` what it waits for (its state, then its word), under the
+/// Gives `w` what it waits for (its word, then its state), under the
 /// object's lock; waiter_wake() or waiter_wake_checked() follows, after the
 /// lock is let go. A signaller killed in between would leave a waiter that
 /// sleeps without a timer asleep for good, so the word is written as a robust

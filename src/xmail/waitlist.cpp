@@ -123,11 +123,14 @@ void hand_off_ends() noexcept {
 
 void waiter_signal(Waiter& w) noexcept {
     hand_off_begins(w.word);
-    poke(w.state, kSignaled);
-    // Release: the state and what was handed over are visible with the word
-    // (and the pending mark before it, for the kernel: the same thread).
+    // The word before the state: a signaller that dies between them has
+    // marked the word already, so the kernel wakes the waiter, which finds
+    // under the lock whether the state made it (nothing was given if not).
+    // Release: what was handed over is visible with the word (and the
+    // pending mark before it, for the kernel: the same thread).
     const auto tid = static_cast<std::uint32_t>(ipc::owner_tid(ipc::self_owner_id()));
     w.word.store((tid & FUTEX_TID_MASK) | kWordHandedOver, std::memory_order_release);
+    poke(w.state, kSignaled);
 }
 
 void waiter_wake(Waiter& w) noexcept {
