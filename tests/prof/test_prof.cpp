@@ -780,7 +780,10 @@ TEST(Profiler, BlockingInsideACycleIsNotCharged) {
         p.cycle_end();
         const auto s = seg.snapshot()[0];
         SCOPED_TRACE(to_string(p.clock()));
-        EXPECT_GE(s.max_c, 0.004);
+        // The burns are 4 ms of CLOCK_THREAD_CPUTIME_ID; the profiler reads its
+        // own clock (perf's task clock), which a fresh-clone ASan run found
+        // 36 us short of it (3.964 ms): 5 % of slack, far from the 15 ms sleep.
+        EXPECT_GE(s.max_c, 0.0038);
         EXPECT_LT(s.max_c, 0.0065) << "the 15 ms sleep was charged";
         if (p.clock() == CpuClock::perf_switch) {
             EXPECT_GE(s.switched, 1u);
