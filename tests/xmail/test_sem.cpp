@@ -11,6 +11,7 @@
 #include <atomic>
 #include <chrono>
 #include <mutex>
+#include <stdexcept>
 #include <thread>
 #include <vector>
 
@@ -163,40 +164,65 @@ TEST(Sem, AUnitGrantedToAKilledUnreapedWaiterIsTakenBack) {
     munmap(mem, Semaphore::memory_size());
 }
 
+// A binary semaphore at 0 in shared memory (so children can use it) and a
+// thread blocked in P without a time limit: alone, so asleep without a timer.
+// The tests below take the unit away from it in some way and check that it
+// still gets it.
+class LoneWaiter {
+public:
+    explicit LoneWaiter(std::int32_t priority)
+        : mem_(mmap(nullptr, Semaphore::memory_size(), PROT_READ | PROT_WRITE, MAP_SHARED | MAP_ANONYMOUS, -1, 0)),
+          s_(mem_ != MAP_FAILED ? Semaphore::over(mem_, Kind::binary, 0)
+                                : throw std::runtime_error("mmap of the semaphore failed")) {
+        waiter_ = std::thread([this, priority] {
+            EXPECT_EQ(s_.p(-1, priority), Status::ok);
+            got_it_ = true;
+        });
+        while (s_.waiting() == 0) std::this_thread::yield();
+        std::this_thread::sleep_for(std::chrono::milliseconds(50));  // asleep, alone, untimed
+    }
+    ~LoneWaiter() { munmap(mem_, Semaphore::memory_size()); }
+    LoneWaiter(const LoneWaiter&) = delete;
+    LoneWaiter& operator=(const LoneWaiter&) = delete;
+    void* memory() const { return mem_; }
+    Semaphore& sem() { return s_; }
+    // True when the waiter got the unit within 2 s. Either way the thread is
+    // joined: `release` is called first to let it go if it did not.
+    template <typename Release>
+    bool got_it_in_time(Release&& release) {
+        const std::int64_t deadline = ipc::now_ns() + 2'000'000'000;
+        while (!got_it_ && ipc::now_ns() < deadline) std::this_thread::sleep_for(std::chrono::milliseconds(5));
+        const bool in_time = got_it_;
+        if (!in_time) release();
+        waiter_.join();
+        return in_time;
+    }
+
+private:
+    void* mem_;
+    Semaphore s_;
+    std::atomic<bool> got_it_{false};
+    std::thread waiter_;
+};
+
 // As Msg.AMessageLostWithALaterReceiverReachesTheOneThatWaitedAlone: a P
 // without a time limit sleeps untimed while alone; the waiter that joins
 // kicks it into slices, so a unit granted to the newcomer (stopped, then
 // killed) is passed on to it.
 TEST(Sem, AUnitLostWithALaterWaiterReachesTheOneThatWaitedAlone) {
     CHIMERA_NOT_UNDER_TSAN("a forked waiter stopped and killed");
-    void* mem = mmap(nullptr, Semaphore::memory_size(), PROT_READ | PROT_WRITE,
-                     MAP_SHARED | MAP_ANONYMOUS, -1, 0);
-    ASSERT_NE(mem, MAP_FAILED);
-    Semaphore s = Semaphore::over(mem, Kind::binary, 0);
-    std::atomic<bool> got_it{false};
-    std::thread first([&] {
-        EXPECT_EQ(s.p(-1, 1), Status::ok);
-        got_it = true;
-    });
-    while (s.waiting() == 0) std::this_thread::yield();
-    std::this_thread::sleep_for(std::chrono::milliseconds(50));  // asleep, alone, untimed
-    const pid_t second = child_waiting_in_p(mem, s, 5);
+    LoneWaiter first(1);
+    Semaphore& s = first.sem();
+    const pid_t second = child_waiting_in_p(first.memory(), s, 5);
     kill(second, SIGSTOP);
     siginfo_t info{};
     ASSERT_EQ(waitid(P_PID, static_cast<id_t>(second), &info, WSTOPPED | WNOWAIT), 0);
     EXPECT_EQ(s.v(), Status::ok);  // granted to the higher priority: the stopped child
     kill(second, SIGKILL);
     waitpid(second, nullptr, 0);
-    const std::int64_t deadline = ipc::now_ns() + 2'000'000'000;
-    while (!got_it && ipc::now_ns() < deadline) std::this_thread::sleep_for(std::chrono::milliseconds(5));
-    const bool in_time = got_it;
-    if (!in_time) {
-        EXPECT_EQ(s.v(), Status::ok);  // to join the thread
-    }
-    first.join();
+    const bool in_time = first.got_it_in_time([&] { EXPECT_EQ(s.v(), Status::ok); });
     EXPECT_TRUE(in_time) << "the lone waiter slept on while the unit stayed with the dead one";
     EXPECT_EQ(s.try_p(), Status::would_block);  // one unit, not two
-    munmap(mem, Semaphore::memory_size());
 }
 
 // A V caller that dies after handing the unit to the lone waiter and before
@@ -208,18 +234,8 @@ TEST(Sem, AUnitLostWithALaterWaiterReachesTheOneThatWaitedAlone) {
 // must wake the waiter.
 TEST(Sem, TheLoneWaiterGetsAUnitWhoseGiverDiedBeforeWakingIt) {
     CHIMERA_NOT_UNDER_TSAN("a forked giver");
-    void* mem = mmap(nullptr, Semaphore::memory_size(), PROT_READ | PROT_WRITE,
-                     MAP_SHARED | MAP_ANONYMOUS, -1, 0);
-    ASSERT_NE(mem, MAP_FAILED);
-    Semaphore s = Semaphore::over(mem, Kind::binary, 0);
-    auto* h = static_cast<sem::layout::SemHeader*>(mem);
-    std::atomic<bool> got_it{false};
-    std::thread waiter([&] {
-        EXPECT_EQ(s.p(-1), Status::ok);
-        got_it = true;
-    });
-    while (s.waiting() == 0) std::this_thread::yield();
-    std::this_thread::sleep_for(std::chrono::milliseconds(50));  // asleep, alone, untimed
+    LoneWaiter waiter(0);
+    auto* h = static_cast<sem::layout::SemHeader*>(waiter.memory());
     const pid_t giver = fork();
     if (giver == 0) {
         if (!ipc::holds(ipc::lock(h->mutex))) _exit(2);
@@ -232,15 +248,11 @@ TEST(Sem, TheLoneWaiterGetsAUnitWhoseGiverDiedBeforeWakingIt) {
     int status = 0;
     ASSERT_EQ(waitpid(giver, &status, 0), giver);
     ASSERT_TRUE(WIFEXITED(status) && WEXITSTATUS(status) == 0) << status;
-    const std::int64_t deadline = ipc::now_ns() + 2'000'000'000;
-    while (!got_it && ipc::now_ns() < deadline) std::this_thread::sleep_for(std::chrono::milliseconds(5));
-    const bool in_time = got_it;
-    if (!in_time)
-        for (auto& w : h->waiters) ipc::futex_wake_all(w.word);  // to join the thread
-    waiter.join();
+    const bool in_time = waiter.got_it_in_time([&] {
+        for (auto& w : h->waiters) ipc::futex_wake_all(w.word);
+    });
     EXPECT_TRUE(in_time) << "the lone waiter slept on with the unit it was given";
-    EXPECT_EQ(s.try_p(), Status::would_block);  // the one unit, taken by the waiter
-    munmap(mem, Semaphore::memory_size());
+    EXPECT_EQ(waiter.sem().try_p(), Status::would_block);  // the one unit, taken by the waiter
 }
 
 TEST(Sem, MutualExclusionAcrossProcesses) {
