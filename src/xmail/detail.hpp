@@ -106,6 +106,13 @@ inline void waiter_free(Waiter& w) noexcept {
 }
 /// Wakes a signalled waiter; the end of waiter_signal()'s hand-off.
 void waiter_wake(Waiter& w) noexcept;
+/// A repair's look at a live waiter found signalled: its signaller (the lock
+/// holder that died) may have died before setting the word or waking it, so
+/// the word is set again and the waiter woken (lock held; a rare path).
+inline void waiter_rearm(Waiter& w) noexcept {
+    w.word.store(kWordSignalled, std::memory_order_release);
+    waiter_wake(w);
+}
 
 /// Who holds a slot: after the object's lock was let go, tells whether the
 /// slot is still the one signalled (its thread cannot free it if it died,

@@ -742,8 +742,8 @@ void Queue::repair() noexcept {
     QueueHeader* q = q_;
     Ops ops{q, g_};
     const std::uint32_t n = g_.blknum;
-    // Waiters: drop the dead; re-arm the word of signalled ones (the signaller
-    // may have died between setting the state and the word).
+    // Waiters: drop the dead; re-arm and wake the signalled ones (their
+    // signaller may have died before its wake-up).
     for (Waiter* list : {q->recv_waiters, q->send_waiters}) {
         for (std::uint32_t i = 0; i < layout::kMaxWaiters; ++i) {
             Waiter& w = list[i];
@@ -752,9 +752,7 @@ void Queue::repair() noexcept {
                 waiter_free(w);
                 ++q->reclaimed_waiters;
             } else if (w.state == kSignaled) {
-                // Its signaller may have died before the wake too: wake it.
-                w.word.store(kWordSignalled, std::memory_order_release);
-                waiter_wake(w);
+                waiter_rearm(w);
             }
         }
     }

@@ -177,10 +177,7 @@ void Semaphore::repair() noexcept {
         Waiter& w = h_->waiters[i];
         if (w.state == kFree) continue;
         if (thread_alive(w.pid, w.tid)) {
-            if (w.state == kSignaled) {  // its signaller died before the wake, maybe: wake it
-                w.word.store(kWordSignalled, std::memory_order_release);
-                waiter_wake(w);
-            }
+            if (w.state == kSignaled) waiter_rearm(w);
             continue;
         }
         const bool granted = w.state == kSignaled;
