@@ -209,8 +209,8 @@ public:
         return swap_in(st, expected, ipc::now_ns());
     }
     /// As write(), with a caller-supplied time-stamp (saves reading the clock).
-    /// Always inlined, as read() is by the compiler's own choice: the call
-    /// cost 0.5-0.7 ns of a 24-byte write+read's 27 (bench/results/svar.md).
+    /// Always inlined, as read() is: the call cost 0.5-0.7 ns of a 24-byte
+    /// write+read's 27 (bench/results/svar.md).
     [[nodiscard, gnu::always_inline]] std::uint64_t write(const void* item, std::int64_t time_ns) noexcept {
         if (back_ > 2 && !become_writer()) [[unlikely]]
             return kCorrupt;
