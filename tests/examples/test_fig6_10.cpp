@@ -402,3 +402,21 @@ TEST(Fig610Feed, WrongJointCountIsRefusedByName) {
 }
 
 }  // namespace
+
+// A feed left in /dev/shm by a run that was killed, here of a library whose
+// TBUF layout this one refuses: nobody maps it, so the next run makes it
+// anew instead of failing on it.
+TEST(Fig610Feed, AFeedLeftByEndedRunsIsMadeAnew) {
+    const std::string tbuf = "stale" + std::to_string(getpid());
+    const std::string seg = chimera::ipc::segment_name("tbuf", tbuf);
+    {
+        auto old = chimera::ipc::Segment::create(seg, 384, {chimera::ipc::ObjectType::tbuf, chimera::tbuf::kLayoutVersion - 1});
+        old.publish();
+    }  // its creator ended without destroying it
+    ASSERT_TRUE(chimera::ipc::Segment::exists(seg));
+    auto feed = chimera::teleop::open_feed(tbuf, kDof);
+    EXPECT_EQ(feed.item_size(), chimera::teleop::item_size(kDof));
+    const std::vector<double> pose(kDof, 0.25);
+    EXPECT_EQ(feed.write(pose.data()), 0u);
+    EXPECT_TRUE(feed.destroy());
+}

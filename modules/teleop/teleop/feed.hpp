@@ -27,8 +27,8 @@ inline std::string feed_segment(std::string_view name) { return ipc::segment_nam
 constexpr std::size_t item_size(std::size_t ndof) { return ndof * sizeof(double); }
 
 /// Opens the feed `name` for items of `ndof` joints: attaches when it exists
-/// (the other side came first), creates it otherwise. Either side may start
-/// first. Throws ipc::SegmentError naming the segment when it exists with
+/// (the other side came first), creates it otherwise, or anew when no live
+/// process maps the one that exists. Either side may start first. Throws ipc::SegmentError naming the segment when it exists with
 /// another item size (a feed for a robot with a different NDOF).
 inline tbuf::Tbuf open_feed(std::string_view name, std::size_t ndof) {
     const std::string seg = feed_segment(name);
@@ -37,7 +37,13 @@ inline tbuf::Tbuf open_feed(std::string_view name, std::size_t ndof) {
         buf = tbuf::Tbuf::create(seg, item_size(ndof));
     } catch (const ipc::SegmentError& e) {
         if (e.error_number() != EEXIST) throw;
-        buf = tbuf::Tbuf::attach(seg);
+        // A feed no live process maps was left by runs that have ended (maybe
+        // of an older library, whose layout this one refuses): made anew, as
+        // the module drops what was sent before it is switched on anyway.
+        if (ipc::Segment::destroy_if_unused(seg))
+            buf = tbuf::Tbuf::create(seg, item_size(ndof));
+        else
+            buf = tbuf::Tbuf::attach(seg);
     }
     if (buf.item_size() != item_size(ndof)) {
         const std::size_t have = buf.item_size();
