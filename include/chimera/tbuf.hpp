@@ -10,16 +10,38 @@
 // very instant), the reader always gets the newest complete item, and an item
 // is never written while it is being read.
 //
-// Which slot each side holds, and whether the middle one is unread, is ONE
-// atomic word (the state), changed by one compare-and-swap per publish and per
-// fresh read (as the Rust triple_buffer crate keeps its indices in one word).
-// So a writer or reader killed at any instruction leaves a consistent buffer:
-// before its swap nothing the other side sees has changed, after it the swap is
-// complete; the next process to take the role goes on from the state word
-// (issue #15.2: with the indices in two words, a writer killed between them
-// left both sides sharing a slot for good). The counter-stamp of the next item
-// is derived from the newest published item, not kept apart, so a writer that
-// dies between stamping and publishing leaves no gap in the counters either.
+// The slots' roles, and what survives a kill (issue #15.2). The one word both
+// sides change is the middle word: the middle slot's number and a "fresh" bit
+// (an item the reader has not taken). Each side swaps its slot into it with
+// one exchange — the writer sets the fresh bit, the reader clears it — and
+// keeps the slot it gets back, as the Rust triple_buffer crate does. An
+// exchange cannot fail, so neither side ever loops (a compare-and-swap cost
+// 1.4 ns more a write+read; bench/results/svar.md).
+//
+// So that a side's successor can take its role over after a kill -9, each side
+// stores a record of its slot after each exchange, in a line of its own (one
+// store, as the crate keeps its index in a variable). The writer's record also
+// holds the counter-stamp of the item it published last; a stamp newer than
+// that in the writer's recorded slot says the writer was between stamping an
+// item and its record. Taking a role over (serialised by a robust lock in the
+// header; the hot paths never touch it):
+// - The writer's successor takes the recorded slot when no such stamp says
+//   otherwise: right also when the dead writer's item there is half-written
+//   (only the writer role ever holds a slot being written). Otherwise the
+//   dead writer was inside its publish, every slot holds a complete item, and
+//   its slot is the one that is neither the middle one nor the reader's.
+// - The reader's successor takes the slot that is neither the middle one nor
+//   the writer's, never the writer's own: a dead reader's slot no longer
+//   moves, and the middle and the live writer's slots are the two others at
+//   any instant.
+// A side found between its exchange and its record (its record names the
+// middle slot) is waited for while it lives; when it died there too, every
+// slot is complete, nobody holds one, and the successor takes the lowest
+// (writer) or highest (reader) slot that is not the middle one. The writer's
+// successor goes on counting from the newest counter-stamp in any slot, so
+// counters never repeat; a writer killed in the few instructions between
+// stamping an item and publishing it leaves a gap of one (the reader counts
+// that item missed).
 //
 // Every item carries a time-stamp (CLOCK_MONOTONIC ns, read in write() through
 // the vDSO, or supplied by the caller, e.g. the cycle's release time, which
@@ -37,17 +59,20 @@
 //
 // Untrusted memory (issue #15.3): the geometry (item size, slot places) is
 // checked once on attach (validate()) and then kept in the handle, so nothing
-// another process writes later can move a copy outside the buffer; the state
-// word is checked on every operation (three distinct slot numbers), and a bad
-// one is refused: write() returns kCorrupt, read() ReadStatus::corrupt, and
-// fault_message() names the segment.
+// another process writes later can move a copy outside the buffer. The middle
+// word is checked on every operation (a slot number below 3, not the caller's
+// own slot, no stray bit) and the records when a role is taken over; a bad one
+// is refused: write() returns kCorrupt, read() ReadStatus::corrupt, and
+// fault_message() names the segment. A damaged middle word met by an exchange
+// is put back when nothing moved since, so the item is not published.
 //
 // Roles: one thread writes, one thread reads (each may be in any process, and
 // a side may detach, or be killed, and another process take its role over).
 // A handle that has written keeps the writer's slot number: hand the role
 // over by detaching (or dying), never by writing through two live handles in
 // turn; a handle that finds another one has published since refuses
-// (kCorrupt, "another writer") instead of going on.
+// (kCorrupt, "another writer") instead of going on. The same holds for
+// reading: one live reading handle at a time.
 #pragma once
 
 #include "chimera/export.hpp"
@@ -61,11 +86,12 @@
 #include "chimera/ipc/clock.hpp"
 #include "chimera/ipc/copy.hpp"
 #include "chimera/ipc/fault.hpp"
+#include "chimera/ipc/lock.hpp"
 #include "chimera/ipc/segment.hpp"
 
 namespace chimera::tbuf {
 
-inline constexpr std::uint32_t kLayoutVersion = 2;
+inline constexpr std::uint32_t kLayoutVersion = 3;
 
 /// What a read found.
 enum class ReadStatus : std::uint8_t {
@@ -87,40 +113,28 @@ inline constexpr std::uint64_t kCorrupt = ~std::uint64_t{0};
 
 namespace detail {
 
-// The state word: bits 0-1 the writer's (back) slot, 2-3 the middle slot,
-// 4-5 the reader's (front) slot, bit 6 set while the middle slot is unread.
-inline constexpr std::uint32_t kFresh = 1u << 6;
-constexpr std::uint32_t back_of(std::uint32_t s) noexcept { return s & 3u; }
-constexpr std::uint32_t middle_of(std::uint32_t s) noexcept { return (s >> 2) & 3u; }
-constexpr std::uint32_t front_of(std::uint32_t s) noexcept { return (s >> 4) & 3u; }
-constexpr std::uint32_t make_state(std::uint32_t back, std::uint32_t middle, std::uint32_t front,
-                                   bool fresh) noexcept {
-    return back | middle << 2 | front << 4 | (fresh ? kFresh : 0u);
+// The middle word: bits 0-1 the middle slot, bit 2 set while its item is
+// unread. Nothing else may be set.
+inline constexpr std::uint32_t kFresh = 1u << 2;
+inline constexpr std::uint32_t kSlotMask = 3u;
+/// No slot: a handle that has not taken its role yet.
+inline constexpr std::uint32_t kNoSlot = 3u;
+/// A role's record: its slot in bits 0-1; the writer's also the counter-stamp
+/// (Stamp::seq) of the item it published last, from bit 2.
+constexpr std::uint64_t make_record(std::uint32_t slot, std::uint64_t published) noexcept {
+    return slot | published << 2;
 }
-/// Bit n set when n (fresh bit clear) names three distinct slots.
-inline constexpr std::uint64_t kPermutations = [] {
-    std::uint64_t bits = 0;
-    for (std::uint32_t n = 0; n < 64; ++n)
-        if (back_of(n) < 3 && middle_of(n) < 3 && front_of(n) < 3 &&
-            ((1u << back_of(n)) | (1u << middle_of(n)) | (1u << front_of(n))) == 7u)
-            bits |= std::uint64_t{1} << n;
-    return bits;
-}();
-/// Three distinct slots and no stray bit (a shift and a test: every operation checks it).
-constexpr bool state_valid(std::uint32_t s) noexcept {
-    return (s & ~kFresh) < 64 && ((kPermutations >> (s & 63u)) & 1u) != 0;
+constexpr std::uint32_t record_slot(std::uint64_t r) noexcept { return static_cast<std::uint32_t>(r & kSlotMask); }
+constexpr std::uint64_t record_published(std::uint64_t r) noexcept { return r >> 2; }
+/// A middle word a side holding slot `own` can accept: a slot number, not its
+/// own, no stray bit (a few ALU operations: every operation checks it).
+constexpr bool middle_valid(std::uint32_t m, std::uint32_t own) noexcept {
+    return (m & ~(kSlotMask | kFresh)) == 0 && (m & kSlotMask) < 3 && (m & kSlotMask) != own;
 }
-static_assert(state_valid(make_state(0, 1, 2, false)) && state_valid(make_state(2, 0, 1, true)));
-static_assert(!state_valid(make_state(0, 0, 2, false)) && !state_valid(make_state(3, 1, 2, true)));
-static_assert(!state_valid(make_state(0, 1, 2, true) | 1u << 7));
-/// After a publish: back and middle swapped, the middle unread.
-constexpr std::uint32_t published(std::uint32_t s) noexcept {
-    return make_state(middle_of(s), back_of(s), front_of(s), true);
-}
-/// After a fresh read: front and middle swapped, nothing unread.
-constexpr std::uint32_t taken(std::uint32_t s) noexcept {
-    return make_state(back_of(s), front_of(s), middle_of(s), false);
-}
+/// The slot that is neither a nor b (a != b, both below 3).
+constexpr std::uint32_t third_slot(std::uint32_t a, std::uint32_t b) noexcept { return 3u - a - b; }
+static_assert(middle_valid(1, 0) && middle_valid(2 | kFresh, 0) && !middle_valid(0, 0));
+static_assert(!middle_valid(3, 0) && !middle_valid(1 | 1u << 3, 0) && third_slot(2, 0) == 1);
 
 /// After each slot's item: its stamps.
 struct Stamp {
@@ -131,6 +145,15 @@ static_assert(sizeof(Stamp) == 16);
 /// Stamps from 2^63 on cannot come from counting: a writer refuses to go on from one.
 inline constexpr std::uint64_t kMaxSeq = std::uint64_t{1} << 63;
 
+/// One role's line, written only by the handle that holds the role.
+struct alignas(64) Role {
+    std::atomic<std::uint64_t> record;  // make_record(), stored after each exchange
+    std::atomic<std::uint64_t> owner;   // the thread that took the role last (pid << 32 | tid)
+    std::uint8_t reserved[48];
+};
+static_assert(std::atomic<std::uint64_t>::is_always_lock_free);
+static_assert(sizeof(Role) == 64);
+
 struct alignas(64) Header {
     ipc::SegmentHeader segment;  // offset 0: magic, version, byte order
     // offset 64: fixed at creation
@@ -140,11 +163,15 @@ struct alignas(64) Header {
     std::uint64_t stamp_offset;  // of a slot's Stamp, from the slot's start
     std::uint8_t reserved0[32];
     // offset 128: the only word both sides write
-    std::atomic<std::uint32_t> state;
+    std::atomic<std::uint32_t> middle;
     std::uint8_t reserved1[60];
+    Role writer;                 // offset 192
+    Role reader;                 // offset 256
+    ipc::LockWord roles;         // offset 320: held while a handle takes a role over
 };
-static_assert(sizeof(Header) == 192);
-static_assert(offsetof(Header, state) == 128);
+static_assert(sizeof(Header) == 384);
+static_assert(offsetof(Header, middle) == 128 && offsetof(Header, writer) == 192 &&
+              offsetof(Header, reader) == 256 && offsetof(Header, roles) == 320);
 static_assert(std::atomic<std::uint32_t>::is_always_lock_free);
 
 }  // namespace detail
@@ -194,49 +221,48 @@ public:
     /// tbufWrite: copies `item` (item_size() bytes), stamps it with now_ns()
     /// (read after the copy, when the item is complete: measured 1 ns of 51
     /// faster at 24 bytes than reading it first) and the next counter, and
-    /// makes it the newest. Returns its counter
-    /// (kCorrupt, nothing published, when the state word is damaged or the
-    /// newest item's counter-stamp is one no writer could have made, >= kMaxSeq).
+    /// makes it the newest. Returns its counter (kCorrupt, nothing published,
+    /// when the middle word or a record is damaged, another handle has written
+    /// since, or the newest item's counter-stamp is one no writer could have
+    /// made, >= kMaxSeq).
     [[nodiscard]] std::uint64_t write(const void* item) noexcept {
-        if (back_ > 2 && !become_writer()) [[unlikely]]
+        if (back_ == detail::kNoSlot && !become_writer()) [[unlikely]]
             return kCorrupt;
         ipc::copy_var(slot_at(back_), static_cast<const std::byte*>(item), item_size_);
-        // What the swap needs is taken before the clock read (a call, after
-        // which the handle's fields would be loaded again on the way to the
-        // swap).
+        // The stamps' place is taken before the clock read (a call, after
+        // which the handle's fields would be loaded again).
         detail::Stamp& st = stamp(back_);
-        const std::uint32_t expected = guess_;
-        return swap_in(st, expected, ipc::now_ns());
+        return swap_in(st, ipc::now_ns());
     }
     /// As write(), with a caller-supplied time-stamp (saves reading the clock).
     /// Always inlined, as read() is: the call cost 0.5-0.7 ns of a 24-byte
     /// write+read's 27 (bench/results/svar.md).
     [[nodiscard, gnu::always_inline]] std::uint64_t write(const void* item, std::int64_t time_ns) noexcept {
-        if (back_ > 2 && !become_writer()) [[unlikely]]
+        if (back_ == detail::kNoSlot && !become_writer()) [[unlikely]]
             return kCorrupt;
         ipc::copy_var(slot_at(back_), static_cast<const std::byte*>(item), item_size_);
-        return publish_back(time_ns);
+        return swap_in(stamp(back_), time_ns);
     }
     /// Zero-copy writing: the writer's private slot, to fill in place
-    /// (nullptr when the state word is damaged)...
+    /// (nullptr when the buffer is damaged)...
     [[nodiscard]] void* write_slot() noexcept {
-        if (back_ > 2 && !become_writer()) [[unlikely]]
+        if (back_ == detail::kNoSlot && !become_writer()) [[unlikely]]
             return nullptr;
         return slot_at(back_);
     }
     /// The counter-stamp the next publish of this handle will carry (the
     /// newest item's + 1, also when a killed writer's successor goes on);
-    /// kCorrupt when the state word is damaged.
+    /// kCorrupt when the buffer is damaged.
     [[nodiscard]] std::uint64_t next_counter() noexcept {
-        if (back_ > 2 && !become_writer()) [[unlikely]]
+        if (back_ == detail::kNoSlot && !become_writer()) [[unlikely]]
             return kCorrupt;
         return seq_;
     }
-    /// ...then publish it (stamps, one compare-and-swap). Returns its counter.
+    /// ...then publish it (stamps, one exchange). Returns its counter.
     [[nodiscard]] std::uint64_t publish(std::int64_t time_ns) noexcept {
-        if (back_ > 2 && !become_writer()) [[unlikely]]
+        if (back_ == detail::kNoSlot && !become_writer()) [[unlikely]]
             return kCorrupt;
-        return publish_back(time_ns);
+        return swap_in(stamp(back_), time_ns);
     }
 
     // --- reader ----------------------------------------------------------------
@@ -252,10 +278,10 @@ public:
     /// change to the buffer (a reader polling for a new item looks with it,
     /// then reads).
     bool fresh_pending() const noexcept {
-        return (h_->state.load(std::memory_order_relaxed) & detail::kFresh) != 0;
+        return (h_->middle.load(std::memory_order_relaxed) & detail::kFresh) != 0;
     }
     /// Zero-copy reading: the newest item in place, valid until the next read
-    /// (nullptr when the state word is damaged).
+    /// (nullptr when the buffer is damaged).
     [[gnu::always_inline]] const void* read_view(ReadResult& r) noexcept {
         const void* p = nullptr;
         r = take(p);
@@ -265,34 +291,27 @@ public:
 private:
     // The reader's step: takes the middle slot if it holds a new item, and
     // points `item` at the front slot (left alone when corrupt). The result is
-    // made at the end, not filled in before the swap: stores pending at a
+    // made at the end, not filled in before the exchange: stores pending at a
     // locked instruction make it wait.
     [[gnu::always_inline]] ReadResult take(const void*& item) noexcept {
-        std::uint32_t s = h_->state.load(std::memory_order_relaxed);
-        // Predicted: the writer has published once since this handle's last
-        // take, so the word is take_guess_ (valid and fresh by construction).
-        // The swap's operands then come from the handle, not from the load:
-        // the predicted branch keeps the load off the swap's critical path.
-        std::uint32_t expected = take_guess_;
-        if (s != expected) [[unlikely]] {
-            if (!detail::state_valid(s))
-                return refuse_read(s);
-            if (!(s & detail::kFresh))
-                return view(detail::front_of(s), ReadStatus::reused, item);
-            expected = s;
-        }
-        // Before the swap: the old front slot is the writer's after it.
-        const std::uint64_t had = front_seq_ != kUnknownSeq ? front_seq_ : stamp(detail::front_of(expected)).seq;
+        if (front_ == detail::kNoSlot && !become_reader()) [[unlikely]]
+            return ReadResult{ReadStatus::corrupt, 0, 0, 0};
+        const std::uint32_t m = h_->middle.load(std::memory_order_relaxed);
+        if (!detail::middle_valid(m, front_)) [[unlikely]]
+            return refuse_read(m);
+        if (!(m & detail::kFresh))
+            return view(front_, ReadStatus::reused, item);
+        // Before the exchange: the old front slot is the writer's after it.
+        const std::uint64_t had = front_seq_ != kUnknownSeq ? front_seq_ : stamp(front_).seq;
         // Release: we are done with our old slot before the writer gets it;
-        // acquire: the item we take is complete. A failure means the writer
-        // published again meanwhile: take that one.
-        while (!h_->state.compare_exchange_weak(expected, detail::taken(expected), std::memory_order_acq_rel,
-                                                std::memory_order_relaxed)) {
-            if (!detail::state_valid(expected)) [[unlikely]]
-                return refuse_read(expected);
-        }
-        take_guess_ = detail::published(detail::taken(expected));
-        ReadResult r = view(detail::middle_of(expected), ReadStatus::fresh, item);
+        // acquire: the item we take is complete. What comes back is the
+        // newest item (the writer may have published again since the load).
+        const std::uint32_t got = h_->middle.exchange(front_, std::memory_order_acq_rel);
+        if (!detail::middle_valid(got, front_) || !(got & detail::kFresh)) [[unlikely]]
+            return refuse_taken(got);
+        front_ = got & detail::kSlotMask;
+        h_->reader.record.store(front_, std::memory_order_relaxed);
+        ReadResult r = view(front_, ReadStatus::fresh, item);
         if (r.status == ReadStatus::fresh) {
             r.missed = front_seq_ - had - 1;  // had == 0: every item before this one
             if (r.missed != 0)  // no store when none was missed, the usual case
@@ -310,50 +329,59 @@ private:
                            : ReadResult{status, st.seq - 1, st.time_ns, 0};
     }
 
+    // Stamps the back slot with the next counter and swaps it into the middle.
+    [[gnu::always_inline]] std::uint64_t swap_in(detail::Stamp& st, std::int64_t time_ns) noexcept {
+        st.time_ns = time_ns;
+        st.seq = seq_ + 1;
+        // Our record still names our slot, or another handle has written
+        // since (it is not on the way to the exchange: a predicted branch).
+        if (detail::record_slot(h_->writer.record.load(std::memory_order_relaxed)) != back_) [[unlikely]]
+            return lost_writer_slot();
+        // Release: the item and its stamps are complete before the reader can
+        // take them; acquire: the reader is done with the slot we get back.
+        const std::uint32_t got = h_->middle.exchange(back_ | detail::kFresh, std::memory_order_acq_rel);
+        if (!detail::middle_valid(got, back_)) [[unlikely]]
+            return refuse_published(got);
+        back_ = got & detail::kSlotMask;
+        h_->writer.record.store(detail::make_record(back_, seq_ + 1), std::memory_order_relaxed);
+        return seq_++;
+    }
+
     explicit Tbuf(ipc::Segment seg);
     static detail::Header& init(void* memory, std::size_t size, std::size_t item_size);
     static void check(const std::string& where, const void* memory, std::size_t size);
     void bind(std::byte* base) noexcept;
 
-    // The writer's view of the state word, taken when a handle first writes
-    // and then kept from its own compare-and-swaps: only the writer moves the
-    // back slot, and the newest item is the one it published last. So a
-    // publish reads nothing shared before its swap (as the crate's writer).
-    // False (fault recorded) when the state word is damaged.
+    // A handle's first write or read takes the role over (under the header's
+    // role lock; see the top of this file): its slot, and for the writer the
+    // counter to go on from. False (fault recorded) when the buffer is
+    // damaged or the other side stays inside its exchange past a bound.
     bool become_writer() noexcept;
+    bool become_reader() noexcept;
+    // The slot the role's successor takes.
+    bool find_writer_slot(std::uint32_t& slot) noexcept;
+    bool find_reader_slot(std::uint32_t& slot) noexcept;
+    // The slot that is neither the middle one nor the one `other` records;
+    // waits while `other` is between its exchange and its record and lives.
+    // kNoSlot when `other` died there too; false when damaged or timed out.
+    bool third_of_middle_and(const detail::Role& other, std::uint32_t& slot, std::uint32_t& middle) noexcept;
 
-    // Stamps the back slot with the next counter and swaps it into the middle.
-    std::uint64_t publish_back(std::int64_t time_ns) noexcept { return swap_in(stamp(back_), guess_, time_ns); }
-    // publish_back() with the back slot's stamps `st` and the expected word
-    // `s` (guess_) already at hand.
-    [[gnu::always_inline]] std::uint64_t swap_in(detail::Stamp& st, std::uint32_t s, std::int64_t time_ns) noexcept {
-        st.time_ns = time_ns;
-        st.seq = seq_ + 1;
-        // Release: the item and its stamps are complete before the reader can
-        // take them; acquire: the reader is done with the slot we get back.
-        // The expected word is a guess (the reader took our last item, or not,
-        // as last time); a wrong guess costs a second try with the real word.
-        while (!h_->state.compare_exchange_weak(s, detail::published(s), std::memory_order_acq_rel,
-                                                std::memory_order_relaxed)) {
-            if (!detail::state_valid(s) || detail::back_of(s) != back_) [[unlikely]]
-                return lost_writer_slot(s);
-        }
-        const std::uint32_t now = detail::published(s);
-        guess_ = (s & detail::kFresh) ? now : detail::taken(now);
-        back_ = detail::back_of(now);
-        return seq_++;
-    }
-    // The state word is damaged, or names another back slot than ours (a
-    // second writer): the item went nowhere. Records the fault; kCorrupt.
-    std::uint64_t lost_writer_slot(std::uint32_t s) noexcept;
-    // Record a damaged state word; kCorrupt / a corrupt result.
-    std::uint64_t refuse(std::uint32_t s) noexcept;
-    ReadResult refuse_read(std::uint32_t s) noexcept {
-        refuse(s);
+    // Another handle moved the writer's slot: nothing published. Records the
+    // fault; kCorrupt.
+    std::uint64_t lost_writer_slot() noexcept;
+    // An exchange brought back a damaged middle word: put it back if nothing
+    // moved since (nothing published / taken; the slot stays ours), else take
+    // the role over again at the next operation; record the fault.
+    std::uint64_t refuse_published(std::uint32_t got) noexcept;
+    ReadResult refuse_taken(std::uint32_t got) noexcept;
+    // Record a damaged middle word; kCorrupt / a corrupt result.
+    std::uint64_t refuse(std::uint32_t m) noexcept;
+    ReadResult refuse_read(std::uint32_t m) noexcept {
+        refuse(m);
         return ReadResult{ReadStatus::corrupt, 0, 0, 0};
     }
-    // Computed, not looked up in a table: after the reader's swap the slot
-    // number is known only then, and a multiply is quicker than a load.
+    // Computed, not looked up in a table: after the reader's exchange the
+    // slot number is known only then, and a multiply is quicker than a load.
     std::byte* slot_at(std::uint32_t slot) const noexcept { return slots_ + slot * slot_stride_; }
     detail::Stamp& stamp(std::uint32_t slot) noexcept {
         return *reinterpret_cast<detail::Stamp*>(slot_at(slot) + stamp_offset_);
@@ -372,13 +400,10 @@ private:
     // touches only the slot it takes (unknown until this handle first reads).
     static constexpr std::uint64_t kUnknownSeq = ~std::uint64_t{0};
     std::uint64_t front_seq_ = kUnknownSeq;
-    // The state word the reader expects to find: its last take, then one
-    // publish (any valid fresh state to begin with).
-    std::uint32_t take_guess_ = detail::make_state(0, 1, 2, true);
-    // The writer's (see become_writer()): its slot (3: not known yet), the
-    // seq of its last item, the expected state word.
-    std::uint32_t back_ = 3;
-    std::uint32_t guess_ = 0;
+    // The reader's slot and the writer's (kNoSlot until the role is taken),
+    // and the seq of the writer's last item.
+    std::uint32_t front_ = detail::kNoSlot;
+    std::uint32_t back_ = detail::kNoSlot;
     std::uint64_t seq_ = 0;
     ipc::Fault fault_;
     std::string where_;            // the segment's name, for fault_message()

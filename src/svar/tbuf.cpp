@@ -2,6 +2,9 @@
 // inline in tbuf.hpp).
 #include "chimera/tbuf.hpp"
 
+#include <sched.h>
+
+#include <algorithm>
 #include <cstdio>
 #include <utility>
 
@@ -56,8 +59,17 @@ ipc::Fault validate(const void* image, std::size_t size) noexcept {
     if (ipc::Fault f = fault_if(required_size(h.item_size) > size, "buffer size for the item size",
                                 required_size(h.item_size), size))
         return f;
-    const std::uint32_t s = h.state.load(std::memory_order_relaxed);
-    return fault_if(!detail::state_valid(s), "state word (three distinct slots)", s, 0x7f);
+    // The records may name one slot twice after a kill (a side dead between
+    // its exchange and its record): only their range is checked.
+    const std::uint32_t m = h.middle.load(std::memory_order_relaxed);
+    if (ipc::Fault f = fault_if(!detail::middle_valid(m, detail::kNoSlot),
+                                "middle word (a slot number below 3, no stray bit)", m, 6))
+        return f;
+    const std::uint64_t w = h.writer.record.load(std::memory_order_relaxed);
+    if (ipc::Fault f = fault_if(detail::record_slot(w) > 2, "writer's slot record", detail::record_slot(w), 2))
+        return f;
+    const std::uint64_t r = h.reader.record.load(std::memory_order_relaxed);
+    return fault_if(r > 2, "reader's slot record", r, 2);
 }
 
 Tbuf::Tbuf(Tbuf&& o) noexcept { *this = std::move(o); }
@@ -72,9 +84,8 @@ Tbuf& Tbuf::operator=(Tbuf&& o) noexcept {
         stamp_offset_ = std::exchange(o.stamp_offset_, 0);
         missed_total_ = std::exchange(o.missed_total_, 0);
         front_seq_ = std::exchange(o.front_seq_, kUnknownSeq);
-        take_guess_ = o.take_guess_;
-        back_ = std::exchange(o.back_, 3);
-        guess_ = o.guess_;
+        front_ = std::exchange(o.front_, detail::kNoSlot);
+        back_ = std::exchange(o.back_, detail::kNoSlot);
         seq_ = o.seq_;
         fault_ = std::exchange(o.fault_, ipc::Fault{});
         where_ = std::move(o.where_);
@@ -96,40 +107,187 @@ void Tbuf::bind(std::byte* base) noexcept {
     slot_stride_ = stride_for(item_size_);
 }
 
-std::uint64_t Tbuf::refuse(std::uint32_t s) noexcept {
-    fault_ = ipc::Fault{"state word (three distinct slots)", -1, s, 0x7f};
+std::uint64_t Tbuf::refuse(std::uint32_t m) noexcept {
+    fault_ = ipc::Fault{"middle word (a slot number below 3, not the caller's own, no stray bit)", -1, m, 6};
     return kCorrupt;
+}
+
+namespace {
+
+// How long a role take-over waits for the other side to finish its exchange
+// (a few instructions; a live side preempted there is waited for this long).
+constexpr std::int64_t kExchangeWaitNs = 100'000'000;
+
+}  // namespace
+
+namespace {
+
+// Holds the header's role lock while a handle takes its role over.
+class RoleLock {
+public:
+    explicit RoleLock(ipc::LockWord& lock) noexcept : lock_(lock), status_(ipc::lock(lock)) {}
+    ~RoleLock() {
+        if (held()) (void)ipc::unlock(lock_);
+    }
+    RoleLock(const RoleLock&) = delete;
+    RoleLock& operator=(const RoleLock&) = delete;
+    bool held() const noexcept { return ipc::holds(status_); }
+    // Timed out (a holder stopped for 100 ms) or a corrupt lock word.
+    ipc::Fault fault() const noexcept {
+        return {"role lock status (not taken)", -1, static_cast<std::uint64_t>(status_),
+                static_cast<std::uint64_t>(ipc::LockStatus::forced)};
+    }
+
+private:
+    ipc::LockWord& lock_;
+    ipc::LockStatus status_;
+};
+
+}  // namespace
+
+bool Tbuf::third_of_middle_and(const detail::Role& other, std::uint32_t& slot, std::uint32_t& middle) noexcept {
+    const bool writer = &other == &h_->writer;
+    const std::int64_t deadline = ipc::now_ns() + kExchangeWaitNs;
+    for (;;) {
+        // Acquire: the stamps of items the other side published are visible.
+        const std::uint32_t m = h_->middle.load(std::memory_order_acquire);
+        if (!detail::middle_valid(m, detail::kNoSlot)) {
+            refuse(m);
+            return false;
+        }
+        middle = m & detail::kSlotMask;
+        const std::uint64_t r = other.record.load(std::memory_order_acquire);
+        const std::uint32_t theirs = detail::record_slot(r);
+        if (theirs > 2 || (!writer && r > 2)) {
+            fault_ = ipc::Fault{writer ? "writer's slot record" : "reader's slot record", -1, r, 2};
+            return false;
+        }
+        if (theirs != middle) {
+            slot = detail::third_slot(middle, theirs);
+            return true;
+        }
+        // The other side is between its exchange and its record: wait while
+        // it lives; if it died there, every slot holds a complete item.
+        const std::uint64_t owner = other.owner.load(std::memory_order_acquire);
+        if (owner == 0 || owner == ipc::self_owner_id() || !ipc::owner_alive(owner)) {
+            slot = detail::kNoSlot;
+            return true;
+        }
+        if (ipc::now_ns() > deadline) {
+            fault_ = ipc::Fault{"other side's slot record (its holder stopped inside an exchange for 100 ms)", -1,
+                                theirs, middle, "different from the middle slot"};
+            return false;
+        }
+        sched_yield();
+    }
+}
+
+bool Tbuf::find_writer_slot(std::uint32_t& slot) noexcept {
+    const std::uint64_t r = h_->writer.record.load(std::memory_order_acquire);
+    const std::uint32_t recorded = detail::record_slot(r);
+    const std::uint32_t m = h_->middle.load(std::memory_order_acquire);
+    if (!detail::middle_valid(m, detail::kNoSlot)) {
+        refuse(m);
+        return false;
+    }
+    if (recorded > 2) {
+        fault_ = ipc::Fault{"writer's slot record", -1, recorded, 2};
+        return false;
+    }
+    // No stamp newer than the last item published in the recorded slot: the
+    // record is exact (the item there may be half-written: it stays ours).
+    if (stamp(recorded).seq <= detail::record_published(r)) {
+        if (recorded == (m & detail::kSlotMask)) {
+            fault_ = ipc::Fault{"writer's slot record", -1, recorded, m & detail::kSlotMask,
+                                "a slot other than the middle one, not"};
+            return false;
+        }
+        slot = recorded;
+        return true;
+    }
+    // The last writer died inside its publish: every item is complete.
+    std::uint32_t middle = 0;
+    if (!third_of_middle_and(h_->reader, slot, middle)) return false;
+    if (slot == detail::kNoSlot) slot = middle == 0 ? 1u : 0u;  // the reader died inside its exchange too
+    return true;
+}
+
+bool Tbuf::find_reader_slot(std::uint32_t& slot) noexcept {
+    std::uint32_t middle = 0;
+    if (!third_of_middle_and(h_->writer, slot, middle)) return false;
+    if (slot == detail::kNoSlot) slot = middle == 2 ? 1u : 2u;  // see find_writer_slot()
+    return true;
 }
 
 bool Tbuf::become_writer() noexcept {
     if (!h_) return false;
-    // Acquire: the stamps of an item another process published are visible.
-    const std::uint32_t s = h_->state.load(std::memory_order_acquire);
-    if (!detail::state_valid(s)) {
-        refuse(s);
+    const RoleLock lock(h_->roles);
+    if (!lock.held()) {
+        fault_ = lock.fault();
         return false;
     }
-    // The newest item's counter-stamp goes on from there. One at 2^63 or more
-    // was not written by counting (that takes centuries); going on from it
-    // would wrap into kCorrupt and 0 ("never held an item"), so a published
-    // item would look refused and the reader would see none.
-    const std::uint64_t seq = stamp((s & detail::kFresh) ? detail::middle_of(s) : detail::front_of(s)).seq;
+    std::uint32_t back = detail::kNoSlot;
+    if (!find_writer_slot(back)) return false;
+    // The newest item's counter-stamp goes on from there. It may be in any
+    // slot, ours too when it was a dead reader's; one that a dead writer
+    // stamped but never published (killed between the two) cannot be told
+    // from it, so its counter is then skipped: the reader counts it missed.
+    // One at 2^63 or more was not written by counting (that takes
+    // centuries); going on from it would wrap into kCorrupt and 0 ("never
+    // held an item"), so a published item would look refused and the reader
+    // would see none.
+    const std::uint64_t seq = std::max({stamp(0).seq, stamp(1).seq, stamp(2).seq});
     if (seq >= detail::kMaxSeq) {
         fault_ = ipc::Fault{"counter-stamp of the newest item", -1, seq, detail::kMaxSeq - 1};
         return false;
     }
-    back_ = detail::back_of(s);
+    // The slot is ours now: a stamp a dead writer left in it must not make
+    // our record look inexact to our own successor.
+    stamp(back).seq = 0;
+    h_->writer.owner.store(ipc::self_owner_id(), std::memory_order_relaxed);
+    h_->writer.record.store(detail::make_record(back, seq), std::memory_order_release);
+    back_ = back;
     seq_ = seq;
-    guess_ = s;
     return true;
 }
 
-std::uint64_t Tbuf::lost_writer_slot(std::uint32_t s) noexcept {
-    if (!detail::state_valid(s)) return refuse(s);
-    fault_ = ipc::Fault{"back slot (another writer has published since this handle wrote)", -1,
-                        detail::back_of(s), back_, "equal to"};
-    back_ = 3;  // the next write starts from the state word again
+bool Tbuf::become_reader() noexcept {
+    if (!h_) return false;
+    const RoleLock lock(h_->roles);
+    if (!lock.held()) {
+        fault_ = lock.fault();
+        return false;
+    }
+    std::uint32_t front = detail::kNoSlot;
+    if (!find_reader_slot(front)) return false;
+    h_->reader.owner.store(ipc::self_owner_id(), std::memory_order_relaxed);
+    h_->reader.record.store(front, std::memory_order_release);
+    front_ = front;
+    front_seq_ = kUnknownSeq;
+    return true;
+}
+
+std::uint64_t Tbuf::lost_writer_slot() noexcept {
+    const std::uint32_t recorded = detail::record_slot(h_->writer.record.load(std::memory_order_relaxed));
+    fault_ = ipc::Fault{"writer's slot record (another writer has published since this handle wrote)", -1,
+                        recorded, back_, "equal to"};
+    back_ = detail::kNoSlot;  // the next write takes the role over again
     return kCorrupt;
+}
+
+std::uint64_t Tbuf::refuse_published(std::uint32_t got) noexcept {
+    std::uint32_t ours = back_ | detail::kFresh;
+    // Put back: nothing moved, the slot is still ours (and our record too).
+    if (!h_->middle.compare_exchange_strong(ours, got, std::memory_order_acq_rel, std::memory_order_relaxed))
+        back_ = detail::kNoSlot;
+    return refuse(got);
+}
+
+ReadResult Tbuf::refuse_taken(std::uint32_t got) noexcept {
+    std::uint32_t ours = front_;
+    if (!h_->middle.compare_exchange_strong(ours, got, std::memory_order_acq_rel, std::memory_order_relaxed))
+        front_ = detail::kNoSlot;
+    return refuse_read(got);
 }
 
 std::string Tbuf::fault_message() const { return ipc::describe(where_, fault_); }
@@ -143,8 +301,11 @@ Header& Tbuf::init(void* memory, std::size_t size, std::size_t item_size) {
     h.slot_stride = stride_for(item_size);
     h.slots_offset = sizeof(Header);
     h.stamp_offset = stamp_offset_for(item_size);
-    // Writer owns slot 0, the reader slot 2, slot 1 is in the middle.
-    h.state.store(detail::make_state(0, 1, 2, false), std::memory_order_relaxed);
+    // Writer owns slot 0, the reader slot 2, slot 1 is in the middle (the
+    // owners and the role lock are zero: nobody).
+    h.writer.record.store(detail::make_record(0, 0), std::memory_order_relaxed);
+    h.middle.store(1, std::memory_order_relaxed);
+    h.reader.record.store(2, std::memory_order_relaxed);
     return h;
 }
 
@@ -215,14 +376,14 @@ Tbuf Tbuf::attach_in(void* memory, std::size_t size) {
 void Tbuf::detach() noexcept {
     seg_.detach();
     h_ = nullptr;
-    back_ = 3;
+    back_ = front_ = detail::kNoSlot;
     slots_ = nullptr;
 }
 
 bool Tbuf::destroy() noexcept {
     const bool removed = seg_.valid() && seg_.detach_destroy_if_last();
     h_ = nullptr;
-    back_ = 3;
+    back_ = front_ = detail::kNoSlot;
     slots_ = nullptr;
     return removed;
 }
