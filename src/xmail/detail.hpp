@@ -97,6 +97,13 @@ Waiter* waiter_pick(Waiter* slots, std::uint32_t n) noexcept;
 /// sleeper. No system call (but the first call in a thread reads where its
 /// robust list is).
 void waiter_signal(Waiter& w) noexcept;
+/// waiter_signal() in two steps, for a hand-off that has a commit point of
+/// its own (MSG's send): the word and the robust mark first, before the
+/// commit, so that a signaller killed anywhere after it has the kernel wake
+/// the waiter (which then finds the committed item under the lock, put back
+/// by the repair); the state after it (waiter_signal_armed()).
+void waiter_arm(Waiter& w) noexcept;
+inline void waiter_signal_armed(Waiter& w) noexcept { poke(w.state, kSignaled); }
 inline void waiter_free(Waiter& w) noexcept {
     poke(w.state, kFree);
     w.handed = 0;

@@ -559,6 +559,10 @@ Status Queue::send(const void* data, std::size_t size, std::uint32_t type, std::
     poke(hint_head_, off);
     poke(hint_block_, h->blk);
     h->seq = q->next_seq++;
+    // Armed before the commit: killed from here to the wake-up, this sender
+    // has the kernel wake the receiver, which finds the message under the
+    // lock (the repair queues it) instead of sleeping on without a timer.
+    if (wake) waiter_arm(*wake);
     std::atomic_thread_fence(std::memory_order_release);
     h->state = layout::kHeadQueued;  // commit point: from here the message exists
     ++q->sends;
@@ -567,7 +571,7 @@ Status Queue::send(const void* data, std::size_t size, std::uint32_t type, std::
         h->state = layout::kHeadHanded;
         wake->handed = owner;
         poke(q->nhanded, q->nhanded + 1);
-        waiter_signal(*wake);
+        waiter_signal_armed(*wake);
     } else {
         ops.link_after(prev, off);
         poke(q->nmsgs, q->nmsgs + 1);

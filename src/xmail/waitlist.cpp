@@ -121,16 +121,20 @@ void hand_off_ends() noexcept {
 
 }  // namespace
 
-void waiter_signal(Waiter& w) noexcept {
+void waiter_arm(Waiter& w) noexcept {
     hand_off_begins(w.word);
+    // Release: what was handed over so far is visible with the word (and
+    // the pending mark before it, for the kernel: the same thread).
+    const auto tid = static_cast<std::uint32_t>(ipc::owner_tid(ipc::self_owner_id()));
+    w.word.store((tid & FUTEX_TID_MASK) | kWordHandedOver, std::memory_order_release);
+}
+
+void waiter_signal(Waiter& w) noexcept {
     // The word before the state: a signaller that dies between them has
     // marked the word already, so the kernel wakes the waiter, which finds
     // under the lock whether the state made it (nothing was given if not).
-    // Release: what was handed over is visible with the word (and the
-    // pending mark before it, for the kernel: the same thread).
-    const auto tid = static_cast<std::uint32_t>(ipc::owner_tid(ipc::self_owner_id()));
-    w.word.store((tid & FUTEX_TID_MASK) | kWordHandedOver, std::memory_order_release);
-    poke(w.state, kSignaled);
+    waiter_arm(w);
+    waiter_signal_armed(w);
 }
 
 void waiter_wake(Waiter& w) noexcept {

@@ -20,6 +20,7 @@
 #include "chimera/ipc/clock.hpp"
 #include "chimera/ipc/lock.hpp"
 #include "chimera/msg.hpp"
+#include "detail.hpp"
 #include "sanitizer.hpp"
 
 using namespace chimera;
@@ -306,6 +307,76 @@ TEST(Msg, AMessageLostWithALaterReceiverReachesTheOneThatWaitedAlone) {
     first.join();
     EXPECT_TRUE(in_time) << "the lone receiver slept on while the message stayed with the dead one";
     EXPECT_EQ(got, in_time ? "handed" : "released by the test");
+    EXPECT_EQ(q.check(), "");
+    munmap(mem, size);
+}
+
+// A sender killed after its commit point and before its hand-off (and so
+// before its wake-up) holds the lock with the message committed; a lone
+// receiver that sleeps without a timer would sleep on until some other
+// process took the lock. The child does what send() does up to there, with
+// the library's own arming of the receiver's word before the commit, then
+// exits holding the lock: the kernel, finding the hand-off pending in the
+// exiting thread's robust list, wakes the receiver, which takes the lock
+// over, has the message queued by the repair, and receives it.
+TEST(Msg, ALoneReceiverGetsAMessageWhoseSenderDiedBetweenCommitAndHandOff) {
+    CHIMERA_NOT_UNDER_TSAN("a forked sender");
+    const auto p = params(8, 16, Policy::fifo);
+    const std::size_t size = Queue::memory_size(p);
+    void* mem = mmap(nullptr, size, PROT_READ | PROT_WRITE, MAP_SHARED | MAP_ANONYMOUS, -1, 0);
+    ASSERT_NE(mem, MAP_FAILED);
+    Queue q = Queue::over(mem, size, p);
+    std::atomic<bool> got_it{false};
+    std::string got;
+    std::thread receiver([&] {
+        got = recv_str(q, -1);
+        got_it = true;
+    });
+    while (q.stats().receive_waiters == 0) std::this_thread::yield();
+    std::this_thread::sleep_for(std::chrono::milliseconds(50));  // asleep, alone, untimed
+    auto* h = q.header();
+    const pid_t sender = fork();
+    if (sender == 0) {
+        if (!ipc::holds(ipc::lock(h->mutex))) _exit(2);
+        xm::layout::Waiter* w = xm::detail::waiter_pick(h->recv_waiters, msg::layout::kMaxWaiters);
+        if (w == nullptr) _exit(3);
+        // A header and a block off the free lists, filled, as send() does.
+        const std::uint32_t hoff = h->headfree;
+        auto* head = reinterpret_cast<msg::layout::MsgHead*>(reinterpret_cast<std::byte*>(h) + hoff);
+        h->headfree = head->link;
+        h->nfree_heads--;
+        head->state = msg::layout::kHeadWriting;
+        const std::uint32_t boff = h->blkfree;
+        auto* blk = reinterpret_cast<msg::layout::MsgBHead*>(reinterpret_cast<std::byte*>(h) + boff);
+        h->blkfree = blk->link;
+        h->nfree_blks--;
+        blk->owner = (hoff - h->off_heads) / sizeof(msg::layout::MsgHead) + 1;
+        blk->link = 0;
+        std::memcpy(blk + 1, "committed", 9);
+        head->link = 0;
+        head->type = 0;
+        head->priority = 0;
+        head->size = 9;
+        head->nblk = 1;
+        head->blk = boff;
+        head->seq = h->next_seq++;
+        xm::detail::waiter_arm(*w);  // as send() does, before its commit
+        head->state = msg::layout::kHeadQueued;  // the commit
+        _exit(0);  // gone before the hand-off, holding the lock, as if killed there
+    }
+    int status = 0;
+    ASSERT_EQ(waitpid(sender, &status, 0), sender);
+    ASSERT_TRUE(WIFEXITED(status) && WEXITSTATUS(status) == 0) << status;
+    const std::int64_t deadline = ipc::now_ns() + 2'000'000'000;
+    while (!got_it && ipc::now_ns() < deadline) std::this_thread::sleep_for(std::chrono::milliseconds(5));
+    const bool in_time = got_it;
+    if (!in_time) {
+        ASSERT_EQ(send_str(q, "released by the test"), Status::ok);  // to join the thread
+    }
+    receiver.join();
+    EXPECT_TRUE(in_time) << "the lone receiver slept on while the committed message waited in the queue";
+    EXPECT_EQ(got, "committed");
+    EXPECT_EQ(q.stats().recoveries, 1u);
     EXPECT_EQ(q.check(), "");
     munmap(mem, size);
 }
