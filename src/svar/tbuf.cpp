@@ -118,10 +118,6 @@ namespace {
 // (a few instructions; a live side preempted there is waited for this long).
 constexpr std::int64_t kExchangeWaitNs = 100'000'000;
 
-}  // namespace
-
-namespace {
-
 // Holds the header's role lock while a handle takes its role over.
 class RoleLock {
 public:

@@ -175,11 +175,10 @@ TEST(Tbuf, FirstReadAfterSeveralWritesCountsTheMissedOnes) {
     r.destroy();
 }
 
-// The reader expects the state word one publish after its last take; after
-// any other number of publishes (none, two, three...) its read still takes the
-// newest item once, counts the missed ones, and never takes an older item
-// back (each even count leaves the word as it was after the reader's take
-// but for the fresh bit).
+// Whatever number of publishes came between two reads (none, one, two,
+// three...), a read takes the newest item once, counts the missed ones, and
+// never takes an older item back (an even count leaves the middle slot as the
+// reader's take left it, but for the fresh bit).
 TEST(Tbuf, AnyNumberOfWritesBetweenReadsGivesTheNewestOnce) {
     const std::string name = unique_name("tb3");
     Tbuf w = Tbuf::create(name, sizeof(Item));
