@@ -54,8 +54,8 @@
 // attach_in: another segment, a device's memory window). Both start with the
 // common segment header, whose byte-order code is checked on attach: a buffer
 // written by a machine of the other byte order is refused with a clear error
-// (the state word is an atomic of this machine; item contents are the
-// application's business, as in the thesis).
+// (the middle word and the records are atomics of this machine; item contents
+// are the application's business, as in the thesis).
 //
 // Untrusted memory (issue #15.3): the geometry (item size, slot places) is
 // checked once on attach (validate()) and then kept in the handle, so nothing
@@ -98,7 +98,7 @@ enum class ReadStatus : std::uint8_t {
     fresh,    ///< an item the reader had not seen
     reused,   ///< no new item since the last read: the same item again
     empty,    ///< nothing has been written yet
-    corrupt,  ///< the shared state word is damaged: nothing read (see fault_message())
+    corrupt,  ///< the middle word or a record is damaged: nothing read (see fault_message())
 };
 
 struct [[nodiscard]] ReadResult {
@@ -108,7 +108,7 @@ struct [[nodiscard]] ReadResult {
     std::uint64_t missed = 0;   ///< items written but never read since the last fresh read
 };
 
-/// What write() and publish() return when the shared state word is damaged.
+/// What write() and publish() return when the buffer is damaged.
 inline constexpr std::uint64_t kCorrupt = ~std::uint64_t{0};
 
 namespace detail {
@@ -179,9 +179,9 @@ static_assert(std::atomic<std::uint32_t>::is_always_lock_free);
 /// Bytes of memory a buffer for items of `item_size` bytes needs.
 CHIMERA_API std::size_t required_size(std::size_t item_size) noexcept;
 
-/// Checks a buffer's image of `size` bytes (header, geometry, state word) as
-/// attach() does, without throwing: the first bound broken, or none. A pure
-/// function over the bytes, for tests and fuzzers.
+/// Checks a buffer's image of `size` bytes (header, geometry, middle word,
+/// records) as attach() does, without throwing: the first bound broken, or
+/// none. A pure function over the bytes, for tests and fuzzers.
 CHIMERA_API ipc::Fault validate(const void* image, std::size_t size) noexcept;
 
 /// A triple buffer. Move-only; destruction detaches.
