@@ -19,29 +19,30 @@
 // 1.4 ns more a write+read; bench/results/svar.md).
 //
 // So that a side's successor can take its role over after a kill -9, each side
-// stores a record of its slot after each exchange, in a line of its own (one
-// store, as the crate keeps its index in a variable). The writer's record also
-// holds the counter-stamp of the item it published last; a stamp newer than
-// that in the writer's recorded slot says the writer was between stamping an
-// item and its record. Taking a role over (serialised by a robust lock in the
-// header; the hot paths never touch it):
-// - The writer's successor takes the recorded slot when no such stamp says
-//   otherwise: right also when the dead writer's item there is half-written
-//   (only the writer role ever holds a slot being written). Otherwise the
-//   dead writer was inside its publish, every slot holds a complete item, and
-//   its slot is the one that is neither the middle one nor the reader's.
-// - The reader's successor takes the slot that is neither the middle one nor
-//   the writer's, never the writer's own: a dead reader's slot no longer
-//   moves, and the middle and the live writer's slots are the two others at
-//   any instant.
-// A side found between its exchange and its record (its record names the
-// middle slot) is waited for while it lives; when it died there too, every
-// slot is complete, nobody holds one, and the successor takes the lowest
-// (writer) or highest (reader) slot that is not the middle one. The writer's
-// successor goes on counting from the newest counter-stamp in any slot, so
-// counters never repeat; a writer killed in the few instructions between
-// stamping an item and publishing it leaves a gap of one (the reader counts
-// that item missed).
+// keeps a record of its slot in a line of its own, stored after each exchange,
+// and says when it is between its exchange and that record:
+// - the writer by its stamp: its record also holds the counter-stamp of the
+//   item it published last, and the stamp it writes into its slot before the
+//   exchange is newer than that (nothing added to the publish);
+// - the reader by a bit in its record, set by one store before its exchange.
+// Taking a role over (serialised by a robust lock in the header; the hot
+// paths never touch it):
+// - The writer's successor takes the recorded slot when the stamp does not
+//   say otherwise: right also when the dead writer's item there is half-
+//   written (only the writer role ever holds a slot being written).
+// - Otherwise (the writer died inside its publish: every item is then
+//   complete), and always for the reader's successor: the slot that is
+//   neither the middle one nor the one the other side's record names. The
+//   dead side's slot no longer moves, and the middle and the other side's
+//   slot are the two others at any instant — read while the other side is
+//   not inside an exchange. While it is, and lives, the successor waits for
+//   it (100 ms at most, then refuses); when it died there too, every slot is
+//   complete, nobody holds one, and the successor takes the lowest (writer) or
+//   highest (reader) slot that is not the middle one.
+// The writer's successor goes on counting from the newest counter-stamp in
+// any slot, so counters never repeat; a writer killed in the few instructions
+// between stamping an item and publishing it leaves a gap of one (the reader
+// counts that item missed).
 //
 // Every item carries a time-stamp (CLOCK_MONOTONIC ns, read in write() through
 // the vDSO, or supplied by the caller, e.g. the cycle's release time, which
@@ -120,12 +121,14 @@ inline constexpr std::uint32_t kSlotMask = 3u;
 /// No slot: a handle that has not taken its role yet.
 inline constexpr std::uint32_t kNoSlot = 3u;
 /// A role's record: its slot in bits 0-1; the writer's also the counter-stamp
-/// (Stamp::seq) of the item it published last, from bit 2.
+/// (Stamp::seq) of the item it published last, from bit 2; the reader's
+/// kExchanging while it is inside an exchange.
 constexpr std::uint64_t make_record(std::uint32_t slot, std::uint64_t published) noexcept {
     return slot | published << 2;
 }
 constexpr std::uint32_t record_slot(std::uint64_t r) noexcept { return static_cast<std::uint32_t>(r & kSlotMask); }
 constexpr std::uint64_t record_published(std::uint64_t r) noexcept { return r >> 2; }
+inline constexpr std::uint64_t kExchanging = 1u << 2;
 /// A middle word a side holding slot `own` can accept: a slot number, not its
 /// own, no stray bit (a few ALU operations: every operation checks it).
 constexpr bool middle_valid(std::uint32_t m, std::uint32_t own) noexcept {
@@ -303,9 +306,11 @@ private:
             return view(front_, ReadStatus::reused, item);
         // Before the exchange: the old front slot is the writer's after it.
         const std::uint64_t had = front_seq_ != kUnknownSeq ? front_seq_ : stamp(front_).seq;
-        // Release: we are done with our old slot before the writer gets it;
-        // acquire: the item we take is complete. What comes back is the
-        // newest item (the writer may have published again since the load).
+        h_->reader.record.store(front_ | detail::kExchanging, std::memory_order_relaxed);
+        // Release: we are done with our old slot before the writer gets it
+        // (and the mark is visible before the exchange); acquire: the item we
+        // take is complete. What comes back is the newest item (the writer
+        // may have published again since the load).
         const std::uint32_t got = h_->middle.exchange(front_, std::memory_order_acq_rel);
         if (!detail::middle_valid(got, front_) || !(got & detail::kFresh)) [[unlikely]]
             return refuse_taken(got);
@@ -332,7 +337,9 @@ private:
     // Stamps the back slot with the next counter and swaps it into the middle.
     [[gnu::always_inline]] std::uint64_t swap_in(detail::Stamp& st, std::int64_t time_ns) noexcept {
         st.time_ns = time_ns;
-        st.seq = seq_ + 1;
+        // Atomic (a plain store on x86-64 and AArch64): a reader taking its
+        // role over may look at this stamp meanwhile (Tbuf::exchanging()).
+        std::atomic_ref<std::uint64_t>(st.seq).store(seq_ + 1, std::memory_order_relaxed);
         // Our record still names our slot, or another handle has written
         // since (it is not on the way to the exchange: a predicted branch).
         if (detail::record_slot(h_->writer.record.load(std::memory_order_relaxed)) != back_) [[unlikely]]
@@ -361,10 +368,14 @@ private:
     // The slot the role's successor takes.
     bool find_writer_slot(std::uint32_t& slot) noexcept;
     bool find_reader_slot(std::uint32_t& slot) noexcept;
-    // The slot that is neither the middle one nor the one `other` records;
-    // waits while `other` is between its exchange and its record and lives.
-    // kNoSlot when `other` died there too; false when damaged or timed out.
+    // The slot that is neither the middle one nor the one `other` records,
+    // read while `other` is not inside an exchange: waits while it is and
+    // lives; kNoSlot when it died there (`middle` then says which slot not to
+    // take). False when damaged or timed out.
     bool third_of_middle_and(const detail::Role& other, std::uint32_t& slot, std::uint32_t& middle) noexcept;
+    // The other side is inside an exchange (by its record, or the stamp in
+    // the slot the writer's record names).
+    bool exchanging(const detail::Role& other, std::uint64_t record) noexcept;
 
     // Another handle moved the writer's slot: nothing published. Records the
     // fault; kCorrupt.

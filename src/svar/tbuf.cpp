@@ -69,7 +69,8 @@ ipc::Fault validate(const void* image, std::size_t size) noexcept {
     if (ipc::Fault f = fault_if(detail::record_slot(w) > 2, "writer's slot record", detail::record_slot(w), 2))
         return f;
     const std::uint64_t r = h.reader.record.load(std::memory_order_relaxed);
-    return fault_if(r > 2, "reader's slot record", r, 2);
+    return fault_if((r & ~(detail::kSlotMask | detail::kExchanging)) != 0 || detail::record_slot(r) > 2,
+                    "reader's slot record", r, 6);
 }
 
 Tbuf::Tbuf(Tbuf&& o) noexcept { *this = std::move(o); }
@@ -141,9 +142,18 @@ private:
 
 }  // namespace
 
+bool Tbuf::exchanging(const detail::Role& other, std::uint64_t record) noexcept {
+    if (&other == &h_->reader) return (record & detail::kExchanging) != 0;
+    // The live writer may be stamping that slot (an atomic store) meanwhile.
+    const std::uint64_t seq =
+        std::atomic_ref<std::uint64_t>(stamp(detail::record_slot(record)).seq).load(std::memory_order_relaxed);
+    return seq > detail::record_published(record);
+}
+
 bool Tbuf::third_of_middle_and(const detail::Role& other, std::uint32_t& slot, std::uint32_t& middle) noexcept {
     const bool writer = &other == &h_->writer;
     const std::int64_t deadline = ipc::now_ns() + kExchangeWaitNs;
+    bool dead = false;  // the other side was found dead: what is read next no longer moves
     for (;;) {
         // Acquire: the stamps of items the other side published are visible.
         const std::uint32_t m = h_->middle.load(std::memory_order_acquire);
@@ -154,24 +164,31 @@ bool Tbuf::third_of_middle_and(const detail::Role& other, std::uint32_t& slot, s
         middle = m & detail::kSlotMask;
         const std::uint64_t r = other.record.load(std::memory_order_acquire);
         const std::uint32_t theirs = detail::record_slot(r);
-        if (theirs > 2 || (!writer && r > 2)) {
+        if (theirs > 2 || (!writer && (r & ~(detail::kSlotMask | detail::kExchanging)) != 0)) {
             fault_ = ipc::Fault{writer ? "writer's slot record" : "reader's slot record", -1, r, 2};
             return false;
         }
-        if (theirs != middle) {
+        if (!exchanging(other, r) && theirs != middle) {
             slot = detail::third_slot(middle, theirs);
             return true;
         }
-        // The other side is between its exchange and its record: wait while
-        // it lives; if it died there, every slot holds a complete item.
-        const std::uint64_t owner = other.owner.load(std::memory_order_acquire);
-        if (owner == 0 || owner == ipc::self_owner_id() || !ipc::owner_alive(owner)) {
+        // Inside an exchange, or its record names the middle slot (read
+        // across an exchange). Read after its death, it stays so: every slot
+        // holds a complete item and nobody holds one.
+        if (dead) {
             slot = detail::kNoSlot;
             return true;
         }
+        // Wait while it lives. Found dead, read again: what was read before
+        // may be from before its last exchanges.
+        const std::uint64_t owner = other.owner.load(std::memory_order_acquire);
+        if (owner == 0 || owner == ipc::self_owner_id() || !ipc::owner_alive(owner)) {
+            dead = true;
+            continue;
+        }
         if (ipc::now_ns() > deadline) {
             fault_ = ipc::Fault{"other side's slot record (its holder stopped inside an exchange for 100 ms)", -1,
-                                theirs, middle, "different from the middle slot"};
+                                theirs, middle, "unmarked and different from the middle slot"};
             return false;
         }
         sched_yield();
@@ -192,7 +209,7 @@ bool Tbuf::find_writer_slot(std::uint32_t& slot) noexcept {
     }
     // No stamp newer than the last item published in the recorded slot: the
     // record is exact (the item there may be half-written: it stays ours).
-    if (stamp(recorded).seq <= detail::record_published(r)) {
+    if (!exchanging(h_->writer, r)) {
         if (recorded == (m & detail::kSlotMask)) {
             fault_ = ipc::Fault{"writer's slot record", -1, recorded, m & detail::kSlotMask,
                                 "a slot other than the middle one, not"};
@@ -281,7 +298,9 @@ std::uint64_t Tbuf::refuse_published(std::uint32_t got) noexcept {
 
 ReadResult Tbuf::refuse_taken(std::uint32_t got) noexcept {
     std::uint32_t ours = front_;
-    if (!h_->middle.compare_exchange_strong(ours, got, std::memory_order_acq_rel, std::memory_order_relaxed))
+    if (h_->middle.compare_exchange_strong(ours, got, std::memory_order_acq_rel, std::memory_order_relaxed))
+        h_->reader.record.store(front_, std::memory_order_relaxed);  // put back: still ours
+    else
         front_ = detail::kNoSlot;
     return refuse_read(got);
 }

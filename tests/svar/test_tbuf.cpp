@@ -651,8 +651,10 @@ TEST(Tbuf, AHalfWrittenItemStaysWithTheWriterRoleAfterBothSidesDied) {
         make_item(it, 1);
         ASSERT_EQ(w.write(&it, 1), 1u);
     }
-    // The reader's exchange, and no record after it: it took item 1.
-    (void)h.middle.exchange(static_cast<std::uint32_t>(h.reader.record.load()));
+    // The reader's exchange, marked, and no record after it: it took item 1.
+    const auto given = static_cast<std::uint32_t>(h.reader.record.load());
+    h.reader.record.store(given | detail::kExchanging);
+    (void)h.middle.exchange(given);
     h.reader.owner.store(dead_owner());
     make_item(it, 2);
     ASSERT_EQ(w.write(&it, 2), 2u);
@@ -689,7 +691,7 @@ TEST(Tbuf, AHalfWrittenItemStaysWithTheWriterRoleAfterBothSidesDied) {
 
 // A writer killed inside its publish (its slot's stamp newer than its
 // record's) has its slot worked out from the reader's record. While the
-// reader is itself between its exchange and its record and alive — here a
+// reader is itself inside its exchange (its record marked) and alive — here a
 // stopped process — its successor waits, and refuses after the bound naming
 // the exchange; once the reader is dead too it takes a slot (no repeat of a
 // counter: the dead writer's stamped item 2 was never published, so 2 is
@@ -712,8 +714,10 @@ TEST(Tbuf, AWriterTakingOverWaitsForALiveReaderInsideItsExchangeNotForADeadOne) 
     const std::uint32_t back = detail::record_slot(h.writer.record.load());
     make_item(item_at(h, back), 2);
     stamp_at(h, back) = detail::Stamp{2, 3};
-    // The reader's exchange, and no record after it: it took item 1.
-    (void)h.middle.exchange(static_cast<std::uint32_t>(h.reader.record.load()));
+    // The reader's exchange, marked, and no record after it: it took item 1.
+    const auto given = static_cast<std::uint32_t>(h.reader.record.load());
+    h.reader.record.store(given | detail::kExchanging);
+    (void)h.middle.exchange(given);
 
     const pid_t live = fork_child([] { pause(); return 0; });
     h.reader.owner.store(static_cast<std::uint64_t>(static_cast<std::uint32_t>(live)) << 32 |
@@ -782,3 +786,67 @@ TEST(Tbuf, AReaderTakingOverAfterAWriterKilledInsideItsExchangeGetsItsItem) {
     EXPECT_EQ(res.missed, 0u);
     EXPECT_EQ(check_item(out, res), 0);
 }
+
+// A writer stopped inside its publish (here a live, stopped process) after
+// its exchange, whose slot a reader then took before it died: the writer's
+// record still names the slot it gave, which is no longer the middle one, so
+// only the stamp (newer than the record's) says the record is not the
+// writer's slot. The reader's successor must wait for it — deriving its slot
+// from that record would give it the writer's live slot — and refuse after
+// the bound; once the writer is dead, the successors of both sides share the
+// slots out and items flow again.
+TEST(Tbuf, AReaderTakingOverWaitsForALiveWriterInsidePublishWhoseGivenSlotADeadReaderTook) {
+    CHIMERA_NOT_UNDER_TSAN("forked processes as owners");
+    auto* block = shared_anon<Block>();
+    auto& h = *reinterpret_cast<detail::Header*>(block);
+    {
+        Tbuf w = Tbuf::create_in(block, sizeof(Block), sizeof(Item));
+        Tbuf r = Tbuf::attach_in(block, sizeof(Block));
+        Item it{};
+        make_item(it, 0);
+        ASSERT_EQ(w.write(&it, 0), 0u);
+        ASSERT_EQ(r.read(&it).status, ReadStatus::fresh);
+    }
+    // The writer stamps item 1 and exchanges it in; no record yet.
+    const std::uint64_t record = h.writer.record.load();
+    const std::uint32_t given = detail::record_slot(record);
+    make_item(item_at(h, given), 1);
+    stamp_at(h, given) = detail::Stamp{1, detail::record_published(record) + 1};
+    (void)h.middle.exchange(given | detail::kFresh);
+    const pid_t live = fork_child([] { pause(); return 0; });
+    h.writer.owner.store(static_cast<std::uint64_t>(static_cast<std::uint32_t>(live)) << 32 |
+                         static_cast<std::uint32_t>(live));
+    // A reader takes item 1 (its whole exchange and record), then dies.
+    const auto front = static_cast<std::uint32_t>(h.reader.record.load());
+    ASSERT_EQ(h.middle.exchange(front) & detail::kSlotMask, given);
+    h.reader.record.store(given);
+    h.reader.owner.store(dead_owner());
+    ASSERT_NE(detail::record_slot(h.writer.record.load()), h.middle.load() & detail::kSlotMask);
+
+    Tbuf r2 = Tbuf::attach_in(block, sizeof(Block));
+    Item out{};
+    const std::int64_t t0 = ipc::now_ns();
+    EXPECT_EQ(r2.read(&out).status, ReadStatus::corrupt);
+    EXPECT_GE(ipc::now_ns() - t0, 90'000'000) << "waited for the live writer";
+    EXPECT_NE(r2.fault_message().find("stopped inside an exchange"), std::string::npos) << r2.fault_message();
+    kill(live, SIGKILL);
+    EXPECT_EQ(wait_child(live), 128 + SIGKILL);
+
+    // Both died inside their exchanges: every item is complete, and any slot
+    // but the middle one may be the reader's now (the dead writer's too).
+    ReadResult res = r2.read(&out);
+    EXPECT_NE(res.status, ReadStatus::corrupt) << r2.fault_message();
+    Tbuf w2 = Tbuf::attach_in(block, sizeof(Block));
+    EXPECT_EQ(w2.next_counter(), 2u);
+    Item it{};
+    make_item(it, 2);
+    EXPECT_EQ(w2.write(&it, 2), 2u);
+    res = r2.read(&out);
+    EXPECT_EQ(res.status, ReadStatus::fresh);
+    EXPECT_EQ(res.counter, 2u);
+    EXPECT_EQ(check_item(out, res), 0);
+    const std::uint32_t w_slot = detail::record_slot(h.writer.record.load());
+    const auto r_slot = static_cast<std::uint32_t>(h.reader.record.load());
+    EXPECT_TRUE(w_slot != r_slot && w_slot != (h.middle.load() & detail::kSlotMask)) << w_slot << r_slot;
+}
+
