@@ -7,6 +7,7 @@
 #include <atomic>
 #include <cstdio>
 #include <cstdlib>
+#include <string_view>
 #include <thread>
 
 #include "chimera/ipc/clock.hpp"
@@ -628,6 +629,48 @@ detail::Stamp& stamp_at(detail::Header& h, std::uint32_t i) {
                                              i * h.slot_stride + h.stamp_offset);
 }
 
+// A buffer laid out in `block` after `steps` ('w': the writer writes the next
+// item, 'r': the reader reads), both handles then detached (their records
+// exact).
+detail::Header& buffer_after(Block* block, std::string_view steps) {
+    Tbuf w = Tbuf::create_in(block, sizeof(Block), sizeof(Item));
+    Tbuf r = Tbuf::attach_in(block, sizeof(Block));
+    Item it{};
+    std::uint64_t next = 0;
+    for (const char step : steps) {
+        if (step == 'w') {
+            make_item(it, next);
+            EXPECT_EQ(w.write(&it, static_cast<std::int64_t>(next)), next);
+            ++next;
+        } else {
+            EXPECT_EQ(r.read(&it).status, ReadStatus::fresh);
+        }
+    }
+    return *reinterpret_cast<detail::Header*>(block);
+}
+
+// The writer's item `n`, complete and stamped in its slot, as a writer
+// killed inside its publish leaves it (no record after); returns the slot.
+std::uint32_t stamp_unrecorded(detail::Header& h, std::uint64_t n) {
+    const std::uint64_t record = h.writer.record.load();
+    const std::uint32_t slot = detail::record_slot(record);
+    make_item(item_at(h, slot), n);
+    stamp_at(h, slot) = detail::Stamp{static_cast<std::int64_t>(n), detail::record_published(record) + 1};
+    return slot;
+}
+
+// A reader's exchange, marked, and no record after it (killed there).
+void reader_exchange_unrecorded(detail::Header& h) {
+    const auto given = static_cast<std::uint32_t>(h.reader.record.load());
+    h.reader.record.store(given | detail::kExchanging);
+    (void)h.middle.exchange(given);
+}
+
+// The owner word of a live process (`pid`, single-threaded).
+std::uint64_t owner_of(pid_t pid) {
+    return static_cast<std::uint64_t>(static_cast<std::uint32_t>(pid)) << 32 | static_cast<std::uint32_t>(pid);
+}
+
 }  // namespace
 
 // The write of an item half done when the writer is killed stays with the
@@ -651,10 +694,7 @@ TEST(Tbuf, AHalfWrittenItemStaysWithTheWriterRoleAfterBothSidesDied) {
         make_item(it, 1);
         ASSERT_EQ(w.write(&it, 1), 1u);
     }
-    // The reader's exchange, marked, and no record after it: it took item 1.
-    const auto given = static_cast<std::uint32_t>(h.reader.record.load());
-    h.reader.record.store(given | detail::kExchanging);
-    (void)h.middle.exchange(given);
+    reader_exchange_unrecorded(h);  // it took item 1, then died
     h.reader.owner.store(dead_owner());
     make_item(it, 2);
     ASSERT_EQ(w.write(&it, 2), 2u);
@@ -699,29 +739,12 @@ TEST(Tbuf, AHalfWrittenItemStaysWithTheWriterRoleAfterBothSidesDied) {
 TEST(Tbuf, AWriterTakingOverWaitsForALiveReaderInsideItsExchangeNotForADeadOne) {
     CHIMERA_NOT_UNDER_TSAN("forked processes as owners");
     auto* block = shared_anon<Block>();
-    auto& h = *reinterpret_cast<detail::Header*>(block);
-    {
-        Tbuf w = Tbuf::create_in(block, sizeof(Block), sizeof(Item));
-        Tbuf r = Tbuf::attach_in(block, sizeof(Block));
-        Item it{};
-        make_item(it, 0);
-        ASSERT_EQ(w.write(&it, 0), 0u);
-        ASSERT_EQ(r.read(&it).status, ReadStatus::fresh);
-        make_item(it, 1);
-        ASSERT_EQ(w.write(&it, 1), 1u);
-    }  // both detach: their records are exact
-    // The writer stamped item 2, then died before its exchange.
-    const std::uint32_t back = detail::record_slot(h.writer.record.load());
-    make_item(item_at(h, back), 2);
-    stamp_at(h, back) = detail::Stamp{2, 3};
-    // The reader's exchange, marked, and no record after it: it took item 1.
-    const auto given = static_cast<std::uint32_t>(h.reader.record.load());
-    h.reader.record.store(given | detail::kExchanging);
-    (void)h.middle.exchange(given);
+    detail::Header& h = buffer_after(block, "wrw");
+    (void)stamp_unrecorded(h, 2);    // the writer died before its exchange
+    reader_exchange_unrecorded(h);  // the reader took item 1, and stopped there
 
     const pid_t live = fork_child([] { pause(); return 0; });
-    h.reader.owner.store(static_cast<std::uint64_t>(static_cast<std::uint32_t>(live)) << 32 |
-                         static_cast<std::uint32_t>(live));
+    h.reader.owner.store(owner_of(live));
     Tbuf w2 = Tbuf::attach_in(block, sizeof(Block));
     Item it{};
     make_item(it, 3);
@@ -751,19 +774,9 @@ TEST(Tbuf, AWriterTakingOverWaitsForALiveReaderInsideItsExchangeNotForADeadOne) 
 TEST(Tbuf, AReaderTakingOverAfterAWriterKilledInsideItsExchangeGetsItsItem) {
     CHIMERA_NOT_UNDER_TSAN("a forked process as a dead owner");
     auto* block = shared_anon<Block>();
-    auto& h = *reinterpret_cast<detail::Header*>(block);
-    {
-        Tbuf w = Tbuf::create_in(block, sizeof(Block), sizeof(Item));
-        Item it{};
-        for (std::uint64_t n = 0; n < 2; ++n) {
-            make_item(it, n);
-            ASSERT_EQ(w.write(&it, static_cast<std::int64_t>(n)), n);
-        }
-    }
+    detail::Header& h = buffer_after(block, "ww");
     // The writer's item 2, stamped and exchanged, and no record.
-    const std::uint32_t back = detail::record_slot(h.writer.record.load());
-    make_item(item_at(h, back), 2);
-    stamp_at(h, back) = detail::Stamp{2, 3};
+    const std::uint32_t back = stamp_unrecorded(h, 2);
     const std::uint32_t got = h.middle.exchange(back | detail::kFresh) & detail::kSlotMask;
     h.writer.owner.store(dead_owner());
 
@@ -798,24 +811,12 @@ TEST(Tbuf, AReaderTakingOverAfterAWriterKilledInsideItsExchangeGetsItsItem) {
 TEST(Tbuf, AReaderTakingOverWaitsForALiveWriterInsidePublishWhoseGivenSlotADeadReaderTook) {
     CHIMERA_NOT_UNDER_TSAN("forked processes as owners");
     auto* block = shared_anon<Block>();
-    auto& h = *reinterpret_cast<detail::Header*>(block);
-    {
-        Tbuf w = Tbuf::create_in(block, sizeof(Block), sizeof(Item));
-        Tbuf r = Tbuf::attach_in(block, sizeof(Block));
-        Item it{};
-        make_item(it, 0);
-        ASSERT_EQ(w.write(&it, 0), 0u);
-        ASSERT_EQ(r.read(&it).status, ReadStatus::fresh);
-    }
+    detail::Header& h = buffer_after(block, "wr");
     // The writer stamps item 1 and exchanges it in; no record yet.
-    const std::uint64_t record = h.writer.record.load();
-    const std::uint32_t given = detail::record_slot(record);
-    make_item(item_at(h, given), 1);
-    stamp_at(h, given) = detail::Stamp{1, detail::record_published(record) + 1};
+    const std::uint32_t given = stamp_unrecorded(h, 1);
     (void)h.middle.exchange(given | detail::kFresh);
     const pid_t live = fork_child([] { pause(); return 0; });
-    h.writer.owner.store(static_cast<std::uint64_t>(static_cast<std::uint32_t>(live)) << 32 |
-                         static_cast<std::uint32_t>(live));
+    h.writer.owner.store(owner_of(live));
     // A reader takes item 1 (its whole exchange and record), then dies.
     const auto front = static_cast<std::uint32_t>(h.reader.record.load());
     ASSERT_EQ(h.middle.exchange(front) & detail::kSlotMask, given);

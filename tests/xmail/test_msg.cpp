@@ -80,6 +80,56 @@ pid_t child_receiving(void* mem, std::size_t size, Queue& q, std::int32_t priori
     return child;
 }
 
+// A queue in shared memory with one receiver thread blocked in a receive
+// without a time limit, alone on the list: it sleeps without a timer
+// (detail::sleep_untimed()), so only a wake-up aimed at it gets it going.
+class LoneReceiver {
+public:
+    explicit LoneReceiver(std::int32_t priority = 0)
+        : p_(params(8, 16, Policy::fifo)), size_(Queue::memory_size(p_)),
+          mem_(mmap(nullptr, size_, PROT_READ | PROT_WRITE, MAP_SHARED | MAP_ANONYMOUS, -1, 0)),
+          q_(Queue::over(mem_, size_, p_)) {
+        receiver_ = std::thread([this, priority] {
+            got_ = recv_str(q_, -1, nullptr, priority);
+            got_it_ = true;
+        });
+        while (q_.stats().receive_waiters == 0) std::this_thread::yield();
+        std::this_thread::sleep_for(std::chrono::milliseconds(50));  // asleep, alone, untimed
+    }
+    ~LoneReceiver() {
+        if (receiver_.joinable()) {
+            (void)send_str(q_, "released by the test");
+            receiver_.join();
+        }
+        munmap(mem_, size_);
+    }
+    LoneReceiver(const LoneReceiver&) = delete;
+    LoneReceiver& operator=(const LoneReceiver&) = delete;
+    Queue& queue() { return q_; }
+    void* memory() { return mem_; }
+    std::size_t size() const { return size_; }
+    /// True when the receiver got a message within 2 s; either way it is
+    /// joined (sent one of the test's if it still slept).
+    bool got_it_in_time() {
+        const std::int64_t deadline = ipc::now_ns() + 2'000'000'000;
+        while (!got_it_ && ipc::now_ns() < deadline) std::this_thread::sleep_for(std::chrono::milliseconds(5));
+        const bool in_time = got_it_;
+        if (!in_time) (void)send_str(q_, "released by the test");
+        receiver_.join();
+        return in_time;
+    }
+    const std::string& got() const { return got_; }
+
+private:
+    msg::Params p_;
+    std::size_t size_;
+    void* mem_;
+    Queue q_;
+    std::atomic<bool> got_it_{false};
+    std::string got_;
+    std::thread receiver_;
+};
+
 }  // namespace
 
 TEST(Msg, InitialStructureIsFigure52) {
@@ -278,37 +328,18 @@ TEST(Msg, AMessageHandedToAKilledUnreapedReceiverIsTakenBack) {
 // and killed: without the kick, the first would sleep on for good.
 TEST(Msg, AMessageLostWithALaterReceiverReachesTheOneThatWaitedAlone) {
     CHIMERA_NOT_UNDER_TSAN("a forked receiver stopped and killed");
-    const auto p = params(8, 16, Policy::fifo);
-    const std::size_t size = Queue::memory_size(p);
-    void* mem = mmap(nullptr, size, PROT_READ | PROT_WRITE, MAP_SHARED | MAP_ANONYMOUS, -1, 0);
-    ASSERT_NE(mem, MAP_FAILED);
-    Queue q = Queue::over(mem, size, p);
-    std::atomic<bool> got_it{false};
-    std::string got;
-    std::thread first([&] {
-        got = recv_str(q, -1, nullptr, 1);
-        got_it = true;
-    });
-    while (q.stats().receive_waiters == 0) std::this_thread::yield();
-    std::this_thread::sleep_for(std::chrono::milliseconds(50));  // asleep, alone, untimed
-    const pid_t second = child_receiving(mem, size, q, 5);
+    LoneReceiver first(1);
+    Queue& q = first.queue();
+    const pid_t second = child_receiving(first.memory(), first.size(), q, 5);
     kill(second, SIGSTOP);
     siginfo_t info{};
     ASSERT_EQ(waitid(P_PID, static_cast<id_t>(second), &info, WSTOPPED | WNOWAIT), 0);
     ASSERT_EQ(send_str(q, "handed"), Status::ok);  // to the higher priority: the stopped child
     kill(second, SIGKILL);
     waitpid(second, nullptr, 0);
-    const std::int64_t deadline = ipc::now_ns() + 2'000'000'000;
-    while (!got_it && ipc::now_ns() < deadline) std::this_thread::sleep_for(std::chrono::milliseconds(5));
-    const bool in_time = got_it;
-    if (!in_time) {
-        ASSERT_EQ(send_str(q, "released by the test"), Status::ok);  // to join the thread
-    }
-    first.join();
-    EXPECT_TRUE(in_time) << "the lone receiver slept on while the message stayed with the dead one";
-    EXPECT_EQ(got, in_time ? "handed" : "released by the test");
+    EXPECT_TRUE(first.got_it_in_time()) << "the lone receiver slept on while the message stayed with the dead one";
+    EXPECT_EQ(first.got(), "handed");
     EXPECT_EQ(q.check(), "");
-    munmap(mem, size);
 }
 
 // A sender killed after its commit point and before its hand-off (and so
@@ -321,19 +352,8 @@ TEST(Msg, AMessageLostWithALaterReceiverReachesTheOneThatWaitedAlone) {
 // over, has the message queued by the repair, and receives it.
 TEST(Msg, ALoneReceiverGetsAMessageWhoseSenderDiedBetweenCommitAndHandOff) {
     CHIMERA_NOT_UNDER_TSAN("a forked sender");
-    const auto p = params(8, 16, Policy::fifo);
-    const std::size_t size = Queue::memory_size(p);
-    void* mem = mmap(nullptr, size, PROT_READ | PROT_WRITE, MAP_SHARED | MAP_ANONYMOUS, -1, 0);
-    ASSERT_NE(mem, MAP_FAILED);
-    Queue q = Queue::over(mem, size, p);
-    std::atomic<bool> got_it{false};
-    std::string got;
-    std::thread receiver([&] {
-        got = recv_str(q, -1);
-        got_it = true;
-    });
-    while (q.stats().receive_waiters == 0) std::this_thread::yield();
-    std::this_thread::sleep_for(std::chrono::milliseconds(50));  // asleep, alone, untimed
+    LoneReceiver receiver;
+    Queue& q = receiver.queue();
     auto* h = q.header();
     const pid_t sender = fork();
     if (sender == 0) {
@@ -367,18 +387,10 @@ TEST(Msg, ALoneReceiverGetsAMessageWhoseSenderDiedBetweenCommitAndHandOff) {
     int status = 0;
     ASSERT_EQ(waitpid(sender, &status, 0), sender);
     ASSERT_TRUE(WIFEXITED(status) && WEXITSTATUS(status) == 0) << status;
-    const std::int64_t deadline = ipc::now_ns() + 2'000'000'000;
-    while (!got_it && ipc::now_ns() < deadline) std::this_thread::sleep_for(std::chrono::milliseconds(5));
-    const bool in_time = got_it;
-    if (!in_time) {
-        ASSERT_EQ(send_str(q, "released by the test"), Status::ok);  // to join the thread
-    }
-    receiver.join();
-    EXPECT_TRUE(in_time) << "the lone receiver slept on while the committed message waited in the queue";
-    EXPECT_EQ(got, "committed");
+    EXPECT_TRUE(receiver.got_it_in_time()) << "the lone receiver slept on while the committed message waited in the queue";
+    EXPECT_EQ(receiver.got(), "committed");
     EXPECT_EQ(q.stats().recoveries, 1u);
     EXPECT_EQ(q.check(), "");
-    munmap(mem, size);
 }
 
 // Senders blocked on a full queue get the room in message-priority order
