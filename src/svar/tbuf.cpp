@@ -24,6 +24,12 @@ std::size_t stride_for(std::size_t item_size) noexcept {
     return ipc::align_up(stamp_offset_for(item_size) + sizeof(Stamp), 64);
 }
 
+// A role's record as the kind of side that writes it: a slot number; the
+// reader's may also carry its mark, the writer's a counter-stamp above bit 1.
+constexpr bool record_valid(std::uint64_t r, bool writer) noexcept {
+    return detail::record_slot(r) < 3 && (writer || (r & ~(detail::kSlotMask | detail::kExchanging)) == 0);
+}
+
 // Items larger than this are refused: keeps every size computation far from overflow.
 constexpr std::uint64_t kMaxItemSize = std::uint64_t{1} << 32;
 
@@ -66,11 +72,10 @@ ipc::Fault validate(const void* image, std::size_t size) noexcept {
                                 "middle word (a slot number below 3, no stray bit)", m, 6))
         return f;
     const std::uint64_t w = h.writer.record.load(std::memory_order_relaxed);
-    if (ipc::Fault f = fault_if(detail::record_slot(w) > 2, "writer's slot record", detail::record_slot(w), 2))
+    if (ipc::Fault f = fault_if(!record_valid(w, true), "writer's slot record", detail::record_slot(w), 2))
         return f;
     const std::uint64_t r = h.reader.record.load(std::memory_order_relaxed);
-    return fault_if((r & ~(detail::kSlotMask | detail::kExchanging)) != 0 || detail::record_slot(r) > 2,
-                    "reader's slot record", r, 6);
+    return fault_if(!record_valid(r, false), "reader's slot record", r, 6);
 }
 
 Tbuf::Tbuf(Tbuf&& o) noexcept { *this = std::move(o); }
@@ -164,7 +169,7 @@ bool Tbuf::third_of_middle_and(const detail::Role& other, std::uint32_t& slot, s
         middle = m & detail::kSlotMask;
         const std::uint64_t r = other.record.load(std::memory_order_acquire);
         const std::uint32_t theirs = detail::record_slot(r);
-        if (theirs > 2 || (!writer && (r & ~(detail::kSlotMask | detail::kExchanging)) != 0)) {
+        if (!record_valid(r, writer)) {
             fault_ = ipc::Fault{writer ? "writer's slot record" : "reader's slot record", -1, r, 2};
             return false;
         }
@@ -203,7 +208,7 @@ bool Tbuf::find_writer_slot(std::uint32_t& slot) noexcept {
         refuse(m);
         return false;
     }
-    if (recorded > 2) {
+    if (!record_valid(r, true)) {
         fault_ = ipc::Fault{"writer's slot record", -1, recorded, 2};
         return false;
     }
