@@ -5,7 +5,9 @@
 
 #include <fcntl.h>
 #include <linux/futex.h>
+#include <poll.h>
 #include <pthread.h>
+#include <sys/stat.h>
 #include <sys/syscall.h>
 #include <unistd.h>
 
@@ -87,6 +89,38 @@ std::uint64_t detail::self_owner_id_slow() noexcept {
     return id;
 }
 
+namespace {
+
+// A killed process is a zombie until reaped, and tgkill() still reaches it.
+// 1 when the whole process has exited, 0 when it has not and its one thread is
+// therefore alive, -1 when only /proc/PID/task/TID/stat can tell (a process of
+// several threads, whose leader may have ended alone; or no pidfd here).
+// Asked through a pidfd and the thread count in /proc/PID/task's link count
+// (2 + threads) because reading the process's stat takes a reference to its
+// memory: a process that dies meanwhile keeps its mappings, and the segment
+// user locks they hold, until the read ends — seen as a dead user still
+// counted after it was reaped.
+int process_exited(std::int32_t pid) noexcept {
+#ifdef SYS_pidfd_open
+    const int pidfd = static_cast<int>(syscall(SYS_pidfd_open, pid, 0));
+    if (pidfd < 0) return errno == ESRCH ? 1 : -1;
+    pollfd p{pidfd, POLLIN, 0};
+    const int ready = poll(&p, 1, 0);
+    close(pidfd);
+    if (ready == 1) return 1;
+    if (ready != 0) return -1;
+    char path[32];
+    std::snprintf(path, sizeof path, "/proc/%d/task", pid);
+    struct stat st {};
+    if (stat(path, &st) == 0 && st.st_nlink == 3) return 0;
+#else
+    (void)pid;
+#endif
+    return -1;
+}
+
+}  // namespace
+
 bool owner_alive(std::uint64_t word) noexcept {
     const std::int32_t pid = owner_pid(word);
     const std::int32_t tid = owner_tid(word);
@@ -94,6 +128,9 @@ bool owner_alive(std::uint64_t word) noexcept {
     // A pid half of 0: a holder between clearing it and FUTEX_UNLOCK_PI; ask by TID alone.
     const long rc = pid > 0 ? syscall(SYS_tgkill, pid, tid, 0) : syscall(SYS_tkill, tid, 0);
     if (rc != 0 && errno == ESRCH) return false;
+    if (pid > 0 && pid == tid) {
+        if (const int exited = process_exited(pid); exited >= 0) return exited == 0;
+    }
     // tgkill succeeds on a zombie (killed, not yet reaped): look at its state.
     char path[64];
     std::snprintf(path, sizeof path, "/proc/%d/task/%d/stat", pid > 0 ? pid : tid, tid);

@@ -2,8 +2,11 @@
 #include <signal.h>
 #include <sched.h>
 #include <sys/mount.h>
+#include <sys/wait.h>
+#include <sys/syscall.h>
 #include <unistd.h>
 
+#include <chrono>
 #include <cstdio>
 #include <string>
 #include <thread>
@@ -173,6 +176,50 @@ TEST_F(IpcLock, ALiveHolderIsAliveWhereProcIsNotMounted) {
     const int rc = wait_child(child);
     if (rc == 77) GTEST_SKIP() << "no mount namespace here";
     EXPECT_EQ(rc, 0) << "3: /proc still visible; 4: the live holder was taken for dead";
+}
+
+// owner_alive() asks a process of one thread through a pidfd (reading its
+// /proc stat would hold its memory, and so its segment locks, past its death);
+// a process of several threads still needs /proc: there the leader, whose id
+// names the holder, can end alone while the process lives on.
+TEST_F(IpcLock, AHolderWhoseMainThreadEndedAloneIsDeadWhileItsProcessLives) {
+    CHIMERA_NOT_UNDER_TSAN("a forked child");
+    auto* s = shared_anon<Shared>();
+    const pid_t child = fork();
+    if (child == 0) {
+        if (lock(s->lock) != LockStatus::acquired) _exit(2);
+        std::thread([s] {
+            while (s->release.load() == 0) std::this_thread::sleep_for(std::chrono::milliseconds(1));
+            _exit(0);
+        }).detach();
+        s->holding.store(1);
+        // The main thread ends holding the lock: the exit system call ends one
+        // thread, without the unwinding of pthread_exit() (gtest would catch it).
+        syscall(SYS_exit, 0);
+    }
+    ASSERT_TRUE(wait_for([&] { return s->holding.load() == 1; }));
+    const std::uint64_t holder = s->lock.owner.load();
+    ASSERT_NE(holder, 0u);
+    EXPECT_TRUE(wait_for([&] { return !owner_alive(holder); })) << "an ended main thread taken for alive";
+    EXPECT_EQ(kill(child, 0), 0) << "the process itself lives on";
+    EXPECT_EQ(lock(s->lock), LockStatus::recovered);
+    EXPECT_TRUE(unlock(s->lock));
+    s->release.store(1);
+    EXPECT_EQ(wait_child(child), 0);
+}
+
+TEST_F(IpcLock, ALiveHolderOfOneThreadIsAliveAndDeadOnceKilledUnreaped) {
+    CHIMERA_NOT_UNDER_TSAN("a forked holder");
+    auto* s = shared_anon<Shared>();
+    const pid_t child = fork_holder(*s);
+    const std::uint64_t holder = s->lock.owner.load();
+    EXPECT_TRUE(owner_alive(holder));
+    kill(child, SIGKILL);
+    siginfo_t info{};
+    ASSERT_EQ(waitid(P_PID, static_cast<id_t>(child), &info, WEXITED | WNOWAIT), 0);  // a zombie now
+    EXPECT_FALSE(owner_alive(holder));
+    EXPECT_EQ(wait_child(child), 128 + SIGKILL);
+    EXPECT_FALSE(owner_alive(holder));
 }
 
 TEST_F(IpcLock, HolderThreadThatExitedIsRecovered) {

@@ -24,7 +24,13 @@
 // the kernel grants that only when no other mapping (of any live process)
 // holds a lock, and only then is the name removed. So a process killed by
 // SIGKILL at any instruction is counted out at once, and the last live user
-// frees the segment (issue #15.2). A handle copied into a child by fork()
+// frees the segment (issue #15.2). One exception the kernel makes: a process
+// whose /proc/PID/stat (or status) another process is reading as it dies
+// keeps its memory, and with it its lock, until that read ends (microseconds;
+// longer if the reader is preempted). A last user that detaches in that
+// moment leaves the segment behind. The library's own liveness probe
+// (owner_alive) asks a process of one thread through a pidfd so that it is
+// not such a reader. A handle copied into a child by fork()
 // neither counts nor frees: only the process that attached releases.
 //
 // Watchers (issue 16.7, docs/permissions.md): watch() maps a published
