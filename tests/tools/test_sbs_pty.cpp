@@ -7,6 +7,7 @@
 #include <gtest/gtest.h>
 
 #include <pty.h>
+#include <termios.h>
 #include <signal.h>
 #include <sys/wait.h>
 #include <unistd.h>
@@ -58,6 +59,22 @@ public:
             last_ = seen_;
         }
         return ok;
+    }
+    /// The program's state and the terminal's mode, for a failure message.
+    std::string describe() const {
+        std::string out = " [pid " + std::to_string(pid_);
+        std::ifstream st("/proc/" + std::to_string(pid_) + "/stat");
+        std::string line;
+        std::getline(st, line);
+        out += " stat: " + line.substr(0, 60);
+        std::ifstream wc("/proc/" + std::to_string(pid_) + "/wchan");
+        std::getline(wc, line);
+        out += " wchan: " + line;
+        termios tio{};
+        if (::tcgetattr(fd_, &tio) == 0)
+            out += std::string(" icanon ") + ((tio.c_lflag & ICANON) ? "1" : "0") + " echo " +
+                   ((tio.c_lflag & ECHO) ? "1" : "0") + " isig " + ((tio.c_lflag & ISIG) ? "1" : "0");
+        return out + "]";
     }
     /// Everything read up to and including the last pattern found.
     const std::string& last() const { return last_; }
@@ -201,7 +218,7 @@ TEST(SbsPty, AttachedPromptEditsCompletesAndRemembers) {
         // Ctrl-C drops a half-typed line and the prompt stays.
         t.type("displ");
         t.type("\x03");
-        ASSERT_TRUE(t.expect("SBS " + name + "<")) << t.last();
+        ASSERT_TRUE(t.expect("SBS " + name + "<")) << t.last() << t.describe();
         t.type("show sv\t\r");
         ASSERT_TRUE(t.expect("(.svar INIT)")) << t.last();  // LIMITS: no producer
         ASSERT_TRUE(t.expect("SBS " + name + "<"));

@@ -28,6 +28,7 @@
 #include <CLI/CLI.hpp>
 #include <editline/readline.h>
 
+#include <fcntl.h>
 #include <poll.h>
 #include <pwd.h>
 #include <sys/stat.h>
@@ -74,8 +75,21 @@ void catch_interrupts() {
 // half-typed line is dropped, readline() returns "" and the loop prompts again.
 int g_abandon_step = -1;  // -1: reading keys; 0, 1: next key of kAbandon
 
+// The prompt's keys come through a non-blocking descriptor of its own for the
+// terminal: libedit's SIGINT handler puts the terminal back in canonical mode,
+// and a blocking read() that starts after the signal (poll saw "displ", the
+// ^C flushed it) would wait for a whole line that never comes.
+int nonblocking_terminal(int fd) {
+    static const int own = [fd] {
+        const char* path = ttyname(fd);
+        return path != nullptr ? ::open(path, O_RDONLY | O_NONBLOCK | O_NOCTTY | O_CLOEXEC) : -1;
+    }();
+    return own >= 0 ? own : fd;
+}
+
 int prompt_getc(FILE* in) {
     static constexpr unsigned char kAbandon[] = {0x15, '\n'};  // Ctrl-U (kill line), Enter
+    const int fd = nonblocking_terminal(fileno(in));
     for (;;) {
         if (g_abandon_step < 0 && g_interrupted.load()) g_abandon_step = 0;
         if (g_abandon_step >= 0) {
@@ -83,7 +97,7 @@ int prompt_getc(FILE* in) {
             if (g_abandon_step == 2) g_abandon_step = -1;
             return key;
         }
-        pollfd p{fileno(in), POLLIN, 0};
+        pollfd p{fd, POLLIN, 0};
         const int rc = poll(&p, 1, 100);  // the timeout re-checks a SIGINT that came just before poll()
         if (rc < 0 && errno != EINTR) return EOF;
         if (rc <= 0) continue;
