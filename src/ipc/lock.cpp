@@ -91,30 +91,46 @@ std::uint64_t detail::self_owner_id_slow() noexcept {
 
 namespace {
 
-// A killed process is a zombie until reaped, and tgkill() still reaches it.
-// 1 when the whole process has exited, 0 when it has not and its one thread is
-// therefore alive, -1 when only /proc/PID/task/TID/stat can tell (a process of
-// several threads, whose leader may have ended alone; or no pidfd here).
-// Asked through a pidfd and the thread count in /proc/PID/task's link count
-// (2 + threads) because reading the process's stat takes a reference to its
-// memory: a process that dies meanwhile keeps its mappings, and the segment
-// user locks they hold, until the read ends — seen as a dead user still
-// counted after it was reaped.
-int process_exited(std::int32_t pid) noexcept {
-#ifdef SYS_pidfd_open
-    const int pidfd = static_cast<int>(syscall(SYS_pidfd_open, pid, 0));
-    if (pidfd < 0) return errno == ESRCH ? 1 : -1;
+// Whether a pidfd, polled now, says its task has exited: 1 yes, 0 no, -1 unknown.
+int pidfd_says_exited(int pidfd) noexcept {
     pollfd p{pidfd, POLLIN, 0};
     const int ready = poll(&p, 1, 0);
     close(pidfd);
-    if (ready == 1) return 1;
-    if (ready != 0) return -1;
+    return ready == 1 ? 1 : ready == 0 ? 0 : -1;
+}
+
+// A killed process is a zombie until reaped, and tgkill() still reaches it.
+// 1 when thread `tid` of process `pid` has exited, 0 when it has not, -1 when
+// only /proc/PID/task/TID/stat can tell. Asked without reading that stat where
+// the kernel allows, because the read takes a reference to the process's
+// memory: a process that dies meanwhile keeps its mappings, and the segment
+// user locks they hold, until the read ends — seen as a dead user still
+// counted after it was reaped.
+//  - Linux 6.9 and later: a pidfd of the thread itself (PIDFD_THREAD), readable
+//    once that thread has exited — but a leader's only once all its process
+//    has: the kernel holds back a leader that ends before the other threads.
+//  - Before: a pidfd of the process, readable once all of it has exited.
+// A leader not exited by its pidfd is alive when it is its process's only
+// thread (/proc/PID/task's link count is 2 + threads). With several, the
+// leader — whose id names the holder — may have ended alone: -1.
+int thread_exited(std::int32_t pid, std::int32_t tid) noexcept {
+#ifdef SYS_pidfd_open
+    constexpr unsigned kPidfdThread = O_EXCL;  // PIDFD_THREAD (linux/pidfd.h, 6.9)
+    int fd = static_cast<int>(syscall(SYS_pidfd_open, tid, kPidfdThread));
+    if (fd < 0) {
+        if (errno == ESRCH) return 1;
+        if (errno != EINVAL || pid != tid) return -1;  // EINVAL: a kernel without PIDFD_THREAD
+        fd = static_cast<int>(syscall(SYS_pidfd_open, pid, 0));
+        if (fd < 0) return errno == ESRCH ? 1 : -1;
+    }
+    if (const int exited = pidfd_says_exited(fd); exited != 0 || tid != pid) return exited;
     char path[32];
     std::snprintf(path, sizeof path, "/proc/%d/task", pid);
     struct stat st {};
     if (stat(path, &st) == 0 && st.st_nlink == 3) return 0;
 #else
     (void)pid;
+    (void)tid;
 #endif
     return -1;
 }
@@ -128,8 +144,8 @@ bool owner_alive(std::uint64_t word) noexcept {
     // A pid half of 0: a holder between clearing it and FUTEX_UNLOCK_PI; ask by TID alone.
     const long rc = pid > 0 ? syscall(SYS_tgkill, pid, tid, 0) : syscall(SYS_tkill, tid, 0);
     if (rc != 0 && errno == ESRCH) return false;
-    if (pid > 0 && pid == tid) {
-        if (const int exited = process_exited(pid); exited >= 0) return exited == 0;
+    if (pid > 0) {
+        if (const int exited = thread_exited(pid, tid); exited >= 0) return exited == 0;
     }
     // tgkill succeeds on a zombie (killed, not yet reaped): look at its state.
     char path[64];

@@ -208,6 +208,34 @@ TEST_F(IpcLock, AHolderWhoseMainThreadEndedAloneIsDeadWhileItsProcessLives) {
     EXPECT_EQ(wait_child(child), 0);
 }
 
+// A holder that is one thread of another process: alive while it runs, dead
+// once it has ended, though its process lives on (the pidfd of the thread,
+// PIDFD_THREAD, where the kernel has it; /proc/PID/task/TID/stat before).
+TEST_F(IpcLock, AHolderThreadOfAnotherProcessIsDeadOnceItEndsThoughItsProcessLives) {
+    CHIMERA_NOT_UNDER_TSAN("a forked child with a thread");
+    auto* s = shared_anon<Shared>();
+    const pid_t child = fork_child([s] {
+        std::thread([s] {
+            if (lock(s->lock) != LockStatus::acquired) return;
+            s->holding.store(1);
+            while (s->release.load() == 0) std::this_thread::sleep_for(std::chrono::milliseconds(1));
+        }).join();  // the thread ends holding the lock
+        while (s->release.load() != 2) std::this_thread::sleep_for(std::chrono::milliseconds(1));
+        return 0;
+    });
+    ASSERT_TRUE(wait_for([&] { return s->holding.load() == 1; }));
+    const std::uint64_t holder = s->lock.owner.load();
+    ASSERT_NE(owner_tid(holder), child);
+    EXPECT_TRUE(owner_alive(holder));
+    s->release.store(1);
+    EXPECT_TRUE(wait_for([&] { return !owner_alive(holder); })) << "an ended thread taken for alive";
+    EXPECT_EQ(kill(child, 0), 0) << "the process itself lives on";
+    EXPECT_EQ(lock(s->lock), LockStatus::recovered);
+    EXPECT_TRUE(unlock(s->lock));
+    s->release.store(2);
+    EXPECT_EQ(wait_child(child), 0);
+}
+
 TEST_F(IpcLock, ALiveHolderOfOneThreadIsAliveAndDeadOnceKilledUnreaped) {
     CHIMERA_NOT_UNDER_TSAN("a forked holder");
     auto* s = shared_anon<Shared>();

@@ -165,8 +165,9 @@ constexpr std::uint64_t owner_of(std::uint64_t word) noexcept {
 }
 
 /// True when the thread named by an owner word still exists (and is not a
-/// zombie). System calls (tgkill, then a pidfd for a process of one thread,
-/// /proc/PID/task/TID/stat for one of several): for slow paths only.
+/// zombie). System calls (tgkill, then a pidfd; /proc/PID/task/TID/stat only
+/// where a pidfd cannot tell: a leader of several threads, or any thread of a
+/// process of several before Linux 6.9): for slow paths only.
 CHIMERA_API bool owner_alive(std::uint64_t word) noexcept;
 
 /// One attempt; no waiting, no liveness check.

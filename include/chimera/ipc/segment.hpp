@@ -29,8 +29,8 @@
 // keeps its memory, and with it its lock, until that read ends (microseconds;
 // longer if the reader is preempted). A last user that detaches in that
 // moment leaves the segment behind. The library's own liveness probe
-// (owner_alive) asks a process of one thread through a pidfd so that it is
-// not such a reader. A handle copied into a child by fork()
+// (owner_alive) asks through a pidfd wherever the kernel lets it, so that it
+// is not such a reader. A handle copied into a child by fork()
 // neither counts nor frees: only the process that attached releases.
 //
 // Watchers (issue 16.7, docs/permissions.md): watch() maps a published
