@@ -178,10 +178,26 @@ TEST_F(IpcLock, ALiveHolderIsAliveWhereProcIsNotMounted) {
     EXPECT_EQ(rc, 0) << "3: /proc still visible; 4: the live holder was taken for dead";
 }
 
-// owner_alive() asks a process of one thread through a pidfd (reading its
-// /proc stat would hold its memory, and so its segment locks, past its death);
-// a process of several threads still needs /proc: there the leader, whose id
-// names the holder, can end alone while the process lives on.
+namespace {
+
+// The thread named by `holder` has ended, or is ending, while its process
+// `child` lives on: owner_alive() turns false, the lock is recovered, and the
+// process, told to end by `release` = `end`, exits with 0.
+void expect_ended_holder_of_a_live_process(Shared& s, pid_t child, std::uint64_t holder, int end) {
+    EXPECT_TRUE(wait_for([&] { return !owner_alive(holder); })) << "an ended thread taken for alive";
+    EXPECT_EQ(kill(child, 0), 0) << "the process itself lives on";
+    EXPECT_EQ(lock(s.lock), LockStatus::recovered);
+    EXPECT_TRUE(unlock(s.lock));
+    s.release.store(end);
+    EXPECT_EQ(wait_child(child), 0);
+}
+
+}  // namespace
+
+// owner_alive() asks through pidfds where it can (reading a process's /proc
+// stat would hold its memory, and so its segment locks, past its death); the
+// leader of several threads still needs /proc: it can end alone while the
+// process lives on, and the kernel holds back its pidfd until all have ended.
 TEST_F(IpcLock, AHolderWhoseMainThreadEndedAloneIsDeadWhileItsProcessLives) {
     CHIMERA_NOT_UNDER_TSAN("a forked child");
     auto* s = shared_anon<Shared>();
@@ -200,12 +216,7 @@ TEST_F(IpcLock, AHolderWhoseMainThreadEndedAloneIsDeadWhileItsProcessLives) {
     ASSERT_TRUE(wait_for([&] { return s->holding.load() == 1; }));
     const std::uint64_t holder = s->lock.owner.load();
     ASSERT_NE(holder, 0u);
-    EXPECT_TRUE(wait_for([&] { return !owner_alive(holder); })) << "an ended main thread taken for alive";
-    EXPECT_EQ(kill(child, 0), 0) << "the process itself lives on";
-    EXPECT_EQ(lock(s->lock), LockStatus::recovered);
-    EXPECT_TRUE(unlock(s->lock));
-    s->release.store(1);
-    EXPECT_EQ(wait_child(child), 0);
+    expect_ended_holder_of_a_live_process(*s, child, holder, 1);
 }
 
 // A holder that is one thread of another process: alive while it runs, dead
@@ -227,13 +238,8 @@ TEST_F(IpcLock, AHolderThreadOfAnotherProcessIsDeadOnceItEndsThoughItsProcessLiv
     const std::uint64_t holder = s->lock.owner.load();
     ASSERT_NE(owner_tid(holder), child);
     EXPECT_TRUE(owner_alive(holder));
-    s->release.store(1);
-    EXPECT_TRUE(wait_for([&] { return !owner_alive(holder); })) << "an ended thread taken for alive";
-    EXPECT_EQ(kill(child, 0), 0) << "the process itself lives on";
-    EXPECT_EQ(lock(s->lock), LockStatus::recovered);
-    EXPECT_TRUE(unlock(s->lock));
-    s->release.store(2);
-    EXPECT_EQ(wait_child(child), 0);
+    s->release.store(1);  // the thread ends
+    expect_ended_holder_of_a_live_process(*s, child, holder, 2);
 }
 
 TEST_F(IpcLock, ALiveHolderOfOneThreadIsAliveAndDeadOnceKilledUnreaped) {
