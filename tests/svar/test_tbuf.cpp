@@ -672,6 +672,25 @@ void reader_exchange_unrecorded(detail::Header& h) {
     (void)h.middle.exchange(given);
 }
 
+// `r` reads item `n`, fresh and whole. Returns the read's result.
+ReadResult read_fresh(Tbuf& r, std::uint64_t n) {
+    Item out{};
+    const ReadResult res = r.read(&out);
+    EXPECT_EQ(res.status, ReadStatus::fresh) << "item " << n << ": " << r.fault_message();
+    EXPECT_EQ(res.counter, n);
+    EXPECT_EQ(check_item(out, res), 0);
+    return res;
+}
+
+// Items flow again after a take-over: `w` writes item `n`, and `r` reads it
+// fresh and whole. Returns the read's result.
+ReadResult write_and_read_fresh(Tbuf& w, Tbuf& r, std::uint64_t n) {
+    Item it{};
+    make_item(it, n);
+    EXPECT_EQ(w.write(&it, static_cast<std::int64_t>(n)), n);
+    return read_fresh(r, n);
+}
+
 // The owner word of a live process (`pid`, single-threaded).
 std::uint64_t owner_of(pid_t pid) {
     return static_cast<std::uint64_t>(static_cast<std::uint32_t>(pid)) << 32 | static_cast<std::uint32_t>(pid);
@@ -717,22 +736,14 @@ TEST(Tbuf, AHalfWrittenItemStaysWithTheWriterRoleAfterBothSidesDied) {
     EXPECT_EQ(w2.next_counter(), 3u);
     EXPECT_EQ(detail::record_slot(h.writer.record.load()), writers) << "the writer's successor takes its record's slot";
     Tbuf r2 = Tbuf::attach_in(block, sizeof(Block));
-    Item out{};
-    ReadResult res = r2.read(&out);
-    EXPECT_EQ(res.status, ReadStatus::fresh) << r2.fault_message();
-    EXPECT_EQ(res.counter, 2u);
-    EXPECT_EQ(check_item(out, res), 0);
+    (void)read_fresh(r2, 2);
     EXPECT_NE(h.reader.record.load(), writers) << "the reader got the half-written slot";
-    res = r2.read(&out);
+    Item out{};
+    const ReadResult res = r2.read(&out);
     EXPECT_EQ(res.status, ReadStatus::reused);
     EXPECT_EQ(check_item(out, res), 0);
 
-    make_item(it, 3);
-    EXPECT_EQ(w2.write(&it, 3), 3u);
-    res = r2.read(&out);
-    EXPECT_EQ(res.status, ReadStatus::fresh);
-    EXPECT_EQ(res.counter, 3u);
-    EXPECT_EQ(check_item(out, res), 0);
+    (void)write_and_read_fresh(w2, r2, 3);
 }
 
 // A writer killed inside its publish (its slot's stamp newer than its
@@ -787,23 +798,12 @@ TEST(Tbuf, AReaderTakingOverAfterAWriterKilledInsideItsExchangeGetsItsItem) {
     h.writer.owner.store(dead_owner());
 
     Tbuf r = Tbuf::attach_in(block, sizeof(Block));
-    Item out{};
-    ReadResult res = r.read(&out);
-    EXPECT_EQ(res.status, ReadStatus::fresh) << r.fault_message();
-    EXPECT_EQ(res.counter, 2u);
-    EXPECT_EQ(check_item(out, res), 0);
+    (void)read_fresh(r, 2);
 
     Tbuf w2 = Tbuf::attach_in(block, sizeof(Block));
     EXPECT_EQ(w2.next_counter(), 3u);
     EXPECT_EQ(detail::record_slot(h.writer.record.load()), got) << "the slot the dead writer got back";
-    Item it{};
-    make_item(it, 3);
-    EXPECT_EQ(w2.write(&it, 3), 3u);
-    res = r.read(&out);
-    EXPECT_EQ(res.status, ReadStatus::fresh);
-    EXPECT_EQ(res.counter, 3u);
-    EXPECT_EQ(res.missed, 0u);
-    EXPECT_EQ(check_item(out, res), 0);
+    EXPECT_EQ(write_and_read_fresh(w2, r, 3).missed, 0u);
 }
 
 // A writer stopped inside its publish (here a live, stopped process) after
@@ -845,13 +845,7 @@ TEST(Tbuf, AReaderTakingOverWaitsForALiveWriterInsidePublishWhoseGivenSlotADeadR
     EXPECT_NE(res.status, ReadStatus::corrupt) << r2.fault_message();
     Tbuf w2 = Tbuf::attach_in(block, sizeof(Block));
     EXPECT_EQ(w2.next_counter(), 2u);
-    Item it{};
-    make_item(it, 2);
-    EXPECT_EQ(w2.write(&it, 2), 2u);
-    res = r2.read(&out);
-    EXPECT_EQ(res.status, ReadStatus::fresh);
-    EXPECT_EQ(res.counter, 2u);
-    EXPECT_EQ(check_item(out, res), 0);
+    (void)write_and_read_fresh(w2, r2, 2);
     const std::uint32_t w_slot = detail::record_slot(h.writer.record.load());
     const auto r_slot = static_cast<std::uint32_t>(h.reader.record.load());
     EXPECT_TRUE(w_slot != r_slot && w_slot != (h.middle.load() & detail::kSlotMask)) << w_slot << r_slot;
