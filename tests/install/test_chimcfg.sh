@@ -46,6 +46,18 @@ ctl.rmod: ok, rmod ctl, module pid, periodic at 100 Hz; in-consts GAIN; out-cons
 ctl.sbs: ok, subsystem ctl, 1 RTPU, master main, svar controller.svar (3 variables)" &&
 same "check of good files (stderr)" "$err" ""
 
+# The module checked is loaded into chimcfg's own copy of the runtime
+# (libchimera.so, as sbs has it), not into a second copy it brings in itself:
+# two copies in one process (two sets of globals, LTTng-UST loaded late with
+# dynamic TLS) made the ASan build's leak check crash at exit in a fresh
+# Debian 12 root. The dynamic linker names who first needs the library.
+loads=$(LD_DEBUG=files "$chimcfg" check ctl.rmod 2>&1 > /dev/null | grep -E "file=libchimera\.so\.[0-9]+ .*needed by")
+if [ "$(printf '%s\n' "$loads" | grep -c .)" != 1 ] || ! grep -q "needed by $chimcfg " <<< "$loads"; then
+    echo "FAIL: chimcfg should load libchimera.so once, itself; the dynamic linker says:" >&2
+    printf '%s\n' "${loads:-(no libchimera.so loaded)}" >&2
+    failures=$((failures + 1))
+fi
+
 # The thesis's own sample .svar (§5.5.2) is rejected at the line saying AME...
 run 1 check $thesis/thesis_sample.svar &&
 same "thesis sample (stderr)" "$err" "$thesis/thesis_sample.svar:23: expected NAME, found AME" &&
