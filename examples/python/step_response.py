@@ -75,6 +75,9 @@ def main():
                 chunks.append(sampling.read())
                 time.sleep(0.02)
             chunks.append(sampling.read())
+        # Let the feed go before the subsystem finishes: the teleop module, killed
+        # then, is its last user and removes it (an attacher only detaches).
+        feed.detach()
         rec = chimera.Recording.join(chunks)
         status = {s.rmod: s for s in chimera.status(sub.name)}
 

@@ -50,3 +50,6 @@ def test_a_short_run_prints_the_metrics_and_saves_the_plot(tmp_path):
     assert any(line.startswith("overshoot: ") for line in lines)
     assert any(line.startswith("jpid         ON") for line in lines)
     assert out.stat().st_size > 10000 and out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    # The step feed is gone with the run: nothing is left in /dev/shm (the
+    # module, started, made anew any feed an earlier run left).
+    assert not os.path.exists("/dev/shm/chimera.tbuf.step"), "the run left its TBUF feed behind"
