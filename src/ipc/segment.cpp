@@ -45,13 +45,33 @@ void check_name(const std::string& name) {
         throw SegmentError(name, "name longer than " + std::to_string(NAME_MAX) + " characters");
 }
 
-// Maps `fd` and applies the prefault/lock options; returns the address.
+// A second open file description of the file `fd` names, for the mapping, or
+// -1 (no /proc, or the file's mode no longer lets this user open it so).
+// The user locks stay on `fd`'s description, which only the descriptor table
+// holds: a dying process closes it in exit_files(), whoever holds its memory.
+// A mapping holds its description as long as the process's memory exists,
+// and a reader of /proc/PID/stat or status (ps, top) keeps that memory past
+// the process's death. Locks on the mapped description made such a dead user
+// count on until the read ended (issue #15.2's kill loop saw it), and a child
+// made by fork(), which keeps the mappings, kept the parent's locks.
+int description_for_mapping(int fd) noexcept {
+    char self[32];
+    std::snprintf(self, sizeof self, "/proc/self/fd/%d", fd);
+    return open(self, O_RDWR | O_CLOEXEC);
+}
+
+// Maps the file of `fd` and applies the prefault/lock options; returns the
+// address. A user's mapping gets a description of its own when it can (see
+// description_for_mapping); a watcher's, which carries no lock, needs none.
 void* map_fd(const std::string& name, int fd, std::size_t size, bool prefault, bool lock,
              bool& locked, bool read_only = false) {
     int flags = MAP_SHARED;
     if (prefault) flags |= MAP_POPULATE;
-    void* base = mmap(nullptr, size, read_only ? PROT_READ : PROT_READ | PROT_WRITE, flags, fd, 0);
-    if (base == MAP_FAILED) fail_errno(name, "mmap", errno);
+    const int own = read_only ? -1 : description_for_mapping(fd);
+    void* base = mmap(nullptr, size, read_only ? PROT_READ : PROT_READ | PROT_WRITE, flags, own >= 0 ? own : fd, 0);
+    const int err = errno;
+    if (own >= 0) close(own);  // the mapping keeps its description
+    if (base == MAP_FAILED) fail_errno(name, "mmap", err);
     locked = lock && mlock(base, size) == 0;
     return base;
 }
@@ -81,10 +101,10 @@ bool set_user_lock(int fd, short type, bool wait) noexcept {
 
 // The shared user lock for an attach. A last user holds the exclusive lock
 // only for the few system calls that unlink the name, so this polls instead of
-// blocking (F_OFD_SETLKW): the exclusive lock may outlive its holder's detach
-// when a child made by fork() keeps the holder's mapping — a mapping holds its
-// open file description, and its locks, as long as it exists — and that child
-// may be this very attacher, which would then wait for itself. While it waits,
+// blocking (F_OFD_SETLKW): where the mapping shares the locks' description (no
+// /proc: see description_for_mapping), the exclusive lock may outlive its
+// holder's detach when a child made by fork() keeps the holder's mapping, and
+// that child may be this very attacher, which would then wait for itself. While it waits,
 // it reads the segment's state through the descriptor: a segment marked
 // destroyed is given up at once (ESHUTDOWN). 0 or an errno.
 int wait_for_user_lock(int fd) noexcept {

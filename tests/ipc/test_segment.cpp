@@ -2,7 +2,12 @@
 
 #include <cstring>
 #include <vector>
+#include <sched.h>
 #include <signal.h>
+#include <sys/prctl.h>
+#include <sys/syscall.h>
+#include <sys/wait.h>
+#include <unistd.h>
 
 #include "chimera/ipc/segment.hpp"
 #include "sanitizer.hpp"
@@ -206,6 +211,47 @@ TEST(IpcSegment, AKilledUnreapedUserIsCountedOut) {
     EXPECT_TRUE(a.detach_destroy_if_last());
     EXPECT_FALSE(Segment::exists(name));
     wait_child(kid);
+}
+
+// A process that shares another's memory (clone with CLONE_VM) and holds
+// nothing else: it closes every descriptor it got, stores its pid in `arg`
+// and waits to be killed. Only system calls: it runs on a stack of its own in
+// its creator's memory.
+static int share_memory_only(void* arg) {
+    syscall(SYS_close_range, 0u, ~0u, 0u);
+    static_cast<std::atomic<int>*>(arg)->store(static_cast<int>(syscall(SYS_getpid)));
+    for (;;) syscall(SYS_pause);
+}
+
+// A user whose memory outlives it is counted out when it dies, not when its
+// memory goes. Here another process shares that memory for as long as the
+// test likes; a reader of its /proc/PID/stat (ps, top) shares it for the
+// read. The user lock used to sit on the open file description its mapping
+// holds, so such a dead user counted on (the TBUF kill loop saw it) and a last
+// user detaching meanwhile left the segment behind.
+TEST(IpcSegment, AKilledUserIsCountedOutThoughItsMemoryLivesOn) {
+    CHIMERA_NOT_UNDER_TSAN("a forked user killed");
+    const std::string name = unique_name("memory");
+    Segment a = make(name, 1);
+    ASSERT_EQ(prctl(PR_SET_CHILD_SUBREAPER, 1), 0);  // the sharer comes back to us to be reaped
+    auto* sharer = shared_anon<std::atomic<int>>();
+    const pid_t kid = fork_child([&] {
+        Segment b = Segment::attach(name, kKind);
+        static char stack[64 * 1024];
+        if (clone(share_memory_only, stack + sizeof stack, CLONE_VM | SIGCHLD, sharer) < 0) return 1;
+        for (;;) pause();  // killed while attached
+        return 0;
+    });
+    ASSERT_TRUE(wait_for([&] { return sharer->load() > 0; }));
+    EXPECT_EQ(a.users(), 2u);
+    kill(kid, SIGKILL);
+    EXPECT_EQ(wait_child(kid), 128 + SIGKILL);
+    EXPECT_EQ(a.users(), 1u);
+    EXPECT_TRUE(a.detach_destroy_if_last());
+    EXPECT_FALSE(Segment::exists(name));
+    kill(sharer->load(), SIGKILL);
+    waitpid(sharer->load(), nullptr, 0);
+    prctl(PR_SET_CHILD_SUBREAPER, 0);
 }
 
 // A user that is not the creator frees it when the creator was killed.

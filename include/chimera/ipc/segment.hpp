@@ -24,14 +24,15 @@
 // the kernel grants that only when no other mapping (of any live process)
 // holds a lock, and only then is the name removed. So a process killed by
 // SIGKILL at any instruction is counted out at once, and the last live user
-// frees the segment (issue #15.2). One exception the kernel makes: a process
-// whose /proc/PID/stat (or status) another process is reading as it dies
-// keeps its memory, and with it its lock, until that read ends (microseconds;
-// longer if the reader is preempted). A last user that detaches in that
-// moment leaves the segment behind. The library's own liveness probe
-// (owner_alive) asks through a pidfd wherever the kernel lets it, so that it
-// is not such a reader. A handle copied into a child by fork()
-// neither counts nor frees: only the process that attached releases.
+// frees the segment (issue #15.2). The locks sit on an open file description
+// that only the process's descriptor table holds; the mapping has one of its
+// own. A dying process closes its descriptors whoever still holds its memory
+// (a reader of its /proc/PID/stat, such as ps or top, holds it for the read;
+// a process sharing it, for longer), whereas a mapping lives as long as the
+// memory does. (Where /proc is not mounted, the mapping shares the locks'
+// description, and such a holder delays the count.) A handle copied into a
+// child by fork() neither counts nor frees: only the process that attached
+// releases.
 //
 // Watchers (issue 16.7, docs/permissions.md): watch() maps a published
 // segment read-only (O_RDONLY, PROT_READ) and takes no lock at all, so a
