@@ -289,6 +289,29 @@ TEST(IpcSegment, AHandleCopiedByForkNeitherCountsNorFrees) {
     EXPECT_TRUE(a.detach_destroy_if_last());
 }
 
+// Nor does a child that keeps the inherited mapping after its parent
+// detached keep the parent counted: the parent's locks are not on the
+// description that mapping holds, so the next user is the last and frees.
+TEST(IpcSegment, AChildKeepingAnInheritedMappingDoesNotKeepItsParentCounted) {
+    CHIMERA_NOT_UNDER_TSAN("a forked copy of the mapping");
+    const std::string name = unique_name("inherited");
+    Segment a = make(name, 5);
+    auto* forked = shared_anon<std::atomic<int>>();
+    const pid_t kid = fork_child([&] {
+        forked->store(1);  // past fork()'s handlers, which close the inherited descriptors
+        for (;;) pause();  // the inherited mapping stays until killed
+        return 0;
+    });
+    ASSERT_TRUE(wait_for([&] { return forked->load() == 1; }));
+    a.detach();
+    Segment b = Segment::attach(name, kKind);
+    EXPECT_EQ(b.users(), 1u);
+    EXPECT_TRUE(b.detach_destroy_if_last());
+    EXPECT_FALSE(Segment::exists(name));
+    kill(kid, SIGKILL);
+    wait_child(kid);
+}
+
 // An attach racing with the last user's destroy either fails cleanly or
 // keeps the segment as a new user: never a mapping of a removed name that
 // counts as alive, never a leak.
