@@ -35,7 +35,9 @@
 // every 100 ms), it counts the records still in its ring there: in the
 // Peer (undelivered(): they are the last ones written to it), in
 // Mailbox::undelivered(), and in its own mailbox header (`undelivered`),
-// where status tools see it. And when an RTPU takes over the mailbox of a
+// which any process mapping the segment reads (no tool of this project shows
+// it yet: sbs subsystems do not use express mail between RTPUs). And when an
+// RTPU takes over the mailbox of a
 // dead predecessor of its name, it counts what that one left unread in its
 // own header (`predecessor_unread`): the loss is on record even when the
 // senders died too.
