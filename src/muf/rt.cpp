@@ -539,6 +539,24 @@ void RtpuScheduler::detach_current_thread(TaskHandle h) noexcept {
 
 // ------------------------------------------------------------------ real-time path
 
+namespace {
+
+// Releases every `period` from `release` on that passed before `now` while
+// the task was busy: each is a miss, and each deadline among them not
+// reported yet a failure, so that misses and failures agree. Returns how many.
+std::int64_t count_skipped_releases(TaskSlot& s, std::int64_t release, std::int64_t period,
+                                    std::int64_t now) noexcept {
+    if (period <= 0 || now < release) return 0;
+    const std::int64_t late = (now - release) / period;
+    if (late > 0) {
+        s.missed.fetch_add(static_cast<std::uint64_t>(late), std::memory_order_relaxed);
+        detail::releases_skipped(s, release, late);
+    }
+    return late;
+}
+
+}  // namespace
+
 Wake RtpuScheduler::wait_release(TaskHandle h, const std::atomic<std::uint32_t>* word,
                                  std::uint32_t seen) noexcept {
     return impl_->wait_for_release(h, word, seen, /*own_word=*/false);
@@ -564,8 +582,14 @@ Wake RtpuScheduler::Impl::wait_for_release(TaskHandle h, const std::atomic<std::
     for (;;) {
         const std::uint32_t rw = s.release_word.load(std::memory_order_seq_cst);
         const Phase phase = s.phase.load(std::memory_order_acquire);
-        if (phase == Phase::detached || s.state.load(std::memory_order_acquire) != SlotState::attached)
+        if (phase == Phase::detached || s.state.load(std::memory_order_acquire) != SlotState::attached) {
+            // A task removed (remove_task) waits for no more releases: those its
+            // last job overran are counted now, as the next release would have.
+            if (s.state.load(std::memory_order_acquire) == SlotState::removed)
+                (void)count_skipped_releases(s, s.next_release_ns.load(std::memory_order_relaxed),
+                                             s.period_ns.load(std::memory_order_acquire), clock_ns());
             return Wake::detached;
+        }
         // The thread keeps its own timeline: the kernel wakes it at its release.
         if (phase == Phase::job) break;  // a job begun by set_deadline()
         std::int64_t release = s.next_release_ns.load(std::memory_order_relaxed);
@@ -582,12 +606,7 @@ Wake RtpuScheduler::Impl::wait_for_release(TaskHandle h, const std::atomic<std::
         now = clock_ns();
         if (now >= release) {
             const std::int64_t period = s.period_ns.load(std::memory_order_acquire);
-            const std::int64_t late = (now - release) / period;
-            if (late > 0) {
-                s.missed.fetch_add(static_cast<std::uint64_t>(late), std::memory_order_relaxed);
-                detail::releases_skipped(s, release, late);
-            }
-            release += late * period;
+            release += count_skipped_releases(s, release, period, now) * period;
             // The deadline before the phase, the next release after it: a
             // ranking that looks meanwhile sees the same job either way (a
             // release that came late, late > 0, ranks itself again below).
@@ -639,8 +658,13 @@ void RtpuScheduler::cycle_complete(TaskHandle h) noexcept {
     detail::clear_abort();
     // The job ends first: a watchdog signal from now on finds no job and is stale.
     Phase job = Phase::job;
-    const bool ended_late =
-        s.phase.compare_exchange_strong(job, Phase::waiting, std::memory_order_acq_rel) && detail::job_ended(s);
+    const bool ended = s.phase.compare_exchange_strong(job, Phase::waiting, std::memory_order_acq_rel);
+    // A job during which the task was removed (remove_task: detached, which
+    // stays) is accounted all the same, or the deadlines the watchdog reported
+    // during it would be failures without misses (the releases it overran are
+    // counted as the task leaves: wait_for_release).
+    const bool removed_during_job = !ended && job == Phase::detached;
+    const bool ended_late = (ended || removed_during_job) && detail::job_ended(s);
     // A miss per deadline missed: a job aborted, or complete but late (it still counts as a cycle).
     if (detail::take_cycle_aborted()) {
         s.missed.fetch_add(1, std::memory_order_relaxed);
