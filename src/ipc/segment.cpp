@@ -45,20 +45,24 @@ void check_name(const std::string& name) {
         throw SegmentError(name, "name longer than " + std::to_string(NAME_MAX) + " characters");
 }
 
-// A second open file description of the file `fd` names, for the mapping, or
-// -1 (no /proc, or the file's mode no longer lets this user open it so).
-// The user locks stay on `fd`'s description, which only the descriptor table
-// holds: a dying process closes it in exit_files(), whoever holds its memory.
-// A mapping holds its description as long as the process's memory exists,
-// and a reader of /proc/PID/stat or status (ps, top) keeps that memory past
-// the process's death. Locks on the mapped description made such a dead user
-// count on until the read ended (issue #15.2's kill loop saw it), and a child
-// made by fork(), which keeps the mappings, kept the parent's locks.
-int description_for_mapping(int fd) noexcept {
+// A new open file description of the file `fd` names (whatever its name now),
+// opened with `flags`; or -1 (no /proc, or the file's mode no longer lets this
+// user open it so).
+int reopen(int fd, int flags) noexcept {
     char self[32];
     std::snprintf(self, sizeof self, "/proc/self/fd/%d", fd);
-    return open(self, O_RDWR | O_CLOEXEC);
+    return open(self, flags | O_CLOEXEC);
 }
+
+// The mapping's own description (reopen), apart from `fd`'s, which carries
+// the user locks and which only the descriptor table holds: a dying process
+// closes it in exit_files(), whoever holds its memory. A mapping holds its
+// description as long as the process's memory exists, and a reader of
+// /proc/PID/stat or status (ps, top) keeps that memory past the process's
+// death. Locks on the mapped description made such a dead user count on until
+// the read ended (issue #15.2's kill loop saw it), and a child made by fork(),
+// which keeps the mappings, kept the parent's locks.
+int description_for_mapping(int fd) noexcept { return reopen(fd, O_RDWR); }
 
 // Maps the file of `fd` and applies the prefault/lock options; returns the
 // address. A user's mapping gets a description of its own when it can (see
@@ -574,9 +578,8 @@ bool Segment::release(bool destroy_if_last) noexcept {
 
 std::uint32_t Segment::users() const noexcept {
     if (fd_ < 0 || owner_ != getpid()) return 0;
-    // A second open file description of the same file, whatever its name now.
-    const std::string self = "/proc/self/fd/" + std::to_string(fd_);
-    const int probe = open(self.c_str(), O_RDONLY | O_CLOEXEC);
+    // A description of its own, so that every mapping's lock conflicts with it.
+    const int probe = reopen(fd_, O_RDONLY);
     if (probe < 0) return 0;
     const std::uint32_t n = count_slot_locks(probe, 1, kUserSlots);
     close(probe);

@@ -582,10 +582,11 @@ Wake RtpuScheduler::Impl::wait_for_release(TaskHandle h, const std::atomic<std::
     for (;;) {
         const std::uint32_t rw = s.release_word.load(std::memory_order_seq_cst);
         const Phase phase = s.phase.load(std::memory_order_acquire);
-        if (phase == Phase::detached || s.state.load(std::memory_order_acquire) != SlotState::attached) {
+        const SlotState state = s.state.load(std::memory_order_acquire);
+        if (phase == Phase::detached || state != SlotState::attached) {
             // A task removed (remove_task) waits for no more releases: those its
             // last job overran are counted now, as the next release would have.
-            if (s.state.load(std::memory_order_acquire) == SlotState::removed)
+            if (state == SlotState::removed)
                 (void)count_skipped_releases(s, s.next_release_ns.load(std::memory_order_relaxed),
                                              s.period_ns.load(std::memory_order_acquire), clock_ns());
             return Wake::detached;
@@ -658,13 +659,13 @@ void RtpuScheduler::cycle_complete(TaskHandle h) noexcept {
     detail::clear_abort();
     // The job ends first: a watchdog signal from now on finds no job and is stale.
     Phase job = Phase::job;
-    const bool ended = s.phase.compare_exchange_strong(job, Phase::waiting, std::memory_order_acq_rel);
     // A job during which the task was removed (remove_task: detached, which
     // stays) is accounted all the same, or the deadlines the watchdog reported
     // during it would be failures without misses (the releases it overran are
     // counted as the task leaves: wait_for_release).
-    const bool removed_during_job = !ended && job == Phase::detached;
-    const bool ended_late = (ended || removed_during_job) && detail::job_ended(s);
+    const bool ended = s.phase.compare_exchange_strong(job, Phase::waiting, std::memory_order_acq_rel) ||
+                       job == Phase::detached;
+    const bool ended_late = ended && detail::job_ended(s);
     // A miss per deadline missed: a job aborted, or complete but late (it still counts as a cycle).
     if (detail::take_cycle_aborted()) {
         s.missed.fetch_add(1, std::memory_order_relaxed);
