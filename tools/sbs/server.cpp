@@ -105,6 +105,84 @@ NetworkServer::NetworkServer(ServerOptions options, Executor executor)
 
 NetworkServer::~NetworkServer() { stop(); }
 
+namespace {
+
+sockaddr_un unix_address(const std::string& path) {
+    sockaddr_un addr{};
+    addr.sun_family = AF_UNIX;
+    std::memcpy(addr.sun_path, path.c_str(), path.size() + 1);
+    return addr;
+}
+
+}  // namespace
+
+// The socket is bound and listening under a name of this process's own
+// (PATH.PID) and appears at PATH only then (publish_unix_socket): a peer that
+// finds the file can always connect — at bind() the file exists while a
+// connect is still refused until listen().
+void NetworkServer::open_unix_socket() {
+    const std::string& path = options_.unix_path;
+    unix_staging_path_ = path + "." + std::to_string(::getpid());
+    if (unix_staging_path_.size() >= sizeof(sockaddr_un::sun_path)) {
+        stop();
+        throw ServerError("socket path too long: " + path);
+    }
+    sockaddr_un addr = unix_address(path);
+    struct stat st {};
+    if (::lstat(path.c_str(), &st) == 0) {
+        if (!S_ISSOCK(st.st_mode)) {
+            stop();
+            throw ServerError(path + " exists and is not a socket");
+        }
+        // A socket file left by a master that died: remove it, but never
+        // one somebody still answers on.
+        const int probe = ::socket(AF_UNIX, SOCK_STREAM | SOCK_CLOEXEC, 0);
+        const bool alive = probe >= 0 && ::connect(probe, reinterpret_cast<sockaddr*>(&addr), sizeof addr) == 0;
+        if (probe >= 0) ::close(probe);
+        if (alive) {
+            stop();
+            throw ServerError("another master already serves " + path);
+        }
+        ::unlink(path.c_str());
+    }
+    unix_fd_ = ::socket(AF_UNIX, SOCK_STREAM | SOCK_CLOEXEC, 0);
+    if (unix_fd_ < 0) {
+        const int err = errno;
+        stop();
+        throw ServerError("socket: " + errno_text(err));
+    }
+    ::unlink(unix_staging_path_.c_str());  // left by a killed master of this pid
+    addr = unix_address(unix_staging_path_);
+    const mode_t old = ::umask(0177);  // owner read/write only from the start
+    const int rc = ::bind(unix_fd_, reinterpret_cast<sockaddr*>(&addr), sizeof addr);
+    const int err = errno;
+    ::umask(old);
+    if (rc != 0) {
+        stop();
+        throw ServerError("cannot bind " + unix_staging_path_ + ": " + errno_text(err));
+    }
+    if (::listen(unix_fd_, SOMAXCONN) != 0) {
+        const int listen_err = errno;
+        stop();
+        throw ServerError("listen: " + errno_text(listen_err));
+    }
+    set_cloexec_nonblock(unix_fd_);
+}
+
+// A hard link, not rename(): it fails where another master published PATH
+// since open_unix_socket() looked, instead of replacing its socket.
+void NetworkServer::publish_unix_socket() {
+    const int rc = ::link(unix_staging_path_.c_str(), options_.unix_path.c_str());
+    const int err = errno;
+    if (rc != 0) {
+        stop();
+        throw ServerError(err == EEXIST ? "another master already serves " + options_.unix_path
+                                        : "cannot create " + options_.unix_path + ": " + errno_text(err));
+    }
+    ::unlink(unix_staging_path_.c_str());
+    unix_published_ = true;
+}
+
 void NetworkServer::start() {
     if (options_.tcp && !options_.token.empty() && options_.token.find_first_of(" \t\r\n") != std::string::npos) {
         throw ServerError("the token must not contain white space");
@@ -119,50 +197,7 @@ void NetworkServer::start() {
     wake_fd_ = ::eventfd(0, EFD_CLOEXEC | EFD_NONBLOCK);
     if (wake_fd_ < 0) throw ServerError("eventfd: " + errno_text(errno));
 
-    if (!options_.unix_path.empty()) {
-        sockaddr_un addr{};
-        addr.sun_family = AF_UNIX;
-        if (options_.unix_path.size() >= sizeof(addr.sun_path)) {
-            stop();
-            throw ServerError("socket path too long: " + options_.unix_path);
-        }
-        std::memcpy(addr.sun_path, options_.unix_path.c_str(), options_.unix_path.size() + 1);
-        struct stat st {};
-        if (::lstat(options_.unix_path.c_str(), &st) == 0) {
-            if (!S_ISSOCK(st.st_mode)) {
-                stop();
-                throw ServerError(options_.unix_path + " exists and is not a socket");
-            }
-            // A socket file left by a master that died: remove it, but never
-            // one somebody still answers on.
-            const int probe = ::socket(AF_UNIX, SOCK_STREAM | SOCK_CLOEXEC, 0);
-            const bool alive =
-                probe >= 0 && ::connect(probe, reinterpret_cast<sockaddr*>(&addr), sizeof addr) == 0;
-            if (probe >= 0) ::close(probe);
-            if (alive) {
-                stop();
-                throw ServerError("another master already serves " + options_.unix_path);
-            }
-            ::unlink(options_.unix_path.c_str());
-        }
-        unix_fd_ = ::socket(AF_UNIX, SOCK_STREAM | SOCK_CLOEXEC, 0);
-        if (unix_fd_ < 0) throw ServerError("socket: " + errno_text(errno));
-        const mode_t old = ::umask(0177);  // owner read/write only from the start
-        const int rc = ::bind(unix_fd_, reinterpret_cast<sockaddr*>(&addr), sizeof addr);
-        const int err = errno;
-        ::umask(old);
-        if (rc != 0) {
-            stop();
-            throw ServerError("cannot bind " + options_.unix_path + ": " + errno_text(err));
-        }
-        ::chmod(options_.unix_path.c_str(), 0600);
-        if (::listen(unix_fd_, SOMAXCONN) != 0) {
-            stop();
-            throw ServerError("listen: " + errno_text(errno));
-        }
-        set_cloexec_nonblock(unix_fd_);
-    }
-
+    if (!options_.unix_path.empty()) open_unix_socket();
     if (options_.tcp) {
         addrinfo hints{};
         hints.ai_family = AF_UNSPEC;
@@ -205,6 +240,7 @@ void NetworkServer::start() {
                           : ntohs(reinterpret_cast<sockaddr_in*>(&ss)->sin_port);
         set_cloexec_nonblock(tcp_fd_);
     }
+    if (!options_.unix_path.empty()) publish_unix_socket();
     stopping_ = false;
     if (options_.serve) {
         std::lock_guard lock(mutex_);
@@ -221,7 +257,9 @@ void NetworkServer::stop() {
     if (unix_fd_ >= 0) {
         ::close(unix_fd_);
         unix_fd_ = -1;
-        ::unlink(options_.unix_path.c_str());
+        // Only a path this server published: until then it may be another master's.
+        ::unlink(unix_published_ ? options_.unix_path.c_str() : unix_staging_path_.c_str());
+        unix_published_ = false;
     }
     if (tcp_fd_ >= 0) {
         ::close(tcp_fd_);

@@ -142,9 +142,14 @@ private:
     void wake();
     SessionEnd wait_session(const std::atomic<bool>* interrupt, bool forever, const std::function<void()>& offered);
 
+    void open_unix_socket();     // bound and listening under a staging name
+    void publish_unix_socket();  // then linked to its path
+
     ServerOptions options_;
     Executor executor_;
     int unix_fd_ = -1;
+    std::string unix_staging_path_;  // where the socket is bound until it listens
+    bool unix_published_ = false;    // at options_.unix_path: stop() removes it
     int tcp_fd_ = -1;
     int wake_fd_ = -1;
     std::uint16_t bound_port_ = 0;
