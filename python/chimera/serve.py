@@ -50,15 +50,21 @@ class ServedSubsystem:
             env["CHIMERA_MODULE_PATH"] = ":".join(os.path.abspath(p) for p in env["CHIMERA_MODULE_PATH"].split(":") if p)
         self.process = subprocess.Popen(args, stdout=self._log, stderr=subprocess.STDOUT, env=env,
                                         cwd=os.path.dirname(os.path.abspath(sbs_file)))
+        try:
+            self._wait_until_listening(sbs_file, timeout)
+            with self.master() as m:
+                self.name: str = m.subsystem
+        except BaseException:
+            self.stop()  # never leave a master running (holding its segments) behind a failed start
+            raise
+
+    def _wait_until_listening(self, sbs_file: str, timeout: float) -> None:
+        """Until sbs says it listens: printed once every socket it opens accepts (TCP included)."""
         deadline = time.monotonic() + timeout
-        while not os.path.exists(self.socket):
+        while " listening on " not in self.output():
             if self.process.poll() is not None or time.monotonic() > deadline:
-                printed = self.output()
-                self.stop()
-                raise RuntimeError("sbs %s did not start:\n%s" % (sbs_file, printed))
+                raise RuntimeError("sbs %s did not start:\n%s" % (sbs_file, self.output()))
             time.sleep(0.02)
-        with self.master() as m:
-            self.name: str = m.subsystem
 
     def master(self) -> Master:
         """A client of this master (one at a time has control)."""

@@ -118,3 +118,20 @@ def test_tcp_with_a_token(tmp_path):
 def test_no_master_listening(tmp_path):
     with pytest.raises(chimera.MasterError, match="cannot reach the master of nobody at .*nobody.sock"):
         chimera.Master("nobody", socket_path=str(tmp_path / "nobody.sock"))
+
+
+def test_a_master_that_never_answers_is_stopped_when_serve_fails(tmp_path):
+    # A master that says it listens but refuses every connection: serve() must
+    # raise and leave nothing running (it used to leave the process behind).
+    import os
+    fake = tmp_path / "fake-sbs"
+    pid_file = tmp_path / "pid"
+    fake.write_text('#!/bin/sh\necho $$ > %s\necho "sbs: subsystem fake listening on unix socket $5" >&2\nexec sleep 60\n'
+                    % pid_file)
+    fake.chmod(0o755)
+    (tmp_path / "fake.sbs").write_text("SUBSYSTEM fake\nEOF\n")
+    with pytest.raises(chimera.MasterError, match="cannot reach the master"):
+        chimera.serve(str(tmp_path / "fake.sbs"), sbs_exe=str(fake), timeout=5)
+    pid = int(pid_file.read_text())
+    with pytest.raises(ProcessLookupError):
+        os.kill(pid, 0)
