@@ -6,6 +6,9 @@
 #include <chimera/ipc/segment.hpp>
 #include <chimera/sampler.hpp>
 
+#include <cstdlib>
+#include <string>
+
 namespace chimera::python {
 
 void bind_svar(py::module_& m) {
@@ -92,9 +95,33 @@ void bind_svar(py::module_& m) {
 
 }  // namespace chimera::python
 
+namespace {
+
+// pybind11 before 2.12 reads numpy arrays through numpy 1.x's C structures
+// (PyArray_Descr's layout changed in numpy 2.0): under numpy 2 its arrays
+// carry wrong element sizes and reads return wrong values, silently. Refuse
+// the import instead, naming both versions and the way out.
+void refuse_an_incompatible_numpy() {
+    namespace py = pybind11;
+#if PYBIND11_VERSION_MAJOR < 2 || (PYBIND11_VERSION_MAJOR == 2 && PYBIND11_VERSION_MINOR < 12)
+    const py::module_ numpy = py::module_::import("numpy");
+    const std::string version = py::str(numpy.attr("__version__"));
+    if (std::atoi(version.c_str()) < 2) return;
+    const std::string where = py::hasattr(numpy, "__file__") ? std::string(py::str(numpy.attr("__file__"))) : "?";
+    throw py::import_error("chimera: numpy " + version + " (" + where + ") is imported, but chimera's bindings were "
+                           "built with pybind11 " PYBIND11_TOSTRING(PYBIND11_VERSION_MAJOR) "." PYBIND11_TOSTRING(
+                               PYBIND11_VERSION_MINOR) ", which reads numpy 1.x arrays only: use numpy < 2 (Debian's "
+                           "python3-numpy; in a virtual environment 'pip install \"numpy<2\"' or "
+                           "--system-site-packages), or rebuild the bindings with pybind11 2.12 or later");
+#endif
+}
+
+}  // namespace
+
 PYBIND11_MODULE(_core, m) {
     namespace cp = chimera::python;
     namespace py = pybind11;
+    refuse_an_incompatible_numpy();
     m.doc() = "Chimera for Linux: state variables, triple buffers and task status from Python (issue #18).";
     static py::exception<std::runtime_error> base(m, "ChimeraError", PyExc_RuntimeError);
     static py::exception<cp::SvarError> svar_error(m, "SvarError", base.ptr());
