@@ -114,11 +114,12 @@ public:
     using Error::Error;
 };
 
-/// The last folders of the module path: the installed module folder and,
+/// The last folders of the module path: the installed module folder or,
 /// while the running program lives in the build tree it was built in, that
-/// tree's module folders (build/modules/*), so `build/tools/sbs/sbs FILE.sbs`
-/// finds the shipped modules with no --module-path. CHIMERA_MODULE_PATH and
-/// --module-path / add_module_path() come before them.
+/// tree's module folders instead (build/modules/* and the source's modules/*),
+/// so `build/tools/sbs/sbs FILE.sbs` finds the modules built with it, never an
+/// earlier install's. CHIMERA_MODULE_PATH and --module-path /
+/// add_module_path() come before them.
 CHIMERA_API std::vector<std::string> default_module_dirs();
 
 /// No module of that name on the module path (it may be elsewhere: see module_local_keys).

@@ -177,7 +177,7 @@ const ChimeraModuleAbi& load_module(const std::string& name, const std::vector<s
     }
     throw ModuleNotFound("module " + name + " not found: not linked into the program, and no " + name + ".so or lib" + name +
                 ".so with " + symbol + " on the module path (CHIMERA_MODULE_PATH, add_module_path(), the .rmod's "
-                "folder, the install folder); tried:" +
+                "folder, the install folder or the build tree's module folders); tried:" +
                 (tried.empty() ? std::string(" nothing (empty path)") : tried));
 }
 
@@ -187,12 +187,11 @@ namespace chimera::sbs {
 
 std::vector<std::string> default_module_dirs() {
     std::vector<std::string> dirs;
-#ifdef CHIMERA_MODULE_DIR
-    dirs.emplace_back(CHIMERA_MODULE_DIR);
-#endif
 #ifdef CHIMERA_BUILD_ROOT
     // A program run from the build tree it was built in (build/tools/sbs/sbs)
-    // finds the modules built beside it, one folder each, with no flag.
+    // finds the modules built beside it, one folder each, with no flag — and
+    // only those: an installed module may be of another version of the
+    // library (an earlier meson install), built against other headers.
     namespace fs = std::filesystem;
     std::error_code ec;
     const fs::path exe = fs::read_symlink("/proc/self/exe", ec);
@@ -209,7 +208,11 @@ std::vector<std::string> default_module_dirs() {
             dirs.insert(dirs.end(), found.begin(), found.end());
             ec.clear();
         }
+        return dirs;
     }
+#endif
+#ifdef CHIMERA_MODULE_DIR
+    dirs.emplace_back(CHIMERA_MODULE_DIR);
 #endif
     return dirs;
 }

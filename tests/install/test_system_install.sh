@@ -59,6 +59,17 @@ unshare -m -- bash -euo pipefail -c '
         sbs "$skel/skel.sbs" --no-attach -c "spawn skel; on; sleep 0.2; status skel" > "$skel/out.txt" ||
         { cat "$skel/out.txt"; exit 1; }
     grep -E "^skel +main .* ON " "$skel/out.txt" || { echo "the skeleton does not run:"; cat "$skel/out.txt"; exit 1; }
+    echo "== the build tree'"'"'s sbs loads the modules built with it, the installed sbs the installed ones"
+    sed "s/^SUBSYSTEM .*/SUBSYSTEM modpath$$/" "$source/tests/install/data/ctl.sbs" > "$work/modpath.sbs"
+    cp "$source/tests/install/data/controller.svar" "$work/"
+    pid_module() {  # the pid.so that sbs ($1) finds for `module`
+        env -i PATH=/usr/local/bin:/usr/bin:/bin "$1" "$work/modpath.sbs" --no-attach --json -c module |
+            python3 -c "import json,sys; print(next(m[\"path\"] for m in json.loads(sys.stdin.readline())[\"data\"][\"modules\"] if m[\"name\"] == \"pid\"))"
+    }
+    found=$(pid_module "$build/tools/sbs/sbs")
+    [ "$found" = "$build/modules/pid/pid.so" ] || { echo "build-tree sbs found $found, not $build/modules/pid/pid.so"; exit 1; }
+    found=$(pid_module sbs)
+    case $found in /usr/local/lib/*/chimera/modules/pid.so) ;; *) echo "installed sbs found $found"; exit 1 ;; esac
     if meson introspect "$build" --install-plan | grep -q "_core.*\\.so"; then
         echo "== /usr/bin/python3 -c \"import chimera\", no environment: the package is on Debian'"'"'s sys.path"
         env -i PATH=/usr/bin:/bin /usr/bin/python3 "$source/tests/install/python_check.py" \
