@@ -66,22 +66,25 @@ stage_fuzz() {
 
 stages=(setup build suite asan tsan fuzz)
 
-# Runs a command and logs how long it took; a stage that fails ends the script
-# (set -e), and the log at exit says which was running.
-times_log=() running=()
+# Runs a command and logs how long it took and how it ended in $times_file, a
+# file so that the steps a stage times inside its subshell (asan-build,
+# asan-suite) are listed too.
 timed() {
-  local label=$1 start=$SECONDS; shift
+  local label=$1 start=$SECONDS rc errexit=${-//[^e]/}; shift
   echo "==> $label"
-  running+=("$label $start")
-  "$@"
-  unset 'running[-1]'
-  times_log+=("$(printf '%-11s %5d s' "$label" $((SECONDS - start)))")
+  # In a subshell of its own with set -e: its first failing command ends it.
+  # (Run as a condition — `if`, `||` — bash would ignore set -e inside.)
+  set +e
+  (set -e; "$@")
+  rc=$?
+  [ -z "$errexit" ] || set -e
+  printf '  %-11s %5d s  %s\n' "$label" $((SECONDS - start)) "$( ((rc == 0)) && echo ok || echo "FAILED (exit $rc)")" >>"$times_file"
+  return "$rc"
 }
 print_times() {
-  local r
-  for r in "${running[@]}"; do times_log+=("$(printf '%-11s %5d s  FAILED' "${r% *}" $((SECONDS - ${r#* })))"); done
   echo "== stage times (total $SECONDS s)"
-  printf '  %s\n' "${times_log[@]}"
+  cat "$times_file"
+  rm -f "$times_file"
 }
 
 selected=() meson_test_args=()
@@ -98,8 +101,20 @@ for s in "${selected[@]}"; do
 done
 ((${#selected[@]})) || selected=("${stages[@]}")
 
+times_file=$(mktemp)
 trap print_times EXIT
 
+# Every selected stage runs, whatever an earlier one did, so one failure hides
+# no other; the script's status is non-zero when any failed.
+failed=()
+set +e
 for s in "${stages[@]}"; do
-  if [[ " ${selected[*]} " == *" $s "* ]]; then timed "$s" "stage_$s"; fi
+  [[ " ${selected[*]} " == *" $s "* ]] || continue
+  timed "$s" "stage_$s"
+  (($? == 0)) || failed+=("$s")
 done
+set -e
+if ((${#failed[@]})); then
+  echo "test.sh: failed stages: ${failed[*]}" >&2
+  exit 1
+fi
