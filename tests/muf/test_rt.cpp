@@ -1414,46 +1414,109 @@ TEST(MufStatic, DataFlowOrdersTasksOfOneRateInEveryPeriod) {
 // time unit = 10 ms, for one hyperperiod (60 units): the tasks miss what the
 // simulator says (RM: tau3 2, tau4 4; EDF: tau1 4, tau2 4; MUF: tau4 4 only).
 // As the figure draws it, a job still running at its deadline is aborted there
-// (its failure handler returns abort_cycle); each job burns its WCET of CPU
-// time less 0.1 ms, the room for the dispatcher and the abort themselves, so a
-// job the simulator finishes exactly at its deadline is not failed by overhead
-// (and 25 jobs save less than a unit between them). The misses are events,
-// counted; no time is asserted.
+// (its failure handler returns abort_cycle). The misses are events, counted;
+// no time is asserted.
+//
+// The schedule has no slack in places: under EDF tau4 finishes exactly at its
+// deadline at 15 and at 45, after 15 units of back-to-back jobs. A thread
+// loses CPU time in proportion to the time it runs (the vCPU's steal time,
+// the ticks, the dispatcher): measured 0.3-2 % on a 2-vCPU Firecracker VM,
+// where a fixed 0.1 ms per job made tau4 miss at 15 and 45 in every run. So
+// each job burns its WCET less kMarginPermille of it, and the simulator, run
+// on those shortened jobs in ticks of unit/1000, must miss exactly what it
+// misses on whole units: the margin changes no count (up to 4.5 % it does not).
 class Figure6_1OnThreads : public ::testing::TestWithParam<Policy> {};
 
-// One hyperperiod of `set` on threads under `policy`: the jobs of each task not
-// completed by its end (deadline = period, so every job of [0, 60) is due by 60).
-std::vector<std::uint64_t> figure6_1_misses_on_threads(const TaskSet& set, Policy policy, std::int64_t unit,
-                                                       std::int64_t hyperperiod) {
+constexpr std::int64_t kMarginPermille = 30;
+constexpr std::int64_t kTicksPerUnit = 1000;
+
+// The figure's set in ticks of unit/1000, each job kMarginPermille shorter.
+TaskSet figure6_1_burned(const TaskSet& set) {
+    TaskSet fine = set;
+    for (TaskSpec& t : fine.tasks) {
+        t.period *= kTicksPerUnit;
+        t.wcet = t.wcet * (kTicksPerUnit - kMarginPermille);
+    }
+    return fine;
+}
+
+// CPU time thread `tid` of this process has had (the kernel's sum_exec_runtime).
+std::int64_t cpu_time_of_thread(int tid) {
+    std::ifstream in("/proc/self/task/" + std::to_string(tid) + "/schedstat");
+    std::int64_t ns = -1;
+    in >> ns;
+    return ns;
+}
+
+struct FigureRun {
+    std::vector<std::uint64_t> missed;  // per task: jobs of [0, 60) not completed
+    std::int64_t attached_late_ns = 0;  // > 0: the set was attached after its first release
+    std::int64_t scheduled_ns = 0;      // CPU time the simulator gives the jobs up to the look
+    std::int64_t lost_ns = 0;           // of it, what the task threads did not get
+};
+
+// The stall detector's reference: the CPU time the simulated schedule (of the
+// burned set) gives the jobs in the first `elapsed_ns`. Less what the task
+// threads had meanwhile, it is what other threads and the machine took.
+std::int64_t scheduled_cpu_ns(const TaskSet& burned, Policy policy, std::int64_t unit, std::int64_t elapsed_ns) {
+    const std::int64_t tick = unit / kTicksPerUnit;
+    const SimResult sim = simulate(burned.tasks, policy, LateJob::abort, elapsed_ns / tick);
+    std::int64_t busy = 0;
+    for (const SimSlice& s : sim.timeline) busy += s.end - s.begin;
+    return busy * tick;
+}
+
+// One hyperperiod of `set` on threads under `policy`.
+FigureRun figure6_1_on_threads(const TaskSet& set, Policy policy, std::int64_t unit, std::int64_t hyperperiod) {
     RtpuScheduler sch(options(Backend::fifo, policy));
-    const std::int64_t start = clock_ns() + 30 * ms;
+    const std::int64_t start = clock_ns() + 100 * ms;
+    const std::int64_t end = start + hyperperiod * unit;
+    const TaskSet burned = figure6_1_burned(set);
     std::vector<std::unique_ptr<Probe>> probes;  // outlive the runners
     std::vector<std::unique_ptr<Runner>> runners;
-    for (const TaskSpec& t : set.tasks) {
+    // Jobs released before the end and completed, counted by the job itself:
+    // the look may come late, when jobs released at the end have completed.
+    std::array<std::atomic<std::uint64_t>, 8> completed{};
+    for (std::size_t i = 0; i < set.tasks.size(); ++i) {
+        const TaskSpec& t = set.tasks[i];
         probes.push_back(std::make_unique<Probe>());
         probes.back()->action = FailureAction::abort_cycle;  // at its deadline a job is dropped
         RtTaskParams p = task(t.name.c_str(), static_cast<std::int64_t>(t.period) * unit,
                               static_cast<std::int64_t>(t.wcet) * unit);
         p.maxexec_check = false;  // the tasks run to their WCET by design
         p.first_release_ns = start;
-        const std::int64_t burn = p.wcet_ns - ms / 10;
-        runners.push_back(std::make_unique<Runner>(sch, p, [burn] { burn_cpu(burn); }, probes.back().get()));
+        const auto burn = static_cast<std::int64_t>(burned.tasks[i].wcet) * (unit / kTicksPerUnit);
+        runners.push_back(std::make_unique<Runner>(
+            sch, p,
+            [&, i, burn] {
+                burn_cpu(burn);
+                if (sch.job_release_ns(runners[i]->handle()) < end) completed[i].fetch_add(1);
+            },
+            probes.back().get()));
     }
     for (auto& r : runners)
         if (!r->start()) throw std::runtime_error(r->error());
-    // The look is half a unit after the end, before any job released at the
-    // end can complete (the shortest takes 2 units).
-    std::this_thread::sleep_until(std::chrono::steady_clock::time_point(std::chrono::nanoseconds(start)) +
-                                  std::chrono::nanoseconds(hyperperiod * unit + unit / 2));
-    std::vector<std::uint64_t> cycles;
-    for (auto& r : runners) cycles.push_back(sch.status(r->handle()).cycles);
+    std::int64_t cpu0 = 0;
+    for (auto& r : runners) cpu0 += cpu_time_of_thread(r->tid());
+    FigureRun run;
+    run.attached_late_ns = clock_ns() - start;
+    // The look is half a unit after the end (no job released before it runs on).
+    std::this_thread::sleep_until(std::chrono::steady_clock::time_point(std::chrono::nanoseconds(end + unit / 2)));
+    std::int64_t cpu1 = 0;
+    for (auto& r : runners) cpu1 += cpu_time_of_thread(r->tid());
+    const std::int64_t look = clock_ns();
     for (auto& r : runners) r->stop();
-    std::vector<std::uint64_t> missed;
-    for (std::size_t i = 0; i < set.tasks.size(); ++i) {
-        const auto released = static_cast<std::uint64_t>(hyperperiod / set.tasks[i].period);
-        missed.push_back(released - std::min(released, cycles[i]));
-    }
-    return missed;
+    run.scheduled_ns = scheduled_cpu_ns(burned, policy, unit, look - start);
+    run.lost_ns = run.scheduled_ns - (cpu1 - cpu0);
+    for (std::size_t i = 0; i < set.tasks.size(); ++i)
+        run.missed.push_back(static_cast<std::uint64_t>(hyperperiod / set.tasks[i].period) - completed[i].load());
+    return run;
+}
+
+std::vector<std::uint64_t> simulated_misses(const TaskSet& set, Policy policy, std::int64_t until) {
+    std::vector<std::uint64_t> m;
+    for (const auto& s : simulate(set.tasks, policy, LateJob::abort, until).stats) m.push_back(s.missed);
+    return m;
 }
 
 TEST_P(Figure6_1OnThreads, MissesWhatTheSimulatorMisses) {
@@ -1464,44 +1527,30 @@ TEST_P(Figure6_1OnThreads, MissesWhatTheSimulatorMisses) {
     ASSERT_NE(root, nullptr) << "CHIMERA_SOURCE_ROOT is not set (meson test sets it)";
     const TaskSet set = read_task_set(std::string(root) + "/tools/chimsched/examples/fig6_1.tasks");
     constexpr std::int64_t unit = 10 * ms, hyperperiod = 60;
-    const SimResult sim = simulate(set.tasks, policy, LateJob::abort, hyperperiod);
-    std::vector<std::uint64_t> want;
-    for (const auto& s : sim.stats) want.push_back(s.missed);
-    // RM and MUF: the counts are the simulator's exactly (fixed ranks, and
-    // MUF's critical set). EDF: the tasks that miss are the simulator's, tau1
-    // and tau2, but not always as often: under EDF's overload whole jobs hang
-    // on ties between equal deadlines (all four tasks have one at 30 and at
-    // 60), which the simulator breaks first-come-first-served and the
-    // dispatcher in the order it sees the releases; measured runs missed 3 or
-    // 4 of tau1's 10 jobs where the simulator misses 4 — the unpredictability
-    // under overload that §6.2.2 holds against EDF.
-    const auto failing = [](const std::vector<std::uint64_t>& m) {
-        std::vector<bool> f;
-        for (auto x : m) f.push_back(x > 0);
-        return f;
-    };
-    const auto agrees = [&](const std::vector<std::uint64_t>& got) {
-        return policy == Policy::edf ? failing(got) == failing(want) : got == want;
-    };
-    // The CPU is shared with the other engineers' real-time tests, and MUF's
-    // critical set needs 59 of the 60 units: a run that lost more than one
-    // unit (1.7 %) to another thread misses more. Up to five runs, a pause
-    // between them; one must agree (a scheduler that ranked the tasks
-    // otherwise fails every run).
-    std::vector<std::uint64_t> got;
+    const std::vector<std::uint64_t> want = simulated_misses(set, policy, hyperperiod);
+    ASSERT_EQ(simulated_misses(figure6_1_burned(set), policy, hyperperiod * kTicksPerUnit), want)
+        << "the jobs' margin changes what the simulator misses";
+    // The CPU is shared with the other engineers' real-time tests and with the
+    // hypervisor: a run whose task threads lost more CPU time than the jobs'
+    // margin, or whose set was attached after its first release (the test
+    // thread waited for a CPU), was disturbed (measured, printed) and is run
+    // again, up to five times; any other disagreement fails at once.
+    FigureRun run;
     for (int attempt = 1; attempt <= 5; ++attempt) {
         if (attempt > 1) std::this_thread::sleep_for(200ms);
-        got = figure6_1_misses_on_threads(set, policy, unit, hyperperiod);
+        run = figure6_1_on_threads(set, policy, unit, hyperperiod);
         std::string line;
-        for (std::size_t i = 0; i < got.size(); ++i)
-            line += " " + set.tasks[i].name + " " + std::to_string(got[i]) + "/" + std::to_string(want[i]);
-        std::printf("%s run %d, missed on threads/simulated:%s\n", to_string(policy).data(), attempt, line.c_str());
-        if (agrees(got)) break;
+        for (std::size_t i = 0; i < run.missed.size(); ++i)
+            line += " " + set.tasks[i].name + " " + std::to_string(run.missed[i]) + "/" + std::to_string(want[i]);
+        const bool late = run.attached_late_ns > 0;
+        const bool disturbed = late || run.lost_ns * 1000 > run.scheduled_ns * kMarginPermille;
+        std::printf("%s run %d, missed on threads/simulated:%s; the threads lost %.2f ms of %.1f ms%s\n",
+                    to_string(policy).data(), attempt, line.c_str(), run.lost_ns / 1e6, run.scheduled_ns / 1e6,
+                    late ? " (disturbed: the set was attached after its first release)"
+                    : disturbed ? " (disturbed: more than the jobs' margin)" : "");
+        if (run.missed == want || !disturbed) break;
     }
-    if (policy == Policy::edf)
-        EXPECT_EQ(failing(got), failing(want));
-    else
-        EXPECT_EQ(got, want);
+    EXPECT_EQ(run.missed, want);
 }
 
 INSTANTIATE_TEST_SUITE_P(Policies, Figure6_1OnThreads, ::testing::Values(Policy::rm, Policy::edf, Policy::muf),
