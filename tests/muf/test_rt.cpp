@@ -1154,7 +1154,33 @@ struct DynamicCount {
     std::uint64_t changes = 0, missed = 0;
     bool dynamic = false;
     bool on_time = true;  ///< both samples within a tenth of the quiet time of their instant
+    /// The stall detector: the latest a job ended after the end the simulator
+    /// gives it (from its release): what the machine took from the tasks.
+    std::int64_t worst_late_ns = 0;
 };
+
+// How long after its release each job of one hyperperiod ends in the
+// simulated schedule, per task, in job order: the set as the runtime assigns
+// it (no WCET given), each job running its burn, in ticks of 1 us.
+std::vector<std::vector<std::int64_t>> simulated_end_delays(const std::vector<DynamicTask>& tasks,
+                                                            std::int64_t hyper) {
+    constexpr std::int64_t us = 1000;
+    std::vector<TaskSpec> specs;
+    for (const DynamicTask& t : tasks) specs.push_back({.name = t.name, .period = double(t.period / us),
+                                                        .deadline = double(t.deadline / us)});
+    const Assignment a = assign(specs, Policy::muf);
+    std::vector<SimTask> sim;
+    for (std::size_t i = 0; i < tasks.size(); ++i)
+        sim.push_back({.name = tasks[i].name, .period = tasks[i].period / us, .wcet = tasks[i].burn / us,
+                       .deadline = tasks[i].deadline / us, .crit = a.crit[i], .uprio = a.uprio[i]});
+    SimOptions so;
+    so.late = LateJob::finish;
+    so.use_deadline = a.uses_deadline;
+    so.until = hyper / us;
+    std::vector<std::vector<std::int64_t>> delays(tasks.size());
+    for (const SimJob& j : simulate(sim, so).jobs) delays[j.task].push_back((j.finish - j.release) * us);
+    return delays;
+}
 
 // Runs `tasks` from an epoch, and counts from `from` to `to` hyperperiods
 // after it, at `quiet` into the hyperperiod (no task running then).
@@ -1164,12 +1190,28 @@ DynamicCount count_dynamic_cycles(const std::vector<DynamicTask>& tasks, std::in
     o.epoch_ns = clock_ns() + 30 * ms;
     RtpuScheduler sch(o);
     std::vector<std::unique_ptr<Runner>> runners;
+    const auto end_delays = simulated_end_delays(tasks, hyper);
+    std::atomic<std::int64_t> worst_late{0};
     for (const DynamicTask& t : tasks) {
         RtTaskParams p = task(t.name, t.period, 0, t.deadline);
-        const std::int64_t burn = t.burn;
+        const std::int64_t burn = t.burn, period = t.period, epoch = o.epoch_ns;
+        const std::size_t i = runners.size();
+        const std::vector<std::int64_t>& delays = end_delays[i];
         // Wall-clock burn: CLOCK_MONOTONIC is read in the vDSO, where a
         // thread's CPU clock is a system call.
-        runners.push_back(std::make_unique<Runner>(sch, p, [burn] { if (burn > 0) burn_wall(burn); }));
+        // One clock read per job beyond the burn's (a system call where the
+        // vDSO cannot serve the clock: counted by the tests).
+        // Releases skipped (the task woke a period or more late) count as
+        // late as the time they cover.
+        runners.push_back(std::make_unique<Runner>(sch, p, [&, i, burn, period, epoch, last = std::int64_t{-1}]() mutable {
+            if (burn > 0) burn_wall(burn);
+            const std::int64_t release = sch.job_release_ns(runners[i]->handle());
+            const auto job = static_cast<std::size_t>((release - epoch) / period) % delays.size();
+            const std::int64_t skipped = last < 0 ? 0 : release - last - period;
+            last = release;
+            const std::int64_t late = std::max(clock_ns() - release - delays[job], skipped);
+            if (late > worst_late.load(std::memory_order_relaxed)) worst_late.store(late, std::memory_order_relaxed);
+        }));
     }
     for (auto& r : runners)
         if (!r->start()) throw std::runtime_error(r->error());
@@ -1206,6 +1248,7 @@ DynamicCount count_dynamic_cycles(const std::vector<DynamicTask>& tasks, std::in
         c.cycles.push_back(sch.status(runners[i]->handle()).cycles - cycles0[i]);
         c.missed += sch.status(runners[i]->handle()).missed;
     }
+    c.worst_late_ns = worst_late.load();
     c.changes = sch.priority_changes() - changes0;
     sched_param normal{};
     sched_setscheduler(0, SCHED_OTHER, &normal);
@@ -1242,26 +1285,36 @@ bool dynamic_counter_preconditions() {
 }
 
 std::string describe(const DynamicCount& c, const std::vector<DynamicTask>& tasks) {
-    std::string line = std::string(c.on_time ? "" : "(a sample came late) ") + "priority changes " + std::to_string(c.changes) + ", missed " + std::to_string(c.missed) + ";";
+    std::string line = std::string(c.on_time ? "" : "(a sample came late) ") + "priority changes " +
+                       std::to_string(c.changes) + ", missed " + std::to_string(c.missed) + ", a job " +
+                       std::to_string(c.worst_late_ns / 1000) + " us late;";
     for (std::size_t i = 0; i < tasks.size(); ++i)
         line += std::string(" ") + tasks[i].name + " " + std::to_string(c.calls[i]) + " calls/" +
                 std::to_string(c.cycles[i]) + " cycles";
     return line;
 }
 
-// Up to three runs of the set (hyperperiods of 6 ms, counted from `from` to
-// `to`), until one is `clean`: a stall of the machine (another engineer's
-// real-time test on this CPU, the VM's vCPU descheduled for milliseconds)
-// leaves jobs pending together in another order, which a priority change
-// rightly follows. Stops at once on a set that does not rank dynamically.
+// Runs of the set (hyperperiods of 6 ms, counted from `from` to `to`) until
+// one is `clean`; a run that is not is run again, up to five times, only when
+// the test's stall detector says it was disturbed, and it prints so: a sample
+// came late, or a job ended more than a tenth of the shortest period after
+// the end the simulator gives it (the machine held the CPU:
+// measured on a 2-vCPU Firecracker VM whose kernel does not preempt in kernel
+// mode, a bare SCHED_FIFO sleeper there wakes up to 10 ms late at load 7).
+// Jobs pending together in another order then rightly change priorities and
+// miss. Stops at once on a set that does not rank dynamically.
 template <typename Clean>
 DynamicCount count_until_clean(const std::vector<DynamicTask>& tasks, int from, int to, Clean clean) {
+    std::int64_t shortest = tasks.front().period;
+    for (const DynamicTask& t : tasks) shortest = std::min(shortest, t.period);
     DynamicCount c;
-    for (int attempt = 1; attempt <= 3; ++attempt) {
+    for (int attempt = 1; attempt <= 5; ++attempt) {
         c = count_dynamic_cycles(tasks, 6 * ms, 5 * ms, from, to);
         if (!c.dynamic) break;
-        std::printf("run %d: %s\n", attempt, describe(c, tasks).c_str());
-        if (clean(c)) break;
+        const bool disturbed = !c.on_time || c.worst_late_ns > shortest / 10;
+        std::printf("run %d: %s%s\n", attempt, describe(c, tasks).c_str(),
+                    disturbed ? " (disturbed: the machine held the CPU)" : "");
+        if (clean(c) || !disturbed) break;
     }
     return c;
 }
@@ -1281,7 +1334,7 @@ TEST(MufDynamic, OneSystemCallPerCycleWhereTheRankingHolds) {
     const DynamicCount c = count_until_clean(tasks, from, to, [&](const DynamicCount& r) {
         bool clean = r.on_time && r.changes == 0 && r.missed == 0;
         for (std::size_t i = 0; i < tasks.size(); ++i)
-            clean = clean && r.calls[i] == r.cycles[i] * (1 + 2 * clock_read);
+            clean = clean && r.calls[i] == r.cycles[i] * (1 + 3 * clock_read);
         return clean;
     });
     ASSERT_TRUE(c.dynamic) << "the set must rank dynamically";
@@ -1290,8 +1343,9 @@ TEST(MufDynamic, OneSystemCallPerCycleWhereTheRankingHolds) {
         SCOPED_TRACE(tasks[i].name);
         const std::uint64_t per_hyper = static_cast<std::uint64_t>(6 * ms / tasks[i].period);
         EXPECT_EQ(c.cycles[i], per_hyper * (to - from));
-        // Exactly the wait, once per cycle (the clock reads too where they are calls).
-        EXPECT_EQ(c.calls[i], c.cycles[i] * (1 + 2 * clock_read));
+        // Exactly the wait, once per cycle (where the clock reads are calls,
+        // the release path's two and the stall detector's one too).
+        EXPECT_EQ(c.calls[i], c.cycles[i] * (1 + 3 * clock_read));
     }
 }
 
@@ -1309,14 +1363,14 @@ TEST(MufDynamic, WhereTheRankingChangesTheOnlyOtherCallsAreTheCountedPriorityCha
         const std::uint64_t calls = r.calls[0] + r.calls[1];
         const std::uint64_t cycles = r.cycles[0] + r.cycles[1];
         return r.on_time && r.missed == 0 && r.changes == 2u * (to - from) &&
-               calls == cycles * (1 + 2 * clock_read) + r.changes;
+               calls == cycles * (1 + 3 * clock_read) + r.changes;
     });
     ASSERT_TRUE(c.dynamic) << "the set must rank dynamically";
     EXPECT_EQ(c.cycles[0], 2u * (to - from));
     EXPECT_EQ(c.cycles[1], 3u * (to - from));
     EXPECT_EQ(c.changes, 2u * (to - from)) << "two flips of the order per 6 ms, one change each";
     // Every call beyond the waits is a priority change the scheduler counted.
-    EXPECT_EQ(c.calls[0] + c.calls[1], (c.cycles[0] + c.cycles[1]) * (1 + 2 * clock_read) + c.changes);
+    EXPECT_EQ(c.calls[0] + c.calls[1], (c.cycles[0] + c.cycles[1]) * (1 + 3 * clock_read) + c.changes);
 }
 
 // Memory locked once a scheduler has real-time privilege (docs/muf.md; not in a
