@@ -1166,8 +1166,13 @@ std::vector<std::vector<std::int64_t>> simulated_end_delays(const std::vector<Dy
                                                             std::int64_t hyper) {
     constexpr std::int64_t us = 1000;
     std::vector<TaskSpec> specs;
-    for (const DynamicTask& t : tasks) specs.push_back({.name = t.name, .period = double(t.period / us),
-                                                        .deadline = double(t.deadline / us)});
+    for (const DynamicTask& t : tasks) {
+        TaskSpec spec;
+        spec.name = t.name;
+        spec.period = static_cast<double>(t.period / us);
+        spec.deadline = static_cast<double>(t.deadline / us);
+        specs.push_back(spec);
+    }
     const Assignment a = assign(specs, Policy::muf);
     std::vector<SimTask> sim;
     for (std::size_t i = 0; i < tasks.size(); ++i)
@@ -1182,6 +1187,31 @@ std::vector<std::vector<std::int64_t>> simulated_end_delays(const std::vector<Dy
     return delays;
 }
 
+// A job of a counted set: burns, then tells the stall detector how late it
+// ended. Wall-clock burn: CLOCK_MONOTONIC is read in the vDSO, where a
+// thread's CPU clock is a system call; the one read beyond the burn's is
+// counted by the tests where the clock is a call.
+struct CountedJob {
+    RtpuScheduler& sch;
+    const std::vector<std::unique_ptr<Runner>>& runners;
+    std::atomic<std::int64_t>& worst_late;
+    const std::vector<std::int64_t>& end_delays;  // simulated_end_delays() of its task
+    std::size_t task;
+    std::int64_t burn, period, epoch;
+    std::int64_t last_release = -1;
+
+    void operator()() {
+        if (burn > 0) burn_wall(burn);
+        const std::int64_t release = sch.job_release_ns(runners[task]->handle());
+        const auto job = static_cast<std::size_t>((release - epoch) / period) % end_delays.size();
+        // Releases skipped (the task woke a period or more late) are as late as the time they cover.
+        const std::int64_t skipped = last_release < 0 ? 0 : release - last_release - period;
+        last_release = release;
+        const std::int64_t late = std::max(clock_ns() - release - end_delays[job], skipped);
+        if (late > worst_late.load(std::memory_order_relaxed)) worst_late.store(late, std::memory_order_relaxed);
+    }
+};
+
 // Runs `tasks` from an epoch, and counts from `from` to `to` hyperperiods
 // after it, at `quiet` into the hyperperiod (no task running then).
 DynamicCount count_dynamic_cycles(const std::vector<DynamicTask>& tasks, std::int64_t hyper, std::int64_t quiet,
@@ -1194,24 +1224,9 @@ DynamicCount count_dynamic_cycles(const std::vector<DynamicTask>& tasks, std::in
     std::atomic<std::int64_t> worst_late{0};
     for (const DynamicTask& t : tasks) {
         RtTaskParams p = task(t.name, t.period, 0, t.deadline);
-        const std::int64_t burn = t.burn, period = t.period, epoch = o.epoch_ns;
         const std::size_t i = runners.size();
-        const std::vector<std::int64_t>& delays = end_delays[i];
-        // Wall-clock burn: CLOCK_MONOTONIC is read in the vDSO, where a
-        // thread's CPU clock is a system call.
-        // One clock read per job beyond the burn's (a system call where the
-        // vDSO cannot serve the clock: counted by the tests).
-        // Releases skipped (the task woke a period or more late) count as
-        // late as the time they cover.
-        runners.push_back(std::make_unique<Runner>(sch, p, [&, i, burn, period, epoch, last = std::int64_t{-1}]() mutable {
-            if (burn > 0) burn_wall(burn);
-            const std::int64_t release = sch.job_release_ns(runners[i]->handle());
-            const auto job = static_cast<std::size_t>((release - epoch) / period) % delays.size();
-            const std::int64_t skipped = last < 0 ? 0 : release - last - period;
-            last = release;
-            const std::int64_t late = std::max(clock_ns() - release - delays[job], skipped);
-            if (late > worst_late.load(std::memory_order_relaxed)) worst_late.store(late, std::memory_order_relaxed);
-        }));
+        runners.push_back(std::make_unique<Runner>(
+            sch, p, CountedJob{sch, runners, worst_late, end_delays[i], i, t.burn, t.period, o.epoch_ns}));
     }
     for (auto& r : runners)
         if (!r->start()) throw std::runtime_error(r->error());
@@ -1536,13 +1551,31 @@ void judge_losses(FigureRun& run, const TaskSet& burned, Policy policy, std::int
             run.excess_ns = std::max(run.excess_ns, lost[j] - lost[i] - (busy[j] - busy[i]) * kMarginPermille / 1000);
 }
 
-// Samples are taken from another CPU than the tasks' where there is one.
-void leave_cpu(int cpu) {
-    cpu_set_t set;
-    CPU_ZERO(&set);
+// (time from `start`, CPU time the task threads had) now, once a unit, and
+// half a unit after the hyperperiod (no job released before it runs on).
+// Taken from another CPU than the tasks' where there is one.
+std::vector<std::pair<std::int64_t, std::int64_t>> sample_task_cpu(
+    const std::vector<std::unique_ptr<Runner>>& runners, int task_cpu, std::int64_t start, std::int64_t unit,
+    std::int64_t hyperperiod) {
+    cpu_set_t before, others;
+    sched_getaffinity(0, sizeof before, &before);
+    CPU_ZERO(&others);
     for (int c = 0; c < get_nprocs(); ++c)
-        if (c != cpu) CPU_SET(static_cast<unsigned>(c), &set);
-    if (CPU_COUNT(&set) > 0) sched_setaffinity(0, sizeof set, &set);
+        if (c != task_cpu) CPU_SET(static_cast<unsigned>(c), &others);
+    if (CPU_COUNT(&others) > 0) sched_setaffinity(0, sizeof others, &others);
+    const auto sample = [&] {
+        std::int64_t cpu = 0;
+        for (auto& r : runners) cpu += cpu_time_of_thread(r->tid());
+        return std::pair(clock_ns() - start, cpu);
+    };
+    std::vector<std::pair<std::int64_t, std::int64_t>> samples{sample()};
+    for (std::int64_t k = 1; k <= hyperperiod + 1; ++k) {
+        const std::int64_t at = start + std::min(k * unit, hyperperiod * unit + unit / 2);
+        std::this_thread::sleep_until(std::chrono::steady_clock::time_point(std::chrono::nanoseconds(at)));
+        samples.push_back(sample());
+    }
+    sched_setaffinity(0, sizeof before, &before);
+    return samples;
 }
 
 // One hyperperiod of `set` on threads under `policy`.
@@ -1576,26 +1609,10 @@ FigureRun figure6_1_on_threads(const TaskSet& set, Policy policy, std::int64_t u
     }
     for (auto& r : runners)
         if (!r->start()) throw std::runtime_error(r->error());
-    cpu_set_t cpus;
-    sched_getaffinity(0, sizeof cpus, &cpus);
-    leave_cpu(o.cpu);
-    const auto sample = [&] {
-        std::int64_t cpu = 0;
-        for (auto& r : runners) cpu += cpu_time_of_thread(r->tid());
-        return std::pair(clock_ns() - start, cpu);
-    };
-    std::vector<std::pair<std::int64_t, std::int64_t>> samples{sample()};
+    const auto samples = sample_task_cpu(runners, o.cpu, start, unit, hyperperiod);
+    for (auto& r : runners) r->stop();
     FigureRun run;
     run.attached_late_ns = samples.front().first;
-    // One sample a unit; the last half a unit after the end (no job released
-    // before it runs on).
-    for (std::int64_t k = 1; k <= hyperperiod + 1; ++k) {
-        const std::int64_t at = std::min(start + k * unit, end + unit / 2);
-        std::this_thread::sleep_until(std::chrono::steady_clock::time_point(std::chrono::nanoseconds(at)));
-        samples.push_back(sample());
-    }
-    for (auto& r : runners) r->stop();
-    sched_setaffinity(0, sizeof cpus, &cpus);
     judge_losses(run, burned, policy, unit, samples);
     for (std::size_t i = 0; i < set.tasks.size(); ++i)
         run.missed.push_back(static_cast<std::uint64_t>(hyperperiod / set.tasks[i].period) - completed[i].load());
