@@ -1250,20 +1250,25 @@ DynamicCount count_dynamic_cycles(const std::vector<DynamicTask>& tasks, std::in
         std::this_thread::sleep_until(std::chrono::steady_clock::time_point(std::chrono::nanoseconds(when)));
         if (clock_ns() - when > quiet / 10) c.on_time = false;
     };
-    std::vector<std::uint64_t> calls0, cycles0;
+    // Misses and lateness are counted in the window too: the counts asserted
+    // are, and the start (threads made, memory locked) is when a loaded
+    // machine stalls most.
+    std::vector<std::uint64_t> calls0, cycles0, missed0;
     at(from);
     for (std::size_t i = 0; i < runners.size(); ++i) {
         calls0.push_back(chimera::test::read_syscall_counter(fds[i]));
         cycles0.push_back(sch.status(runners[i]->handle()).cycles);
+        missed0.push_back(sch.status(runners[i]->handle()).missed);
     }
+    worst_late.store(0);  // no task runs now: this thread is above them on their CPU
     const std::uint64_t changes0 = sch.priority_changes();
     at(to);
+    c.worst_late_ns = worst_late.load();
     for (std::size_t i = 0; i < runners.size(); ++i) {
         c.calls.push_back(chimera::test::read_syscall_counter(fds[i]) - calls0[i]);
         c.cycles.push_back(sch.status(runners[i]->handle()).cycles - cycles0[i]);
-        c.missed += sch.status(runners[i]->handle()).missed;
+        c.missed += sch.status(runners[i]->handle()).missed - missed0[i];
     }
-    c.worst_late_ns = worst_late.load();
     c.changes = sch.priority_changes() - changes0;
     sched_param normal{};
     sched_setscheduler(0, SCHED_OTHER, &normal);
