@@ -1154,6 +1154,62 @@ struct DynamicCount {
     std::uint64_t changes = 0, missed = 0;
     bool dynamic = false;
     bool on_time = true;  ///< both samples within a tenth of the quiet time of their instant
+    /// The stall detector: the latest a job ended after the end the simulator
+    /// gives it (from its release): what the machine took from the tasks.
+    std::int64_t worst_late_ns = 0;
+};
+
+// How long after its release each job of one hyperperiod ends in the
+// simulated schedule, per task, in job order: the set as the runtime assigns
+// it (no WCET given), each job running its burn, in ticks of 1 us.
+std::vector<std::vector<std::int64_t>> simulated_end_delays(const std::vector<DynamicTask>& tasks,
+                                                            std::int64_t hyper) {
+    constexpr std::int64_t us = 1000;
+    std::vector<TaskSpec> specs;
+    for (const DynamicTask& t : tasks) {
+        TaskSpec spec;
+        spec.name = t.name;
+        spec.period = static_cast<double>(t.period / us);
+        spec.deadline = static_cast<double>(t.deadline / us);
+        specs.push_back(spec);
+    }
+    const Assignment a = assign(specs, Policy::muf);
+    std::vector<SimTask> sim;
+    for (std::size_t i = 0; i < tasks.size(); ++i)
+        sim.push_back({.name = tasks[i].name, .period = tasks[i].period / us, .wcet = tasks[i].burn / us,
+                       .deadline = tasks[i].deadline / us, .crit = a.crit[i], .uprio = a.uprio[i]});
+    SimOptions so;
+    so.late = LateJob::finish;
+    so.use_deadline = a.uses_deadline;
+    so.until = hyper / us;
+    std::vector<std::vector<std::int64_t>> delays(tasks.size());
+    for (const SimJob& j : simulate(sim, so).jobs) delays[j.task].push_back((j.finish - j.release) * us);
+    return delays;
+}
+
+// A job of a counted set: burns, then tells the stall detector how late it
+// ended. Wall-clock burn: CLOCK_MONOTONIC is read in the vDSO, where a
+// thread's CPU clock is a system call; the one read beyond the burn's is
+// counted by the tests where the clock is a call.
+struct CountedJob {
+    RtpuScheduler& sch;
+    const std::vector<std::unique_ptr<Runner>>& runners;
+    std::atomic<std::int64_t>& worst_late;
+    const std::vector<std::int64_t>& end_delays;  // simulated_end_delays() of its task
+    std::size_t task;
+    std::int64_t burn, period, epoch;
+    std::int64_t last_release = -1;
+
+    void operator()() {
+        if (burn > 0) burn_wall(burn);
+        const std::int64_t release = sch.job_release_ns(runners[task]->handle());
+        const auto job = static_cast<std::size_t>((release - epoch) / period) % end_delays.size();
+        // Releases skipped (the task woke a period or more late) are as late as the time they cover.
+        const std::int64_t skipped = last_release < 0 ? 0 : release - last_release - period;
+        last_release = release;
+        const std::int64_t late = std::max(clock_ns() - release - end_delays[job], skipped);
+        if (late > worst_late.load(std::memory_order_relaxed)) worst_late.store(late, std::memory_order_relaxed);
+    }
 };
 
 // Runs `tasks` from an epoch, and counts from `from` to `to` hyperperiods
@@ -1164,12 +1220,13 @@ DynamicCount count_dynamic_cycles(const std::vector<DynamicTask>& tasks, std::in
     o.epoch_ns = clock_ns() + 30 * ms;
     RtpuScheduler sch(o);
     std::vector<std::unique_ptr<Runner>> runners;
+    const auto end_delays = simulated_end_delays(tasks, hyper);
+    std::atomic<std::int64_t> worst_late{0};
     for (const DynamicTask& t : tasks) {
         RtTaskParams p = task(t.name, t.period, 0, t.deadline);
-        const std::int64_t burn = t.burn;
-        // Wall-clock burn: CLOCK_MONOTONIC is read in the vDSO, where a
-        // thread's CPU clock is a system call.
-        runners.push_back(std::make_unique<Runner>(sch, p, [burn] { if (burn > 0) burn_wall(burn); }));
+        const std::size_t i = runners.size();
+        runners.push_back(std::make_unique<Runner>(
+            sch, p, CountedJob{sch, runners, worst_late, end_delays[i], i, t.burn, t.period, o.epoch_ns}));
     }
     for (auto& r : runners)
         if (!r->start()) throw std::runtime_error(r->error());
@@ -1193,18 +1250,24 @@ DynamicCount count_dynamic_cycles(const std::vector<DynamicTask>& tasks, std::in
         std::this_thread::sleep_until(std::chrono::steady_clock::time_point(std::chrono::nanoseconds(when)));
         if (clock_ns() - when > quiet / 10) c.on_time = false;
     };
-    std::vector<std::uint64_t> calls0, cycles0;
+    // Misses and lateness are counted in the window too: the counts asserted
+    // are, and the start (threads made, memory locked) is when a loaded
+    // machine stalls most.
+    std::vector<std::uint64_t> calls0, cycles0, missed0;
     at(from);
     for (std::size_t i = 0; i < runners.size(); ++i) {
         calls0.push_back(chimera::test::read_syscall_counter(fds[i]));
         cycles0.push_back(sch.status(runners[i]->handle()).cycles);
+        missed0.push_back(sch.status(runners[i]->handle()).missed);
     }
+    worst_late.store(0);  // no task runs now: this thread is above them on their CPU
     const std::uint64_t changes0 = sch.priority_changes();
     at(to);
+    c.worst_late_ns = worst_late.load();
     for (std::size_t i = 0; i < runners.size(); ++i) {
         c.calls.push_back(chimera::test::read_syscall_counter(fds[i]) - calls0[i]);
         c.cycles.push_back(sch.status(runners[i]->handle()).cycles - cycles0[i]);
-        c.missed += sch.status(runners[i]->handle()).missed;
+        c.missed += sch.status(runners[i]->handle()).missed - missed0[i];
     }
     c.changes = sch.priority_changes() - changes0;
     sched_param normal{};
@@ -1242,26 +1305,36 @@ bool dynamic_counter_preconditions() {
 }
 
 std::string describe(const DynamicCount& c, const std::vector<DynamicTask>& tasks) {
-    std::string line = std::string(c.on_time ? "" : "(a sample came late) ") + "priority changes " + std::to_string(c.changes) + ", missed " + std::to_string(c.missed) + ";";
+    std::string line = std::string(c.on_time ? "" : "(a sample came late) ") + "priority changes " +
+                       std::to_string(c.changes) + ", missed " + std::to_string(c.missed) + ", a job " +
+                       std::to_string(c.worst_late_ns / 1000) + " us late;";
     for (std::size_t i = 0; i < tasks.size(); ++i)
         line += std::string(" ") + tasks[i].name + " " + std::to_string(c.calls[i]) + " calls/" +
                 std::to_string(c.cycles[i]) + " cycles";
     return line;
 }
 
-// Up to three runs of the set (hyperperiods of 6 ms, counted from `from` to
-// `to`), until one is `clean`: a stall of the machine (another engineer's
-// real-time test on this CPU, the VM's vCPU descheduled for milliseconds)
-// leaves jobs pending together in another order, which a priority change
-// rightly follows. Stops at once on a set that does not rank dynamically.
+// Runs of the set (hyperperiods of 6 ms, counted from `from` to `to`) until
+// one is `clean`; a run that is not is run again, up to five times, only when
+// the test's stall detector says it was disturbed, and it prints so: a sample
+// came late, or a job ended more than a tenth of the shortest period after
+// the end the simulator gives it (the machine held the CPU:
+// measured on a 2-vCPU Firecracker VM whose kernel does not preempt in kernel
+// mode, a bare SCHED_FIFO sleeper there wakes up to 10 ms late at load 7).
+// Jobs pending together in another order then rightly change priorities and
+// miss. Stops at once on a set that does not rank dynamically.
 template <typename Clean>
 DynamicCount count_until_clean(const std::vector<DynamicTask>& tasks, int from, int to, Clean clean) {
+    std::int64_t shortest = tasks.front().period;
+    for (const DynamicTask& t : tasks) shortest = std::min(shortest, t.period);
     DynamicCount c;
-    for (int attempt = 1; attempt <= 3; ++attempt) {
+    for (int attempt = 1; attempt <= 5; ++attempt) {
         c = count_dynamic_cycles(tasks, 6 * ms, 5 * ms, from, to);
         if (!c.dynamic) break;
-        std::printf("run %d: %s\n", attempt, describe(c, tasks).c_str());
-        if (clean(c)) break;
+        const bool disturbed = !c.on_time || c.worst_late_ns > shortest / 10;
+        std::printf("run %d: %s%s\n", attempt, describe(c, tasks).c_str(),
+                    disturbed ? " (disturbed: the machine held the CPU)" : "");
+        if (clean(c) || !disturbed) break;
     }
     return c;
 }
@@ -1281,7 +1354,7 @@ TEST(MufDynamic, OneSystemCallPerCycleWhereTheRankingHolds) {
     const DynamicCount c = count_until_clean(tasks, from, to, [&](const DynamicCount& r) {
         bool clean = r.on_time && r.changes == 0 && r.missed == 0;
         for (std::size_t i = 0; i < tasks.size(); ++i)
-            clean = clean && r.calls[i] == r.cycles[i] * (1 + 2 * clock_read);
+            clean = clean && r.calls[i] == r.cycles[i] * (1 + 3 * clock_read);
         return clean;
     });
     ASSERT_TRUE(c.dynamic) << "the set must rank dynamically";
@@ -1290,8 +1363,9 @@ TEST(MufDynamic, OneSystemCallPerCycleWhereTheRankingHolds) {
         SCOPED_TRACE(tasks[i].name);
         const std::uint64_t per_hyper = static_cast<std::uint64_t>(6 * ms / tasks[i].period);
         EXPECT_EQ(c.cycles[i], per_hyper * (to - from));
-        // Exactly the wait, once per cycle (the clock reads too where they are calls).
-        EXPECT_EQ(c.calls[i], c.cycles[i] * (1 + 2 * clock_read));
+        // Exactly the wait, once per cycle (where the clock reads are calls,
+        // the release path's two and the stall detector's one too).
+        EXPECT_EQ(c.calls[i], c.cycles[i] * (1 + 3 * clock_read));
     }
 }
 
@@ -1309,14 +1383,14 @@ TEST(MufDynamic, WhereTheRankingChangesTheOnlyOtherCallsAreTheCountedPriorityCha
         const std::uint64_t calls = r.calls[0] + r.calls[1];
         const std::uint64_t cycles = r.cycles[0] + r.cycles[1];
         return r.on_time && r.missed == 0 && r.changes == 2u * (to - from) &&
-               calls == cycles * (1 + 2 * clock_read) + r.changes;
+               calls == cycles * (1 + 3 * clock_read) + r.changes;
     });
     ASSERT_TRUE(c.dynamic) << "the set must rank dynamically";
     EXPECT_EQ(c.cycles[0], 2u * (to - from));
     EXPECT_EQ(c.cycles[1], 3u * (to - from));
     EXPECT_EQ(c.changes, 2u * (to - from)) << "two flips of the order per 6 ms, one change each";
     // Every call beyond the waits is a priority change the scheduler counted.
-    EXPECT_EQ(c.calls[0] + c.calls[1], (c.cycles[0] + c.cycles[1]) * (1 + 2 * clock_read) + c.changes);
+    EXPECT_EQ(c.calls[0] + c.calls[1], (c.cycles[0] + c.cycles[1]) * (1 + 3 * clock_read) + c.changes);
 }
 
 // Memory locked once a scheduler has real-time privilege (docs/muf.md; not in a
@@ -1414,46 +1488,146 @@ TEST(MufStatic, DataFlowOrdersTasksOfOneRateInEveryPeriod) {
 // time unit = 10 ms, for one hyperperiod (60 units): the tasks miss what the
 // simulator says (RM: tau3 2, tau4 4; EDF: tau1 4, tau2 4; MUF: tau4 4 only).
 // As the figure draws it, a job still running at its deadline is aborted there
-// (its failure handler returns abort_cycle); each job burns its WCET of CPU
-// time less 0.1 ms, the room for the dispatcher and the abort themselves, so a
-// job the simulator finishes exactly at its deadline is not failed by overhead
-// (and 25 jobs save less than a unit between them). The misses are events,
-// counted; no time is asserted.
+// (its failure handler returns abort_cycle). The misses are events, counted;
+// no time is asserted.
+//
+// The schedule has no slack in places: under EDF tau4 finishes exactly at its
+// deadline at 15 and at 45, after 15 units of back-to-back jobs. A thread
+// loses CPU time in proportion to the time it runs (the vCPU's steal time,
+// the ticks, the dispatcher): measured 0.3-2 % on a 2-vCPU Firecracker VM,
+// where a fixed 0.1 ms per job made tau4 miss at 15 and 45 in every run. So
+// each job burns its WCET less kMarginPermille of it, and the simulator, run
+// on those shortened jobs in ticks of unit/1000, must miss exactly what it
+// misses on whole units: the margin changes no count (up to 4.5 % it does not).
 class Figure6_1OnThreads : public ::testing::TestWithParam<Policy> {};
 
-// One hyperperiod of `set` on threads under `policy`: the jobs of each task not
-// completed by its end (deadline = period, so every job of [0, 60) is due by 60).
-std::vector<std::uint64_t> figure6_1_misses_on_threads(const TaskSet& set, Policy policy, std::int64_t unit,
-                                                       std::int64_t hyperperiod) {
-    RtpuScheduler sch(options(Backend::fifo, policy));
-    const std::int64_t start = clock_ns() + 30 * ms;
+constexpr std::int64_t kMarginPermille = 30;
+constexpr std::int64_t kTicksPerUnit = 1000;
+
+// The figure's set in ticks of unit/1000, each job kMarginPermille shorter.
+TaskSet figure6_1_burned(const TaskSet& set) {
+    TaskSet fine = set;
+    for (TaskSpec& t : fine.tasks) {
+        t.period *= kTicksPerUnit;
+        t.wcet = t.wcet * (kTicksPerUnit - kMarginPermille);
+    }
+    return fine;
+}
+
+// CPU time thread `tid` of this process has had (the kernel's sum_exec_runtime).
+std::int64_t cpu_time_of_thread(int tid) {
+    std::ifstream in("/proc/self/task/" + std::to_string(tid) + "/schedstat");
+    std::int64_t ns = -1;
+    in >> ns;
+    return ns;
+}
+
+struct FigureRun {
+    std::vector<std::uint64_t> missed;  // per task: jobs of [0, 60) not completed
+    std::int64_t attached_late_ns = 0;  // > 0: the set was attached after its first release
+    std::int64_t lost_ns = 0;           // CPU time the simulator gives the jobs that the threads did not get
+    std::int64_t excess_ns = 0;         // > 0: a stretch lost more than its jobs' margin
+};
+
+// CPU time the schedule gives the jobs in [0, t) (ticks).
+std::int64_t busy_until(const SimResult& sim, std::int64_t t) {
+    std::int64_t busy = 0;
+    for (const SimSlice& s : sim.timeline) busy += std::max<std::int64_t>(0, std::min(s.end, t) - s.begin);
+    return busy;
+}
+
+// The stall detector. At each sample (time from the first release, CPU time
+// the task threads had), the threads' loss is the CPU time the simulated
+// schedule of the burned set gives the jobs less what they had. A stretch
+// between two samples that lost more than the margin of the CPU time in it
+// may have made a job miss that the schedule does not.
+void judge_losses(FigureRun& run, const TaskSet& burned, Policy policy, std::int64_t unit,
+                  const std::vector<std::pair<std::int64_t, std::int64_t>>& samples) {
+    const std::int64_t tick = unit / kTicksPerUnit;
+    const SimResult sim = simulate(burned.tasks, policy, LateJob::abort, samples.back().first / tick + 1);
+    std::vector<std::int64_t> busy, lost;
+    for (const auto& [t, cpu] : samples) {
+        busy.push_back(busy_until(sim, std::max<std::int64_t>(t, 0) / tick) * tick);
+        lost.push_back(busy.back() - (cpu - samples.front().second));
+    }
+    run.lost_ns = lost.back();
+    for (std::size_t j = 1; j < samples.size(); ++j)
+        for (std::size_t i = 0; i < j; ++i)
+            run.excess_ns = std::max(run.excess_ns, lost[j] - lost[i] - (busy[j] - busy[i]) * kMarginPermille / 1000);
+}
+
+// (time from `start`, CPU time the task threads had) now, once a unit, and
+// half a unit after the hyperperiod (no job released before it runs on).
+// Taken from another CPU than the tasks' where there is one.
+std::vector<std::pair<std::int64_t, std::int64_t>> sample_task_cpu(
+    const std::vector<std::unique_ptr<Runner>>& runners, int task_cpu, std::int64_t start, std::int64_t unit,
+    std::int64_t hyperperiod) {
+    cpu_set_t before, others;
+    sched_getaffinity(0, sizeof before, &before);
+    CPU_ZERO(&others);
+    for (int c = 0; c < get_nprocs(); ++c)
+        if (c != task_cpu) CPU_SET(static_cast<unsigned>(c), &others);
+    if (CPU_COUNT(&others) > 0) sched_setaffinity(0, sizeof others, &others);
+    const auto sample = [&] {
+        std::int64_t cpu = 0;
+        for (auto& r : runners) cpu += cpu_time_of_thread(r->tid());
+        return std::pair(clock_ns() - start, cpu);
+    };
+    std::vector<std::pair<std::int64_t, std::int64_t>> samples{sample()};
+    for (std::int64_t k = 1; k <= hyperperiod + 1; ++k) {
+        const std::int64_t at = start + std::min(k * unit, hyperperiod * unit + unit / 2);
+        std::this_thread::sleep_until(std::chrono::steady_clock::time_point(std::chrono::nanoseconds(at)));
+        samples.push_back(sample());
+    }
+    sched_setaffinity(0, sizeof before, &before);
+    return samples;
+}
+
+// One hyperperiod of `set` on threads under `policy`.
+FigureRun figure6_1_on_threads(const TaskSet& set, Policy policy, std::int64_t unit, std::int64_t hyperperiod) {
+    const RtpuOptions o = options(Backend::fifo, policy);
+    RtpuScheduler sch(o);
+    const std::int64_t start = clock_ns() + 100 * ms;
+    const std::int64_t end = start + hyperperiod * unit;
+    const TaskSet burned = figure6_1_burned(set);
     std::vector<std::unique_ptr<Probe>> probes;  // outlive the runners
     std::vector<std::unique_ptr<Runner>> runners;
-    for (const TaskSpec& t : set.tasks) {
+    // Jobs released before the end and completed, counted by the job itself:
+    // the look may come late, when jobs released at the end have completed.
+    std::array<std::atomic<std::uint64_t>, 8> completed{};
+    for (std::size_t i = 0; i < set.tasks.size(); ++i) {
+        const TaskSpec& t = set.tasks[i];
         probes.push_back(std::make_unique<Probe>());
         probes.back()->action = FailureAction::abort_cycle;  // at its deadline a job is dropped
         RtTaskParams p = task(t.name.c_str(), static_cast<std::int64_t>(t.period) * unit,
                               static_cast<std::int64_t>(t.wcet) * unit);
         p.maxexec_check = false;  // the tasks run to their WCET by design
         p.first_release_ns = start;
-        const std::int64_t burn = p.wcet_ns - ms / 10;
-        runners.push_back(std::make_unique<Runner>(sch, p, [burn] { burn_cpu(burn); }, probes.back().get()));
+        const auto burn = static_cast<std::int64_t>(burned.tasks[i].wcet) * (unit / kTicksPerUnit);
+        runners.push_back(std::make_unique<Runner>(
+            sch, p,
+            [&, i, burn] {
+                burn_cpu(burn);
+                if (sch.job_release_ns(runners[i]->handle()) < end) completed[i].fetch_add(1);
+            },
+            probes.back().get()));
     }
     for (auto& r : runners)
         if (!r->start()) throw std::runtime_error(r->error());
-    // The look is half a unit after the end, before any job released at the
-    // end can complete (the shortest takes 2 units).
-    std::this_thread::sleep_until(std::chrono::steady_clock::time_point(std::chrono::nanoseconds(start)) +
-                                  std::chrono::nanoseconds(hyperperiod * unit + unit / 2));
-    std::vector<std::uint64_t> cycles;
-    for (auto& r : runners) cycles.push_back(sch.status(r->handle()).cycles);
+    const auto samples = sample_task_cpu(runners, o.cpu, start, unit, hyperperiod);
     for (auto& r : runners) r->stop();
-    std::vector<std::uint64_t> missed;
-    for (std::size_t i = 0; i < set.tasks.size(); ++i) {
-        const auto released = static_cast<std::uint64_t>(hyperperiod / set.tasks[i].period);
-        missed.push_back(released - std::min(released, cycles[i]));
-    }
-    return missed;
+    FigureRun run;
+    run.attached_late_ns = samples.front().first;
+    judge_losses(run, burned, policy, unit, samples);
+    for (std::size_t i = 0; i < set.tasks.size(); ++i)
+        run.missed.push_back(static_cast<std::uint64_t>(hyperperiod / set.tasks[i].period) - completed[i].load());
+    return run;
+}
+
+std::vector<std::uint64_t> simulated_misses(const TaskSet& set, Policy policy, std::int64_t until) {
+    std::vector<std::uint64_t> m;
+    for (const auto& s : simulate(set.tasks, policy, LateJob::abort, until).stats) m.push_back(s.missed);
+    return m;
 }
 
 TEST_P(Figure6_1OnThreads, MissesWhatTheSimulatorMisses) {
@@ -1464,44 +1638,36 @@ TEST_P(Figure6_1OnThreads, MissesWhatTheSimulatorMisses) {
     ASSERT_NE(root, nullptr) << "CHIMERA_SOURCE_ROOT is not set (meson test sets it)";
     const TaskSet set = read_task_set(std::string(root) + "/tools/chimsched/examples/fig6_1.tasks");
     constexpr std::int64_t unit = 10 * ms, hyperperiod = 60;
-    const SimResult sim = simulate(set.tasks, policy, LateJob::abort, hyperperiod);
-    std::vector<std::uint64_t> want;
-    for (const auto& s : sim.stats) want.push_back(s.missed);
-    // RM and MUF: the counts are the simulator's exactly (fixed ranks, and
-    // MUF's critical set). EDF: the tasks that miss are the simulator's, tau1
-    // and tau2, but not always as often: under EDF's overload whole jobs hang
-    // on ties between equal deadlines (all four tasks have one at 30 and at
-    // 60), which the simulator breaks first-come-first-served and the
-    // dispatcher in the order it sees the releases; measured runs missed 3 or
-    // 4 of tau1's 10 jobs where the simulator misses 4 — the unpredictability
-    // under overload that §6.2.2 holds against EDF.
-    const auto failing = [](const std::vector<std::uint64_t>& m) {
-        std::vector<bool> f;
-        for (auto x : m) f.push_back(x > 0);
-        return f;
-    };
-    const auto agrees = [&](const std::vector<std::uint64_t>& got) {
-        return policy == Policy::edf ? failing(got) == failing(want) : got == want;
-    };
-    // The CPU is shared with the other engineers' real-time tests, and MUF's
-    // critical set needs 59 of the 60 units: a run that lost more than one
-    // unit (1.7 %) to another thread misses more. Up to five runs, a pause
-    // between them; one must agree (a scheduler that ranked the tasks
-    // otherwise fails every run).
-    std::vector<std::uint64_t> got;
+    const std::vector<std::uint64_t> want = simulated_misses(set, policy, hyperperiod);
+    ASSERT_EQ(simulated_misses(figure6_1_burned(set), policy, hyperperiod * kTicksPerUnit), want)
+        << "the jobs' margin changes what the simulator misses";
+    // The CPU is shared with the other engineers' real-time tests and with the
+    // hypervisor: a run in a stretch of which the task threads lost more CPU
+    // time than the jobs' margin in it, or whose set was attached after its
+    // first release (the test thread waited for a CPU), was disturbed
+    // (measured, printed) and is run again, up to five times; any other
+    // disagreement fails at once.
+    FigureRun run;
     for (int attempt = 1; attempt <= 5; ++attempt) {
         if (attempt > 1) std::this_thread::sleep_for(200ms);
-        got = figure6_1_misses_on_threads(set, policy, unit, hyperperiod);
+        run = figure6_1_on_threads(set, policy, unit, hyperperiod);
         std::string line;
-        for (std::size_t i = 0; i < got.size(); ++i)
-            line += " " + set.tasks[i].name + " " + std::to_string(got[i]) + "/" + std::to_string(want[i]);
-        std::printf("%s run %d, missed on threads/simulated:%s\n", to_string(policy).data(), attempt, line.c_str());
-        if (agrees(got)) break;
+        for (std::size_t i = 0; i < run.missed.size(); ++i)
+            line += " " + set.tasks[i].name + " " + std::to_string(run.missed[i]) + "/" + std::to_string(want[i]);
+        const bool late = run.attached_late_ns > 0;
+        const bool disturbed = late || run.excess_ns > 0;
+        char why[96] = "";
+        if (late)
+            std::snprintf(why, sizeof why, " (disturbed: the set was attached %.1f ms after its first release)",
+                          run.attached_late_ns / 1e6);
+        else if (disturbed)
+            std::snprintf(why, sizeof why, " (disturbed: a stretch lost %.2f ms more than its jobs' margin)",
+                          run.excess_ns / 1e6);
+        std::printf("%s run %d, missed on threads/simulated:%s; the threads lost %.2f ms%s\n",
+                    to_string(policy).data(), attempt, line.c_str(), run.lost_ns / 1e6, why);
+        if (run.missed == want || !disturbed) break;
     }
-    if (policy == Policy::edf)
-        EXPECT_EQ(failing(got), failing(want));
-    else
-        EXPECT_EQ(got, want);
+    EXPECT_EQ(run.missed, want);
 }
 
 INSTANTIATE_TEST_SUITE_P(Policies, Figure6_1OnThreads, ::testing::Values(Policy::rm, Policy::edf, Policy::muf),
