@@ -38,6 +38,7 @@ public:
         EXPECT_EQ(::pipe2(err, O_CLOEXEC), 0);
         pid_ = ::fork();
         if (pid_ == 0) {
+            ::setpgid(0, 0);  // the wrapper's children (strace's sbs) are killed with it
             ::dup2(err[1], 2);
             const int null = ::open("/dev/null", O_RDWR);
             ::dup2(null, 0);
@@ -53,7 +54,7 @@ public:
     }
     ~Master() {
         if (pid_ > 0 && !done_) {
-            ::kill(pid_, SIGKILL);
+            ::kill(-pid_, SIGKILL);
             sbs_test::wait_child(pid_, 5000);
         }
         ::close(err_);
