@@ -169,6 +169,8 @@ public:
     std::string_view rmod() const noexcept;    ///< rmod name (file stem)
     std::string_view module() const noexcept;  ///< MODULE name
     std::string_view rtpu() const noexcept;    ///< RTPU name
+    /// SUBSYSTEM name of the .sbs (e.g. a module's per-subsystem output folder).
+    std::string_view subsystem() const noexcept;
     TaskType type() const noexcept;
     /// The LOCAL section of this object's .rmod (updated by sbsSet).
     const LocalConfig& local() const noexcept;
