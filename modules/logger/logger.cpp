@@ -45,7 +45,7 @@ double now_seconds() noexcept {
 
 // The LOCAL keys this module reads (module.hpp, LocalKey): what `set` may change.
 constexpr chimera::LocalKey kLoggerLocalKeys[] = {
-    {"FILE", chimera::LocalType::word, -chimera::unbounded, chimera::unbounded, false, "CSV file written: a name (in the subsystem's output folder) or an absolute path", ""},
+    {"FILE", chimera::LocalType::output_file, -chimera::unbounded, chimera::unbounded, false, "CSV file written: a name (in the subsystem's output folder) or an absolute path", ""},
     {"DECIMATE", chimera::LocalType::integer, 1.0, 1000000000.0, false, "log every Nth cycle", "1"},
     {"BUFFER", chimera::LocalType::integer, 1.0, 1000000000.0, false, "rows buffered between the cycle and the writer", "8192"},
 };
