@@ -169,6 +169,8 @@ public:
     std::string_view rmod() const noexcept;    ///< rmod name (file stem)
     std::string_view module() const noexcept;  ///< MODULE name
     std::string_view rtpu() const noexcept;    ///< RTPU name
+    /// SUBSYSTEM name of the .sbs (e.g. a module's per-subsystem output folder).
+    std::string_view subsystem() const noexcept;
     TaskType type() const noexcept;
     /// The LOCAL section of this object's .rmod (updated by sbsSet).
     const LocalConfig& local() const noexcept;
@@ -248,7 +250,7 @@ private:
 ///
 ///     static constexpr chimera::LocalKey kKeys[] = {
 ///         {"KP", chimera::LocalType::numbers, 0, 1e6, true, "proportional gain per joint"},
-///         {"FILE", chimera::LocalType::word, 0, 0, false, "CSV file written"},
+///         {"FILE", chimera::LocalType::output_file, 0, 0, false, "CSV file written"},
 ///     };
 ///     std::span<const chimera::LocalKey> local_keys() const noexcept override { return kKeys; }
 ///
@@ -273,6 +275,10 @@ enum class LocalType : std::uint8_t {
     integer,  ///< exactly one integral number
     word,     ///< exactly one word (a file name, a mode)
     text,     ///< any words
+    /// One word, the name of a file the module writes (created or truncated).
+    /// `sbs` neither spawns nor turns on such a module for a network or web
+    /// peer: no command from the network makes a file be written (issue #29.4).
+    output_file,
 };
 CHIMERA_API std::string_view to_string(LocalType t) noexcept;  ///< "number", "numbers", ...
 

@@ -5,7 +5,10 @@
 //
 //   INVAR   any variables (numeric types) — the columns, in the order listed
 //   OUTVAR  none
-//   LOCAL   FILE path           CSV file, created/truncated on `on`
+//   LOCAL   FILE name|/path     CSV file, created/truncated (mode 0600) on `on`: a
+//                               name goes to the subsystem's output folder
+//                               (output_file.hpp, README.md); an absolute path
+//                               only to a folder no one else may write to
 //           [DECIMATE k]        log every k-th cycle (default 1)
 //           [BUFFER rows]       rows buffered between cycle and writer (default 8192)
 //
@@ -16,6 +19,9 @@
 // Header line: t,NAME[0],NAME[1],... (or NAME for a scalar).
 #include <chimera/module.hpp>
 
+#include <fcntl.h>
+#include <unistd.h>
+
 #include <atomic>
 #include <cerrno>
 #include <cstdio>
@@ -24,6 +30,7 @@
 #include <thread>
 #include <vector>
 
+#include "output_file.hpp"
 #include "robotics/ports.hpp"
 
 namespace rb = chimera::robotics;
@@ -38,7 +45,7 @@ double now_seconds() noexcept {
 
 // The LOCAL keys this module reads (module.hpp, LocalKey): what `set` may change.
 constexpr chimera::LocalKey kLoggerLocalKeys[] = {
-    {"FILE", chimera::LocalType::word, -chimera::unbounded, chimera::unbounded, false, "CSV file written (opened at spawn)", ""},
+    {"FILE", chimera::LocalType::output_file, -chimera::unbounded, chimera::unbounded, false, "CSV file written: a name (in the subsystem's output folder) or an absolute path", ""},
     {"DECIMATE", chimera::LocalType::integer, 1.0, 1000000000.0, false, "log every Nth cycle", "1"},
     {"BUFFER", chimera::LocalType::integer, 1.0, 1000000000.0, false, "rows buffered between the cycle and the writer", "8192"},
 };
@@ -50,6 +57,11 @@ public:
     chimera::Result init(chimera::Task& t) override {
         path_ = rb::local_word(t, "FILE", "");
         if (path_.empty()) rb::module_error(t, "LOCAL FILE (the CSV file to write) is required");
+        try {
+            target_ = chimera::output::resolve(path_, std::string(t.subsystem()));
+        } catch (const std::runtime_error& e) {
+            rb::module_error(t, std::string("LOCAL FILE ") + path_ + ": " + e.what());
+        }
         decimate_ = static_cast<long>(rb::local_number(t, "DECIMATE", 1));
         const long rows = static_cast<long>(rb::local_number(t, "BUFFER", 8192));
         if (decimate_ < 1) rb::module_error(t, "LOCAL DECIMATE must be >= 1");
@@ -78,12 +90,14 @@ public:
     }
 
     chimera::Result on(chimera::Task& t) override {
-        file_ = std::fopen(path_.c_str(), "w");
-        if (!file_) {
-            t.warning("logger: cannot open " + path_ + ": " + std::strerror(errno));
+        const int fd = chimera::output::open_for_writing(target_);
+        if (fd < 0 || !(file_ = ::fdopen(fd, "w"))) {
+            const int e = errno;
+            if (fd >= 0) ::close(fd);
+            t.warning("logger: cannot write " + target_.dir + "/" + target_.name + ": " + std::strerror(e) +
+                      (e == ELOOP ? " (a symlink: not followed)" : ""));
             return chimera::Result::OFF;
         }
-        std::fprintf(file_, "%s\n", header_.c_str());
         head_.store(0);
         tail_.store(0);
         dropped_ = 0;
@@ -123,7 +137,10 @@ public:
         return chimera::Result::OK;
     }
 
-    ~Logger() override { stop_writer(); }
+    ~Logger() override {
+        stop_writer();
+        if (target_.dir_fd >= 0) ::close(target_.dir_fd);
+    }
 
 private:
     struct Column {
@@ -149,6 +166,7 @@ private:
     }
 
     void write_loop() {
+        std::fprintf(file_, "%s\n", header_.c_str());
         for (;;) {
             const bool stopping = stop_.load(std::memory_order_acquire);
             std::size_t tail = tail_.load(std::memory_order_relaxed);
@@ -178,6 +196,7 @@ private:
     }
 
     std::string path_, header_;
+    chimera::output::Target target_;  // the folder, held open from spawn so it cannot be swapped
     long decimate_ = 1;
     long count_ = 0;
     std::size_t width_ = 0, capacity_ = 0;

@@ -15,6 +15,7 @@ std::string_view to_string(LocalType t) noexcept {
         case LocalType::integer: return "integer";
         case LocalType::word: return "word";
         case LocalType::text: return "text";
+        case LocalType::output_file: return "output-file";
     }
     return "?";
 }
@@ -47,7 +48,8 @@ std::string range_text(const LocalKey& k) {
 
 // Why a value does not fit the declared type and range ("" when it does).
 std::string value_problem(const LocalKey& k, const std::vector<std::string>& values) {
-    const bool one = k.type == LocalType::number || k.type == LocalType::integer || k.type == LocalType::word;
+    const bool one = k.type == LocalType::number || k.type == LocalType::integer || k.type == LocalType::word ||
+                     k.type == LocalType::output_file;
     if (values.empty()) return "a value is needed (" + std::string(to_string(k.type)) + ")";
     if (one && values.size() != 1)
         return "takes one " + std::string(to_string(k.type)) + ", given " + std::to_string(values.size()) + " words";

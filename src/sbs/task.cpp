@@ -285,6 +285,7 @@ using sbs::detail::TaskCore;
 std::string_view Task::rmod() const noexcept { return core_->objects[object_].rmod.name; }
 std::string_view Task::module() const noexcept { return core_->objects[object_].rmod.module; }
 std::string_view Task::rtpu() const noexcept { return core_->rtpu.name; }
+std::string_view Task::subsystem() const noexcept { return core_->sbs.file.subsystem; }
 TaskType Task::type() const noexcept { return core_->type; }
 const LocalConfig& Task::local() const noexcept { return core_->objects[object_].rmod.local; }
 const RmodFile& Task::rmod_file() const noexcept { return core_->objects[object_].rmod; }

@@ -23,6 +23,7 @@
 #include <chrono>
 #include <cmath>
 #include <cstdio>
+#include <cstdlib>
 #include <filesystem>
 #include <fstream>
 #include <memory>
@@ -283,6 +284,9 @@ TEST(Fig37Set, RefusesWhatTheModuleWouldIgnore) {
     const TaskId robot = sbs->spawn(fig3_7::rmod("puma_torque"), "robot");
     const TaskId jpid = sbs->spawn(fig3_7::rmod("jpid"), "ctrl");
     const auto modules_src = std::filesystem::path(fig3_7::rmod("jpid")).parent_path().parent_path();
+    // qlog.rmod's output folder ($XDG_STATE_HOME/chimera/SUBSYSTEM): a temporary one, not the real home's.
+    const auto state = std::filesystem::temp_directory_path() / unique_name("state");
+    ::setenv("XDG_STATE_HOME", state.c_str(), 1);
     const TaskId qlog = sbs->spawn((modules_src / "logger" / "qlog.rmod").string(), "ctrl");
     const auto refusal = [&](TaskId id, const char* key, const char* value) {
         try {
@@ -311,7 +315,7 @@ TEST(Fig37Set, RefusesWhatTheModuleWouldIgnore) {
     // Keys read only in init(): refused, not silently stored.
     const std::string file = refusal(qlog, "FILE", "q.csv");
     EXPECT_TRUE(has(file, "LOCAL FILE of module logger is read only at spawn")) << file;
-    EXPECT_EQ(sbs->get(qlog, "FILE"), "/tmp/chimera_qlog.csv");
+    EXPECT_EQ(sbs->get(qlog, "FILE"), "qlog.csv");
     const std::string substeps = refusal(robot, "SUBSTEPS", "5");
     EXPECT_TRUE(has(substeps, "SUBSTEPS")) << substeps;
     EXPECT_EQ(sbs->get(robot, "SUBSTEPS"), "10");
@@ -320,6 +324,7 @@ TEST(Fig37Set, RefusesWhatTheModuleWouldIgnore) {
     EXPECT_EQ(sbs->get(robot, "STABILITY"), "hold");
     EXPECT_EQ(sbs->get(qlog, "DECIMATE"), "1");
     sbs->finish();
+    std::filesystem::remove_all(state);
 }
 
 TEST(Fig37Demo, RunsAndPrintsTheStatus) {

@@ -15,6 +15,7 @@
 #include <sys/stat.h>
 #include <unistd.h>
 
+#include <cstdlib>
 #include <filesystem>
 #include <fstream>
 #include <iterator>
@@ -570,6 +571,50 @@ TEST(SbsNetwork, RecordFromAnAttachedSbsAndNotFromAPeer) {
     }
     EXPECT_EQ(m.wait(), 0) << m.err_text();
     EXPECT_FALSE(std::filesystem::exists(ws.dir() + "/peer.csv"));
+}
+
+// Issue #29.4: no command from the network makes a file be written. A peer
+// may neither spawn nor turn on (on, reconfig on) a task whose module writes a
+// file (the logger's LOCAL FILE); the master's own -c may, and writes it.
+TEST(SbsNetwork, APeerMakesNoFileBeWritten) {
+    const char* logger = std::getenv("LOGGER_SO");
+    if (logger == nullptr) GTEST_SKIP() << "the logger module is not built (robotics disabled)";
+    Workspace ws;  // HOME is its folder: the output folder is $HOME/.local/state/chimera/SUBSYSTEM
+    ::unsetenv("XDG_STATE_HOME");
+    ::unsetenv("CHIMERA_OUTPUT_DIR");
+    ws.write("xlog.rmod", "MODULE logger\nDESC x logger\nINCONST none\nOUTCONST none\nINVAR X\nOUTVAR none\n"
+                          "TASKTYPE periodic\nFREQ 50\n\nLOCAL\nFILE x.csv\nEOF\n");
+    ws.write("ylog.rmod", "MODULE logger\nDESC y logger\nINCONST none\nOUTCONST none\nINVAR Y\nOUTVAR none\n"
+                          "TASKTYPE periodic\nFREQ 50\n\nLOCAL\nFILE y.csv\nEOF\n");
+    const std::string out_dir = ws.dir() + "/.local/state/chimera/" + ws.subsystem();
+    Master m(ws, {"--serve", "-c", std::string("module load ") + logger + "; spawn ramp; on; spawn ylog"});
+    {
+        NetworkClient c = connect(ws);
+        const auto refused = [&](const std::string& command, const std::string& expected) {
+            const auto j = c.request(command, 5000);
+            EXPECT_FALSE(j.value("ok", true)) << command;
+            EXPECT_EQ(j.value("error", ""), expected) << command;
+        };
+        const std::string where = "at the master's own prompt, with -c, or in the .sbs (TASK ... ON)";
+        refused("spawn xlog", "spawn xlog refused: its module writes a file (LOCAL FILE), and over the network no "
+                              "file is written; spawn it " + where);
+        refused("on ylog", "on ylog refused: its module writes a file (LOCAL FILE), and over the network no file is "
+                           "written; on it " + where);
+        refused("reconfig off ramp, on ylog", "reconfig on ylog refused: its module writes a file (LOCAL FILE), and "
+                                              "over the network no file is written; reconfig on it " + where);
+        const auto status = c.request("status all", 5000);
+        ASSERT_EQ(status["data"]["tasks"].size(), 2u) << status.dump();
+        for (const auto& t : status["data"]["tasks"])  // as before the refused reconfig
+            EXPECT_EQ(t["state"], t["rmod"] == "ramp" ? "ON" : "OFF") << t.dump();
+        c.request("finish", 5000);
+    }
+    EXPECT_EQ(m.wait(), 0) << m.err_text();
+    EXPECT_FALSE(std::filesystem::exists(out_dir + "/x.csv"));
+    EXPECT_FALSE(std::filesystem::exists(out_dir + "/y.csv"));
+    // The master's own -c spawns and turns it on, and it writes its file.
+    const auto local = ws.sbs_run({"-c", std::string("module load ") + logger + "; spawn xlog; on; sleep 0.2; off"});
+    EXPECT_EQ(local.status, 0) << local.out << local.err;
+    EXPECT_TRUE(std::filesystem::is_regular_file(out_dir + "/x.csv")) << local.out << local.err;
 }
 
 // Ctrl-C during a long `record` stops it: the rows taken are kept in the

@@ -476,6 +476,8 @@ Reply Interpreter::cmd_spawn(const Words& w) {
     }
     const std::string name = join(stems, "+");
     if (is_task(name)) throw CommandError("spawn: task " + name + " already exists (kill it first)");
+    if (origin_ != Origin::local)
+        for (const auto& f : files) refuse_file_writer("spawn", name, sbs::module_local_keys(f, module_path()));
     const sbs::TaskId id = paths.size() == 1 ? sbs_.spawn(paths[0], rtpu) : sbs_.spawn_combined(paths, rtpu);
     rmods_[name] = files.size() == 1 ? std::move(files[0]) : combined_view(name, files);
     files_of_[name] = paths;
@@ -492,6 +494,7 @@ Reply Interpreter::cmd_spawn(const Words& w) {
 Reply Interpreter::cmd_control(const Words& w, sbs::Control signal) {
     if (w.size() > 2) throw CommandError("usage: " + w[0] + " [RMOD]");
     const sbs::TaskId id = task_of(w.size() == 2 ? w[1] : std::string());
+    if (signal == sbs::Control::on) refuse_file_writer("on", default_rmod_, sbs_.local_keys(id));
     try {
         sbs_.control(id, signal);
     } catch (const sbs::Error&) {
@@ -504,6 +507,18 @@ Reply Interpreter::cmd_control(const Words& w, sbs::Control signal) {
     r.text = state_line(s);
     r.data = {{"rmod", default_rmod_}, {"state", std::string(to_string(s.state))}};
     return r;
+}
+
+// No command from the network makes a file be written (issue #29.4): a
+// peer could otherwise have the master (often root) create or truncate one.
+void Interpreter::refuse_file_writer(const std::string& command, const std::string& task,
+                                     const std::vector<LocalKey>& keys) const {
+    if (origin_ == Origin::local) return;
+    for (const LocalKey& k : keys)
+        if (k.type == LocalType::output_file)
+            throw CommandError(command + " " + task + " refused: its module writes a file (LOCAL " + k.name +
+                               "), and over the network no file is written; " + command +
+                               " it at the master's own prompt, with -c, or in the .sbs (TASK ... ON)");
 }
 
 std::vector<std::string> Interpreter::local_keys(const std::string& rmod) const {
@@ -1274,6 +1289,7 @@ Reply Interpreter::cmd_reconfig(const Words& w) {
                                "' is not SIG RMOD (SIG: on off kill clear); nothing was sent");
         const auto id = sbs_.find(g[1]);
         if (!id) throw CommandError("reconfig: item " + std::to_string(i) + ": no task " + g[1] + "; nothing was sent");
+        if (g[0] == "on") refuse_file_writer("reconfig on", g[1], sbs_.local_keys(*id));
         items.emplace_back(*id, signal_of(g[0]));
         names.push_back(g[0] + " " + g[1]);
     }

@@ -56,7 +56,9 @@ Reply values_reply(svar::Table& t, const std::vector<VarItem>& items, const std:
 /// module path the master was started with (never a path, never the working
 /// folder), so it cannot get a library of its own choosing loaded.
 /// The web console (--http) is a network origin with its own status window
-/// that leaves the prompt's default RMOD alone.
+/// that leaves the prompt's default RMOD alone. Neither makes a file be
+/// written: save and record are refused, and so are spawn, on and reconfig on
+/// of a task whose module declares an output file (docs/permissions.md).
 enum class Origin { local, network, web };
 
 class Interpreter {
@@ -98,6 +100,9 @@ private:
     Reply run(const Words& w);
     Reply cmd_spawn(const Words& w);
     Reply cmd_control(const Words& w, sbs::Control signal);
+    /// Throws for a network origin when `keys` declare an output file.
+    void refuse_file_writer(const std::string& command, const std::string& task,
+                            const std::vector<LocalKey>& keys) const;
     Reply cmd_set(const Words& w);
     Reply cmd_status(const Words& w);
     Reply cmd_display(const Words& w);
