@@ -15,7 +15,7 @@ step() {  # step WHAT COMMAND...: runs quietly, shows the log's tail on failure
         exit 1
     fi
 }
-step "installing the Debian packages it needs" scripts/setup-debian.sh
+step "installing the Debian packages it needs" scripts/setup-debian.sh --demo
 if [ -f build/build.ninja ]; then
     step "configuring" meson setup --reconfigure build
 else

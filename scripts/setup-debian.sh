@@ -1,17 +1,24 @@
 #!/usr/bin/env bash
 # Installs the Debian 12 packages Chimera builds with (see README, "Dependencies").
+#   scripts/setup-debian.sh          everything: the full build and the test suite (scripts/test.sh)
+#   scripts/setup-debian.sh --demo   only what configuring and building the demo needs (scripts/demo.sh)
 # Idempotent: packages already installed are not fetched again.
 set -euo pipefail
-packages=(
-  meson ninja-build pkg-config g++ make         # build (make: the Makefile chimgen writes for a module built outside the tree)
+# What `meson setup` requires and what `ninja -C build demo-only` builds with;
+# every other feature is 'auto' and stays off without its packages.
+demo_packages=(
+  meson ninja-build pkg-config g++               # build
   dpkg-dev                                       # dpkg-architecture: meson then installs into lib/<multiarch>, where Debian's loader and pkg-config look
-  libgtest-dev libgmock-dev libbenchmark-dev     # tests and bench/
-  libeigen3-dev liborocos-kdl-dev libkdl-parser-dev liburdfdom-dev  # robotics modules
+  libgtest-dev                                   # configure requires it (-Dtests is on by default, and the demo shares build/ with scripts/test.sh)
+  libcli11-dev nlohmann-json3-dev libedit-dev    # configure requires them: every tool's options, --json output, sbs line editing
+  libeigen3-dev liborocos-kdl-dev libkdl-parser-dev liburdfdom-dev  # robotics modules: the demo's trajectory generator, PID and PUMA simulator
+)
+test_packages=(
+  make                                           # the Makefile chimgen writes for a module built outside the tree
+  libgmock-dev libbenchmark-dev                  # the tests' mocks, bench/
   libgpiod-dev gpiod                             # PIO driver (optional)
   liblttng-ust-dev lttng-tools babeltrace2       # tracing (optional)
   libncurses-dev                                 # chimtop
-  libedit-dev                                    # sbs line editing
-  libcli11-dev nlohmann-json3-dev                # option parsing, --json output
   linux-libc-dev                                 # SocketCAN, perf_event, futex headers
   rt-tests tmux util-linux                       # cyclictest (bench), terminal tests, taskset
   help2man                                       # the programs' man pages, from their --help
@@ -26,6 +33,11 @@ packages=(
   libcivetweb-dev libjs-chart.js                 # the web console, sbs --http (optional: -Dweb): HTTP + WebSocket server, the page's charts
   chromium chromium-driver python3-selenium      # the web console's tests in headless Chromium (suite web; skipped without them)
 )
+case ${1-} in
+  --demo) packages=("${demo_packages[@]}") ;;
+  "") packages=("${demo_packages[@]}" "${test_packages[@]}") ;;
+  *) echo "setup-debian.sh: unknown argument '$1' (--demo, or none for everything)" >&2; exit 2 ;;
+esac
 missing=()
 for p in "${packages[@]}"; do
   dpkg-query -W -f='${Status}' "$p" 2>/dev/null | grep -q "install ok installed" || missing+=("$p")

@@ -36,12 +36,13 @@ stage_suite() {
 # ends the program (-fno-sanitize-recover=all), so the test fails. Not the
 # install suite: it builds a user's program, uninstrumented, against the
 # installed library, which cannot load an instrumented one (the sanitizer's
-# runtime must come first); it runs in the suite stage.
+# runtime must come first); it runs in the suite stage. Nor the docs suite: it
+# builds sbs.hpp's example program the same way.
 stage_asan() {
   configure build-asan "${sanitizer_options[@]}" -Db_sanitize=address,undefined \
     -Dcpp_args=-fno-sanitize-recover=all -Dcpp_link_args=-fno-sanitize-recover=all
   timed asan-build ninja -C build-asan
-  timed asan-suite meson test -C build-asan --no-rebuild --print-errorlogs --num-processes 2 --no-suite install \
+  timed asan-suite meson test -C build-asan --no-rebuild --print-errorlogs --num-processes 2 --no-suite install --no-suite docs \
     "${meson_test_args[@]}"
 }
 

@@ -8,11 +8,14 @@
 //   sbsReconfig  reconfig({...})              ordered list; stops at the first failure
 //   sbsFreqGet/Set, sbsGet/Set, sbsStatus/StatusAll, sbsSigWait, sbsFinish
 //
-//     auto sbs = chimera::sbs::Subsystem::init("examples/fig3_7_pid/pid.sbs");
-//     auto robot = sbs->spawn("robotsim.rmod", "cpu1");
-//     auto traj = sbs->spawn("jtraj.rmod", "cpu0");
-//     auto pid = sbs->spawn("jpid.rmod", "cpu0");
-//     sbs->reconfig({{traj, Control::on}, {pid, Control::on}, {robot, Control::on}});
+//     // From the top of the tree; the modules' .so are found through
+//     // CHIMERA_MODULE_PATH or add_module_path() (build/modules/...) or installed.
+//     auto sbs = chimera::sbs::Subsystem::init("examples/fig3_7_pid/fig3_7.sbs");
+//     auto robot = sbs->spawn("modules/robotsim/puma_torque.rmod", "robot");  // first: NDOF, DH
+//     auto traj = sbs->spawn("modules/trajgen/jtraj.rmod", "ctrl");           // configure from them
+//     auto pid = sbs->spawn("modules/pid/jpid.rmod", "ctrl");
+//     auto r = sbs->reconfig({{robot, Control::on}, {traj, Control::on}, {pid, Control::on}});
+//     if (!r) throw chimera::sbs::Error(r.message);  // which item failed, and why
 //     std::this_thread::sleep_for(2s);
 //     for (auto& s : sbs->status_all()) std::cout << format_status(s) << '\n';
 //     sbs->finish();

@@ -328,7 +328,7 @@ TEST(Fig37Set, RefusesWhatTheModuleWouldIgnore) {
 }
 
 TEST(Fig37Demo, RunsAndPrintsTheStatus) {
-    const std::string cmd = std::string(FIG3_7_DEMO) + " --seconds 1 2>&1";
+    const std::string cmd = std::string(FIG3_7_DEMO) + " --seconds 1 --name " + unique_name("demo") + " 2>&1";
     FILE* p = ::popen(cmd.c_str(), "r");
     ASSERT_NE(p, nullptr);
     std::string out;
@@ -345,6 +345,8 @@ TEST(Fig37Demo, RunsAndPrintsTheStatus) {
     EXPECT_NE(out.find(header, first + 1), std::string::npos) << out;
     EXPECT_NE(out.find("max|q_ref - q_mez|"), std::string::npos) << out;
     EXPECT_NE(out.find("reconfig: off jpid, on jpidg in ONE call -- ok"), std::string::npos) << out;
+    EXPECT_NE(out.find("so the robot interface "), std::string::npos) << out;
+    EXPECT_NE(out.find("tracking error, the run's worst"), std::string::npos) << out;
     EXPECT_NE(out.find("finished"), std::string::npos) << out;
 }
 

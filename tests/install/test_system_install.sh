@@ -17,8 +17,14 @@ if [ "$(id -u)" -ne 0 ] || ! command -v unshare >/dev/null; then
     [ -n "${CI:-}" ] && exit 1
     exit 77
 fi
-if ! unshare -m true 2>/dev/null; then
-    echo "test_system_install: this container forbids mount namespaces (unshare -m)"
+# What the namespace below needs first; its error says why not (a container
+# forbidding unshare, or a chroot: its / is no mount point, so cannot be made private).
+if ! why=$(unshare -m -- mount --make-rprivate / 2>&1); then
+    if ! awk '$5 == "/" { found = 1 } END { exit !found }' /proc/self/mountinfo; then
+        echo "test_system_install: / is not a mount point (a chroot?), so no private mount namespace of it: $why"
+    else
+        echo "test_system_install: no private mount namespace here (unshare -m, mount --make-rprivate /): $why"
+    fi
     [ -n "${CI:-}" ] && exit 1
     exit 77
 fi
