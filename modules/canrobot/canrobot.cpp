@@ -69,6 +69,9 @@ constexpr int kTpdo1Ports = 5;     // statusword, mode display, error code (3 x 
 constexpr int kTpdo2Ports = 8;     // position, velocity (2 x 32)
 constexpr int kHeartbeatPort = 10; // NMT state (8)
 
+// on(): a step of the enabling a drive did not answer is sent again after this.
+constexpr std::chrono::milliseconds kStepResend{100};
+
 // Error numbers this module raises (task.error codes).
 constexpr int kErrNoFeedback = 1;
 constexpr int kErrHeartbeat = 2;
@@ -181,10 +184,15 @@ public:
         holding_ = hold_on_illegal_ && t.illegal_configuration();
         const bool csp = position_mode_ || holding_;
         const auto deadline = Clock::now() + std::chrono::duration<double>(enable_timeout_);
+        auto resend_at = Clock::now();
         for (;;) {
             read_feedback();
-            bool all_enabled = true;
-            for (Node& d : nodes_) all_enabled = all_enabled && d.state == DriveState::operation_enabled && d.seen_tpdo2;
+            bool all_enabled = true, all_answered = true;
+            for (Node& d : nodes_) {
+                const bool enabled = d.state == DriveState::operation_enabled && d.seen_tpdo2;
+                all_enabled = all_enabled && enabled;
+                all_answered = all_answered && (enabled || d.tpdo1_stamp != d.stamp_at_step);
+            }
             if (all_enabled) break;
             if (Clock::now() > deadline) {
                 std::string why;
@@ -198,16 +206,26 @@ public:
                 return t.error(kErrDriveState, "cannot enable the drives within ENABLE_TIMEOUT " +
                                             std::to_string(enable_timeout_) + " s: " + why);
             }
-            for (std::size_t j = 0; j < n_; ++j) {
-                Node& d = nodes_[j];
-                d.controlword = controlword_toward_enabled(d.state, d.controlword);
-                // CSP: the arm's own position as the target, enabling never moves
-                // it. CST: the torque the controller asks for now (0 when none
-                // is on yet), as robotsim applies it from its first cycle.
-                const double torque = csp ? 0.0 : clamp_torque(j, t_ref_[j]);
-                send_targets(j, d.controlword, csp ? kModeCsp : kModeCst, torque, d.q, 0);
+            // The next step goes out once every drive has answered the last
+            // (a newer TPDO1), or after kStepResend when one did not (a frame
+            // lost): paced by the drives, never faster. A fixed 2 ms pace sent
+            // ~6 500 frames a second, which a slow machine (the PREEMPT_RT
+            // guest under load) could not take in: the drives answered 14 of
+            // 1 384 steps in 5 s and were never enabled (issue #36).
+            if (all_answered || Clock::now() >= resend_at) {
+                for (std::size_t j = 0; j < n_; ++j) {
+                    Node& d = nodes_[j];
+                    d.controlword = controlword_toward_enabled(d.state, d.controlword);
+                    d.stamp_at_step = d.tpdo1_stamp;
+                    // CSP: the arm's own position as the target, enabling never moves
+                    // it. CST: the torque the controller asks for now (0 when none
+                    // is on yet), as robotsim applies it from its first cycle.
+                    const double torque = csp ? 0.0 : clamp_torque(j, t_ref_[j]);
+                    send_targets(j, d.controlword, csp ? kModeCsp : kModeCst, torque, d.q, 0);
+                }
+                send_sync();
+                resend_at = Clock::now() + kStepResend;
             }
-            send_sync();
             std::this_thread::sleep_for(std::chrono::milliseconds(2));
         }
         publish();
@@ -299,6 +317,7 @@ private:
         NmtState nmt = NmtState::boot_up;
         double q = 0, qd = 0;
         long tpdo1_stamp = 0, tpdo2_stamp = 0, heartbeat_stamp = 0;
+        long stamp_at_step = 0;  // tpdo1_stamp when on() sent its last step: a newer one answers it
         bool seen_tpdo2 = false;
         int missed = 0;  // cycles in a row without a new TPDO2
     };
