@@ -472,17 +472,17 @@ void run_drive_bus(DriveSim& sim, const std::string& interface, const std::atomi
         // to it: a drive's firmware is never descheduled, so a simulator that
         // was must not let the arm run on under a held torque meanwhile. (Its
         // answers still leave late; the master sees that as missed feedback.)
+        // Timers run in the same order, at the arrival of the first frame
+        // after them: a heartbeat is due while a busy bus is read, and the
+        // RPDO deadline is judged on the RPDOs that had arrived by then, never
+        // while some wait unread (a simulator descheduled for 0.5 s faulted
+        // its drives with RPDOs queued: issue #36).
         Frame f;
         std::int64_t arrived = 0;
-        // Timers that fall due end the batch: a bus that never goes quiet
-        // (a SYNC and 12 RPDOs every 5 ms, handled slowly by a loaded or
-        // emulated CPU) would otherwise keep the drives from ever sending a
-        // heartbeat, and the master would rightly declare them dead. The
-        // frames left queued are read right after the tick.
         while (bus.receive(f, arrived)) {
+            if (sim.next_timer() <= arrived) sim.tick(arrived, out);
             sim.receive(f, arrived, out);
             bus.send(out);
-            if (monotonic_ns() >= sim.next_timer()) break;
         }
         sim.tick(monotonic_ns(), out);
         bus.send(out);
