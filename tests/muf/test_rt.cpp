@@ -1290,6 +1290,13 @@ std::uint64_t clock_read_is_a_system_call() {
 }
 
 bool dynamic_counter_preconditions() {
+    if (chimera::test::kSanitizer) {
+        // The counts are structural and held by the plain build (suite stage);
+        // a sanitizer's slower release path made every run of the 2 ms set
+        // miss (asan stage, 5 of 5 runs flagged, 2026-12-02).
+        std::printf("sanitizer build: the dynamic sets' 0.2-1.2 ms jobs do not fit its release path\n");
+        return false;
+    }
     if (chimera::test::open_syscall_counter() < 0) {
         if (std::getenv("CHIMERA_REQUIRE_SYSCALL_COUNTER"))
             ADD_FAILURE() << "the raw_syscalls tracepoint cannot be opened (tracefs not mounted?)";
