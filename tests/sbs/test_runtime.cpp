@@ -664,13 +664,14 @@ TEST_F(Sbs, TasksPublishTheirProfileInTheStatusSegment) {
     EXPECT_FALSE(rows[0].policy.empty());
     EXPECT_NE(rows[0].cpu_clock, chimera::prof::CpuClock::none);
     // The first cycle after the reset is dropped (§6.7); each other one burnt
-    // at least 2 ms of the thread's CPU time, and CPU time, not wall time, is
-    // charged, so a cycle never shows more than its burn plus small overhead.
+    // at least 2 ms of the thread's CPU time. The upper bound is the 10 ms
+    // period, not the burn plus a little: a vCPU's stolen time can make a
+    // 1 ms burn read 3.3 ms (seen in CI, tests/prof's reset test).
     EXPECT_EQ(rows[0].accounted + 1, rows[0].cycle);
     EXPECT_GE(rows[0].min_c, 0.002);
     EXPECT_LE(rows[0].min_c, rows[0].avg_c);
     EXPECT_LE(rows[0].avg_c, rows[0].max_c);
-    EXPECT_LT(rows[0].max_c, 0.004);
+    EXPECT_LT(rows[0].max_c, 0.010);
     // The master's status carries the same profile.
     EXPECT_GE(s.status(t).profile.min_c, 0.002);
     s.control(t, Control::kill);
