@@ -166,36 +166,6 @@ void scan_dirs(const std::vector<std::string>& dirs, std::map<std::string, std::
 
 }  // namespace
 
-const std::vector<CommandInfo>& command_table() {
-    static const std::vector<CommandInfo> table = {
-        {"clear", "clear [RMOD]", "send the clear-error signal to a task in ERROR"},
-        {"complete", "complete LINE", "the TAB completions of LINE (what an attached prompt asks the master)"},
-        {"display", "display [RMOD|all] [VAR...]", "show SVAR values (what the task reads and writes; VAR may use * ?)"},
-        {"event", "event [RMOD] [COUNT]", "wake an aperiodic task (sporadic, deferrable or background server) that is ON: one cycle per event (default 1, at most 1000)"},
-        {"finish", "finish", "turn every task off, kill them and end the subsystem"},
-        {"freq", "freq [RMOD] [HZ]", "show or change the frequency of a task"},
-        {"help", "help [COMMAND]", "list the commands, or explain one"},
-        {"kill", "kill [RMOD]", "destroy a task (off first if it is ON)"},
-        {"module", "module [NAME] | module load PATH", "list the modules and .rmod files on the module path, or show one's ports and LOCAL keys; `module load` loads a module shared object (NAME.so, libNAME.so) from PATH and adds its folder to the module path (not over the network)"},
-        {"network", "network", "pass control to a network peer until it quits or is lost"},
-        {"off", "off [RMOD]", "send the off signal"},
-        {"on", "on [RMOD]", "send the on signal"},
-        {"peer", "peer NAME --pid PID [--out VAR...] [--in VAR...] [--program TEXT...]", "declare a process outside the master (a Python program) that produces the --out and consumes the --in variables in its own loop: a background task NAME (module peer) that verification counts as their producer and status lists; it goes to ERROR when the process is gone; `kill NAME` removes it"},
-        {"quit", "quit", "leave this interface (at the prompt: finish the subsystem and exit)"},
-        {"reconfig", "reconfig SIG RMOD [, SIG RMOD ...] | reconfig --check SIG RMOD [, ...]", "apply an ordered list of signals (on off kill clear); stops at the first failure; --check: verify the configuration it would leave (§3.3.1) and send nothing"},
-        {"record", "record VAR[IDX]... DURATION FILE.csv [--rate HZ] [--rtpu RTPU]", "record state variables (VAR, VAR[i], VAR[i:j]) at a task's rate for DURATION (5s, 500ms, 2min) into a CSV file: a `sample` task, read by this sbs program, killed at the end; the reply counts lost samples (not over the network: a peer runs `sample` and reads the ring itself)"},
-        {"sample", "sample VAR[IDX]... [--rate HZ] [--rtpu RTPU] [--capacity N]", "start a sampler task: chosen elements of state variables read at HZ (default: the fastest producer's rate) into a shared-memory ring for any number of readers (scope, record, Python's chimera.record); `kill` the task to stop it"},
-        {"save", "save FILE.sbs", "write the running configuration as a .sbs that starts the same subsystem: the RTPUs, a TASK line per task (its RTPU, ON when on) and a SET line per LOCAL value changed at run time (not over the network)"},
-        {"set", "set [RMOD] [KEY [VALUE...]]", "show the LOCAL configuration of a task, one key, or change a key"},
-        {"setvar", "setvar VAR[IDX] VALUE... [--force]", "write a state variable of the running table (halcmd setp): range-checked against the .svar MIN/MAX; refused while a task produces it unless --force"},
-        {"show", "show rtpu|svar [NAME...] | show graph", "show the RTPUs (CPU, policy, scheduler, tasks, planned utilisation) or the variables with producers and consumers (halcmd show thread / show sig); graph: the port graph (tasks, their ports, states, RTPUs) and the §3.3.1 problems of the tasks ON"},
-        {"sleep", "sleep SECONDS", "pause (lets the tasks run between the commands of a script; at most 60 s)"},
-        {"spawn", "spawn RMOD[+RMOD...] [RTPU]", "create a task from RMOD.rmod on an RTPU (default: the MASTER RTPU); a+b+c: one combined task (§3.8.1), methods in that order"},
-        {"status", "status [RMOD|all] | status reset | status set [FIELD...|default|all]", "show the status of the tasks, counted since this interface's last `status` (the prompt and a network peer each have their own; chimtop never changes it); times in us; `status reset` shows it and restarts profiling on every RTPU for every reader (the thesis's reset); `status set` picks the fields"},
-    };
-    return table;
-}
-
 const std::vector<std::string>& default_status_fields() { return kDefaultFields; }
 
 const std::vector<std::string>& status_field_names() {

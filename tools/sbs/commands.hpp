@@ -4,6 +4,7 @@
 // command means the same thing wherever it is typed.
 #pragma once
 
+#include "command_table.hpp"
 #include "reply.hpp"
 
 #include <chimera/prof.hpp>
@@ -18,16 +19,6 @@
 #include <vector>
 
 namespace chimera::cli {
-
-/// One command of the table (help text and completion come from it).
-struct CommandInfo {
-    const char* name;
-    const char* usage;
-    const char* help;
-};
-
-/// All commands, in alphabetical order (as §4.4.1 lists them).
-const std::vector<CommandInfo>& command_table();
 
 /// The status fields of §4.4.1 (plus the Linux additions) that `status set`
 /// may choose from, in display order.
