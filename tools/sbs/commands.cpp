@@ -1,5 +1,7 @@
 #include "commands.hpp"
 
+#include "admission.hpp"
+
 #include "command_line.hpp"
 #include "status_text.hpp"
 #include "svar_values.hpp"
@@ -832,6 +834,90 @@ std::string Interpreter::free_sampler_name() {
     }
 }
 
+// The RTPU named by --rtpu, or the MASTER one.
+const RtpuSpec& Interpreter::sampler_rtpu(const std::string& name) const {
+    const SbsFile& f = sbs_.file();
+    const RtpuSpec* spec = f.find_rtpu(name.empty() ? f.master : name);
+    if (spec == nullptr && name.empty() && !f.rtpus.empty()) spec = &f.rtpus.front();
+    if (spec != nullptr) return *spec;
+    std::vector<std::string> names;
+    for (const auto& r : f.rtpus) names.push_back(r.name);
+    throw CommandError("sample: no RTPU " + name + " in " + f.path + " (RTPUs: " + join(names) + ")");
+}
+
+// What the RTPU's scheduler counts in its analysis: its ON periodic tasks and
+// servers, at their current rates (a task not ON is never released).
+std::vector<muf::TaskSpec> Interpreter::analysed_tasks(const std::string& rtpu) const {
+    std::vector<muf::TaskSpec> out;
+    for (const auto& [name, f] : rmods_) {
+        const auto on = rtpu_of_.find(name);
+        const auto id = sbs_.find(name);
+        if (on == rtpu_of_.end() || on->second != rtpu || !id || sbs_.state(*id) != State::ON) continue;
+        const bool server = is_aperiodic(f.type) && f.type != TaskType::background && f.wcet > 0 && f.freq > 0;
+        if (f.type != TaskType::periodic && !server) continue;
+        muf::TaskSpec t;
+        t.name = name;
+        t.period = 1.0 / (f.type == TaskType::periodic ? sbs_.freq_get(*id) : f.freq);
+        t.wcet = f.wcet;
+        t.effective = f.effective;
+        t.crit = server && !f.crit ? std::optional<int>(muf::crit::server) : f.crit;
+        out.push_back(std::move(t));
+    }
+    return out;
+}
+
+// A sampler is a task (issue #29.2): its rate within the RTPU's MINFREQ and
+// MAXFREQ, and the RTPU's analysis still guaranteeing its critical set with it.
+// A refusal names the numbers and the RTPUs that would take it.
+void Interpreter::admit_sampler(const RtpuSpec& spec, const std::string& name, double rate, std::size_t channels) const {
+    muf::TaskSpec candidate;
+    candidate.name = name;
+    candidate.period = 1.0 / rate;
+    candidate.wcet = sampler_cycle_cost(channels);
+    const auto problem = [&](const RtpuSpec& r) {
+        const std::string range = rate_problem(r, rate);
+        return range.empty() ? analysis_problem(r, analysed_tasks(r.name), candidate) : range;
+    };
+    const std::string why = problem(spec);
+    if (why.empty()) return;
+    std::vector<std::string> others;
+    for (const RtpuSpec& r : sbs_.file().rtpus)
+        if (r.name != spec.name && problem(r).empty()) others.push_back(r.name);
+    throw CommandError("sample refused: " + why + "; " +
+                       (others.empty() ? "no RTPU takes it at " + cfg::number_text(rate) + " Hz: choose another --rate"
+                                       : "--rtpu " + join(others, " or --rtpu ") + " takes it"));
+}
+
+// The ring's entries as the sampler module makes them: CAPACITY rounded up to
+// a power of two, or 10 s at the rate (modules/sampler/sampler.cpp).
+std::size_t Interpreter::ring_entries(const std::string& capacity, double rate) {
+    if (capacity.empty()) return sampler::capacity_for(rate, 10.0);
+    const double wanted = std::strtod(capacity.c_str(), nullptr);
+    std::size_t entries = 2;
+    while (static_cast<double>(entries) < wanted && entries < sampler::kMaxCapacity) entries *= 2;
+    return entries;
+}
+
+// What clients (network peers, web pages) may make the master allocate in
+// sampler rings, per ring and in all (docs/permissions.md): past a bound the
+// request is refused, never shrunk.
+void Interpreter::bound_client_rings(std::size_t bytes) {
+    for (auto it = client_rings_.begin(); it != client_rings_.end();)
+        it = is_task(it->first) ? std::next(it) : client_rings_.erase(it);  // killed since
+    std::size_t total = 0;
+    for (const auto& [name, b] : client_rings_) total += b;
+    const auto mib = [](std::size_t b) { return fmt("%.1f MiB", static_cast<double>(b) / (1 << 20)); };
+    if (bytes > kMaxClientRingBytes)
+        throw CommandError("sample refused: its ring would take " + mib(bytes) + ", over the " + mib(kMaxClientRingBytes) +
+                           " a client's ring may have (fewer channels, a lower --rate or a smaller --capacity)");
+    if (client_rings_.size() >= kMaxClientSamplers)
+        throw CommandError("sample refused: clients already run " + std::to_string(client_rings_.size()) +
+                           " samplers, the most they may (kill one first)");
+    if (total + bytes > kMaxClientRingsBytes)
+        throw CommandError("sample refused: clients' rings already take " + mib(total) + "; with " + mib(bytes) +
+                           " more they would pass the " + mib(kMaxClientRingsBytes) + " all clients' rings may have");
+}
+
 Reply Interpreter::cmd_sample(const Words& w) {
     std::vector<std::string> vars;
     std::string rtpu, capacity;
@@ -849,7 +935,11 @@ Reply Interpreter::cmd_sample(const Words& w) {
     std::string rate_from = "given";
     if (rate == 0) rate = producers_rate(vars, rate_from);
     if (const std::string why = frequency_problem(rate); !why.empty()) throw CommandError("sample: " + why);
+    const RtpuSpec& spec = sampler_rtpu(rtpu);
+    const std::size_t ring_bytes = sampler::required_size(channels.size(), ring_entries(capacity, rate));
+    if (origin_ != Origin::local) bound_client_rings(ring_bytes);
     const std::string name = free_sampler_name();
+    admit_sampler(spec, name, rate, channels.size());
     RmodFile f;
     f.name = name;
     f.module = "sampler";
@@ -861,7 +951,8 @@ Reply Interpreter::cmd_sample(const Words& w) {
     f.local.set("CHANNELS", vars);
     f.local.set("RING", {name});
     if (!capacity.empty()) f.local.set("CAPACITY", {capacity});
-    const auto s = sbs_.status(spawn_on(f, rtpu));
+    const auto s = sbs_.status(spawn_on(f, spec.name));
+    if (origin_ != Origin::local) client_rings_[name] = ring_bytes;
     const std::string ring = ipc::segment_name(sbs_.name(), name);
     const sampler::RingReader reader = sampler::RingReader::attach(ring);
     std::vector<std::string> names;
