@@ -217,7 +217,7 @@ assert "error" not in sv and len(sv["in"]["T_REF"]) == 6, sv
     out=$(as_member "$SBS" "$SBS_FILE" -c 'setvar Q_REF 0 --force' 2>&1); rc=$?
     check "a member's sbs may not write: exit 1" test $rc -eq 1
     check "...'permission denied', only root may" has "$out" \
-        "error: permission denied: subsystem $SUB runs as root, and only root may command it (sudo sbs $SBS_FILE); this sbs only watches it: status, display, help, quit"
+        "error: permission denied: setvar writes a state variable, and subsystem $SUB runs as root: only root may command it (sudo sbs $SBS_FILE); this sbs only watches it: status, display, help, quit"
     out=$(setpriv --reuid=nobody --regid=nogroup --clear-groups "$SBS" "$SBS_FILE" -c status 2>&1); rc=$?
     check "a non-member's sbs: exit 1" test $rc -eq 1
     check "...told to join the group" has "$out" \

@@ -679,3 +679,55 @@ TEST(SbsCli, SampleRecordAndPeerComplete) {
     EXPECT_EQ(r[2]["data"]["candidates"], nlohmann::json({"--rate", "--rtpu"}));
     EXPECT_EQ(r[3]["data"]["candidates"], nlohmann::json({"--out"}));
 }
+
+// ----------------------------------------------------------------- sampler admission (issue #29.2)
+
+namespace {
+
+// Two RTPUs on CPU 0: cpu0 at the default 1..1000 Hz, fast up to 5 kHz.
+void two_rtpus(const Workspace& ws) {
+    ws.write(ws.subsystem() + ".sbs", "SUBSYSTEM " + ws.subsystem() + "\nSVARFILE  " + sbs_test::env("SBS_TEST_DATA") +
+                                          "/tools.svar\nRTPU      cpu0\nBACKEND   other\n"
+                                          "RTPU      fast 0\nMAXFREQ   5000\nBACKEND   other\nEOF\n");
+}
+
+}  // namespace
+
+// A sampler is a task: a rate outside its RTPU's MINFREQ..MAXFREQ is refused
+// with both bounds and the RTPU that would take it; one no RTPU can run
+// (the issue's 100 kHz) is refused outright; nothing is left spawned.
+TEST(SbsCli, ASamplersRateMustLieWithinItsRtpusRange) {
+    Workspace ws;
+    two_rtpus(ws);
+    EXPECT_EQ(failing(ws, "sample X --rate 2000"),
+              "sample refused: 2000 Hz is above RTPU cpu0's MAXFREQ (it runs tasks at 1 to 1000 Hz); --rtpu fast takes it");
+    EXPECT_EQ(failing(ws, "sample X --rate 0.5 --rtpu fast"),
+              "sample refused: 0.5 Hz is below RTPU fast's MINFREQ (it runs tasks at 1 to 5000 Hz); no RTPU takes it at "
+              "0.5 Hz: choose another --rate");
+    const std::string refused = failing(ws, "sample X --rate 100000 --rtpu fast");
+    EXPECT_EQ(refused, "sample refused: 100000 Hz is above RTPU fast's MAXFREQ (it runs tasks at 1 to 5000 Hz); "
+                       "no RTPU takes it at 100000 Hz: choose another --rate");
+    const auto r = ok_json(ws, "sample X --rate 2000 --rtpu fast; status");
+    ASSERT_EQ(r.size(), 2u);
+    EXPECT_EQ(r[0]["data"]["rtpu"], "fast");
+    EXPECT_EQ(r[1]["data"]["tasks"].size(), 1u) << "the refused samplers left no task";
+}
+
+// The RTPU's MUF analysis with the sampler added must still guarantee its
+// critical set: heavy (C 4.95 ms every 5 ms, U 0.99) would leave it for a
+// 1 kHz sampler, so that one is refused, naming heavy and offering fast; a
+// 10 Hz sampler fits beside it and is admitted.
+TEST(SbsCli, ASamplerThatWouldPushATaskOutOfTheCriticalSetIsRefused) {
+    Workspace ws;
+    two_rtpus(ws);
+    ws.write("heavy.rmod", "MODULE ramp\nDESC a ramp that reserves 99% of its RTPU\nINVAR none\nOUTVAR X\n"
+                           "TASKTYPE periodic\nFREQ 200\nWCET 0.00495\n\nLOCAL\nSTEP 1\nEOF\n");
+    const std::string why = failing(ws, "spawn " + ws.dir() + "/heavy.rmod; on; sample X --rate 1000");
+    EXPECT_EQ(why.rfind("sample refused: RTPU cpu0 (MUF) cannot take sample.1 at 1000 Hz (C ", 0), 0u) << why;
+    EXPECT_NE(why.find("): the critical set would lose heavy (U 0.990) (utilisation with it 1.0"), std::string::npos) << why;
+    EXPECT_NE(why.find(", bound 1.000); --rtpu fast takes it"), std::string::npos) << why;
+    const auto r = ok_json(ws, "spawn " + ws.dir() + "/heavy.rmod; on; sample X --rate 10; sample X --rate 1000 --rtpu fast");
+    ASSERT_EQ(r.size(), 4u);
+    EXPECT_EQ(r[2]["data"]["rtpu"], "cpu0");
+    EXPECT_EQ(r[3]["data"]["rtpu"], "fast");
+}

@@ -659,3 +659,42 @@ TEST(SbsNetwork, ASampleRingHasTheTablesMode) {
     c.request("finish", 5000);
     EXPECT_EQ(m.wait(), 0) << m.err_text();
 }
+
+// What a client can make the master allocate is bounded (issue #29.2,
+// docs/permissions.md): the issue's --capacity 4194304 ring (256 MiB for one
+// channel: entries are 64 bytes) is refused naming the 32 MiB bound; rings of
+// 16 MiB are granted until all clients' rings would pass 128 MiB; then small
+// ones until clients run 8 samplers. Each refusal leaves no task; killing one
+// frees its share.
+TEST(SbsNetwork, AClientsSamplersAreBoundedAndNeverShrunk) {
+    Workspace ws;
+    Master m(ws, {"--serve", "-c", "spawn ramp; on"});
+    NetworkClient c = connect(ws);
+    const auto error_of = [&](const std::string& command) {
+        const auto j = c.request(command, 10000);
+        EXPECT_FALSE(j.value("ok", true)) << command;
+        return j.value("error", "");
+    };
+    const auto started = [&](const std::string& command) {
+        const auto j = c.request(command, 10000);
+        EXPECT_TRUE(j.value("ok", false)) << command << ": " << j.dump();
+        return j.value("data", nlohmann::json::object()).value("rmod", "");
+    };
+    EXPECT_EQ(error_of("sample X --capacity 4194304"),
+              "sample refused: its ring would take 256.0 MiB, over the 32.0 MiB a client's ring may have (fewer "
+              "channels, a lower --rate or a smaller --capacity)");
+    const std::string big = "sample X --capacity 262144";  // 16 MiB
+    std::vector<std::string> rings;
+    for (int i = 0; i < 7; ++i) rings.push_back(started(big));
+    EXPECT_EQ(error_of(big), "sample refused: clients' rings already take 112.0 MiB; with 16.0 MiB more they would "
+                             "pass the 128.0 MiB all clients' rings may have");
+    rings.push_back(started("sample X --capacity 1024"));
+    EXPECT_EQ(error_of("sample X --capacity 1024"),
+              "sample refused: clients already run 8 samplers, the most they may (kill one first)");
+    EXPECT_TRUE(c.request("kill " + rings.front(), 10000).value("ok", false));
+    EXPECT_FALSE(started(big).empty()) << "a killed sampler's ring no longer counts";
+    const auto status = c.request("status all", 10000);
+    EXPECT_EQ(status["data"]["tasks"].size(), 9u) << "ramp and 8 samplers, no refused one";
+    c.request("finish", 10000);
+    EXPECT_EQ(m.wait(), 0) << m.err_text();
+}

@@ -219,6 +219,17 @@ def scope_task(master):
     return [tuple(line.split()[:2]) for line in r.stdout.splitlines() if line.startswith("sample.")]
 
 
+def run_scope(browser):
+    """Runs the scope as the page with control (starting one spawns a sampler
+    task, issue #29.1), then watches again: the scope stays the page's."""
+    browser.find_element(By.ID, "control").click()
+    wait(browser, lambda d: d.find_element(By.ID, "mode").text == "in control")
+    browser.find_element(By.ID, "sc-run").click()
+    wait(browser, lambda d: d.find_element(By.ID, "sc-state").text not in ("off", "stopped"))
+    browser.find_element(By.ID, "control").click()
+    wait(browser, lambda d: d.find_element(By.ID, "mode").text.startswith("watching"))
+
+
 def test_scope_plots_triggers_and_exports_the_stream(master, browser):
     open_console(browser, master)
     wait(browser, lambda d: len(d.find_elements(By.CSS_SELECTOR, "#sc-var option")) > 3)
@@ -233,7 +244,7 @@ def test_scope_plots_triggers_and_exports_the_stream(master, browser):
     level = browser.find_element(By.ID, "sc-level")
     level.clear()
     level.send_keys("0.25")
-    browser.find_element(By.ID, "sc-run").click()
+    run_scope(browser)
     wait(browser, lambda d: (shown(d) or {}).get("triggered"), timeout=40)
     s = shown(browser)
     assert len(s["points"]) == 4 and all(p > 0 for p in s["points"])
@@ -253,7 +264,7 @@ def test_scope_plots_triggers_and_exports_the_stream(master, browser):
     browser.find_element(By.ID, "sc-stop").click()
     wait(browser, lambda d: not scope_task(master), timeout=20)
     wait(browser, lambda d: choose(d, "sc-rtpu", "robot"))
-    browser.find_element(By.ID, "sc-run").click()
+    run_scope(browser)
     wait(browser, lambda d: scope_task(master), timeout=20)
     assert scope_task(master)[0][1] == "robot"
     browser.get("about:blank")

@@ -86,6 +86,20 @@ def test_watchers_are_read_only(master):
         assert not r["ok"] and "read-only" in r["error"], cmd
 
 
+def test_a_watching_page_starts_no_scope(master):
+    # Issue #29: a page that gave the token but never took control started a
+    # 100 kHz sampler on ctrl, and jpid went from 2501 cycles/0 misses to 5/731.
+    s, watcher = page(master), page(master)
+    before = task_names(watcher)
+    for cmd in ("scope start Q_MEZ --rate 100000 --rtpu ctrl", "scope start Q_MEZ Q_REF --capacity 4194304",
+                "sample Q_MEZ", "sleep 60"):
+        r = s.request(cmd)
+        assert not r["ok"] and "read-only: this page is watching" in r["error"], (cmd, r)
+    assert "scope start creates a task (a sampler) and its ring" in s.request("scope start Q_MEZ")["error"]
+    assert s.request("scope stop")["ok"]  # its own (absent) scope: nothing to stop, nothing refused
+    assert task_names(watcher) == before
+
+
 def test_one_controller_at_a_time(master):
     a, b = page(master), page(master)
     assert a.request("control")["ok"]
@@ -216,6 +230,17 @@ def scope_batches(s, samples, ack=True, timeout=30):
     return got
 
 
+def start_scope(s, command):
+    """`command` (scope start ...) from page `s`, which takes control for it
+    and gives it back: starting a scope spawns a task (issue #29.1). The
+    scope stays the page's own after the release."""
+    assert s.request("control")["ok"]
+    try:
+        return s.request(command)
+    finally:
+        assert s.request("release")["ok"]
+
+
 def numbers(batches):
     return [n for b in batches for n in b["n"]]
 
@@ -239,8 +264,8 @@ def ring_exists(master, rmod):
 
 
 def test_scope_streams_every_sample_once_in_order(master):
-    s = page(master)  # watching: a scope only watches
-    r = s.request("scope start Q_MEZ[0] Q_REF[0] Q_MEZ[1] Q_REF[1] T_REF[0]")
+    s = page(master)
+    r = start_scope(s, "scope start Q_MEZ[0] Q_REF[0] Q_MEZ[1] Q_REF[1] T_REF[0]")
     assert r["ok"], r
     d = r["data"]
     assert d["channels"] == ["Q_MEZ[0]", "Q_REF[0]", "Q_MEZ[1]", "Q_REF[1]", "T_REF[0]"]
@@ -264,7 +289,7 @@ def test_scope_streams_every_sample_once_in_order(master):
 
 def test_scope_counts_loss_when_the_page_stalls(master):
     s = page(master)
-    r = s.request("scope start Q_MEZ[0] --capacity 256")
+    r = start_scope(s, "scope start Q_MEZ[0] --capacity 256")
     assert r["ok"], r
     first = scope_batches(s, 50)
     # Stop acknowledging: the server sends at most its window of batches, then
@@ -288,7 +313,7 @@ def test_scope_counts_loss_when_the_page_stalls(master):
 
 def test_closing_the_page_kills_its_sampler_task(master):
     s, watcher = page(master), page(master)
-    rmod = s.request("scope start Q_MEZ")["data"]["rmod"]
+    rmod = start_scope(s, "scope start Q_MEZ")["data"]["rmod"]
     assert scope_batches(s, 10)
     assert rmod in task_names(watcher)
     s.sock.close()
@@ -298,13 +323,13 @@ def test_closing_the_page_kills_its_sampler_task(master):
 
 def test_two_pages_scope_at_once_and_stop_or_restart_kills(master):
     a, b, watcher = page(master), page(master), page(master)
-    ra = a.request("scope start Q_MEZ[0]")["data"]["rmod"]
-    rb = b.request("scope start Q_REF[0] Q_REF[1]")["data"]["rmod"]
+    ra = start_scope(a, "scope start Q_MEZ[0]")["data"]["rmod"]
+    rb = start_scope(b, "scope start Q_REF[0] Q_REF[1]")["data"]["rmod"]
     assert ra != rb
     assert numbers(scope_batches(a, 100))[:100] == list(range(100))
     assert numbers(scope_batches(b, 100))[:100] == list(range(100))
     # Starting another scope replaces the page's first: its task is killed.
-    rb2 = b.request("scope start T_REF[0]")["data"]["rmod"]
+    rb2 = start_scope(b, "scope start T_REF[0]")["data"]["rmod"]
     assert rb2 != rb and wait_gone(watcher, rb) and not ring_exists(master, rb)
     r = a.request("scope stop")
     assert r["ok"] and r["data"]["rmod"] == ra
@@ -316,7 +341,7 @@ def test_two_pages_scope_at_once_and_stop_or_restart_kills(master):
 
 def test_scope_ends_when_its_task_is_killed_elsewhere(master):
     s, ctl = page(master), page(master)
-    rmod = s.request("scope start Q_MEZ[2]")["data"]["rmod"]
+    rmod = start_scope(s, "scope start Q_MEZ[2]")["data"]["rmod"]
     assert scope_batches(s, 20)
     assert ctl.request("control")["ok"]
     try:
@@ -331,11 +356,13 @@ def test_scope_ends_when_its_task_is_killed_elsewhere(master):
 def test_bad_scope_requests_are_refused_with_nothing_left(master):
     s, watcher = page(master), page(master)
     before = task_names(watcher)
+    assert s.request("control")["ok"]
     for cmd, why in (("scope start NOSUCH", "NOSUCH"), ("scope start Q_MEZ[99]", "Q_MEZ"),
                      ("scope start Q_MEZ --rate -5", "--rate"), ("scope start Q_MEZ;off jpid", "not a variable"),
                      ("scope", "usage"), ("scope ack 1", "no scope running")):
         r = s.request(cmd)
         assert not r["ok"] and why in r["error"], (cmd, r)
+    assert s.request("release")["ok"]
     assert task_names(watcher) == before
 
 
@@ -343,7 +370,7 @@ def test_master_finishing_with_a_page_scoping_leaves_nothing():
     m = Master("f")
     try:
         s = page(m)
-        rmod = s.request("scope start Q_MEZ")["data"]["rmod"]
+        rmod = start_scope(s, "scope start Q_MEZ")["data"]["rmod"]
         assert scope_batches(s, 10)
         assert ring_exists(m, rmod)
     finally:

@@ -1,5 +1,7 @@
 #include "commands.hpp"
 
+#include "admission.hpp"
+
 #include "command_line.hpp"
 #include "status_text.hpp"
 #include "svar_values.hpp"
@@ -165,36 +167,6 @@ void scan_dirs(const std::vector<std::string>& dirs, std::map<std::string, std::
 }
 
 }  // namespace
-
-const std::vector<CommandInfo>& command_table() {
-    static const std::vector<CommandInfo> table = {
-        {"clear", "clear [RMOD]", "send the clear-error signal to a task in ERROR"},
-        {"complete", "complete LINE", "the TAB completions of LINE (what an attached prompt asks the master)"},
-        {"display", "display [RMOD|all] [VAR...]", "show SVAR values (what the task reads and writes; VAR may use * ?)"},
-        {"event", "event [RMOD] [COUNT]", "wake an aperiodic task (sporadic, deferrable or background server) that is ON: one cycle per event (default 1, at most 1000)"},
-        {"finish", "finish", "turn every task off, kill them and end the subsystem"},
-        {"freq", "freq [RMOD] [HZ]", "show or change the frequency of a task"},
-        {"help", "help [COMMAND]", "list the commands, or explain one"},
-        {"kill", "kill [RMOD]", "destroy a task (off first if it is ON)"},
-        {"module", "module [NAME] | module load PATH", "list the modules and .rmod files on the module path, or show one's ports and LOCAL keys; `module load` loads a module shared object (NAME.so, libNAME.so) from PATH and adds its folder to the module path (not over the network)"},
-        {"network", "network", "pass control to a network peer until it quits or is lost"},
-        {"off", "off [RMOD]", "send the off signal"},
-        {"on", "on [RMOD]", "send the on signal"},
-        {"peer", "peer NAME --pid PID [--out VAR...] [--in VAR...] [--program TEXT...]", "declare a process outside the master (a Python program) that produces the --out and consumes the --in variables in its own loop: a background task NAME (module peer) that verification counts as their producer and status lists; it goes to ERROR when the process is gone; `kill NAME` removes it"},
-        {"quit", "quit", "leave this interface (at the prompt: finish the subsystem and exit)"},
-        {"reconfig", "reconfig SIG RMOD [, SIG RMOD ...] | reconfig --check SIG RMOD [, ...]", "apply an ordered list of signals (on off kill clear); stops at the first failure; --check: verify the configuration it would leave (§3.3.1) and send nothing"},
-        {"record", "record VAR[IDX]... DURATION FILE.csv [--rate HZ] [--rtpu RTPU]", "record state variables (VAR, VAR[i], VAR[i:j]) at a task's rate for DURATION (5s, 500ms, 2min) into a CSV file: a `sample` task, read by this sbs program, killed at the end; the reply counts lost samples (not over the network: a peer runs `sample` and reads the ring itself)"},
-        {"sample", "sample VAR[IDX]... [--rate HZ] [--rtpu RTPU] [--capacity N]", "start a sampler task: chosen elements of state variables read at HZ (default: the fastest producer's rate) into a shared-memory ring for any number of readers (scope, record, Python's chimera.record); `kill` the task to stop it"},
-        {"save", "save FILE.sbs", "write the running configuration as a .sbs that starts the same subsystem: the RTPUs, a TASK line per task (its RTPU, ON when on) and a SET line per LOCAL value changed at run time (not over the network)"},
-        {"set", "set [RMOD] [KEY [VALUE...]]", "show the LOCAL configuration of a task, one key, or change a key"},
-        {"setvar", "setvar VAR[IDX] VALUE... [--force]", "write a state variable of the running table (halcmd setp): range-checked against the .svar MIN/MAX; refused while a task produces it unless --force"},
-        {"show", "show rtpu|svar [NAME...] | show graph", "show the RTPUs (CPU, policy, scheduler, tasks, planned utilisation) or the variables with producers and consumers (halcmd show thread / show sig); graph: the port graph (tasks, their ports, states, RTPUs) and the §3.3.1 problems of the tasks ON"},
-        {"sleep", "sleep SECONDS", "pause (lets the tasks run between the commands of a script; at most 60 s)"},
-        {"spawn", "spawn RMOD[+RMOD...] [RTPU]", "create a task from RMOD.rmod on an RTPU (default: the MASTER RTPU); a+b+c: one combined task (§3.8.1), methods in that order"},
-        {"status", "status [RMOD|all] | status reset | status set [FIELD...|default|all]", "show the status of the tasks, counted since this interface's last `status` (the prompt and a network peer each have their own; chimtop never changes it); times in us; `status reset` shows it and restarts profiling on every RTPU for every reader (the thesis's reset); `status set` picks the fields"},
-    };
-    return table;
-}
 
 const std::vector<std::string>& default_status_fields() { return kDefaultFields; }
 
@@ -862,6 +834,90 @@ std::string Interpreter::free_sampler_name() {
     }
 }
 
+// The RTPU named by --rtpu, or the MASTER one.
+const RtpuSpec& Interpreter::sampler_rtpu(const std::string& name) const {
+    const SbsFile& f = sbs_.file();
+    const RtpuSpec* spec = f.find_rtpu(name.empty() ? f.master : name);
+    if (spec == nullptr && name.empty() && !f.rtpus.empty()) spec = &f.rtpus.front();
+    if (spec != nullptr) return *spec;
+    std::vector<std::string> names;
+    for (const auto& r : f.rtpus) names.push_back(r.name);
+    throw CommandError("sample: no RTPU " + name + " in " + f.path + " (RTPUs: " + join(names) + ")");
+}
+
+// What the RTPU's scheduler counts in its analysis: its ON periodic tasks and
+// servers, at their current rates (a task not ON is never released).
+std::vector<muf::TaskSpec> Interpreter::analysed_tasks(const std::string& rtpu) const {
+    std::vector<muf::TaskSpec> out;
+    for (const auto& [name, f] : rmods_) {
+        const auto on = rtpu_of_.find(name);
+        const auto id = sbs_.find(name);
+        if (on == rtpu_of_.end() || on->second != rtpu || !id || sbs_.state(*id) != State::ON) continue;
+        const bool server = is_aperiodic(f.type) && f.type != TaskType::background && f.wcet > 0 && f.freq > 0;
+        if (f.type != TaskType::periodic && !server) continue;
+        muf::TaskSpec t;
+        t.name = name;
+        t.period = 1.0 / (f.type == TaskType::periodic ? sbs_.freq_get(*id) : f.freq);
+        t.wcet = f.wcet;
+        t.effective = f.effective;
+        t.crit = server && !f.crit ? std::optional<int>(muf::crit::server) : f.crit;
+        out.push_back(std::move(t));
+    }
+    return out;
+}
+
+// A sampler is a task (issue #29.2): its rate within the RTPU's MINFREQ and
+// MAXFREQ, and the RTPU's analysis still guaranteeing its critical set with it.
+// A refusal names the numbers and the RTPUs that would take it.
+void Interpreter::admit_sampler(const RtpuSpec& spec, const std::string& name, double rate, std::size_t channels) const {
+    muf::TaskSpec candidate;
+    candidate.name = name;
+    candidate.period = 1.0 / rate;
+    candidate.wcet = sampler_cycle_cost(channels);
+    const auto problem = [&](const RtpuSpec& r) {
+        const std::string range = rate_problem(r, rate);
+        return range.empty() ? analysis_problem(r, analysed_tasks(r.name), candidate) : range;
+    };
+    const std::string why = problem(spec);
+    if (why.empty()) return;
+    std::vector<std::string> others;
+    for (const RtpuSpec& r : sbs_.file().rtpus)
+        if (r.name != spec.name && problem(r).empty()) others.push_back(r.name);
+    throw CommandError("sample refused: " + why + "; " +
+                       (others.empty() ? "no RTPU takes it at " + cfg::number_text(rate) + " Hz: choose another --rate"
+                                       : "--rtpu " + join(others, " or --rtpu ") + " takes it"));
+}
+
+// The ring's entries as the sampler module makes them: CAPACITY rounded up to
+// a power of two, or 10 s at the rate (modules/sampler/sampler.cpp).
+std::size_t Interpreter::ring_entries(const std::string& capacity, double rate) {
+    if (capacity.empty()) return sampler::capacity_for(rate, 10.0);
+    const double wanted = std::strtod(capacity.c_str(), nullptr);
+    std::size_t entries = 2;
+    while (static_cast<double>(entries) < wanted && entries < sampler::kMaxCapacity) entries *= 2;
+    return entries;
+}
+
+// What clients (network peers, web pages) may make the master allocate in
+// sampler rings, per ring and in all (docs/permissions.md): past a bound the
+// request is refused, never shrunk.
+void Interpreter::bound_client_rings(std::size_t bytes) {
+    for (auto it = client_rings_.begin(); it != client_rings_.end();)
+        it = is_task(it->first) ? std::next(it) : client_rings_.erase(it);  // killed since
+    std::size_t total = 0;
+    for (const auto& [name, b] : client_rings_) total += b;
+    const auto mib = [](std::size_t b) { return fmt("%.1f MiB", static_cast<double>(b) / (1 << 20)); };
+    if (bytes > kMaxClientRingBytes)
+        throw CommandError("sample refused: its ring would take " + mib(bytes) + ", over the " + mib(kMaxClientRingBytes) +
+                           " a client's ring may have (fewer channels, a lower --rate or a smaller --capacity)");
+    if (client_rings_.size() >= kMaxClientSamplers)
+        throw CommandError("sample refused: clients already run " + std::to_string(client_rings_.size()) +
+                           " samplers, the most they may (kill one first)");
+    if (total + bytes > kMaxClientRingsBytes)
+        throw CommandError("sample refused: clients' rings already take " + mib(total) + "; with " + mib(bytes) +
+                           " more they would pass the " + mib(kMaxClientRingsBytes) + " all clients' rings may have");
+}
+
 Reply Interpreter::cmd_sample(const Words& w) {
     std::vector<std::string> vars;
     std::string rtpu, capacity;
@@ -879,7 +935,11 @@ Reply Interpreter::cmd_sample(const Words& w) {
     std::string rate_from = "given";
     if (rate == 0) rate = producers_rate(vars, rate_from);
     if (const std::string why = frequency_problem(rate); !why.empty()) throw CommandError("sample: " + why);
+    const RtpuSpec& spec = sampler_rtpu(rtpu);
+    const std::size_t ring_bytes = sampler::required_size(channels.size(), ring_entries(capacity, rate));
+    if (origin_ != Origin::local) bound_client_rings(ring_bytes);
     const std::string name = free_sampler_name();
+    admit_sampler(spec, name, rate, channels.size());
     RmodFile f;
     f.name = name;
     f.module = "sampler";
@@ -891,7 +951,8 @@ Reply Interpreter::cmd_sample(const Words& w) {
     f.local.set("CHANNELS", vars);
     f.local.set("RING", {name});
     if (!capacity.empty()) f.local.set("CAPACITY", {capacity});
-    const auto s = sbs_.status(spawn_on(f, rtpu));
+    const auto s = sbs_.status(spawn_on(f, spec.name));
+    if (origin_ != Origin::local) client_rings_[name] = ring_bytes;
     const std::string ring = ipc::segment_name(sbs_.name(), name);
     const sampler::RingReader reader = sampler::RingReader::attach(ring);
     std::vector<std::string> names;

@@ -4,8 +4,10 @@
 // command means the same thing wherever it is typed.
 #pragma once
 
+#include "command_table.hpp"
 #include "reply.hpp"
 
+#include <chimera/muf/analysis.hpp>
 #include <chimera/prof.hpp>
 #include <chimera/sbs.hpp>
 #include <chimera/svar.hpp>
@@ -18,16 +20,6 @@
 #include <vector>
 
 namespace chimera::cli {
-
-/// One command of the table (help text and completion come from it).
-struct CommandInfo {
-    const char* name;
-    const char* usage;
-    const char* help;
-};
-
-/// All commands, in alphabetical order (as §4.4.1 lists them).
-const std::vector<CommandInfo>& command_table();
 
 /// The status fields of §4.4.1 (plus the Linux additions) that `status set`
 /// may choose from, in display order.
@@ -60,6 +52,13 @@ Reply values_reply(svar::Table& t, const std::vector<VarItem>& items, const std:
 /// written: save and record are refused, and so are spawn, on and reconfig on
 /// of a task whose module declares an output file (docs/permissions.md).
 enum class Origin { local, network, web };
+
+/// What clients (Origin network and web) may have the master allocate in
+/// sampler rings (docs/permissions.md): one ring, all their rings, and how
+/// many samplers they run at once (each is a task thread).
+inline constexpr std::size_t kMaxClientRingBytes = std::size_t{32} << 20;
+inline constexpr std::size_t kMaxClientRingsBytes = std::size_t{128} << 20;
+inline constexpr std::size_t kMaxClientSamplers = 8;
 
 class Interpreter {
 public:
@@ -113,6 +112,11 @@ private:
     Reply cmd_help(const Words& w);
     Reply cmd_sample(const Words& w);
     double producers_rate(const std::vector<std::string>& vars, std::string& why) const;
+    const RtpuSpec& sampler_rtpu(const std::string& name) const;
+    std::vector<muf::TaskSpec> analysed_tasks(const std::string& rtpu) const;
+    void admit_sampler(const RtpuSpec& spec, const std::string& name, double rate, std::size_t channels) const;
+    static std::size_t ring_entries(const std::string& capacity, double rate);
+    void bound_client_rings(std::size_t bytes);
     std::string free_sampler_name();
     sbs::TaskId spawn_on(const RmodFile& f, const std::string& rtpu);
     Reply cmd_peer(const Words& w);
@@ -157,6 +161,7 @@ private:
     prof::StatusWindow windows_[3];
     Origin origin_ = Origin::local;  // of the command being executed
     unsigned samplers_made_ = 0;     // `sample` names its tasks sample.1, sample.2, ...
+    std::map<std::string, std::size_t> client_rings_;  // sampler made by a client -> its ring's bytes
     std::mutex mutex_;  // one command at a time, whichever interface sent it
 };
 

@@ -60,6 +60,11 @@ Reply Watcher::execute(std::string_view command) {
     }
     Reply r;
     r.command = w[0];
+    const std::string command_it = "only " + owner_ + " may command it (" + (owner_ == "root" ? "sudo " : "") +
+                                   "sbs " + sbs_path_ + ")";
+    if (const std::string why = watcher_refusal(w); !why.empty())
+        return Reply::failure(w[0], "permission denied: " + why + ", and subsystem " + subsystem_ + " runs as " +
+                                        owner_ + ": " + command_it + "; this sbs only watches it: status, display, help, quit");
     if (w[0] == "quit" && w.size() == 1) {
         r.action = Action::quit;
         return r;
@@ -72,9 +77,9 @@ Reply Watcher::execute(std::string_view command) {
                  "Commanding it is " + owner_ + "'s: " + (owner_ == "root" ? "sudo " : "") + "sbs " + sbs_path_;
         return r;
     }
-    return Reply::failure(w[0], "permission denied: subsystem " + subsystem_ + " runs as " + owner_ + ", and only " +
-                                    owner_ + " may command it (" + (owner_ == "root" ? "sudo " : "") + "sbs " +
-                                    sbs_path_ + "); this sbs only watches it: status, display, help, quit");
+    // It only reads, but what it reads is the master's own (its interpreter, its module path).
+    return Reply::failure(w[0], w[0] + " is answered by the master, which subsystem " + subsystem_ + "'s owner " +
+                                    owner_ + " runs: " + command_it + "; this sbs only watches it: status, display, help, quit");
 }
 
 Reply Watcher::status(const std::vector<std::string>& w) {

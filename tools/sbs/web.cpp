@@ -1,6 +1,7 @@
 #include "web.hpp"
 
 #include "command_line.hpp"
+#include "command_table.hpp"
 #include "scope_stream.hpp"
 
 #include <civetweb.h>
@@ -47,20 +48,6 @@ std::vector<std::string> words_of(std::string_view command) {
     } catch (const SyntaxError&) {
         return {};
     }
-}
-
-// Commands a watching page may send without control: they change nothing
-// (the interpreter's web origin has its own status window).
-bool read_only(const std::vector<std::string>& w) {
-    if (w.empty()) return true;
-    const std::string& c = w[0];
-    if (c == "display" || c == "show" || c == "help" || c == "complete") return true;
-    if (c == "status") return w.size() == 1 || (w.size() == 2 && w[1] != "reset" && w[1] != "set") ||
-                              (w.size() == 2 && w[1] == "set");
-    if (c == "module") return w.size() <= 2 && (w.size() == 1 || w[1] != "load");
-    if (c == "set") return w.size() == 2;  // every key of one task, with its value
-    if (c == "reconfig") return w.size() > 1 && w[1] == "--check";
-    return false;
 }
 
 std::string read_file(const std::string& path) {
@@ -355,6 +342,10 @@ Reply WebConsole::Impl::run_command(Page& page, const std::string& command) {
         std::lock_guard lock(mu);
         controlling = page.controlling;
     }
+    // Decided here, before any command (the page's scope included) is dispatched.
+    if (!controlling)
+        if (const std::string why = watcher_refusal(w); !why.empty())
+            return Reply::failure(word, "read-only: this page is watching, and " + why + "; send 'control' first");
     if (word == "control" && w.size() == 1) {
         if (controlling) return simple("control", "this page has control", {{"control", true}});
         const std::string refusal = control.acquire_control();
@@ -374,13 +365,10 @@ Reply WebConsole::Impl::run_command(Page& page, const std::string& command) {
         return simple("release", "watching (read-only)", {{"control", false}});
     }
     if (word == "scope") return scope_command(page, w);
-    if (!controlling && !read_only(w)) {
-        if (word == "quit") {
-            Reply r = simple("quit", "");
-            r.action = Action::quit;
-            return r;
-        }
-        return Reply::failure(word, "read-only: this page is watching; send 'control' first to " + word);
+    if (!controlling && word == "quit") {  // a watcher leaves; the interpreter is not asked
+        Reply r = simple("quit", "");
+        r.action = Action::quit;
+        return r;
     }
     Reply reply;
     try {
@@ -415,9 +403,9 @@ constexpr const char* kScopeUsage =
 
 }  // namespace
 
-// A scope only watches, so a read-only page may open one (halscope watches
-// any signal). Its sampler task is the page's own: killed when the page
-// stops the scope, starts another, or closes.
+// Starting a scope spawns a sampler task, so it needs control (issue #29.1);
+// the task is the page's own: killed when the page stops the scope, starts
+// another, or closes, whether or not the page still has control.
 Reply WebConsole::Impl::scope_command(Page& page, const std::vector<std::string>& w) {
     const std::string sub = w.size() > 1 ? w[1] : "";
     if (sub == "ack" && w.size() == 3) {
