@@ -696,6 +696,16 @@ bool Segment::in_use(const std::string& name) noexcept {
     return used;
 }
 
+bool Segment::end_for_all() noexcept {
+    bool removed = false;
+    if (base_ && fd_ >= 0 && owner_ == getpid() && !read_only()) {
+        header().state.store(static_cast<std::uint32_t>(SegmentState::destroyed), std::memory_order_seq_cst);
+        removed = names_file(name_, fd_) && shm_unlink(name_.c_str()) == 0;
+    }
+    release(false);
+    return removed;
+}
+
 void Segment::detach() noexcept { release(false); }
 
 bool Segment::detach_destroy_if_last() noexcept { return release(true); }

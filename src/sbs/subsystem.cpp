@@ -836,7 +836,9 @@ void Subsystem::finish() {
         c.schedulers.clear();  // every task thread has left: the dispatchers stop
     }
     c.status.close();  // removed with the subsystem: a restart can create it again
-    c.table.destroy();
+    // Removed too while another process still maps it (a Python Table kept
+    // after the end): the subsystem is over, and its name must not linger.
+    c.table.end_for_all();
 }
 
 std::string format_status_header() {

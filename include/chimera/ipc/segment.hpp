@@ -204,6 +204,14 @@ public:
     /// when the segment was destroyed. (An attach racing with it either fails
     /// with "is being destroyed" or keeps the segment alive as a new user.)
     bool detach_destroy_if_last() noexcept;
+    /// The owner's end of a segment for every user (issue #29.8): marks it
+    /// destroyed, removes its name (when it still names this mapping's file)
+    /// and detaches, whoever else maps it. They keep their mapping, and see
+    /// the header's `destroyed`; attach() refuses the name from now on. A
+    /// master ends its table so: another process's mapping (a Python Table
+    /// kept after the subsystem finished) must not keep the name in /dev/shm.
+    /// True when the name was removed.
+    bool end_for_all() noexcept;
     /// Live mappings of this segment, this one included: each holds a lock
     /// on a byte of its own, counted with about two fcntl calls per user (a
     /// slow path, for status and tests). 0 when not attached. A child made by
