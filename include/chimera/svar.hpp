@@ -277,6 +277,9 @@ public:
     /// Unmaps, and removes the table if this was the last user (svarDestroy).
     /// Returns true when the table was removed.
     bool destroy() noexcept;
+    /// Unmaps and removes the table now, whoever else maps it (they see it
+    /// destroyed): the end of a subsystem (ipc::Segment::end_for_all()).
+    bool end_for_all() noexcept;
 
     bool valid() const noexcept { return seg_.valid(); }
     const std::string& name() const noexcept { return seg_.name(); }

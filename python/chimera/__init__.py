@@ -9,6 +9,10 @@
     rec = chimera.record(["Q_REF", "Q_MEZ"], seconds=2.0)  # at a task's rate, every sample once
     with chimera.Peer("vision", produces=["TARGET"], consumes=["Q_MEZ"]) as p: ...  # a producer the master knows
 
+When a subsystem's master finishes, every call on a Table, Tbuf, StatusReader or
+Sampling of it raises chimera.SubsystemGone (a ChimeraError) and the object lets
+go of its segments: attach again once the subsystem runs again.
+
 Nothing here runs on a real-time thread: every call that may wait for the table
 lock releases the GIL, and no Python code runs while the lock is held.
 """
@@ -25,6 +29,7 @@ from ._core import (  # noqa: F401  (re-exported)
     Reader,
     Ring,
     StatusReader,
+    SubsystemGone,
     SvarError,
     Table,
     TaskStatus,
@@ -44,6 +49,7 @@ __all__ = [
     "attach", "status", "to_dataframe", "segment_name",
     "Table", "VarInfo", "Reader", "Writer", "Tbuf", "TbufItem", "StatusReader", "TaskStatus",
     "Master", "MasterError", "serve", "ServedSubsystem", "ChimeraError", "SvarError", "LockTimeout", "ProducerConflict", "TbufError",
+    "SubsystemGone",
     "TASK_STATUS_FIELDS", "record", "Recording", "Sampling", "Ring", "Peer", "running_subsystems",
 ]
 

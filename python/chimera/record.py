@@ -24,7 +24,7 @@ from typing import Any, List, Optional, Sequence, Union
 
 import numpy
 
-from ._core import Ring
+from ._core import Ring, SubsystemGone, _master_alive
 from .master import Master
 
 _COLUMN = re.compile(r"^(.*)\[(\d+)\]$")
@@ -102,8 +102,11 @@ class Recording:
 
 
 def running_subsystems() -> List[str]:
-    """The subsystems whose state-variable table exists on this machine (/dev/shm/chimera.NAME.svar)."""
-    return sorted(os.path.basename(p)[len("chimera."):-len(".svar")] for p in glob.glob("/dev/shm/chimera.*.svar"))
+    """The subsystems whose master runs on this machine: a state-variable table (/dev/shm/chimera.NAME.svar)
+    whose master's status segment is published and whose master process lives (a table a crashed master
+    left, or one made without a master, is not listed)."""
+    names = (os.path.basename(p)[len("chimera."):-len(".svar")] for p in glob.glob("/dev/shm/chimera.*.svar"))
+    return sorted(n for n in names if _master_alive(n))
 
 
 def _subsystem(subsystem: Optional[str]) -> str:
@@ -157,8 +160,14 @@ class Sampling:
         return Recording(self.columns, time_ns, cycle, values, lost, self.rate)
 
     def close(self) -> None:
+        """Kills the sampling task. Once the subsystem has finished there is nothing to kill: close() then
+        only lets go of the ring (it does not raise, so a ``with`` block ends with the error that ended it)."""
         if self._open:
             self._open = False
+            try:
+                self.ring.position  # SubsystemGone once the master has finished: the task ended with it
+            except SubsystemGone:
+                return
             self._with_master(lambda m: m.kill(self.task))
 
     def __enter__(self) -> "Sampling":

@@ -10,6 +10,7 @@
 #include <chimera/svar.hpp>
 
 #include <atomic>
+#include <functional>
 #include <map>
 #include <memory>
 #include <optional>
@@ -26,6 +27,54 @@ struct SvarError : std::runtime_error { using std::runtime_error::runtime_error;
 struct LockTimeout : SvarError { using SvarError::SvarError; };
 struct ProducerConflict : SvarError { using SvarError::SvarError; };
 struct TbufError : std::runtime_error { using std::runtime_error::runtime_error; };
+/// chimera.SubsystemGone: the master of the object's subsystem has finished.
+struct SubsystemGone : std::runtime_error { using std::runtime_error::runtime_error; };
+
+/// The end of a subsystem as one of its Python objects sees it (issue #29.8).
+/// It watches the master's status segment: a watcher's mapping (no lock, so it
+/// keeps nothing alive and delays no destroy), whose header the master marks
+/// destroyed when it finishes (StatusSegment::close) and whose creator pid is
+/// gone when the master died. check() costs one load and one kill(pid, 0).
+/// Once the end is seen, the owner's `release` unmaps its segments, and every
+/// later call raises SubsystemGone too. Calls that read a mapping with the GIL
+/// released hold a Use, so a release seen from another thread waits for them.
+/// All of it runs with the GIL held, which orders it.
+class Lifeline {
+public:
+    /// Watches the master of `subsystem` if one runs now (else never gone: an
+    /// object made without a master); `object` names the owner for the message.
+    void watch(const std::string& subsystem, std::string object, std::function<void()> release);
+    /// Raises SubsystemGone when the master has finished.
+    void check();
+    /// True once the master has finished (then releases, unless a Use is open).
+    bool gone();
+    const std::string& subsystem() const { return subsystem_; }
+
+    class Use {
+    public:
+        explicit Use(Lifeline& l) : l_(l) { l_.check(); ++l_.uses_; }
+        ~Use() { if (--l_.uses_ == 0 && l_.gone_) l_.release_now(); }
+        Use(const Use&) = delete;
+        Use& operator=(const Use&) = delete;
+    private:
+        Lifeline& l_;
+    };
+
+    /// "/chimera.SUBSYSTEM.OBJECT" -> "SUBSYSTEM" ("" for another name).
+    static std::string subsystem_of(const std::string& segment);
+    /// True when a master of `subsystem` runs: its status segment is published
+    /// and its creator process lives (what running_subsystems() lists).
+    static bool master_alive(const std::string& subsystem);
+
+private:
+    void release_now();
+    std::string subsystem_, object_;
+    ipc::Segment status_;
+    int pid_ = 0;
+    bool gone_ = false, released_ = false;
+    int uses_ = 0;
+    std::function<void()> release_;
+};
 
 /// "a,b,c" (a status segment's port list) as names.
 std::vector<std::string> split_names(const std::string& list);
@@ -51,7 +100,12 @@ public:
                                            double lock_timeout_s);
     ~PyTable();
 
-    svar::Table& table() { return table_; }
+    /// The mapped table; SubsystemGone once the master has finished.
+    svar::Table& table() { life_.check(); return table_; }
+    /// The table without the check, for a caller holding a Lifeline::Use.
+    svar::Table& table_unchecked() { return table_; }
+    Lifeline& life() { return life_; }
+    bool gone() { return life_.gone(); }
     const std::string& subsystem() const { return subsystem_; }
     std::size_t index_of(const std::string& name) const;
     VarRecord info(const std::string& name) const;
@@ -79,6 +133,9 @@ private:
 
     bool attach_status() const;
 
+    void release();  // unmaps the table and the status segment (the end of the subsystem)
+
+    mutable Lifeline life_;  // checked by const readers too
     svar::Table table_;
     bool needs_status_ = false;  // attached to a master's table: its status names the producers
     mutable std::optional<prof::StatusReader> status_;

@@ -89,6 +89,7 @@ void bind_svar(py::module_& m) {
         .def("__contains__", [](PyTable& t, const std::string& n) { return t.table().find(n).has_value(); })
         .def("__len__", [](PyTable& t) { return t.table().size(); })
         .def("__repr__", [](PyTable& t) {
+            if (t.gone()) return "<chimera.Table of subsystem " + t.subsystem() + ", finished>";
             return "<chimera.Table " + t.table().name() + ", " + std::to_string(t.table().size()) + " variables>";
         });
 }
@@ -128,6 +129,7 @@ PYBIND11_MODULE(_core, m) {
     static py::exception<cp::LockTimeout> lock_timeout(m, "LockTimeout", svar_error.ptr());
     static py::exception<cp::ProducerConflict> producer(m, "ProducerConflict", svar_error.ptr());
     static py::exception<cp::TbufError> tbuf_error(m, "TbufError", base.ptr());
+    static py::exception<cp::SubsystemGone> gone(m, "SubsystemGone", base.ptr());
     py::register_exception_translator([](std::exception_ptr p) {
         try {
             if (p) std::rethrow_exception(p);
@@ -139,6 +141,8 @@ PYBIND11_MODULE(_core, m) {
             PyErr_SetString(svar_error.ptr(), e.what());
         } catch (const cp::TbufError& e) {
             PyErr_SetString(tbuf_error.ptr(), e.what());
+        } catch (const cp::SubsystemGone& e) {
+            PyErr_SetString(gone.ptr(), e.what());
         } catch (const chimera::sampler::Error& e) {
             PyErr_SetString(base.ptr(), e.what());
         } catch (const chimera::svar::Error& e) {
@@ -153,6 +157,8 @@ PYBIND11_MODULE(_core, m) {
     });
     m.def("segment_name", &chimera::ipc::segment_name, py::arg("subsystem"), py::arg("object"),
           "The shared-memory name of a subsystem's object: /chimera.SUBSYSTEM.OBJECT.");
+    m.def("_master_alive", &cp::Lifeline::master_alive, py::arg("subsystem"),
+          "True when a master of SUBSYSTEM runs (its status segment is published and its process lives).");
     cp::bind_svar(m);
     cp::bind_status(m);
     cp::bind_tbuf(m);

@@ -12,8 +12,16 @@ namespace {
 
 struct PyRing {
     sampler::RingReader reader;
+    Lifeline life;
+
+    /// The reader, once the check says its subsystem's master still runs.
+    sampler::RingReader& live() {
+        life.check();
+        return reader;
+    }
 
     py::tuple read(std::optional<std::size_t> max_samples) {
+        life.check();
         const std::uint64_t available = reader.head() - reader.position();
         std::size_t n = static_cast<std::size_t>(std::min<std::uint64_t>(available, reader.capacity()));
         if (max_samples) n = std::min(n, *max_samples);
@@ -39,26 +47,30 @@ void bind_sampler(py::module_& m) {
                        "each delivered once, loss counted when this reader falls behind. Many readers may follow one "
                        "ring; none of them can delay the task.")
         .def_static("attach", [](const std::string& name) {
-            return std::make_unique<PyRing>(PyRing{sampler::RingReader::attach(name)});
+            auto r = std::make_unique<PyRing>();
+            r->reader = sampler::RingReader::attach(name);
+            r->life.watch(Lifeline::subsystem_of(name), "Ring", [raw = r.get()] { raw->reader = sampler::RingReader(); });
+            return r;
         }, py::arg("name"), "Map the ring NAME read-only; reading starts with the next sample written.")
-        .def_property_readonly("name", [](const PyRing& r) { return r.reader.name(); })
-        .def_property_readonly("channels", [](const PyRing& r) { return r.reader.channel_names(); },
+        .def_property_readonly("name", [](PyRing& r) { return r.live().name(); })
+        .def_property_readonly("channels", [](PyRing& r) { return r.live().channel_names(); },
                                "column names: 'Q_REF[0]', ..., or 'X' for a scalar")
-        .def_property_readonly("capacity", [](const PyRing& r) { return r.reader.capacity(); })
-        .def_property_readonly("rate", [](const PyRing& r) { return r.reader.rate_hz(); }, "the sampling task's rate, Hz")
-        .def_property_readonly("position", [](const PyRing& r) { return r.reader.position(); },
+        .def_property_readonly("capacity", [](PyRing& r) { return r.live().capacity(); })
+        .def_property_readonly("rate", [](PyRing& r) { return r.live().rate_hz(); }, "the sampling task's rate, Hz")
+        .def_property_readonly("position", [](PyRing& r) { return r.live().position(); },
                                "number of the next sample this reader takes")
-        .def_property_readonly("head", [](const PyRing& r) { return r.reader.head(); }, "samples written so far")
-        .def_property_readonly("lost", [](const PyRing& r) { return r.reader.lost_total(); },
+        .def_property_readonly("head", [](PyRing& r) { return r.live().head(); }, "samples written so far")
+        .def_property_readonly("lost", [](PyRing& r) { return r.live().lost_total(); },
                                "samples this reader lost (overwritten before it read them) since it attached")
-        .def_property_readonly("closed", [](const PyRing& r) { return r.reader.closed(); },
+        .def_property_readonly("closed", [](PyRing& r) { return r.live().closed(); },
                                "True once the sampling task has been killed: nothing follows")
-        .def("rewind", [](PyRing& r) { r.reader.rewind(); }, "Go back to the oldest sample the ring still holds.")
+        .def("rewind", [](PyRing& r) { r.live().rewind(); }, "Go back to the oldest sample the ring still holds.")
         .def("read", &PyRing::read, py::arg("max_samples") = py::none(),
              "The samples written since the last read (at most MAX_SAMPLES), oldest first: (time_ns int64[n], "
              "cycle uint64[n], values float64[n, channels], lost) — lost: samples skipped because this reader fell "
              "behind.")
-        .def("__repr__", [](const PyRing& r) {
+        .def("__repr__", [](PyRing& r) {
+            if (r.life.gone()) return "<chimera.Ring of subsystem " + r.life.subsystem() + ", finished>";
             return "<chimera.Ring " + r.reader.name() + ", " + std::to_string(r.reader.channels()) + " channels>";
         });
 }

@@ -94,8 +94,15 @@ struct PyStatus {
         auto s = std::make_unique<PyStatus>();
         s->reader = std::move(*r);
         s->window.restart(s->reader);
+        s->life.watch(subsystem, "StatusReader", [raw = s.get()] { raw->reader = prof::StatusReader(); });
         return s;
     }
+    /// The reader, once the check says its master still runs.
+    prof::StatusReader& live() {
+        life.check();
+        return reader;
+    }
+    Lifeline life;
 };
 
 }  // namespace
@@ -124,18 +131,20 @@ void bind_status(py::module_& m) {
         "The status segment of a running subsystem (read-only, as chimtop reads it).")
         .def(py::init(&PyStatus::attach), py::arg("subsystem"))
         .def("snapshot", [](PyStatus& s) {
+            const Lifeline::Use in_use(s.life);  // mapped until the copy ends
             py::gil_scoped_release nogil;
             return s.reader.snapshot();
         }, "Every task, counted since its RTPU's last reset.")
         .def("take", [](PyStatus& s) {
+            const Lifeline::Use in_use(s.life);
             py::gil_scoped_release nogil;
             return s.window.take(s.reader);
         }, "Every task, counted since this reader's last take() (its own window, as the prompt's `status`); "
            "no other reader's counts change.")
-        .def_property_readonly("alive", [](PyStatus& s) { return s.reader.alive(); },
-                               "the master that created the segment still runs")
-        .def_property_readonly("master_pid", [](PyStatus& s) { return s.reader.creator_pid(); })
-        .def_property_readonly("subsystem", [](PyStatus& s) { return s.reader.subsystem(); });
+        .def_property_readonly("alive", [](PyStatus& s) { return s.live().alive(); },
+                               "the master that created the segment still runs (SubsystemGone once it has finished)")
+        .def_property_readonly("master_pid", [](PyStatus& s) { return s.live().creator_pid(); })
+        .def_property_readonly("subsystem", [](PyStatus& s) { return s.life.subsystem(); });
 }
 
 }  // namespace chimera::python

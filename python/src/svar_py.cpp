@@ -82,6 +82,7 @@ std::shared_ptr<PyTable> PyTable::attach(const std::string& subsystem, double lo
             throw SvarError("no subsystem " + subsystem + " is running (no segment " + segment + ")");
         throw SvarError("attaching to subsystem " + subsystem + ": " + e.what());
     }
+    t->life_.watch(subsystem, "Table", [raw = t.get()] { raw->release(); });
     t->needs_status_ = true;
     t->attach_status();
     t->set_lock_timeout(lock_timeout_s);
@@ -123,16 +124,32 @@ PyTable::~PyTable() {
     if (owner_) (void)table_.destroy();
 }
 
+// The master has finished: this process must not keep its table alive. The
+// master removed the name already (end_for_all); after a crash it is removed
+// here when this was the last user.
+void PyTable::release() {
+    (void)table_.destroy();
+    status_.reset();
+    status_map_.detach();
+    users_.clear();
+    needs_status_ = false;
+}
+
 void PyTable::set_lock_timeout(double seconds) {
+    life_.check();
     if (!(seconds > 0) || seconds > 3600) throw py::value_error("lock_timeout must be in (0, 3600] seconds");
     ipc::LockOptions o = table_.lock_options();
     o.timeout_ns = static_cast<std::int64_t>(seconds * 1e9);
     table_.set_lock_options(o);
 }
 
-double PyTable::lock_timeout() const { return static_cast<double>(table_.lock_options().timeout_ns) / 1e9; }
+double PyTable::lock_timeout() const {
+    life_.check();
+    return static_cast<double>(table_.lock_options().timeout_ns) / 1e9;
+}
 
 std::size_t PyTable::index_of(const std::string& name) const {
+    life_.check();
     const auto ix = table_.find(name);
     if (!ix) {
         std::string known;
@@ -186,12 +203,14 @@ VarRecord PyTable::info(const std::string& name) const {
 }
 
 std::vector<VarRecord> PyTable::variables() const {
+    life_.check();
     std::vector<VarRecord> out;
     for (std::size_t i = 0; i < table_.size(); ++i) out.push_back(info(std::string(table_.var(i).name())));
     return out;
 }
 
 std::vector<std::string> PyTable::names() const {
+    life_.check();
     std::vector<std::string> out;
     for (std::size_t i = 0; i < table_.size(); ++i) out.emplace_back(table_.var(i).name());
     return out;
@@ -247,6 +266,7 @@ void PyTable::check_producers(const std::vector<std::string>& names) const {
 }
 
 py::dict PyTable::stats() const {
+    life_.check();
     const svar::TableStats s = table_.stats();
     py::dict d;
     d["recoveries"] = s.recoveries;
@@ -264,9 +284,10 @@ namespace {
 svar::LocalTable checked_local(PyTable& t, const std::vector<std::string>& names) {
     if (names.empty()) throw py::value_error("no variable named");
     for (const auto& n : names) (void)t.index_of(n);  // a KeyError naming the table and the variable
+    const Lifeline::Use in_use(t.life());  // the table stays mapped while the GIL is released
     try {
         py::gil_scoped_release nogil;
-        return svar::LocalTable(t.table(), names);
+        return svar::LocalTable(t.table_unchecked(), names);
     } catch (const svar::Error& e) {
         if (std::string_view(e.what()).find(svar::to_string(svar::Status::timed_out)) != std::string_view::npos)
             throw_if_not_transferred(svar::Status::timed_out, t.table().name(), "read");
@@ -290,6 +311,7 @@ Reader::Busy::Busy(Reader& r) : flag_(r.busy_) {
 
 void Reader::read() {
     const Busy busy(*this);
+    const Lifeline::Use in_use(table_->life());
     svar::Status st;
     {
         py::gil_scoped_release nogil;
@@ -365,6 +387,7 @@ void Writer::check_local() {
 
 void Writer::write() {
     const Busy busy(*this);
+    const Lifeline::Use in_use(table_->life());
     if (!force_) table_->check_producers(names());
     check_local();
     svar::Status st;

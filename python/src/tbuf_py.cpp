@@ -35,6 +35,13 @@ struct PyTbuf {
     tbuf::Tbuf buf;
     std::string segment;
     bool owner = false;
+    Lifeline life;  // attached: a subsystem's; created here: its own (never gone)
+
+    /// The buffer, once the check says its subsystem's master still runs.
+    tbuf::Tbuf& live() {
+        life.check();
+        return buf;
+    }
 
     ~PyTbuf() {
         if (owner) (void)buf.destroy();
@@ -54,6 +61,7 @@ struct PyTbuf {
     const std::string& name() const { return segment; }
 
     std::uint64_t write(const py::buffer& item, std::optional<std::int64_t> time_ns) {
+        life.check();
         const py::buffer_info info = item_buffer(item, false);
         const std::uint64_t counter = time_ns ? buf.write(info.ptr, *time_ns) : buf.write(info.ptr);
         if (counter == tbuf::kCorrupt) throw TbufError("TBUF write refused: " + buf.fault_message());
@@ -66,6 +74,7 @@ struct PyTbuf {
     }
 
     TbufItem read() {
+        life.check();
         std::string bytes(buf.item_size(), '\0');
         TbufItem item = finish(buf.read(bytes.data()));
         item.data = item.status == "empty" ? py::object(py::none()) : py::object(py::bytes(bytes));
@@ -73,6 +82,7 @@ struct PyTbuf {
     }
 
     TbufItem read_into(const py::buffer& out) {
+        life.check();
         const py::buffer_info info = item_buffer(out, true);
         return finish(buf.read(info.ptr));
     }
@@ -106,16 +116,22 @@ void bind_tbuf(py::module_& m) {
             auto t = std::make_unique<PyTbuf>();
             t->buf = tbuf::Tbuf::attach(name);
             t->segment = name;
+            // Its subsystem's end unmaps it, and removes it when this was its last user.
+            t->life.watch(Lifeline::subsystem_of(name), "Tbuf", [raw = t.get()] { (void)raw->buf.destroy(); });
             return t;
         }, py::arg("name"))
-        .def_property_readonly("item_size", [](const PyTbuf& t) { return t.buf.item_size(); })
-        .def_property_readonly("missed_total", [](const PyTbuf& t) { return t.buf.missed_total(); })
+        .def_property_readonly("item_size", [](PyTbuf& t) { return t.live().item_size(); })
+        .def_property_readonly("missed_total", [](PyTbuf& t) { return t.live().missed_total(); })
         .def("write", &PyTbuf::write, py::arg("item"), py::arg("time_ns") = py::none(),
              "Publish ITEM (bytes-like of item_size bytes) stamped now (or at TIME_NS); returns its counter.")
         .def("read", &PyTbuf::read, "The newest item, its bytes in .data.")
         .def("read_into", &PyTbuf::read_into, py::arg("out"),
              "The newest item copied into OUT (a writable buffer of item_size bytes, e.g. a numpy array).")
-        .def("detach", [](PyTbuf& t) { t.owner = false; t.buf.detach(); });
+        .def("detach", [](PyTbuf& t) {
+            t.life.check();
+            t.owner = false;
+            t.buf.detach();
+        });
 }
 
 }  // namespace chimera::python

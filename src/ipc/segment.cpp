@@ -256,6 +256,53 @@ int open_segment(const std::string& name, int flags) {
     fail_errno(name, "shm_open", err);
 }
 
+// The owner and mode of segment `name`: fstat of the open segment, or lstat
+// of its file when this user may not open it. False when there is none.
+bool owner_and_mode(const std::string& name, struct stat& st) noexcept {
+    const int fd = shm_open(name.c_str(), O_RDONLY, 0);
+    if (fd >= 0) {
+        const bool ok = fstat(fd, &st) == 0;
+        close(fd);
+        return ok;
+    }
+    return errno == EACCES && lstat(("/dev/shm" + name).c_str(), &st) == 0;
+}
+
+// "nobody's (uid 65534, mode 0644)"
+std::string owner_text(const struct stat& st) {
+    char mode[8];
+    std::snprintf(mode, sizeof mode, "%04o", static_cast<unsigned>(st.st_mode & 07777));
+    return user_name(st.st_uid) + "'s (uid " + std::to_string(st.st_uid) + ", mode " + mode + ")";
+}
+
+// The effective uid of the live process `pid` (/proc/PID/status, which a
+// non-dumpable process shows too), or -1 when there is none.
+uid_t process_uid(int pid) noexcept {
+    if (pid <= 0) return static_cast<uid_t>(-1);
+    char path[32];
+    std::snprintf(path, sizeof path, "/proc/%d/status", pid);
+    FILE* f = std::fopen(path, "re");
+    if (!f) return static_cast<uid_t>(-1);
+    char line[256];
+    unsigned real = 0, effective = 0;
+    bool found = false;
+    while (!found && std::fgets(line, sizeof line, f))
+        found = std::sscanf(line, "Uid: %u %u", &real, &effective) == 2;
+    std::fclose(f);
+    return found ? static_cast<uid_t>(effective) : static_cast<uid_t>(-1);
+}
+
+// The creator pid the header of segment `name` names, or 0 (not readable by
+// this user, or no chimera header).
+int header_creator(const std::string& name) noexcept {
+    const int fd = shm_open(name.c_str(), O_RDONLY, 0);
+    if (fd < 0) return 0;
+    SegmentHeader h;
+    const bool read = pread(fd, &h, sizeof h, 0) == static_cast<ssize_t>(sizeof h);
+    close(fd);
+    return read && h.magic == kSegmentMagic ? h.creator_pid : 0;
+}
+
 }  // namespace
 
 std::string watch_group_name() {
@@ -285,6 +332,34 @@ std::string permission_advice(const std::string& name, bool write) {
              " watch (groupadd --system " + watchers + ", then restart the subsystem)";
     }
     return s;
+}
+
+std::string squatted(const std::string& name) {
+    struct stat st {};
+    if (!owner_and_mode(name, st)) return "";
+    if ((st.st_mode & 022) != 0) return "squatted: group or others may write to it";
+    const int pid = header_creator(name);
+    const uid_t creator = process_uid(pid);
+    if (creator != static_cast<uid_t>(-1) && creator != st.st_uid)
+        return "squatted: its header names as its creator pid " + std::to_string(pid) + ", a process of " +
+               user_name(creator) + ", not of its owner";
+    return "";
+}
+
+void make_way(const std::string& name, const std::string& why) {
+    struct stat st {};
+    if (!owner_and_mode(name, st)) return;
+    const uid_t me = geteuid();
+    const std::string owner = owner_text(st);
+    if (me != 0 && st.st_uid != me) {
+        const std::string who = user_name(st.st_uid);
+        const std::string may = st.st_uid == 0 ? "root" : who + " or root";
+        throw SegmentError(name, why + ": it is " + owner + ", and only " + may + " may remove it (sudo rm /dev/shm" +
+                                     name + "), then start again", EPERM);
+    }
+    std::fprintf(stderr, "chimera: segment %s, %s: %s: removed, to be created anew\n", name.c_str(), owner.c_str(),
+                 why.c_str());
+    if (shm_unlink(name.c_str()) != 0 && errno != ENOENT) fail_errno(name, "shm_unlink", errno);
 }
 
 std::string describe(std::string_view segment, const Fault& f) {
@@ -619,6 +694,16 @@ bool Segment::in_use(const std::string& name) noexcept {
     const bool used = fcntl(fd, F_OFD_GETLK, &fl) == 0 && fl.l_type != F_UNLCK;
     close(fd);
     return used;
+}
+
+bool Segment::end_for_all() noexcept {
+    bool removed = false;
+    if (base_ && fd_ >= 0 && owner_ == getpid() && !read_only()) {
+        header().state.store(static_cast<std::uint32_t>(SegmentState::destroyed), std::memory_order_seq_cst);
+        removed = names_file(name_, fd_) && shm_unlink(name_.c_str()) == 0;
+    }
+    release(false);
+    return removed;
 }
 
 void Segment::detach() noexcept { release(false); }

@@ -71,14 +71,16 @@ namespace detail {
 SubsystemCore::SubsystemCore(SbsFile f) : file(std::move(f)) {
     check_rtpu_cpus(file);
     const std::string seg = ipc::segment_name(file.subsystem, "svar");
+    // A name squatted by another user (a fake header naming a live pid) is
+    // no running subsystem: root replaces it, anyone else is told whose it is.
+    for (const std::string& name : {seg, ipc::segment_name(file.subsystem, "status")})
+        if (const std::string why = ipc::squatted(name); !why.empty()) ipc::make_way(name, why);
     if (ipc::Segment::exists(seg)) {
         if (!ipc::Segment::is_stale(seg))
             throw Error("subsystem " + file.subsystem + " is already running (segment " + seg +
                         " exists and its creator process is alive); finish it first");
         // A crashed run left it: its creator is gone, so nobody can be using it as master.
-        std::fprintf(stderr, "chimera: subsystem %s: replacing segment %s left by a process that died\n",
-                     file.subsystem.c_str(), seg.c_str());
-        ipc::Segment::unlink(seg);
+        ipc::make_way(seg, "left by a process that died");
     }
     // The table and the status segment: the watch group reads them (chimtop,
     // a non-owner's queries); everything else stays owner-only (docs/permissions.md).
@@ -834,7 +836,9 @@ void Subsystem::finish() {
         c.schedulers.clear();  // every task thread has left: the dispatchers stop
     }
     c.status.close();  // removed with the subsystem: a restart can create it again
-    c.table.destroy();
+    // Removed too while another process still maps it (a Python Table kept
+    // after the end): the subsystem is over, and its name must not linger.
+    c.table.end_for_all();
 }
 
 std::string format_status_header() {

@@ -378,6 +378,14 @@ bool Table::destroy() noexcept {
     return removed;
 }
 
+bool Table::end_for_all() noexcept {
+    const bool removed = seg_.end_for_all();
+    hdr_ = nullptr;
+    desc_ = nullptr;
+    data_ = nullptr;
+    return removed;
+}
+
 std::string_view Table::source_file() const noexcept { return source_; }
 
 std::size_t Table::size() const noexcept { return nvars_; }

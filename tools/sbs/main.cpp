@@ -494,6 +494,8 @@ std::string other_owner(const std::string& subsystem) {
     struct stat st {};
     const std::string path = "/dev/shm" + ipc::segment_name(subsystem, "status");
     if (::stat(path.c_str(), &st) != 0 || st.st_uid == ::geteuid()) return "";
+    // A squatted name is nobody's subsystem: starting one replaces it or says whose it is.
+    if (!ipc::squatted(ipc::segment_name(subsystem, "status")).empty()) return "";
     const passwd* pw = ::getpwuid(st.st_uid);
     return pw ? pw->pw_name : "uid " + std::to_string(st.st_uid);
 }

@@ -5,6 +5,7 @@
 #include <netdb.h>
 #include <netinet/in.h>
 #include <poll.h>
+#include <pwd.h>
 #include <pthread.h>
 #include <sched.h>
 #include <sys/eventfd.h>
@@ -14,6 +15,7 @@
 #include <unistd.h>
 
 #include <cerrno>
+#include <cstdio>
 #include <chrono>
 #include <cstdlib>
 #include <cstring>
@@ -36,6 +38,54 @@ std::string error_line(std::string_view cmd, std::string message) {
 
 }  // namespace
 
+namespace {
+
+// "nobody's (uid 65534), mode 0755, a directory"
+std::string describe_entry(const struct stat& st) {
+    const passwd* pw = ::getpwuid(st.st_uid);
+    char mode[8];
+    std::snprintf(mode, sizeof mode, "%04o", static_cast<unsigned>(st.st_mode & 07777));
+    const char* kind = S_ISDIR(st.st_mode) ? "a directory" : S_ISLNK(st.st_mode) ? "a symbolic link" : "not a directory";
+    return std::string(pw ? pw->pw_name : "uid " + std::to_string(st.st_uid)) + "'s (uid " +
+           std::to_string(st.st_uid) + "), mode " + mode + ", " + kind;
+}
+
+// True when `dir` is a directory (not a symlink) of this user's with mode
+// 0700: checked by fstat of the directory opened without following a link.
+bool trusted_dir(const std::string& dir) {
+    const int fd = ::open(dir.c_str(), O_RDONLY | O_DIRECTORY | O_NOFOLLOW | O_CLOEXEC);
+    if (fd < 0) return false;
+    struct stat st {};
+    const bool ok = ::fstat(fd, &st) == 0 && st.st_uid == ::geteuid() && (st.st_mode & 07777) == 0700;
+    ::close(fd);
+    return ok;
+}
+
+// Moves the untrusted `dir` out of the way (root, or its owner, may): a link
+// or file is removed, a directory renamed to DIR.squatted-PID with its
+// contents untouched (they are its owner's). Says so on stderr.
+void move_aside(const std::string& dir, const std::string& what) {
+    struct stat st {};
+    if (::lstat(dir.c_str(), &st) != 0) return;  // gone meanwhile: mkdir again
+    if (S_ISDIR(st.st_mode)) {
+        const std::string aside = dir + ".squatted-" + std::to_string(::getpid());
+        if (::rename(dir.c_str(), aside.c_str()) != 0)
+            throw ServerError("socket directory " + dir + " is " + what + ": cannot move it aside: " + errno_text(errno));
+        std::fprintf(stderr, "sbs: socket directory %s was %s: moved aside to %s, using a new one\n", dir.c_str(),
+                     what.c_str(), aside.c_str());
+    } else {
+        if (::unlink(dir.c_str()) != 0)
+            throw ServerError("socket directory " + dir + " is " + what + ": cannot remove it: " + errno_text(errno));
+        std::fprintf(stderr, "sbs: socket directory %s was %s: removed, using a new one\n", dir.c_str(), what.c_str());
+    }
+}
+
+}  // namespace
+
+// Any local user may create /tmp/chimera-UID first (issue #29.5): the folder
+// is used only when it is this user's, mode 0700 and no symlink; otherwise
+// root (or the entry's owner) moves it aside and makes a new one, and anyone
+// else is told whose it is and what to do.
 std::string default_socket_path(std::string_view subsystem) {
     std::string dir;
     if (const char* xdg = std::getenv("XDG_RUNTIME_DIR"); xdg != nullptr && *xdg == '/') {
@@ -43,18 +93,23 @@ std::string default_socket_path(std::string_view subsystem) {
     } else {
         dir = "/tmp/chimera-" + std::to_string(::getuid());
     }
-    if (::mkdir(dir.c_str(), 0700) != 0 && errno != EEXIST) {
-        throw ServerError("cannot create socket directory " + dir + ": " + errno_text(errno));
-    }
-    struct stat st {};
-    if (::lstat(dir.c_str(), &st) != 0 || !S_ISDIR(st.st_mode)) {
-        throw ServerError("socket directory " + dir + " is not a directory");
-    }
-    // Another user's directory (or one others can write) could hold a
-    // socket planted by them: refuse rather than talk to it.
-    if (st.st_uid != ::getuid() || (st.st_mode & 0077) != 0) {
-        throw ServerError("socket directory " + dir +
-                          " must belong to this user with mode 0700");
+    for (int attempt = 0;; ++attempt) {
+        if (attempt > 2) throw ServerError("socket directory " + dir + " keeps changing: try again");
+        if (::mkdir(dir.c_str(), 0700) != 0 && errno != EEXIST) {
+            throw ServerError("cannot create socket directory " + dir + ": " + errno_text(errno));
+        }
+        if (trusted_dir(dir)) break;
+        struct stat st {};
+        if (::lstat(dir.c_str(), &st) != 0) continue;  // removed meanwhile: make it
+        const std::string what = describe_entry(st);
+        const bool may_move = ::geteuid() == 0 || st.st_uid == ::geteuid();
+        if (!may_move || attempt > 0) {
+            // Another user's folder could hold a socket planted by them: refuse rather than talk to it.
+            throw ServerError("socket directory " + dir + " must belong to this user with mode 0700, and it is " +
+                              what + ": ask its owner or root to remove it (sudo rm -r " + dir +
+                              "), or set XDG_RUNTIME_DIR to a folder of your own");
+        }
+        move_aside(dir, what);
     }
     return dir + "/" + std::string(subsystem) + ".sock";
 }

@@ -204,6 +204,14 @@ public:
     /// when the segment was destroyed. (An attach racing with it either fails
     /// with "is being destroyed" or keeps the segment alive as a new user.)
     bool detach_destroy_if_last() noexcept;
+    /// The owner's end of a segment for every user (issue #29.8): marks it
+    /// destroyed, removes its name (when it still names this mapping's file)
+    /// and detaches, whoever else maps it. They keep their mapping, and see
+    /// the header's `destroyed`; attach() refuses the name from now on. A
+    /// master ends its table so: another process's mapping (a Python Table
+    /// kept after the subsystem finished) must not keep the name in /dev/shm.
+    /// True when the name was removed.
+    bool end_for_all() noexcept;
     /// Live mappings of this segment, this one included: each holds a lock
     /// on a byte of its own, counted with about two fcntl calls per user (a
     /// slow path, for status and tests). 0 when not attached. A child made by
@@ -272,6 +280,28 @@ CHIMERA_API std::string watch_group_name();
 /// yourself to group chimera (usermod -aG chimera alice), then log in again".
 /// `write`: the access wanted was read-write (only the owner may).
 CHIMERA_API std::string permission_advice(const std::string& name, bool write);
+
+/// Why the segment `name` is not to be believed (issue #29.5), or "" when it
+/// can be, or when there is none. Any local user can create a file in
+/// /dev/shm under any free name, header and all, so a header's claims count
+/// only when its owner stands behind them: a segment is squatted when group or
+/// others may write to it (chimera creates 0600 or 0640), or when its header's
+/// creator is a live process of another user than the file's owner (a fake
+/// naming pid 1 under nobody's file). Owner and mode come from fstat of the
+/// open segment (lstat of its file when this user may not open it); the
+/// creator's user from /proc/PID/status. E.g. "squatted: its header names as
+/// its creator pid 1, a process of root, not of its owner".
+CHIMERA_API std::string squatted(const std::string& name);
+
+/// Makes way for a segment of this user's called `name` whose old file must
+/// go (`why`: squatted() or "left by a process that died"): removes it when
+/// this user may (root, or the file's owner), saying so on stderr with its
+/// owner and mode; otherwise throws SegmentError (EPERM) naming the owner and
+/// the remedy: "segment /chimera.x.svar: squatted: ...: it is nobody's (uid
+/// 65534, mode 0644), and only nobody or root may remove it (sudo rm
+/// /dev/shm/chimera.x.svar), then start again" (root's: "only root may").
+/// Nothing to do when there is no such segment.
+CHIMERA_API void make_way(const std::string& name, const std::string& why);
 
 /// Checks a header against what a process expects; throws SegmentError with
 /// the mismatch named. Used by attach(), and by objects laid over
