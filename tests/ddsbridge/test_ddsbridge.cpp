@@ -88,6 +88,18 @@ std::string run(const std::string& command) {
     return out;
 }
 
+// The number after " KEY " on PORT's line of `get STATUS`; -1 when absent.
+long status_count(const std::string& status, const std::string& port, const std::string& key) {
+    std::istringstream lines(status);
+    std::string line;
+    while (std::getline(lines, line)) {
+        if (line.rfind(port + " counter ", 0) != 0) continue;
+        const auto at = line.find(" " + key + " ");
+        return at == std::string::npos ? -1 : std::stol(line.substr(at + key.size() + 2));
+    }
+    return -1;
+}
+
 class Bridge : public ::testing::Test {
 protected:
     void SetUp() override {
@@ -128,6 +140,7 @@ protected:
                                        "TOPIC_S " + topic_ + "/array pub StateVar command\n"),
                            "cpu0");
         sub_ = sbs_->spawn(bridge_rmod("sub", "INVAR none\nOUTVAR Y T T_RX\n",
+                                       "JOINT_NAMES j1 j2 j3 j4 j5 j6\n"
                                        "TOPIC_Y " + topic_ + "/joints sub JointState.position state 0.1 " + y_action + "\n"
                                        "TOPIC_T " + topic_ + "/array sub StateVar command 0.1 " + t_action + "\n"
                                        "STAMP_T T_RX\n"),
@@ -239,14 +252,18 @@ TEST_F(Bridge, ASampleOfTheWrongLengthIsDroppedAndCounted) {
     ASSERT_GT(w, 0);
     double five[5] = {9, 9, 9, 9, 9};
     char empty[] = "";
+    char j1[] = "j1", j2[] = "j2", j3[] = "j3", j4[] = "j4", j5[] = "j5", j6[] = "j6";
+    char* six_names[6] = {j1, j2, j3, j4, j5, j6};
     sensor_msgs_msg_dds__JointState_ s{};
     s.header.frame_id = empty;
+    s.name = {6, 6, six_names, false};
     s.position = {5, 5, five, false};
     EXPECT_TRUE(eventually([&] {
         (void)dds_write(w, &s);
-        const std::string status = sbs_->get(sub_, "STATUS");
-        return status.find("rejected 0\nT ") == std::string::npos;
+        return status_count(sbs_->get(sub_, "STATUS"), "Y", "length") > 0;
     })) << sbs_->get(sub_, "STATUS");
+    const std::string status = sbs_->get(sub_, "STATUS");
+    EXPECT_EQ(status_count(status, "Y", "rejected"), status_count(status, "Y", "length")) << status;
     dds_delete(pp);
     EXPECT_NE(get<6>("Y")[0], 9.0) << "the bad sample reached the port";
 }
