@@ -123,16 +123,16 @@ Clock stamp_ns(const std_msgs_msg_dds__Header_& h) noexcept {
     return static_cast<Clock>(h.stamp.sec) * 1'000'000'000 + h.stamp.nanosec;
 }
 
-// Who sent a sample: its writer's GUID, as Cyclone prints GUIDs; discovery
+// Who sent a sample: its writer's GUID (prefix: the participant), as Cyclone prints GUIDs; discovery
 // data asked for only when a refusal is told (rate-limited), never per sample.
 void publisher_of(dds_entity_t reader, const dds_sample_info_t& info, char* out, std::size_t size) noexcept {
     dds_builtintopic_endpoint_t* ep = dds_get_matched_publication_data(reader, info.publication_handle);
     if (ep == nullptr) {
-        std::snprintf(out, size, "an unknown publisher");
+        std::snprintf(out, size, "unknown");
         return;
     }
     const unsigned char* k = ep->key.v;
-    std::snprintf(out, size, "publisher %02x%02x%02x%02x:%02x%02x%02x%02x:%02x%02x%02x%02x:%02x%02x%02x%02x", k[0], k[1],
+    std::snprintf(out, size, "%02x%02x%02x%02x:%02x%02x%02x%02x:%02x%02x%02x%02x:%02x%02x%02x%02x", k[0], k[1],
                   k[2], k[3], k[4], k[5], k[6], k[7], k[8], k[9], k[10], k[11], k[12], k[13], k[14], k[15]);
     dds_builtintopic_free_endpoint(ep);
 }
@@ -155,19 +155,16 @@ void describe_refusal(const Link::Slot& slot, const Applied& a, std::span<const 
                 std::snprintf(out, size, "%zu %s values for %zu names", values, field, names.size());
             return;
         case Refusal::unnamed:
-            std::snprintf(out, size, "no joint names (UNNAMED refuse: only named joints are taken)");
+            std::snprintf(out, size, "no joint names (UNNAMED refuse)");
             return;
         case Refusal::unknown:
-            std::snprintf(out, size, "unknown joint '%s' (JOINT_NAMES: %s ... %s)",
-                          names[a.offender] ? names[a.offender] : "", slot.joints->name(0).c_str(),
-                          slot.joints->name(slot.joints->size() - 1).c_str());
+            std::snprintf(out, size, "unknown joint '%s'", names[a.offender] ? names[a.offender] : "");
             return;
         case Refusal::duplicate:
             std::snprintf(out, size, "joint '%s' named twice", names[a.offender] ? names[a.offender] : "");
             return;
         case Refusal::partial:
-            std::snprintf(out, size, "names %zu of %zu joints (JOINT_SUBSET refuse: every joint in every message)",
-                          names.size(), port.nelem);
+            std::snprintf(out, size, "%zu of %zu joints named (JOINT_SUBSET refuse)", names.size(), port.nelem);
             return;
         case Refusal::none: break;
     }
@@ -189,8 +186,9 @@ void refuse(Link::Slot& slot, dds_entity_t reader, const dds_sample_info_t& info
     publisher_of(reader, info, who, sizeof who);
     describe_refusal(slot, a, names, values, what, sizeof what);
     const TopicSpec& t = slot.port->spec;
-    std::snprintf(notice.text, sizeof notice.text, "%s from rt/%s: refused a sample of %s: %s (%llu refused so far: %s)",
-                  t.port.c_str(), t.ros_name.c_str(), who, what, static_cast<unsigned long long>(n), to_string(a.refusal));
+    // Most telling first: a task's warning keeps its first 159 characters.
+    std::snprintf(notice.text, sizeof notice.text, "%s refused a sample: %s (%llu %s so far), publisher %s, topic rt/%s",
+                  t.port.c_str(), what, static_cast<unsigned long long>(n), to_string(a.refusal), who, t.ros_name.c_str());
     notice.last_ns = now;
     notice.pending.store(true, std::memory_order_release);
 }
