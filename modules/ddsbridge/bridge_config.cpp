@@ -14,6 +14,8 @@ namespace {
 
 constexpr std::string_view kTopicPrefix = "TOPIC_";
 constexpr std::string_view kStampPrefix = "STAMP_";
+constexpr std::string_view kVlimitPrefix = "VLIMIT_";
+constexpr std::string_view kTratePrefix = "TRATE_";
 
 [[noreturn]] void fail(const chimera::RmodFile& rmod, int line, const std::string& what) {
     throw std::invalid_argument(rmod.local.file + ":" + std::to_string(line) + ": " + what);
@@ -83,7 +85,69 @@ TopicSpec parse_topic(const chimera::RmodFile& rmod, const chimera::LocalConfig:
     return t;
 }
 
+// A word of two choices: `first` (false) or `second` (true); absent: false.
+bool parse_choice(const chimera::RmodFile& rmod, const char* key, const char* first, const char* second) {
+    const auto* e = rmod.local.find(key);
+    if (!e) return false;
+    if (e->values.size() == 1 && e->values[0] == first) return false;
+    if (e->values.size() == 1 && e->values[0] == second) return true;
+    fail(rmod, e->line, std::string(key) + " '" + (e->values.empty() ? "" : e->values[0]) + "': expected " + first +
+                            " or " + second);
+}
+
+// VLIMIT_<port> / TRATE_<port>: positive numbers, on a subscribed JointState
+// port of the field the limit is about.
+void parse_limits(const chimera::RmodFile& rmod, std::vector<TopicSpec>& subs) {
+    for (const auto& e : rmod.local.entries()) {
+        const bool vlimit = e.key.rfind(kVlimitPrefix, 0) == 0, trate = e.key.rfind(kTratePrefix, 0) == 0;
+        if (!vlimit && !trate) continue;
+        const std::string port = e.key.substr((vlimit ? kVlimitPrefix : kTratePrefix).size());
+        auto it = std::find_if(subs.begin(), subs.end(), [&](const TopicSpec& t) { return t.port == port; });
+        if (it == subs.end()) fail(rmod, e.line, e.key + ": " + port + " has no subscribed TOPIC_" + port + " line");
+        const bool fits = vlimit ? it->message == Message::joint_position || it->message == Message::joint_velocity
+                                 : it->message == Message::joint_effort;
+        if (!fits)
+            fail(rmod, e.line, e.key + ": " +
+                                   (vlimit ? "a velocity limit is for a JointState.position or JointState.velocity port"
+                                           : "a torque-rate limit is for a JointState.effort port"));
+        if (e.values.empty()) fail(rmod, e.line, e.key + " takes a limit per joint, or one for all");
+        it->limits.clear();
+        for (const std::string& w : e.values) {
+            const double v = chimera::cfg::parse_double(w).value_or(0.0);
+            if (!std::isfinite(v) || v <= 0)
+                fail(rmod, e.line, e.key + ": limit '" + w + "': expected a number > 0 (" +
+                                       (vlimit ? "units per second" : "N m per second") + ")");
+            it->limits.push_back(v);
+        }
+        it->limits_line = e.line;
+    }
+}
+
 }  // namespace
+
+std::vector<std::string> joint_names_for(const BridgeConfig& c, const TopicSpec& spec, std::size_t nelem,
+                                         const std::string& rmod_file) {
+    if (c.joint_names.empty()) {
+        std::vector<std::string> names;
+        for (std::size_t j = 1; j <= nelem; ++j) names.push_back("joint" + std::to_string(j));
+        return names;
+    }
+    if (c.joint_names.size() != nelem)
+        throw std::invalid_argument(rmod_file + ": JOINT_NAMES has " + std::to_string(c.joint_names.size()) +
+                                    " names, TOPIC_" + spec.port + " " + std::to_string(nelem) + " joints");
+    return c.joint_names;
+}
+
+std::vector<double> limits_for(const TopicSpec& spec, std::size_t nelem, const std::string& rmod_file) {
+    if (spec.limits.empty()) return {};
+    if (spec.limits.size() == 1) return std::vector<double>(nelem, spec.limits[0]);
+    if (spec.limits.size() != nelem)
+        throw std::invalid_argument(rmod_file + ":" + std::to_string(spec.limits_line) + ": " +
+                                    (spec.message == Message::joint_effort ? "TRATE_" : "VLIMIT_") + spec.port +
+                                    " has " + std::to_string(spec.limits.size()) + " limits for " +
+                                    std::to_string(nelem) + " joints (give one per joint, or one for all)");
+    return spec.limits;
+}
 
 std::string ros_name_problem(const std::string& name) {
     if (name.empty()) return "empty";
@@ -135,7 +199,15 @@ BridgeConfig parse_config(const chimera::RmodFile& rmod) {
             fail(rmod, e->line, "NOTIFY '" + e->values.front() + "': expected poll, spin or wake");
         }
     }
-    if (const auto* e = lc.find("JOINT_NAMES")) c.joint_names = e->values;
+    if (const auto* e = lc.find("JOINT_NAMES")) {
+        c.joint_names = e->values;
+        for (std::size_t i = 0; i < c.joint_names.size(); ++i)
+            for (std::size_t j = 0; j < i; ++j)
+                if (c.joint_names[i] == c.joint_names[j])
+                    fail(rmod, e->line, "JOINT_NAMES: '" + c.joint_names[i] + "' is given twice (a name is one joint)");
+    }
+    c.refuse_subset = parse_choice(rmod, "JOINT_SUBSET", "update", "refuse");
+    c.accept_unnamed = parse_choice(rmod, "UNNAMED", "refuse", "positional");
     std::vector<TopicSpec> pubs, subs;
     for (const auto& e : lc.entries()) {
         if (e.key.rfind(kTopicPrefix, 0) != 0) continue;
@@ -153,6 +225,7 @@ BridgeConfig parse_config(const chimera::RmodFile& rmod) {
         it->stamp_port = e.values[0];
         stamp_ports.push_back(e.values[0]);
     }
+    parse_limits(rmod, subs);
     auto has_topic = [](const std::vector<TopicSpec>& list, const std::string& port) {
         return std::any_of(list.begin(), list.end(), [&](const TopicSpec& t) { return t.port == port; });
     };

@@ -7,7 +7,14 @@
 //   CONFIG    cyclone.xml             Cyclone DDS XML configuration, relative to the .rmod (default: Cyclone's own)
 //   AGE_CLOCK receive                 receive | source (see README: which clock the age is on)
 //   NOTIFY    poll                    poll | spin | wake: how the bridge thread learns of a value to publish
-//   JOINT_NAMES j1 j2 j3 j4 j5 j6     JointState.name of what is published (default: none)
+//   JOINT_NAMES j1 j2 j3 j4 j5 j6     the joints' names in JointState.name, published and matched on
+//                                     receipt (default: joint1 .. jointN, N the port's elements)
+//   JOINT_SUBSET update               update | refuse: a received JointState naming some joints only
+//   UNNAMED   refuse                  refuse | positional: a received JointState without names
+//   VLIMIT_Q_REF 2 2 2 3 3 3          velocity limit per joint (or one for all) of a subscribed
+//                                     JointState.position (its change per cycle) or .velocity port
+//   TRATE_T_REF  50 50 50 10 10 10    torque-rate limit per joint (or one for all) of a subscribed
+//                                     JointState.effort port (its change per cycle)
 //   TOPIC_Q_MEZ  puma/joint_positions  pub  JointState.position  state
 //   TOPIC_T_REF  puma/joint_torques    sub  JointState.effort    command  0.02 illegal
 //   STAMP_T_REF  T_REF_RX               an OUTVAR of 3 doubles: counter, age, new/repeat/stale
@@ -67,6 +74,10 @@ struct TopicSpec {
     /// with [counter, age (s; -1 before the first value), 1 new value | 0 a repeat | -1 stale],
     /// for a consumer module that wants to see the stamps itself. Empty: none.
     std::string stamp_port;
+    /// VLIMIT_<port> (sub, JointState.position or .velocity) or TRATE_<port>
+    /// (sub, JointState.effort): per joint, or one for every joint; empty: none.
+    std::vector<double> limits;
+    int limits_line = 0;     ///< of the VLIMIT_ or TRATE_ line
     int line = 0;            ///< of the TOPIC_ line
 
     std::string dds_topic() const { return "rt/" + ros_name; }
@@ -77,12 +88,23 @@ struct BridgeConfig {
     std::string config_file;  ///< empty: Cyclone's defaults (or CYCLONEDDS_URI); relative: to the .rmod's folder
     AgeClock age_clock = AgeClock::receive;
     Notify notify = Notify::poll;
-    std::vector<std::string> joint_names;
+    std::vector<std::string> joint_names;  ///< empty: joint1 .. jointN for each port (joint_names_for)
+    bool refuse_subset = false;   ///< JOINT_SUBSET refuse
+    bool accept_unnamed = false;  ///< UNNAMED positional
     std::vector<TopicSpec> topics;  ///< in_vars first (pub), then out_vars (sub), in .rmod order
 };
 
 /// Parses and checks the LOCAL section against the .rmod's in_vars and out_vars.
 BridgeConfig parse_config(const chimera::RmodFile& rmod);
+
+/// The joint names of a JointState port of `nelem` joints: JOINT_NAMES, or
+/// joint1 .. jointN. Throws std::invalid_argument when JOINT_NAMES has
+/// another count (naming the .rmod, the key and the port).
+std::vector<std::string> joint_names_for(const BridgeConfig& c, const TopicSpec& spec, std::size_t nelem,
+                                         const std::string& rmod_file);
+/// A port's limits, one per joint (VLIMIT_/TRATE_ gave one or nelem values);
+/// throws std::invalid_argument for another count.
+std::vector<double> limits_for(const TopicSpec& spec, std::size_t nelem, const std::string& rmod_file);
 
 /// The DDS type name of a message ("sensor_msgs::msg::dds_::JointState_").
 const char* type_name(Message m) noexcept;

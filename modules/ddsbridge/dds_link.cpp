@@ -12,6 +12,7 @@
 
 #include <algorithm>
 #include <cerrno>
+#include <cstdio>
 #include <cstring>
 #include <ctime>
 #include <map>
@@ -29,6 +30,8 @@ struct Link::Slot {
     std::mutex listener_mu;  // one writer of the TBUF at a time, whichever Cyclone thread delivers
     std::vector<std::byte> item;  // the listener's staging item
     std::vector<char*> names;     // JointState.name (pub)
+    std::unique_ptr<JointMap> joints;  // JointState (sub): the names matched, and the joints' values so far
+    Notice notices[kRefusals];         // refusals to tell the task (index: Refusal)
     const Port* port = nullptr;
     ReceiveProbeFn probe = nullptr;  // set and called under listener_mu
     void* probe_context = nullptr;
@@ -120,42 +123,130 @@ Clock stamp_ns(const std_msgs_msg_dds__Header_& h) noexcept {
     return static_cast<Clock>(h.stamp.sec) * 1'000'000'000 + h.stamp.nanosec;
 }
 
-// The listener: every sample taken goes into the port's TBUF, stamped with its
-// arrival on this machine's CLOCK_MONOTONIC; a sample of the wrong length is
-// counted and dropped (never half-copied).
+// Who sent a sample: its writer's GUID (prefix: the participant), as Cyclone prints GUIDs; discovery
+// data asked for only when a refusal is told (rate-limited), never per sample.
+void publisher_of(dds_entity_t reader, const dds_sample_info_t& info, char* out, std::size_t size) noexcept {
+    dds_builtintopic_endpoint_t* ep = dds_get_matched_publication_data(reader, info.publication_handle);
+    if (ep == nullptr) {
+        std::snprintf(out, size, "unknown");
+        return;
+    }
+    const unsigned char* k = ep->key.v;
+    std::snprintf(out, size, "%02x%02x%02x%02x:%02x%02x%02x%02x:%02x%02x%02x%02x:%02x%02x%02x%02x", k[0], k[1],
+                  k[2], k[3], k[4], k[5], k[6], k[7], k[8], k[9], k[10], k[11], k[12], k[13], k[14], k[15]);
+    dds_builtintopic_free_endpoint(ep);
+}
+
+// What was wrong with a refused sample, in words naming the joint or the count.
+void describe_refusal(const Link::Slot& slot, const Applied& a, std::span<const char* const> names, std::size_t values,
+                      char* out, std::size_t size) noexcept {
+    const Port& port = *slot.port;
+    const char* field = port.spec.message == Message::joint_position ? "position"
+                        : port.spec.message == Message::joint_velocity ? "velocity"
+                        : port.spec.message == Message::joint_effort   ? "effort"
+                                                                       : "data";
+    switch (a.refusal) {
+        case Refusal::length:
+            if (port.spec.message == Message::state_var)
+                std::snprintf(out, size, "%zu values for %zu elements", values, port.nelem);
+            else if (names.empty())
+                std::snprintf(out, size, "no names and %zu %s values for %zu joints", values, field, port.nelem);
+            else
+                std::snprintf(out, size, "%zu %s values for %zu names", values, field, names.size());
+            return;
+        case Refusal::unnamed:
+            std::snprintf(out, size, "no joint names (UNNAMED refuse)");
+            return;
+        case Refusal::unknown:
+            std::snprintf(out, size, "unknown joint '%s'", names[a.offender] ? names[a.offender] : "");
+            return;
+        case Refusal::duplicate:
+            std::snprintf(out, size, "joint '%s' named twice", names[a.offender] ? names[a.offender] : "");
+            return;
+        case Refusal::partial:
+            std::snprintf(out, size, "%zu of %zu joints named (JOINT_SUBSET refuse)", names.size(), port.nelem);
+            return;
+        case Refusal::none: break;
+    }
+    std::snprintf(out, size, "?");
+}
+
+// A refused sample: counted, and told to the task (a warning naming the port,
+// the topic and the publisher) the first time for its reason and then at most
+// once every Notice::kNoticeInterval.
+void refuse(Link::Slot& slot, dds_entity_t reader, const dds_sample_info_t& info, const Applied& a,
+            std::span<const char* const> names, std::size_t values, Clock now) noexcept {
+    const auto reason = static_cast<std::size_t>(a.refusal);
+    slot.counts.rejected.fetch_add(1, std::memory_order_relaxed);
+    const std::uint64_t n = slot.counts.refused[reason].fetch_add(1, std::memory_order_relaxed) + 1;
+    Notice& notice = slot.notices[reason];
+    if (notice.pending.load(std::memory_order_acquire)) return;  // the task has not told the last one yet
+    if (notice.last_ns != 0 && now - notice.last_ns < Notice::kNoticeInterval) return;
+    char who[64], what[160];
+    publisher_of(reader, info, who, sizeof who);
+    describe_refusal(slot, a, names, values, what, sizeof what);
+    const TopicSpec& t = slot.port->spec;
+    // Most telling first: a task's warning keeps its first 159 characters.
+    std::snprintf(notice.text, sizeof notice.text, "%s refused a sample: %s (%llu %s so far), publisher %s, topic rt/%s",
+                  t.port.c_str(), what, static_cast<unsigned long long>(n), to_string(a.refusal), who, t.ros_name.c_str());
+    notice.last_ns = now;
+    notice.pending.store(true, std::memory_order_release);
+}
+
+// One sample into the port's TBUF, stamped with its arrival: a StateVar of the
+// port's length, or a JointState matched by name (JointMap). A refused sample
+// changes nothing but the counts; a JointState that leaves a joint without any
+// value yet is held (its values kept for the next) and counted.
+void receive(Link::Slot& slot, dds_entity_t reader, const void* sample, const dds_sample_info_t& info,
+             Clock entered) noexcept {
+    const Port& port = *slot.port;
+    auto* joints = reinterpret_cast<double*>(slot.item.data() + sizeof(ReceivedHeader));
+    const dds_sequence_double* data = nullptr;
+    std::span<const char* const> names;
+    ReceivedHeader head{};
+    Applied a;
+    if (port.spec.message == Message::state_var) {
+        const auto* s = static_cast<const chimera_msgs_msg_dds__StateVar_*>(sample);
+        data = &s->data;
+        head = {stamp_ns(s->header), s->counter};
+        if (data->_length != port.nelem) {
+            a.refusal = Refusal::length;
+        } else {
+            std::memcpy(joints, data->_buffer, port.nelem * sizeof(double));
+            a.complete = true;
+        }
+    } else {
+        auto* s = static_cast<sensor_msgs_msg_dds__JointState_*>(const_cast<void*>(sample));
+        data = joint_field(*s, port.spec.message);
+        head = {stamp_ns(s->header), slot.counts.received.load(std::memory_order_relaxed)};
+        names = {const_cast<const char* const*>(s->name._buffer), s->name._length};
+        a = slot.joints->apply(names, {data->_buffer, data->_length}, joints);
+    }
+    if (a.refusal != Refusal::none) {
+        refuse(slot, reader, info, a, names, data->_length, entered);
+        return;
+    }
+    if (!a.complete) {
+        slot.counts.held.fetch_add(1, std::memory_order_relaxed);
+        return;
+    }
+    std::memcpy(slot.item.data(), &head, sizeof head);
+    const Clock stored = chimera::ipc::now_ns();
+    (void)slot.tbuf.write(slot.item.data(), stored);
+    slot.counts.received.fetch_add(1, std::memory_order_relaxed);
+    if (slot.probe)
+        slot.probe(slot.probe_context, {joints, port.nelem, head.source_ns, info.source_timestamp, entered, stored});
+}
+
+// The listener: every sample taken, on whichever Cyclone thread delivers it.
 void on_data_available(dds_entity_t reader, void* arg) {
     const Clock entered = chimera::ipc::now_ns();
     auto& slot = *static_cast<Link::Slot*>(arg);
     std::lock_guard<std::mutex> lock(slot.listener_mu);
-    const Port& port = *slot.port;
     void* samples[1] = {nullptr};
     dds_sample_info_t info;
     while (dds_take(reader, samples, &info, 1, 1) > 0) {
-        if (info.valid_data) {
-            const dds_sequence_double* data = nullptr;
-            ReceivedHeader head{};
-            if (port.spec.message == Message::state_var) {
-                auto* s = static_cast<chimera_msgs_msg_dds__StateVar_*>(samples[0]);
-                data = &s->data;
-                head = {stamp_ns(s->header), s->counter};
-            } else {
-                auto* s = static_cast<sensor_msgs_msg_dds__JointState_*>(samples[0]);
-                data = joint_field(*s, port.spec.message);
-                head = {stamp_ns(s->header), slot.counts.received.load(std::memory_order_relaxed)};
-            }
-            if (data->_length != port.nelem) {
-                slot.counts.rejected.fetch_add(1, std::memory_order_relaxed);
-            } else {
-                std::memcpy(slot.item.data(), &head, sizeof head);
-                std::memcpy(slot.item.data() + sizeof head, data->_buffer, port.nelem * sizeof(double));
-                const Clock stored = chimera::ipc::now_ns();
-                (void)slot.tbuf.write(slot.item.data(), stored);
-                slot.counts.received.fetch_add(1, std::memory_order_relaxed);
-                if (slot.probe)
-                    slot.probe(slot.probe_context, {data->_buffer, port.nelem, head.source_ns, info.source_timestamp,
-                                                    entered, stored});
-            }
-        }
+        if (info.valid_data) receive(slot, reader, samples[0], info, entered);
         dds_return_loan(reader, samples, 1);
         samples[0] = nullptr;
     }
@@ -178,7 +269,9 @@ Link::Link(const BridgeConfig& config, std::vector<Port> ports) : config_(config
         s->tbuf = chimera::tbuf::Tbuf::create_in(s->memory.get(), size, item);
         s->item.assign(item, std::byte{0});
         if (p.spec.message != Message::state_var && p.spec.direction == Direction::pub)
-            for (const std::string& n : config_.joint_names) s->names.push_back(const_cast<char*>(n.c_str()));
+            for (const std::string& n : p.joint_names) s->names.push_back(const_cast<char*>(n.c_str()));
+        if (p.spec.message != Message::state_var && p.spec.direction == Direction::sub)
+            s->joints = std::make_unique<JointMap>(p.joint_names, JointOptions{config_.refuse_subset, config_.accept_unnamed});
         slots_.push_back(std::move(s));
     }
     // Not the task's policy, priority or CPU: SCHED_OTHER on every CPU the process may use.
@@ -204,6 +297,15 @@ Link::Link(const BridgeConfig& config, std::vector<Port> ports) : config_(config
 
 chimera::tbuf::Tbuf& Link::buffer(std::size_t i) noexcept { return slots_[i]->tbuf; }
 const SubCounts& Link::counts(std::size_t i) const noexcept { return slots_[i]->counts; }
+
+const char* Link::pending_notice(std::size_t i, Refusal reason) const noexcept {
+    const Notice& n = slots_[i]->notices[static_cast<std::size_t>(reason)];
+    return n.pending.load(std::memory_order_acquire) ? n.text : nullptr;
+}
+
+void Link::notice_told(std::size_t i, Refusal reason) noexcept {
+    slots_[i]->notices[static_cast<std::size_t>(reason)].pending.store(false, std::memory_order_release);
+}
 
 void Link::set_receive_probe(std::size_t i, ReceiveProbeFn fn, void* context) noexcept {
     std::lock_guard<std::mutex> lock(slots_[i]->listener_mu);

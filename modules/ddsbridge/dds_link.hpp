@@ -40,6 +40,7 @@
 #include <pthread.h>
 
 #include "bridge_config.hpp"
+#include "joint_map.hpp"
 
 namespace ddsbridge {
 
@@ -113,6 +114,9 @@ struct Port {
     TopicSpec spec;
     std::string global_name;  ///< its SVAR name (StateVar frame_id)
     std::size_t nelem = 0;    ///< doubles
+    /// JointState ports: the joints' names, published (pub) or matched on
+    /// receipt (sub): JOINT_NAMES, or joint1 .. jointN.
+    std::vector<std::string> joint_names;
 };
 
 /// What a subscription's listener saw of one stored value: the legs of its
@@ -131,7 +135,24 @@ using ReceiveProbeFn = void (*)(void* context, const ReceiveProbe& seen);
 /// Counts a subscription's listener keeps (read by `get STATUS`).
 struct SubCounts {
     std::atomic<std::uint64_t> received{0};  ///< samples written to the TBUF
-    std::atomic<std::uint64_t> rejected{0};  ///< samples of the wrong length, dropped
+    std::atomic<std::uint64_t> rejected{0};  ///< samples refused, whatever the reason (dropped whole)
+    std::atomic<std::uint64_t> refused[kRefusals]{};  ///< ... by reason (index: Refusal)
+    /// JointState samples taken but not yet passed on: they name some joints
+    /// only, and a joint has had no value yet (the port gets its first value
+    /// once every joint has one).
+    std::atomic<std::uint64_t> held{0};
+};
+
+/// A refusal told to the task, which turns it into a warning: the listener
+/// writes the text while the notice is not pending, the task reads it while it
+/// is (a hand-over of one writer and one reader: no lock). One per reason, and
+/// at most one every kNoticeInterval: a flood of bad samples is counted, not
+/// told sample by sample.
+struct Notice {
+    static constexpr std::int64_t kNoticeInterval = 5'000'000'000;  ///< ns
+    std::atomic<bool> pending{false};
+    std::int64_t last_ns = 0;  // the listener's: when it last wrote one
+    char text[320] = {};
 };
 
 class Link {
@@ -149,6 +170,10 @@ public:
     const Port& port(std::size_t i) const noexcept { return ports_[i]; }
     std::size_t size() const noexcept { return ports_.size(); }
     const SubCounts& counts(std::size_t i) const noexcept;
+    /// The refusal of subscription i for `reason` waiting to be told, or
+    /// nullptr; after telling it, the task calls notice_told(i, reason).
+    const char* pending_notice(std::size_t i, Refusal reason) const noexcept;
+    void notice_told(std::size_t i, Refusal reason) noexcept;
     /// The task's period while it is ON, 0 while OFF: paces the bridge thread's looks.
     void set_period_ns(std::int64_t ns) noexcept { period_ns_.store(ns, std::memory_order_relaxed); }
     /// The CPUs the task may run on (bit n: CPU n; 0: unknown). NOTIFY spin:

@@ -5,7 +5,8 @@
 //
 //   INVAR   the variables published (double arrays)
 //   OUTVAR  the variables subscribed (double arrays)
-//   LOCAL   DOMAIN CONFIG AGE_CLOCK JOINT_NAMES, and TOPIC_<port> per port (bridge_config.hpp)
+//   LOCAL   DOMAIN CONFIG AGE_CLOCK NOTIFY JOINT_NAMES JOINT_SUBSET UNNAMED, TOPIC_<port> per port,
+//           STAMP_/VLIMIT_/TRATE_<port> where wanted (bridge_config.hpp)
 //
 // The cycle only copies in-vars into their TBUFs and the newest received
 // values out of theirs, and checks each one's age: no network, no allocation,
@@ -42,7 +43,18 @@ constexpr chimera::LocalKey kKeys[] = {
      "poll | spin | wake: the bridge thread looks when the task's write is due, keeps looking from just before "
      "it is due, or is woken by the task (one system call)", "poll"},
     {"JOINT_NAMES", chimera::LocalType::text, -chimera::unbounded, chimera::unbounded, false,
-     "JointState.name of the joint vectors published", ""},
+     "the joints' names in JointState.name: published, and matched on receipt", "joint1 .. jointN"},
+    {"JOINT_SUBSET", chimera::LocalType::word, -chimera::unbounded, chimera::unbounded, false,
+     "update | refuse: a received JointState naming some joints updates those, or is refused and counted", "update"},
+    {"UNNAMED", chimera::LocalType::word, -chimera::unbounded, chimera::unbounded, false,
+     "refuse | positional: a received JointState without names is refused and counted, or taken by position",
+     "refuse"},
+    {"VLIMIT_*", chimera::LocalType::numbers, 0.0, chimera::unbounded, false,
+     "VLIMIT_<port> per joint (or one for all): a subscribed JointState.position changes at most this much per "
+     "second, a JointState.velocity is clamped to it", ""},
+    {"TRATE_*", chimera::LocalType::numbers, 0.0, chimera::unbounded, false,
+     "TRATE_<port> per joint (or one for all), N m/s: a subscribed JointState.effort changes at most this much "
+     "per second", ""},
     {"STAMP_*", chimera::LocalType::word, -chimera::unbounded, chimera::unbounded, false,
      "STAMP_<port> OUTVAR: 3 doubles per cycle: counter, age (s), 1 new | 0 repeat | -1 stale", ""},
     {"TOPIC_*", chimera::LocalType::text, -chimera::unbounded, chimera::unbounded, false,
@@ -79,6 +91,10 @@ struct Sub {
     std::uint64_t counter = 0;
     std::int64_t age_ns = -1;
     bool fresh = false;  // this cycle's read found a new value
+    // VLIMIT_/TRATE_: what the cycle writes to the table, limited; counted.
+    JointLimiter limiter;
+    bool limit_from_zero = false;  // TRATE_: a torque ramps up from zero after on()
+    std::uint64_t clamped = 0;     // joint values clamped, since spawn
 };
 
 struct Pub {
@@ -112,6 +128,12 @@ public:
             s.nelem = p.nelem;
             s.age_limit_ns = static_cast<std::int64_t>(p.spec.age_limit * 1e9);
             s.action = p.spec.stale;
+            if (std::vector<double> limits = limits_for(p.spec, p.nelem, t.rmod_file().local.file); !limits.empty()) {
+                const bool magnitude = p.spec.message == Message::joint_velocity;
+                s.limiter = JointLimiter(magnitude ? JointLimiter::Kind::magnitude : JointLimiter::Kind::rate,
+                                         std::move(limits));
+                s.limit_from_zero = p.spec.message == Message::joint_effort;
+            }
             s.stale_text = p.spec.port + " from " + p.spec.dds_topic() + ": stale (no value newer than " +
                            chimera::cfg::number_text(p.spec.age_limit) + " s; " + to_string(p.spec.stale) + ")";
             s.fresh_text = p.spec.port + " from " + p.spec.dds_topic() + ": fresh values again";
@@ -122,7 +144,10 @@ public:
 
     chimera::Result on(chimera::Task& t) override {
         on_ns_ = chimera::ipc::now_ns();
-        for (Sub& s : subs_) s.stale = false;
+        for (Sub& s : subs_) {
+            s.stale = false;
+            start_limiter(s, t.period());
+        }
         raised_illegal_ = false;
         link_->set_period_ns(static_cast<std::int64_t>(t.period() * 1e9));
         link_->set_task_cpus(task_cpus());
@@ -136,6 +161,7 @@ public:
         bool ok = true;
         aborted_ = false;
         for (Sub& s : subs_) {
+            tell_refusals(t, s);
             ok = take(t, s, now) && ok;
             if (aborted_) break;  // t.error() aborted the cycle: return at once (module.hpp)
         }
@@ -155,8 +181,10 @@ public:
         return chimera::Result::OK;
     }
 
-    // get STATUS: per subscribed port, "PORT counter C age S stale yes|no received N rejected R";
-    // per published port, "PORT published N" (samples of all ports).
+    // get STATUS: per subscribed port, "PORT counter C age S stale yes|no received N rejected R
+    // length L unnamed U unknown K duplicate D partial P held H clamped X" (rejected: all refused
+    // samples; then by reason; held: JointStates waiting for a joint's first value; clamped: joint
+    // values a limit changed); then "published N" (samples of all published ports).
     chimera::Result get(chimera::Task& t) override {
         if (t.arg() != "STATUS") return chimera::Result::OK;
         std::string text;
@@ -165,7 +193,10 @@ public:
             text += link_->port(s.link_index).spec.port + " counter " + std::to_string(s.counter) + " age " +
                     (s.age_ns < 0 ? std::string("none") : chimera::cfg::number_text(1e-9 * static_cast<double>(s.age_ns))) +
                     " stale " + (s.stale ? "yes" : "no") + " received " + std::to_string(c.received.load()) +
-                    " rejected " + std::to_string(c.rejected.load()) + "\n";
+                    " rejected " + std::to_string(c.rejected.load());
+            for (std::size_t r = 1; r < kRefusals; ++r)
+                text += std::string(" ") + to_string(static_cast<Refusal>(r)) + " " + std::to_string(c.refused[r].load());
+            text += " held " + std::to_string(c.held.load()) + " clamped " + std::to_string(s.clamped) + "\n";
         }
         text += "published " + std::to_string(link_->published());
         t.reply(text);
@@ -183,11 +214,8 @@ private:
                                         spec.port + ": " + p.global_name + " is not a double variable (the bridge "
                                         "carries float64 arrays)");
         p.nelem = info.nelem();
-        if (spec.direction == Direction::pub && spec.message != Message::state_var &&
-            !config_.joint_names.empty() && config_.joint_names.size() != p.nelem)
-            throw std::invalid_argument(t.rmod_file().local.file + ": JOINT_NAMES has " +
-                                        std::to_string(config_.joint_names.size()) + " names, " + p.global_name +
-                                        " (TOPIC_" + spec.port + ") " + std::to_string(p.nelem) + " joints");
+        if (spec.message != Message::state_var)
+            p.joint_names = joint_names_for(config_, spec, p.nelem, t.rmod_file().local.file);
         return p;
     }
 
@@ -228,7 +256,11 @@ private:
             age = std::max<std::int64_t>(age, 0);
             s.age_ns = age;
             if (age <= s.age_limit_ns) {
-                std::memcpy(s.var, item + sizeof head, s.nelem * sizeof(double));
+                const auto* values = reinterpret_cast<const double*>(item + sizeof head);
+                if (s.limiter.kind() == JointLimiter::Kind::none)
+                    std::memcpy(s.var, values, s.nelem * sizeof(double));
+                else
+                    s.clamped += s.limiter.apply(values, s.var);
                 if (s.stale) recover(t, s);
                 return true;
             }
@@ -249,8 +281,37 @@ private:
                 raised_illegal_ = true;
             }
         }
-        if (s.action == StaleAction::zero) std::memset(s.var, 0, s.nelem * sizeof(double));
+        if (s.action == StaleAction::zero) {
+            // The safe value at once, not ramped; a limit ramps on from it.
+            std::memset(s.var, 0, s.nelem * sizeof(double));
+            s.limiter.start_from(s.var);
+        }
         return s.action != StaleAction::error;
+    }
+
+    // After on(): a torque-rate limit ramps the first command up from zero
+    // torque (what the robot had before a command came); a velocity limit on
+    // positions takes the first position as it comes (ramping from zero
+    // would command a move to zero).
+    static void start_limiter(Sub& s, double period) noexcept {
+        s.limiter.set_period(period);
+        if (s.limit_from_zero) {
+            s.limiter.start_from_zero();
+        } else {
+            s.limiter.start_afresh();
+        }
+    }
+
+    // The listener's refusals as warnings, each text made on the listener's
+    // thread (naming the port, topic and publisher): the cycle only hands it on.
+    void tell_refusals(chimera::Task& t, const Sub& s) noexcept {
+        for (std::size_t r = 1; r < kRefusals; ++r) {
+            const auto reason = static_cast<Refusal>(r);
+            if (const char* text = link_->pending_notice(s.link_index, reason)) {
+                t.warning(text);
+                link_->notice_told(s.link_index, reason);
+            }
+        }
     }
 
     void recover(chimera::Task& t, Sub& s) noexcept {

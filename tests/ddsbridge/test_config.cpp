@@ -156,6 +156,75 @@ TEST(DdsBridgeConfig, EachMistakeIsNamedWithFileLineAndKey) {
     EXPECT_EQ(error_of(clock), "bridge.rmod:10: NOTIFY 'signal': expected poll, spin or wake");
 }
 
+// Joint names and the consumer side's options and limits (issue #29.6, #29.7).
+TEST(DdsBridgeConfig, JointNamesDefaultToJoint1ToNAndTheSubscribersOptionsAreRead) {
+    auto r = rmod({}, {"Q", "V", "T"});
+    set(r, "TOPIC_Q", "q sub JointState.position state 0.1 warn", 7);
+    set(r, "TOPIC_V", "v sub JointState.velocity state 0.1 warn", 8);
+    set(r, "TOPIC_T", "t sub JointState.effort command 0.1 zero", 9);
+    BridgeConfig c = parse_config(r);
+    EXPECT_FALSE(c.refuse_subset) << "default: a subset updates the joints it names";
+    EXPECT_FALSE(c.accept_unnamed) << "default: a message without names is refused";
+    EXPECT_EQ(joint_names_for(c, c.topics[0], 3, "bridge.rmod"), (std::vector<std::string>{"joint1", "joint2", "joint3"}));
+    EXPECT_TRUE(c.topics[0].limits.empty());
+    set(r, "JOINT_SUBSET", "refuse", 10);
+    set(r, "UNNAMED", "positional", 11);
+    set(r, "JOINT_NAMES", "a b c", 12);
+    set(r, "VLIMIT_Q", "1 2 3", 13);
+    set(r, "VLIMIT_V", "4", 14);
+    set(r, "TRATE_T", "50 50 10", 15);
+    c = parse_config(r);
+    EXPECT_TRUE(c.refuse_subset);
+    EXPECT_TRUE(c.accept_unnamed);
+    EXPECT_EQ(joint_names_for(c, c.topics[0], 3, "bridge.rmod"), (std::vector<std::string>{"a", "b", "c"}));
+    EXPECT_EQ(limits_for(c.topics[0], 3, "bridge.rmod"), (std::vector<double>{1, 2, 3}));
+    EXPECT_EQ(limits_for(c.topics[1], 3, "bridge.rmod"), (std::vector<double>{4, 4, 4})) << "one for every joint";
+    EXPECT_EQ(limits_for(c.topics[2], 3, "bridge.rmod"), (std::vector<double>{50, 50, 10}));
+}
+
+TEST(DdsBridgeConfig, EachJointMistakeIsNamedWithFileLineAndKey) {
+    auto base = [] {
+        auto r = rmod({}, {"Q", "T", "S"});
+        set(r, "TOPIC_Q", "q sub JointState.position state 0.1 warn", 7);
+        set(r, "TOPIC_T", "t sub JointState.effort command 0.1 zero", 8);
+        set(r, "TOPIC_S", "s sub StateVar state 0.1 warn", 9);
+        return r;
+    };
+    auto with = [&](const std::string& key, const std::string& value) {
+        auto r = base();
+        set(r, key, value, 12);
+        return error_of(r);
+    };
+    EXPECT_EQ(with("JOINT_SUBSET", "some"), "bridge.rmod:12: JOINT_SUBSET 'some': expected update or refuse");
+    EXPECT_EQ(with("UNNAMED", "yes"), "bridge.rmod:12: UNNAMED 'yes': expected refuse or positional");
+    EXPECT_EQ(with("JOINT_NAMES", "a b a"), "bridge.rmod:12: JOINT_NAMES: 'a' is given twice (a name is one joint)");
+    EXPECT_EQ(with("VLIMIT_T", "1"),
+              "bridge.rmod:12: VLIMIT_T: a velocity limit is for a JointState.position or JointState.velocity port");
+    EXPECT_EQ(with("TRATE_Q", "1"), "bridge.rmod:12: TRATE_Q: a torque-rate limit is for a JointState.effort port");
+    EXPECT_EQ(with("VLIMIT_S", "1"),
+              "bridge.rmod:12: VLIMIT_S: a velocity limit is for a JointState.position or JointState.velocity port");
+    EXPECT_EQ(with("VLIMIT_X", "1"), "bridge.rmod:12: VLIMIT_X: X has no subscribed TOPIC_X line");
+    EXPECT_EQ(with("VLIMIT_Q", "1 0 1"), "bridge.rmod:12: VLIMIT_Q: limit '0': expected a number > 0 (units per second)");
+    EXPECT_EQ(with("TRATE_T", "nan"), "bridge.rmod:12: TRATE_T: limit 'nan': expected a number > 0 (N m per second)");
+
+    auto r = base();
+    set(r, "JOINT_NAMES", "a b", 12);
+    set(r, "TRATE_T", "1 2", 13);
+    const BridgeConfig c = parse_config(r);
+    auto error = [](auto f) {
+        try {
+            f();
+        } catch (const std::invalid_argument& e) {
+            return std::string(e.what());
+        }
+        return std::string();
+    };
+    EXPECT_EQ(error([&] { joint_names_for(c, c.topics[0], 3, "bridge.rmod"); }),
+              "bridge.rmod: JOINT_NAMES has 2 names, TOPIC_Q 3 joints");
+    EXPECT_EQ(error([&] { limits_for(c.topics[1], 3, "bridge.rmod"); }),
+              "bridge.rmod:13: TRATE_T has 2 limits for 3 joints (give one per joint, or one for all)");
+}
+
 // WriteSchedule (dds_link.hpp): when the task's next write is due, from its
 // release grid and the earliest phase of its recent writes.
 TEST(WriteSchedule, TheNextWriteIsDueOnePeriodOnAtTheEarliestPhaseSeen) {

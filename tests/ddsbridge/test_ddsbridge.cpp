@@ -58,6 +58,7 @@ const char* kSvar =
     "NAME S\nTYPE double\nDESC a plain array published\nUNITS none\nNELEM 3\n"
     "NAME T\nTYPE double\nDESC a plain array received\nUNITS none\nNELEM 3\n"
     "NAME T_RX\nTYPE double\nDESC T's counter, age and new/repeat/stale\nUNITS mixed\nNELEM 3\n"
+    "NAME E\nTYPE double\nDESC joint torques received by name\nUNITS N m\nNELEM 6\n"
     "EOF\n";
 
 // Loopback only, unicast discovery: nothing of the test leaves the machine.
@@ -86,6 +87,18 @@ std::string run(const std::string& command) {
         ::pclose(p);
     }
     return out;
+}
+
+// The number after " KEY " on PORT's line of `get STATUS`; -1 when absent.
+long status_count(const std::string& status, const std::string& port, const std::string& key) {
+    std::istringstream lines(status);
+    std::string line;
+    while (std::getline(lines, line)) {
+        if (line.rfind(port + " counter ", 0) != 0) continue;
+        const auto at = line.find(" " + key + " ");
+        return at == std::string::npos ? -1 : std::stol(line.substr(at + key.size() + 2));
+    }
+    return -1;
 }
 
 class Bridge : public ::testing::Test {
@@ -128,6 +141,7 @@ protected:
                                        "TOPIC_S " + topic_ + "/array pub StateVar command\n"),
                            "cpu0");
         sub_ = sbs_->spawn(bridge_rmod("sub", "INVAR none\nOUTVAR Y T T_RX\n",
+                                       "JOINT_NAMES j1 j2 j3 j4 j5 j6\n"
                                        "TOPIC_Y " + topic_ + "/joints sub JointState.position state 0.1 " + y_action + "\n"
                                        "TOPIC_T " + topic_ + "/array sub StateVar command 0.1 " + t_action + "\n"
                                        "STAMP_T T_RX\n"),
@@ -239,14 +253,18 @@ TEST_F(Bridge, ASampleOfTheWrongLengthIsDroppedAndCounted) {
     ASSERT_GT(w, 0);
     double five[5] = {9, 9, 9, 9, 9};
     char empty[] = "";
+    char j1[] = "j1", j2[] = "j2", j3[] = "j3", j4[] = "j4", j5[] = "j5", j6[] = "j6";
+    char* six_names[6] = {j1, j2, j3, j4, j5, j6};
     sensor_msgs_msg_dds__JointState_ s{};
     s.header.frame_id = empty;
+    s.name = {6, 6, six_names, false};
     s.position = {5, 5, five, false};
     EXPECT_TRUE(eventually([&] {
         (void)dds_write(w, &s);
-        const std::string status = sbs_->get(sub_, "STATUS");
-        return status.find("rejected 0\nT ") == std::string::npos;
+        return status_count(sbs_->get(sub_, "STATUS"), "Y", "length") > 0;
     })) << sbs_->get(sub_, "STATUS");
+    const std::string status = sbs_->get(sub_, "STATUS");
+    EXPECT_EQ(status_count(status, "Y", "rejected"), status_count(status, "Y", "length")) << status;
     dds_delete(pp);
     EXPECT_NE(get<6>("Y")[0], 9.0) << "the bad sample reached the port";
 }
@@ -441,3 +459,165 @@ TEST_P(BridgeLooking, ThePublishersThreadKeepsOffTheTasksCpu) {
     for (const long tid : bridges) EXPECT_TRUE(eventually([&] { return uses_cpu0(tid); })) << "thread " << tid << " OFF";
 }
 INSTANTIATE_TEST_SUITE_P(PollAndSpin, BridgeLooking, ::testing::Values("poll", "spin"));
+
+// Joint data by name (issue #29.7) and the consumer's torque-rate limit (issue
+// #29.6), end to end: a subscribing bridge of E (JointState.effort, joints
+// joint1 .. joint6 by default), and an independent writer — Cyclone's API and
+// the IDL types only, no line of the bridge, a participant of its own — that
+// sends what a ROS 2 node might: names in another order, a subset, a name the
+// port does not have, no names. Each sample is sent once, after the previous
+// one has been counted (a reliable keep-last-1 reader would otherwise merge
+// them), so the counts are exact.
+namespace {
+
+class JointWriter {
+public:
+    JointWriter(int domain, const std::string& topic) {
+        participant_ = dds_create_participant(static_cast<dds_domainid_t>(domain), nullptr, nullptr);
+        const dds_entity_t t = dds_create_topic(participant_, &sensor_msgs_msg_dds__JointState__desc, topic.c_str(),
+                                                nullptr, nullptr);
+        dds_qos_t* q = dds_create_qos();
+        dds_qset_reliability(q, DDS_RELIABILITY_RELIABLE, DDS_SECS(1));
+        writer_ = dds_create_writer(participant_, t, q, nullptr);
+        dds_delete_qos(q);
+    }
+    ~JointWriter() { dds_delete(participant_); }
+    bool ok() const { return participant_ > 0 && writer_ > 0; }
+    bool matched() const {
+        dds_publication_matched_status_t st{};
+        return dds_get_publication_matched_status(writer_, &st) == DDS_RETCODE_OK && st.current_count > 0;
+    }
+    // Until every sample written is in the bridge's reader (and so through its
+    // listener, which Cyclone calls on delivery, before the reader acknowledges).
+    bool delivered() const { return dds_wait_for_acks(writer_, DDS_SECS(10)) == DDS_RETCODE_OK; }
+    void send(const std::vector<std::string>& names, std::vector<double> efforts) {
+        std::vector<char*> n;
+        for (const std::string& name : names) n.push_back(const_cast<char*>(name.c_str()));
+        char empty[] = "";
+        sensor_msgs_msg_dds__JointState_ s{};
+        s.header.frame_id = empty;
+        s.name = {static_cast<uint32_t>(n.size()), static_cast<uint32_t>(n.size()), n.data(), false};
+        s.effort = {static_cast<uint32_t>(efforts.size()), static_cast<uint32_t>(efforts.size()), efforts.data(), false};
+        ASSERT_EQ(dds_write(writer_, &s), DDS_RETCODE_OK);
+    }
+
+private:
+    dds_entity_t participant_ = 0, writer_ = 0;
+};
+
+const std::vector<std::string> kAllJoints{"joint1", "joint2", "joint3", "joint4", "joint5", "joint6"};
+
+}  // namespace
+
+class BridgeByName : public Bridge {
+protected:
+    // A bridge subscribing E from an independent writer; `local`: more LOCAL keys.
+    void start_by_name(const std::string& local) {
+        sbs_ = Subsystem::init((dir_ / "t.sbs").string());
+        global_ = std::make_unique<chimera::svar::Table>(
+            chimera::svar::Table::attach(chimera::ipc::segment_name(name_, "svar")));
+        sub_ = sbs_->spawn(bridge_rmod("byname", "INVAR none\nOUTVAR E\n",
+                                       local + "TOPIC_E " + topic_ + "/torques sub JointState.effort command 30 warn\n"),
+                           "cpu0");
+        sbs_->control(sub_, Control::on);
+        writer_ = std::make_unique<JointWriter>(domain_, "rt/" + topic_ + "/torques");
+        ASSERT_TRUE(writer_->ok());
+        ASSERT_TRUE(eventually([&] { return writer_->matched(); })) << "the writer never matched the bridge";
+        // Until the reader has matched the writer too, a sample may be lost:
+        // an all-zero torque, sent until one is counted, opens the link; once
+        // every one sent is delivered, what they added to the counts is the
+        // baseline of the test.
+        ASSERT_TRUE(eventually([&] {
+            writer_->send(kAllJoints, {0, 0, 0, 0, 0, 0});
+            return count("received") > 0;
+        }));
+        ASSERT_TRUE(writer_->delivered());
+        (void)sbs_->status(sub_);  // hands over any warning so far
+    }
+    long count(const std::string& key) { return status_count(sbs_->get(sub_, "STATUS"), "E", key); }
+    // Sends one sample and waits until the bridge has counted it under `key`.
+    void send(const std::vector<std::string>& names, const std::vector<double>& efforts, const std::string& key) {
+        const long before = count(key);
+        writer_->send(names, efforts);
+        ASSERT_TRUE(eventually([&] { return count(key) == before + 1; }))
+            << "not counted as " << key << ": " << sbs_->get(sub_, "STATUS");
+    }
+    // The next warning of the task, as the cycle handed it on.
+    std::string next_warning() {
+        std::string w;
+        (void)eventually([&] { return !(w = sbs_->status(sub_).warning).empty(); });
+        return w;
+    }
+    std::unique_ptr<JointWriter> writer_;
+};
+
+TEST_F(BridgeByName, ReversedNamesSubsetsUnknownNamesAndNoNamesFromAnIndependentWriter) {
+    start_by_name("");  // the defaults: joint1 .. joint6, JOINT_SUBSET update, UNNAMED refuse
+    const long received = count("received");
+    send({"joint6", "joint5", "joint4", "joint3", "joint2", "joint1"}, {6, 5, 4, 3, 2, 1}, "received");
+    EXPECT_TRUE(eventually([&] { return get<6>("E") == std::array<double, 6>{1, 2, 3, 4, 5, 6}; }))
+        << "joint 1 takes the torque named joint1: " << get<6>("E")[0];
+
+    send({"joint2", "joint5"}, {20, 50}, "received");
+    EXPECT_TRUE(eventually([&] { return get<6>("E") == std::array<double, 6>{1, 20, 3, 4, 50, 6}; }))
+        << "a subset updates the joints it names, the others keep theirs";
+
+    send({"joint1", "joint7"}, {10, 70}, "unknown");
+    const std::string unknown = next_warning();
+    EXPECT_EQ(unknown.rfind("E refused a sample: unknown joint 'joint7' (1 unknown so far), publisher ", 0), 0u)
+        << unknown;
+    EXPECT_NE(unknown.find(", topic rt/" + topic_ + "/torques"), std::string::npos) << unknown;
+
+    send({}, {9, 9, 9, 9, 9, 9}, "unnamed");
+    const std::string unnamed = next_warning();
+    EXPECT_EQ(unnamed.rfind("E refused a sample: no joint names (UNNAMED refuse) (1 unnamed so far), publisher ", 0), 0u)
+        << unnamed;
+
+    std::this_thread::sleep_for(50ms);  // cycles after the refusals
+    EXPECT_EQ(get<6>("E"), (std::array<double, 6>{1, 20, 3, 4, 50, 6})) << "nothing of a refused sample reached E";
+    EXPECT_EQ(count("received"), received + 2);
+    EXPECT_EQ(count("rejected"), 2);
+    EXPECT_EQ(count("unknown"), 1);
+    EXPECT_EQ(count("unnamed"), 1);
+    EXPECT_EQ(count("partial"), 0);
+    EXPECT_EQ(count("length"), 0);
+    EXPECT_EQ(count("held"), 0);
+    EXPECT_EQ(sbs_->status(sub_).state, State::ON) << "bad samples never stop the task";
+}
+
+TEST_F(BridgeByName, WhenTheRmodRequiresEveryJointASubsetIsRefusedAndUnnamedIsTakenByPosition) {
+    start_by_name("JOINT_SUBSET refuse\nUNNAMED positional\n");
+    send({"joint6", "joint5", "joint4", "joint3", "joint2", "joint1"}, {6, 5, 4, 3, 2, 1}, "received");
+    EXPECT_TRUE(eventually([&] { return get<6>("E") == std::array<double, 6>{1, 2, 3, 4, 5, 6}; }));
+
+    send({"joint2", "joint5"}, {20, 50}, "partial");
+    const std::string partial = next_warning();
+    EXPECT_EQ(partial.rfind("E refused a sample: 2 of 6 joints named (JOINT_SUBSET refuse) (1 partial so far)", 0), 0u)
+        << partial;
+    std::this_thread::sleep_for(50ms);
+    EXPECT_EQ(get<6>("E"), (std::array<double, 6>{1, 2, 3, 4, 5, 6})) << "the refused subset changed nothing";
+
+    send({}, {7, 8, 9, 10, 11, 12}, "received");
+    EXPECT_TRUE(eventually([&] { return get<6>("E") == std::array<double, 6>{7, 8, 9, 10, 11, 12}; }))
+        << "UNNAMED positional: value j is joint j";
+    EXPECT_EQ(count("rejected"), 1);
+    EXPECT_EQ(count("partial"), 1);
+}
+
+// TRATE_E 100 N m/s at 200 Hz: a step of 0.5 N m per cycle. A torque of 10 on
+// joint 1 from the zero after on() is reached in 20 cycles, 19 of them clamped;
+// the table never sees a value outside the ramp.
+TEST_F(BridgeByName, ATorqueRateLimitRampsWhatTheBridgeWritesAndCountsTheClampedValues) {
+    start_by_name("TRATE_E 100\n");
+    ASSERT_EQ(count("clamped"), 0) << "the all-zero sample needs no ramp";
+    send({"joint1"}, {10}, "received");
+    std::vector<double> seen;
+    ASSERT_TRUE(eventually([&] {
+        seen.push_back(get<6>("E")[0]);
+        return seen.back() == 10.0;
+    }, 10000ms)) << "the ramp never reached 10";
+    for (std::size_t i = 1; i < seen.size(); ++i) EXPECT_LE(seen[i - 1], seen[i]) << "the ramp only rises";
+    for (const double v : seen) EXPECT_EQ(v, 0.5 * static_cast<int>(v / 0.5)) << "a whole number of steps: " << v;
+    EXPECT_EQ(count("clamped"), 19);
+    EXPECT_EQ(get<6>("E"), (std::array<double, 6>{10, 0, 0, 0, 0, 0}));
+}
