@@ -5,10 +5,17 @@
 // prints a status line every 0.1 s:
 //
 //   robot:      t=S robot_cycles=N bridge_cycles=N illegal=0|1 torques=fresh|stale max_speed=RAD/S
+//               samples=N peak_speed=J1,..,J6 peak_torque=J1,..,J6 peak_trate=J1,..,J6
 //   controller: t=S ctrl_cycles=N bridge_cycles=N measurements=fresh|stale error=RAD
 //
 // error: the largest |Q_REF - Q_MEZ| on the controller host, where Q_MEZ is
-// what arrived from the robot host; max_speed: the largest |Q^_MEZ| of the arm.
+// what arrived from the robot host; max_speed: the largest |Q^_MEZ| of the arm
+// now. samples: how many samples the peaks are of. The peaks, per joint, are over the 0.1 s since the previous line, from
+// Q^_MEZ and T_MEZ (the torque the arm gets) sampled every millisecond:
+// |speed| (rad/s), |torque| (N m), and the torque rate (N m/s) between two
+// samples dt apart as |dT| / (dt + 2 cycles): a sampler or a cycle that runs
+// late puts up to two of the arm's cycles (each at most TRATE x period) into
+// one sample interval, so this never reads above TRATE while the limit holds.
 #include "example_files.hpp"
 
 #include <chimera/ipc/segment.hpp>
@@ -17,13 +24,16 @@
 
 #include <algorithm>
 #include <array>
+#include <atomic>
 #include <chrono>
 #include <cmath>
 #include <csignal>
 #include <cstdio>
 #include <cstdlib>
 #include <cstring>
+#include <optional>
 #include <string>
+#include <mutex>
 #include <thread>
 
 namespace {
@@ -77,6 +87,74 @@ bool stale(chimera::sbs::Subsystem& sbs, chimera::sbs::TaskId bridge, const std:
     return status.substr(at, end - at).find("stale yes") != std::string::npos;
 }
 
+// Samples the arm's Q^_MEZ and T_MEZ every millisecond on a thread of its own,
+// through a table attachment of its own, and keeps the per-joint peaks until
+// take() hands them over.
+class PeakSampler {
+public:
+    static constexpr std::size_t kJoints = 6;
+    using Peaks = std::array<double, kJoints>;
+    struct Window { Peaks speed{}, torque{}, trate{}; int samples = 0; };
+
+    PeakSampler(const std::string& table_segment, double cycle_period)
+        : table_(chimera::svar::Table::attach(table_segment)), qd_(table_.index_of("Q^_MEZ")),
+          tau_(table_.index_of("T_MEZ")), cycle_(cycle_period),
+          thread_([this] { run(); }) {}
+    ~PeakSampler() {
+        stop_ = true;
+        thread_.join();
+    }
+    Window take() {
+        std::lock_guard lock(mutex_);
+        const Window w = window_;
+        window_ = {};
+        return w;
+    }
+
+private:
+    void run() {
+        std::array<double, kJoints> qd{}, tau{}, last_tau{};
+        auto last = std::chrono::steady_clock::now();
+        bool first = true;
+        while (!stop_) {
+            std::this_thread::sleep_for(std::chrono::milliseconds(1));
+            const auto now = std::chrono::steady_clock::now();
+            (void)table_.read(qd_, qd.data());
+            (void)table_.read(tau_, tau.data());
+            const double dt = std::chrono::duration<double>(now - last).count();
+            std::lock_guard lock(mutex_);
+            ++window_.samples;
+            for (std::size_t j = 0; j < kJoints; ++j) {
+                window_.speed[j] = std::max(window_.speed[j], std::fabs(qd[j]));
+                window_.torque[j] = std::max(window_.torque[j], std::fabs(tau[j]));
+                if (!first)
+                    window_.trate[j] = std::max(window_.trate[j], std::fabs(tau[j] - last_tau[j]) / (dt + 2 * cycle_));
+            }
+            last_tau = tau;
+            last = now;
+            first = false;
+        }
+    }
+
+    chimera::svar::Table table_;
+    const std::size_t qd_, tau_;
+    const double cycle_;
+    std::mutex mutex_;
+    Window window_;
+    std::atomic<bool> stop_{false};
+    std::thread thread_;  // last: starts once everything it reads is made
+};
+
+std::string joined(const PeakSampler::Peaks& p) {
+    std::string s;
+    char b[32];
+    for (double v : p) {
+        std::snprintf(b, sizeof b, "%s%.3f", s.empty() ? "" : ",", v);
+        s += b;
+    }
+    return s;
+}
+
 }  // namespace
 
 int run(const Options& o);
@@ -106,10 +184,10 @@ int run(const Options& o) {
     const std::string bridge_rmod = !o.bridge.empty() ? o.bridge : rmod(o.robot ? "robot_bridge" : "controller_bridge");
     std::vector<chimera::sbs::TaskId> tasks;
     if (o.robot) {
-        tasks.push_back(sbs->spawn(rmod("puma_torque"), rtpu));
+        tasks.push_back(sbs->spawn(rmod("puma_limited"), rtpu));
     } else {
-        tasks.push_back(sbs->spawn(rmod("jtraj"), rtpu));
-        tasks.push_back(sbs->spawn(rmod("jpid"), rtpu));
+        tasks.push_back(sbs->spawn(rmod("jtraj_hold"), rtpu));
+        tasks.push_back(sbs->spawn(rmod("jpid_hold"), rtpu));
     }
     const chimera::sbs::TaskId bridge = sbs->spawn(bridge_rmod, rtpu);
     std::vector<chimera::sbs::ReconfigItem> on{{bridge, Control::on}};
@@ -118,9 +196,12 @@ int run(const Options& o) {
         std::fprintf(stderr, "two_machines: %s\n", r.message.c_str());
         return 1;
     }
-    auto table = chimera::svar::Table::attach(chimera::ipc::segment_name(sbs->name(), "svar"));
+    const std::string table_segment = chimera::ipc::segment_name(sbs->name(), "svar");
+    auto table = chimera::svar::Table::attach(table_segment);
     const auto start = std::chrono::steady_clock::now();
     const chimera::sbs::TaskId main_task = tasks.back();  // robotsim, or jpid
+    std::optional<PeakSampler> sampler;
+    if (o.robot) sampler.emplace(table_segment, 1.0 / 500);  // puma_limited.rmod's FREQ
     for (;;) {
         std::this_thread::sleep_for(std::chrono::milliseconds(100));
         const double t = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
@@ -129,9 +210,12 @@ int run(const Options& o) {
             const auto qd = read_var<6>(table, "Q^_MEZ");
             double speed = 0;
             for (double v : qd) speed = std::max(speed, std::fabs(v));
-            std::printf("t=%.2f robot_cycles=%llu bridge_cycles=%llu illegal=%d torques=%s max_speed=%.4f\n", t,
-                        static_cast<unsigned long long>(cycles), static_cast<unsigned long long>(bridge_cycles),
-                        sbs->illegal_configuration() ? 1 : 0, stale(*sbs, bridge, "T_REF") ? "stale" : "fresh", speed);
+            const PeakSampler::Window w = sampler->take();
+            std::printf("t=%.2f robot_cycles=%llu bridge_cycles=%llu illegal=%d torques=%s max_speed=%.4f "
+                        "samples=%d peak_speed=%s peak_torque=%s peak_trate=%s\n",
+                        t, static_cast<unsigned long long>(cycles), static_cast<unsigned long long>(bridge_cycles),
+                        sbs->illegal_configuration() ? 1 : 0, stale(*sbs, bridge, "T_REF") ? "stale" : "fresh", speed,
+                        w.samples, joined(w.speed).c_str(), joined(w.torque).c_str(), joined(w.trate).c_str());
         } else {
             const auto q_ref = read_var<6>(table, "Q_REF"), q_mez = read_var<6>(table, "Q_MEZ");
             double error = 0;
@@ -143,6 +227,7 @@ int run(const Options& o) {
         std::fflush(stdout);
         if (g_stop || (o.seconds > 0 && t >= o.seconds)) break;
     }
+    sampler.reset();
     sbs->finish();
     return 0;
 }

@@ -4,13 +4,21 @@
 //   INCONST NDOF
 //   INVAR   Q_REF Q^_REF Q_MEZ Q^_MEZ [T_GRAV]   rad, rad/s, N m (optional feed-forward)
 //   OUTVAR  T_REF                                 N m
+//   [INVAR  STAMP]                                a ddsbridge stamp of Q_MEZ (3 doubles)
 //   LOCAL   KP KI KD ILIMIT ULIMIT  (1 value for all joints or NDOF values)
+//           [STALE hold|run] [SLEW]  with STAMP: while Q_MEZ is stale, hold the
+//                            last good T_REF and freeze the integral; on the
+//                            first fresh cycle reset the integral and slew T_REF
+//                            from the held value to the PID's at SLEW N m/s
+//                            (issue #29.6; default run: the stamp is ignored)
 #include <chimera/module.hpp>
 
+#include <limits>
 #include <optional>
 
 #include "robotics/pid.hpp"
 #include "robotics/ports.hpp"
+#include "robotics/stale.hpp"
 
 namespace rb = chimera::robotics;
 
@@ -23,6 +31,8 @@ constexpr chimera::LocalKey kPidModuleLocalKeys[] = {
     {"KD", chimera::LocalType::numbers, 0.0, chimera::unbounded, true, "derivative gain per joint", ""},
     {"ILIMIT", chimera::LocalType::numbers, 0.0, chimera::unbounded, true, "integrator clamp per joint", ""},
     {"ULIMIT", chimera::LocalType::numbers, 0.0, chimera::unbounded, true, "output clamp per joint", ""},
+    {"STALE", chimera::LocalType::word, -chimera::unbounded, chimera::unbounded, false, "hold | run: what stale measurements (in-var STAMP) do", "run"},
+    {"SLEW", chimera::LocalType::numbers, 0.0, chimera::unbounded, true, "after stale measurements: T_REF slew rate per joint (N m/s; none: no limit)", ""},
 };
 
 class PidModule : public chimera::Module {
@@ -32,9 +42,16 @@ public:
     chimera::Result init(chimera::Task& t) override {
         n_ = rb::read_ndof(t);
         try {
-            pid_.emplace(n_, gains(t));
+            pid_.emplace(rb::Pid(n_, gains(t)), slew(t));
         } catch (const std::invalid_argument& e) {
             rb::module_error(t, e.what());
+        }
+        const std::string stale = rb::local_word(t, "STALE", "run");
+        if (stale != "hold" && stale != "run") rb::module_error(t, "LOCAL STALE '" + stale + "': expected hold or run");
+        if (stale == "hold") {
+            if (!rb::has_in_var(t, "STAMP"))
+                rb::module_error(t, "LOCAL STALE hold needs the in-var STAMP (the bridge's stamp of Q_MEZ)");
+            stamp_ = rb::vec_port(t, "STAMP", 3);
         }
         q_ref_ = rb::vec_port(t, "Q_REF", n_);
         qd_ref_ = rb::vec_port(t, "Q^_REF", n_);
@@ -47,7 +64,7 @@ public:
     }
 
     chimera::Result on(chimera::Task&) override {
-        pid_->reset();  // no integral carried over from an earlier run
+        pid_->reset();  // no integral, hold or slew carried over from an earlier run
         return chimera::Result::OK;
     }
 
@@ -55,11 +72,12 @@ public:
         const auto n = static_cast<Eigen::Index>(n_);
         using CMap = Eigen::Map<const Eigen::VectorXd>;
         Eigen::Map<Eigen::VectorXd> u(t_ref_, n);
+        const bool stale = rb::stamp_says_stale(stamp_);  // no stamp (STALE run): never
         if (t_grav_) {
-            pid_->update(CMap(q_ref_, n), CMap(qd_ref_, n), CMap(q_mez_, n), CMap(qd_mez_, n),
+            pid_->update(stale, CMap(q_ref_, n), CMap(qd_ref_, n), CMap(q_mez_, n), CMap(qd_mez_, n),
                          CMap(t_grav_, n), t.period(), u);
         } else {
-            pid_->update(CMap(q_ref_, n), CMap(qd_ref_, n), CMap(q_mez_, n), CMap(qd_mez_, n), zero_,
+            pid_->update(stale, CMap(q_ref_, n), CMap(qd_ref_, n), CMap(q_mez_, n), CMap(qd_mez_, n), zero_,
                          t.period(), u);
         }
         return chimera::Result::OK;
@@ -68,7 +86,7 @@ public:
     chimera::Result set(chimera::Task& t) override {
         // sbsSet of a gain or limit: the LOCAL entry is already updated; rebuild
         // the gains between cycles. A bad value leaves the old gains in place.
-        return rb::apply_local(t, [&] { pid_ = rb::Pid(n_, gains(t)); });
+        return rb::apply_local(t, [&] { pid_.emplace(rb::Pid(n_, gains(t)), slew(t)); });
     }
 
 private:
@@ -78,8 +96,13 @@ private:
                             rb::local_vector(t, "ULIMIT", n_, 1e9)};
     }
 
+    Eigen::VectorXd slew(const chimera::Task& t) const {
+        return rb::local_vector(t, "SLEW", n_, std::numeric_limits<double>::infinity());
+    }
+
     std::size_t n_ = 0;
-    std::optional<rb::Pid> pid_;
+    std::optional<rb::StaleHoldPid> pid_;
+    const double* stamp_ = nullptr;  // STALE hold: the bridge's stamp of Q_MEZ
     double *q_ref_ = nullptr, *qd_ref_ = nullptr, *q_mez_ = nullptr, *qd_mez_ = nullptr;
     double *t_grav_ = nullptr, *t_ref_ = nullptr;
     Eigen::VectorXd zero_;

@@ -101,6 +101,34 @@ void Trajectory::set_start(const Eigen::Ref<const Eigen::VectorXd>& p0) noexcept
     if (static_cast<std::size_t>(p0.size()) == dim_) points_.front() = p0;
 }
 
+void Trajectory::set_point(std::size_t i, const Eigen::Ref<const Eigen::VectorXd>& p) noexcept {
+    if (i < points_.size() && static_cast<std::size_t>(p.size()) == dim_) points_[i] = p;
+}
+
+void Trajectory::set_duration(std::size_t i, double seconds) noexcept {
+    if (i >= durations_.size() || !(seconds > 0)) return;
+    total_ += seconds - durations_[i];
+    durations_[i] = seconds;
+}
+
+Trajectory::Span Trajectory::segment_at(double t) const noexcept {
+    if (durations_.empty()) return {0, 0};
+    if (t < 0) t = 0;
+    double pass_start = 0;  // the start of the pass (of a cyclic trajectory) t is in
+    if (cyclic_) {
+        pass_start = t - std::fmod(t, total_);
+    } else if (t >= total_) {
+        return {total_, total_};
+    }
+    double start = pass_start;
+    for (std::size_t seg = 0; seg < durations_.size(); ++seg) {
+        const double end = start + durations_[seg];
+        if (t < end || seg + 1 == durations_.size()) return {start, end};
+        start = end;
+    }
+    return {start, start};  // not reached
+}
+
 void Trajectory::evaluate(double t, Eigen::Ref<Eigen::VectorXd> p, Eigen::Ref<Eigen::VectorXd> v,
                           Eigen::Ref<Eigen::VectorXd> a) const noexcept {
     if (durations_.empty()) {

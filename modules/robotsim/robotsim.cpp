@@ -11,15 +11,20 @@
 //                           [T_GRAV]         gravity feed-forward (N m), optional; without
 //                                            it the simulated servo uses its own model
 //   OUTVAR   Q_MEZ, [Q^_MEZ]  measured joint positions (rad) and velocities (rad/s)
-// LOCAL: see README.md.
+//            [T_MEZ]          the joint torques applied (N m), after every limit
+// LOCAL: see README.md. With VLIMIT or TRATE every torque the arm gets (the
+// command, the position servo's, the hold loop's) goes through a JointLimiter
+// (robotics/limits.hpp); `get LIMITS` answers how often each limit acted.
 #include <chimera/module.hpp>
 
 #include <algorithm>
 #include <cmath>
+#include <limits>
 #include <memory>
 #include <optional>
 
 #include "robotics/dynamics.hpp"
+#include "robotics/limits.hpp"
 #include "robotics/pid.hpp"
 #include "robotics/ports.hpp"
 
@@ -37,6 +42,8 @@ constexpr chimera::LocalKey kRobotSimLocalKeys[] = {
     {"SERVO_KI", chimera::LocalType::numbers, 0.0, chimera::unbounded, false, "position mode: servo integral gain", "0"},
     {"SERVO_KD", chimera::LocalType::numbers, 0.0, chimera::unbounded, false, "position mode: servo derivative gain", "40"},
     {"TLIMIT", chimera::LocalType::numbers, 0.0, chimera::unbounded, false, "torque limit per joint (N m)", "1e9"},
+    {"VLIMIT", chimera::LocalType::numbers, 0.0, chimera::unbounded, false, "joint speed limit per joint (rad/s): torque-speed envelope; none: no limit", ""},
+    {"TRATE", chimera::LocalType::numbers, 0.0, chimera::unbounded, false, "torque rate limit per joint (N m/s); none: no limit", ""},
     {"FRICTION_COMP", chimera::LocalType::word, -chimera::unbounded, chimera::unbounded, false, "yes | no: position mode: the servo feeds the model's Coulomb friction forward", "yes"},
     {"STABILITY", chimera::LocalType::word, -chimera::unbounded, chimera::unbounded, false, "hold | none: what the robot does while the configuration is illegal", "hold"},
 };
@@ -75,10 +82,12 @@ public:
         }
         q_mez_ = rb::vec_port(t, "Q_MEZ", n_);
         if (rb::has_out_var(t, "Q^_MEZ")) qd_mez_ = rb::vec_port(t, "Q^_MEZ", n_);
+        if (rb::has_out_var(t, "T_MEZ")) t_mez_ = rb::vec_port(t, "T_MEZ", n_);
 
         substeps_ = static_cast<int>(rb::local_number(t, "SUBSTEPS", 10));
         if (substeps_ < 1 || substeps_ > 1000) rb::module_error(t, "LOCAL SUBSTEPS must be 1..1000");
         tlimit_ = rb::local_vector(t, "TLIMIT", n_, 1e9);
+        init_limiter(t);
         // Servo of the simulated position-mode controller, and the local-stability
         // loop (§3.10) of both modes: PD on the held position plus gravity.
         rb::PidGains g{rb::local_vector(t, "SERVO_KP", n_, 400.0), rb::local_vector(t, "SERVO_KI", n_, 0.0),
@@ -99,6 +108,7 @@ public:
         grav_.setZero(n_);
         zero_.setZero(n_);
         hold_.setZero(n_);
+        bias_.setZero(n_);
         return chimera::Result::OK;
     }
 
@@ -107,6 +117,22 @@ public:
         servo_->reset();
         if (q_ref_) q_ref_prev_ = Eigen::Map<const Eigen::VectorXd>(q_ref_, static_cast<Eigen::Index>(n_));
         holding_ = false;
+        if (limiter_) {
+            // The rate limit starts from the torque that holds the arm where it
+            // is (a brake or a hold loop carried it until now), not from zero.
+            dyn_->gravity(sim_->q(), bias_);
+            limiter_->reset(bias_);
+        }
+        return chimera::Result::OK;
+    }
+
+    // get LIMITS: "speed_clamps N rate_clamps M" (joint-cycles each limit changed
+    // the torque), or "none" without VLIMIT and TRATE.
+    chimera::Result get(chimera::Task& t) override {
+        if (t.arg() != "LIMITS") return chimera::Result::OK;
+        t.reply(limiter_ ? "speed_clamps " + std::to_string(limiter_->speed_clamps()) + " rate_clamps " +
+                               std::to_string(limiter_->rate_clamps())
+                         : std::string("none"));
         return chimera::Result::OK;
     }
 
@@ -144,6 +170,10 @@ public:
                 tau_ = Eigen::Map<const Eigen::VectorXd>(t_ref_, n).cwiseMax(-tlimit_).cwiseMin(tlimit_);
             }
         }
+        if (limiter_) {
+            dyn_->gravity(q, bias_);
+            limiter_->apply(tau_, qd, bias_, t.period());
+        }
         if (!sim_->step(tau_, t.period(), substeps_)) {
             return t.error(1, "simulation diverged (non-finite state): torques too large for the step size");
         }
@@ -152,6 +182,18 @@ public:
     }
 
 private:
+    // VLIMIT and TRATE: optional, each absent meaning no limit of its kind.
+    void init_limiter(chimera::Task& t) {
+        if (!t.local().has("VLIMIT") && !t.local().has("TRATE")) return;
+        constexpr double none = std::numeric_limits<double>::infinity();
+        try {
+            limiter_.emplace(rb::JointLimits{tlimit_, rb::local_vector(t, "VLIMIT", n_, none),
+                                             rb::local_vector(t, "TRATE", n_, none)});
+        } catch (const std::invalid_argument& e) {
+            rb::module_error(t, std::string("LOCAL ") + e.what());
+        }
+    }
+
     // The drive's Coulomb friction feed-forward (a real position servo's, e.g.
     // Corke's for the PUMA): the model's Tc in the direction the reference
     // moves (Q^_REF, or Q_REF's change over the cycle); with the reference at
@@ -176,6 +218,7 @@ private:
         const auto n = static_cast<Eigen::Index>(n_);
         Eigen::Map<Eigen::VectorXd>(q_mez_, n) = sim_->q();
         if (qd_mez_) Eigen::Map<Eigen::VectorXd>(qd_mez_, n) = sim_->qd();
+        if (t_mez_) Eigen::Map<Eigen::VectorXd>(t_mez_, n) = tau_;
     }
 
     rb::RobotModel model_;
@@ -191,10 +234,12 @@ private:
     double* t_ref_ = nullptr;
     double* q_mez_ = nullptr;
     double* qd_mez_ = nullptr;
+    double* t_mez_ = nullptr;
+    std::optional<rb::JointLimiter> limiter_;
     std::unique_ptr<rb::ArmSimulator> sim_;
     std::unique_ptr<rb::Dynamics> dyn_;
     std::optional<rb::Pid> servo_, hold_servo_;
-    Eigen::VectorXd tau_, grav_, zero_, hold_, tlimit_, q_ref_prev_;
+    Eigen::VectorXd tau_, grav_, zero_, hold_, tlimit_, q_ref_prev_, bias_;
 };
 
 }  // namespace

@@ -17,14 +17,29 @@
 //                            the previous one (for the first: from the start;
 //                            when cyclic, the return from the last POINT to the
 //                            first takes the first POINT's time too)
+//           [STALE hold|run] with the optional in-vars STAMP (a ddsbridge stamp,
+//                            3 doubles, of the measurements the controller
+//                            uses) and Z_MEZ (the measured position): hold
+//                            stops the trajectory's clock while the stamp says
+//                            stale and, on the first fresh cycle, re-anchors
+//                            it at Z_MEZ (default run: the stamp is ignored)
 // When not cyclic it sends sig::FINISH once the last point is reached and keeps
 // holding it.
+//
+// STALE hold (issue #29.6): while the measurements are stale the arm is held by
+// the robot interface, so a trajectory that ran on would be seconds ahead of
+// the arm when they return, and the controller would drive it there at its
+// torque limits. Instead the reference stops (Z held, Z^ and Z^^ zero: a
+// reference that does not move), and on recovery the segment that was under
+// way is planned again, with its full duration, from where the arm was measured
+// to the via point it was heading for; then the trajectory goes on from there.
 #include <chimera/module.hpp>
 
 #include <memory>
 #include <vector>
 
 #include "robotics/ports.hpp"
+#include "robotics/stale.hpp"
 #include "robotics/trajectory.hpp"
 
 namespace rb = chimera::robotics;
@@ -37,6 +52,7 @@ constexpr chimera::LocalKey kTrajGenLocalKeys[] = {
     {"BLEND", chimera::LocalType::number, 0.0, chimera::unbounded, false, "blend time between segments (s)", "0.2"},
     {"CYCLIC", chimera::LocalType::word, -chimera::unbounded, chimera::unbounded, false, "yes | no: start over after the last point", "yes"},
     {"START", chimera::LocalType::word, -chimera::unbounded, chimera::unbounded, false, "current | first point", "current"},
+    {"STALE", chimera::LocalType::word, -chimera::unbounded, chimera::unbounded, false, "hold | run: what stale measurements (in-var STAMP) do", "run"},
     {"POINT*", chimera::LocalType::numbers, -chimera::unbounded, chimera::unbounded, false, "POINTn DURATION q1 ... qN: a via point", ""},
 };
 
@@ -109,6 +125,8 @@ public:
         p_.setZero(static_cast<Eigen::Index>(n_));
         v_ = p_;
         a_ = p_;
+        target_ = p_;
+        init_stale_hold(t, profile);
         return chimera::Result::OK;
     }
 
@@ -119,14 +137,20 @@ public:
         if (approach_traj_) approach_traj_->set_start(start); else traj_->set_start(start);
         time_ = 0;
         finished_ = false;
+        detour_ = false;
+        watch_.reset();
         evaluate();
         return chimera::Result::OK;
     }
 
     chimera::Result cycle(chimera::Task& t) override {
-        time_ += t.period();
+        switch (watch_.update(rb::stamp_says_stale(stamp_))) {
+            case rb::Freshness::stale: hold_still(); return chimera::Result::OK;
+            case rb::Freshness::recovered: reanchor(); break;
+            case rb::Freshness::fresh: advance(t.period()); break;
+        }
         evaluate();
-        if (!cyclic_ && !finished_ && time_ >= traj_->total_time()) {
+        if (!cyclic_ && !finished_ && !detour_ && time_ >= traj_->total_time()) {
             finished_ = true;
             t.send_signal(chimera::sig::FINISH);
         }
@@ -134,14 +158,84 @@ public:
     }
 
 private:
+    // STALE hold needs the stamp and the measured position; the re-anchored
+    // segment is allocated here, once, and re-aimed in the cycle.
+    void init_stale_hold(chimera::Task& t, rb::Profile profile) {
+        const std::string stale = rb::local_word(t, "STALE", "run");
+        if (stale != "hold" && stale != "run") rb::module_error(t, "LOCAL STALE '" + stale + "': expected hold or run");
+        if (stale == "run") return;
+        if (!rb::has_in_var(t, "STAMP") || !rb::has_in_var(t, "Z_MEZ"))
+            rb::module_error(t, "LOCAL STALE hold needs the in-vars STAMP (the bridge's stamp of the measurements) "
+                                "and Z_MEZ (the measured position)");
+        stamp_ = rb::vec_port(t, "STAMP", 3);
+        z_mez_ = rb::vec_port(t, "Z_MEZ", n_);
+        reanchored_ = std::make_unique<rb::Trajectory>(n_, std::vector<Eigen::VectorXd>{p_, p_}, std::vector<double>{1.0},
+                                                       profile, false, rb::local_number(t, "BLEND", 0.2));
+    }
+
+    // The plan's time moves on, through the re-anchored segment first if one is under way.
+    void advance(double dt) noexcept {
+        if (!detour_) {
+            time_ += dt;
+            return;
+        }
+        detour_time_ += dt;
+        if (detour_time_ < reanchored_->total_time()) return;
+        time_ += detour_time_ - reanchored_->total_time();  // back on the plan, at the via point
+        detour_ = false;
+    }
+
+    // Stale: the reference stays where it is and does not move.
+    void hold_still() noexcept {
+        const auto n = static_cast<Eigen::Index>(n_);
+        if (zd_) Eigen::Map<Eigen::VectorXd>(zd_, n).setZero();
+        if (zdd_) Eigen::Map<Eigen::VectorXd>(zdd_, n).setZero();
+    }
+
+    // Fresh again: the segment under way is planned anew, from the measured
+    // position to its via point, with its whole duration; the plan resumes there.
+    void reanchor() noexcept {
+        const auto n = static_cast<Eigen::Index>(n_);
+        // A re-anchored segment still under way is replaced: time_ is already its via point's.
+        const rb::Trajectory::Span span = detour_ ? rb::Trajectory::Span{time_ - reanchored_->total_time(), time_}
+                                                  : plan_segment_at(time_);
+        if (!(span.end > span.start)) {  // a finished trajectory: nothing under way
+            detour_ = false;
+            return;
+        }
+        plan_evaluate(span.end, target_, v_, a_);
+        reanchored_->set_point(0, Eigen::Map<const Eigen::VectorXd>(z_mez_, n));
+        reanchored_->set_point(1, target_);
+        reanchored_->set_duration(0, span.end - span.start);
+        time_ = span.end;
+        detour_ = true;
+        detour_time_ = 0;
+    }
+
+    // The plan: the approach (cyclic) then the via points.
+    rb::Trajectory::Span plan_segment_at(double t) const noexcept {
+        if (approach_traj_ && t < approach_) return {0, approach_};
+        if (!approach_traj_) return traj_->segment_at(t);
+        const rb::Trajectory::Span s = traj_->segment_at(t - approach_);
+        return {s.start + approach_, s.end + approach_};
+    }
+
+    void plan_evaluate(double t, Eigen::VectorXd& p, Eigen::VectorXd& v, Eigen::VectorXd& a) const noexcept {
+        if (approach_traj_ && t < approach_) {
+            approach_traj_->evaluate(t, p, v, a);
+        } else if (approach_traj_) {
+            traj_->evaluate(t - approach_, p, v, a);
+        } else {
+            traj_->evaluate(t, p, v, a);
+        }
+    }
+
     void evaluate() noexcept {
         const auto n = static_cast<Eigen::Index>(n_);
-        if (approach_traj_ && time_ < approach_) {
-            approach_traj_->evaluate(time_, p_, v_, a_);
-        } else if (approach_traj_) {
-            traj_->evaluate(time_ - approach_, p_, v_, a_);
+        if (detour_) {
+            reanchored_->evaluate(detour_time_, p_, v_, a_);
         } else {
-            traj_->evaluate(time_, p_, v_, a_);
+            plan_evaluate(time_, p_, v_, a_);
         }
         Eigen::Map<Eigen::VectorXd>(z_, n) = p_;
         if (zd_) Eigen::Map<Eigen::VectorXd>(zd_, n) = v_;
@@ -152,8 +246,15 @@ private:
     double *z_ = nullptr, *zd_ = nullptr, *zdd_ = nullptr;
     bool cyclic_ = true, start_current_ = true, finished_ = false;
     double time_ = 0, approach_ = 0;
-    Eigen::VectorXd first_, p_, v_, a_;
+    Eigen::VectorXd first_, p_, v_, a_, target_;
     std::unique_ptr<rb::Trajectory> traj_, approach_traj_;
+    // STALE hold (nullptr stamp_: run on regardless).
+    const double* stamp_ = nullptr;
+    const double* z_mez_ = nullptr;
+    rb::StaleWatch watch_;
+    std::unique_ptr<rb::Trajectory> reanchored_;
+    bool detour_ = false;       // the re-anchored segment is under way
+    double detour_time_ = 0;    // since it began
 };
 
 }  // namespace

@@ -12,7 +12,11 @@
 #      measurements, and every task keeps its rate;
 #   3. the link returns: both hosts have fresh data again within the stated
 #      time (5 s; by design about 0.5 s: one SPDP interval), the flag drops and
-#      the arm tracks again.
+#      the arm tracks again;
+#   4. a lost link never moves the arm fast (issue #29.6): from the cut until
+#      2 s after both hosts have fresh data again, every joint's speed and
+#      torque rate, sampled every millisecond by the robot host (node.cpp),
+#      stay within the VLIMIT and TRATE that puma_limited.rmod declares.
 # Skips (77) with the reason where namespaces cannot be made (no CAP_NET_ADMIN).
 # Usage: test_two_machines.sh TWO_MACHINES_PROGRAM EXAMPLE_DIR
 set -u
@@ -87,6 +91,7 @@ echo "worst tracking error over the last second before the cut: $tracking rad"
 check 'less "$tracking" 0.08' "the arm tracks across the link (worst |Q_REF - Q_MEZ| $tracking rad < 0.08 rad)"
 
 # 2. Cut the link for 4 s.
+cut_line=$(grep -c '^t=' "$work/robot.log")
 before_robot=$(last robot)
 before_ctrl=$(last ctrl)
 ip -n "$ns_robot" link set "$veth_robot" down
@@ -124,7 +129,31 @@ if wait_for '[ "$(field "$(last robot)" torques)" = fresh ] && [ "$(field "$(las
 else
     check false "both hosts have fresh data again within 5 s of the link's return: robot [$(last robot)] controller [$(last ctrl)]"
 fi
+# The window of part 4 ends 2 s after the fresh data returned.
+sleep 2
+end_line=$(grep -c '^t=' "$work/robot.log")
 check 'wait_for "less \"\$(field \"\$(last ctrl)\" error)\" 0.08" 6' "the arm tracks the trajectory again after the link returned"
+
+# 4. The peaks from the cut to 2 s after fresh data returned, per joint,
+# against the limits the example declares.
+window=$(grep '^t=' "$work/robot.log" | sed -n "$((cut_line + 1)),${end_line}p")
+declared() { sed -n "s/^$1 *//p" "$example/puma_limited.rmod"; }
+# peak FIELD: the per-joint maxima of FIELD over the window's lines, space-separated.
+peak() { awk -v f="$1" '{for(i=1;i<=NF;i++) if (index($i, f "=") == 1) {n=split(substr($i, length(f) + 2), v, ",");
+    for(j=1;j<=n;j++) if (v[j]+0 > m[j]) m[j]=v[j]+0}} END {for(j=1;j<=6;j++) printf "%s%.3f", (j>1?" ":""), m[j]}' <<< "$window"; }
+within() {  # within "A1 .. A6" "L1 .. L6": every A_j <= L_j
+    awk -v a="$1" -v l="$2" 'BEGIN {n=split(a, x, " "); split(l, y, " "); for(j=1;j<=n;j++) if (x[j]+0 > y[j]+0) exit 1}'
+}
+lines=$(wc -l <<< "$window")
+fewest=$(awk '{for(i=1;i<=NF;i++) if ($i ~ /^samples=/) {split($i,a,"="); if (m=="" || a[2]<m) m=a[2]}} END {print m+0}' <<< "$window")
+speed=$(peak peak_speed) trate=$(peak peak_trate) torque=$(peak peak_torque)
+echo "over the cut and 2 s after ($lines lines of 0.1 s, at least $fewest samples each):"
+echo "  peak |speed| (rad/s)  $speed   VLIMIT $(declared VLIMIT)"
+echo "  peak torque rate      $trate   TRATE  $(declared TRATE)"
+echo "  peak |torque| (N m)   $torque   TLIMIT $(declared TLIMIT)"
+check 'less 50 "$lines" && less 19 "$fewest"' "the robot host sampled the whole window at >= 200 Hz ($lines lines, >= $fewest samples per 0.1 s)"
+check 'within "$speed" "$(declared VLIMIT)"' "every joint's speed stayed within VLIMIT ($speed rad/s)"
+check 'within "$trate" "$(declared TRATE)"' "every joint's torque rate stayed within TRATE ($trate N m/s)"
 for p in "${pids[@]}"; do kill "$p" 2>/dev/null; done  # SIGTERM: each host finishes its subsystem
 wait
 pids=()

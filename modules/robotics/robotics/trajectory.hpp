@@ -41,6 +41,16 @@ public:
     /// Replaces the first via point (the start), e.g. with the current position
     /// read on `on`, so the trajectory starts where the robot is.
     void set_start(const Eigen::Ref<const Eigen::VectorXd>& p0) noexcept;
+    /// Replaces via point i and the duration of segment i (from point i to the
+    /// next): re-plans a preallocated trajectory without touching the heap.
+    /// Out of range, a wrong size or a duration <= 0 changes nothing.
+    void set_point(std::size_t i, const Eigen::Ref<const Eigen::VectorXd>& p) noexcept;
+    void set_duration(std::size_t i, double seconds) noexcept;
+    /// The segment under way at time t (as evaluate sees it), as the times it
+    /// started and ends, counted like t (a cyclic trajectory's later passes
+    /// included). Past the end of a non-cyclic one: [total_time, total_time].
+    struct Span { double start, end; };
+    Span segment_at(double t) const noexcept;
 
 private:
     std::size_t dim_;
