@@ -300,7 +300,7 @@ TEST(Fig37Set, RefusesWhatTheModuleWouldIgnore) {
     const auto has = [](const std::string& s, const char* part) { return s.find(part) != std::string::npos; };
 
     const std::string nokey = refusal(jpid, "NOKEY", "1");
-    EXPECT_TRUE(has(nokey, "no LOCAL key NOKEY in module pid (it takes KP KI KD ILIMIT ULIMIT)")) << nokey;
+    EXPECT_TRUE(has(nokey, "no LOCAL key NOKEY in module pid (it takes KP KI KD ILIMIT ULIMIT STALE SLEW)")) << nokey;
     const std::string banana = refusal(jpid, "KP", "banana");
     EXPECT_TRUE(has(banana, "LOCAL KP: 'banana' is not a number")) << banana;
     EXPECT_FALSE(has(banana, ":0:")) << banana;
