@@ -1,0 +1,259 @@
+"""Fault injection on the Figure 3.7 arm (issue #29 item 9), one injection at a
+time, each for a few seconds. Every test asserts: joint speed and torque within
+the limits puma_safe.rmod declares, the tasks' missed releases within the bound
+of a clean run of the same length, nothing of the subsystem left in /dev/shm or
+/tmp once it finished, and an error or log line naming the cause.
+
+Left out (see the report of the change): the DDS link cut and return and the
+foreign DDS publisher; kill -9 of the robot side is kill -9 of the master (in
+Figure 3.7 the robot interface is a task of the master's process)."""
+
+import os
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+
+import numpy as np
+import pytest
+
+import chimera
+from safety_harness import TASKS, TLIMIT, TOKEN, VLIMIT, Arm, leftovers, measure
+
+sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "web"))
+import webharness  # noqa: E402  (its WebSocket client)
+
+SECONDS = 3.0
+
+
+def miss_bound(clean):
+    """Misses an injected run of SECONDS may have: those of the clean run,
+    doubled, plus 5 for a shared 2-core machine's scheduling noise."""
+    return 2 * clean.misses + 5
+
+
+def check_limits(meas, clean):
+    """The arm's safety assertions of one measured run (a list of failures)."""
+    failures = []
+    if meas.rate < 200:
+        failures.append("sampled at %.0f Hz (< 200)" % meas.rate)
+    if np.any(meas.peak_speed > VLIMIT):
+        failures.append("joint speed %s over VLIMIT %s" % (meas.peak_speed, VLIMIT))
+    if np.any(meas.peak_torque > TLIMIT + 1e-9):
+        failures.append("joint torque %s over TLIMIT %s" % (meas.peak_torque, TLIMIT))
+    if meas.misses > miss_bound(clean):
+        failures.append("%d misses, bound %d (clean run: %d)" % (meas.misses, miss_bound(clean), clean.misses))
+    return failures
+
+
+def measure_safely(arm, clean, inject=None, seconds=SECONDS):
+    """measure() and its checks; run once more only when the stall detector
+    says the machine stopped this process too (and says so)."""
+    meas = measure(arm, seconds, inject)
+    failures = check_limits(meas, clean)
+    if failures and meas.stall > 0.15:
+        print("stall detector: this process was stopped for %.0f ms, the run was disturbed: running again (%s)"
+              % (meas.stall * 1e3, "; ".join(failures)))
+        meas = measure(arm, seconds, inject)
+        failures = check_limits(meas, clean)
+    print(meas)
+    assert not failures, "; ".join(failures)
+    return meas
+
+
+@pytest.fixture(scope="module")
+def arm():
+    a = Arm("m")
+    yield a
+    assert a.stop() == 0, a.log_text()
+    assert leftovers(a.name) == []
+
+
+@pytest.fixture(scope="module")
+def clean(arm):
+    meas = measure(arm, SECONDS)
+    print("clean run:", meas)
+    assert not check_limits(meas, meas), meas
+    return meas
+
+
+def still_on(arm):
+    with arm.master() as m:
+        return [t for t in TASKS if Arm.row(m, t)["state"] != "ON"]
+
+
+def page(arm, control=False):
+    s = webharness.Socket(arm.http_port)
+    assert s.authenticate(TOKEN)["ok"]
+    if control:
+        assert s.request("control")["ok"]
+    return s
+
+
+# ------------------------------------------------------------------ injections on the running arm
+
+def test_watcher_command_flood(arm, clean):
+    refusals = []
+
+    def flood(arm, done):
+        s = page(arm)
+        while not done.is_set():
+            for cmd in ("off jpid", "kill puma_safe", "set jpid KP 1e6", "setvar T_REF 500 500 500 500 500 500"):
+                refusals.append(s.request(cmd))
+
+    measure_safely(arm, clean, flood)
+    print("%d watcher commands refused; first: %s" % (len(refusals), refusals[0]["error"]))
+    assert len(refusals) > 20 and all(not r["ok"] for r in refusals)
+    assert all("read-only: this page is watching" in r["error"] for r in refusals)
+    assert still_on(arm) == []
+
+
+def test_scope_abuse(arm, clean):
+    errors = []
+
+    def abuse(arm, done):
+        s = page(arm, control=True)
+        try:
+            while not done.is_set():
+                for cmd in ("scope start Q_MEZ --rate 100000 --rtpu robot", "scope start Q_MEZ --rate 100000 --rtpu ctrl",
+                            "scope start Q_MEZ Q_REF T_REF --capacity 1073741824"):
+                    r = s.request(cmd)
+                    if r["ok"]:
+                        s.request("scope stop")
+                    else:
+                        errors.append(r["error"])
+        finally:
+            s.request("scope stop")
+            s.request("release")
+
+    measure_safely(arm, clean, abuse)
+    print("%d scope starts refused; e.g. %s" % (len(errors), sorted(set(errors))[:3]))
+    assert errors, "no abusive scope was refused"
+    assert all("rate" in e or "capacity" in e or "admission" in e or "deadline" in e for e in errors), set(errors)
+    assert still_on(arm) == []
+
+
+def test_pre_authentication_flood(arm, clean):
+    counts = {"connects": 0}
+
+    def flood(arm, done):
+        idle = []
+        while not done.is_set():
+            try:
+                c = socket.socket()
+                c.bind(("127.0.0.2", 0))
+                c.settimeout(1)
+                c.connect(("127.0.0.1", arm.tcp_port))
+                counts["connects"] += 1
+                if counts["connects"] % 10 == 0:
+                    idle.append(c)  # held open, silent, until the flood ends
+                else:
+                    c.close()
+            except OSError:
+                time.sleep(0.001)  # refused or timed out: the server's limits, not this test's business
+        for c in idle:
+            c.close()
+
+    measure_safely(arm, clean, flood)
+    print("%d connections from 127.0.0.2 in %.0f s" % (counts["connects"], SECONDS))
+    assert counts["connects"] > 50
+    # The master still serves TCP, and a command before the token is refused, naming why.
+    with pytest.raises(chimera.MasterError, match="token"):
+        chimera.Master(tcp=("127.0.0.1", arm.tcp_port), token="not-the-token").status()
+    with chimera.Master(tcp=("127.0.0.1", arm.tcp_port), token=TOKEN) as m:
+        assert len(m.status()) >= len(TASKS)
+    assert still_on(arm) == []
+
+
+PEER_CHILD = """
+import sys, chimera
+m = chimera.Master(sys.argv[1], socket_path=sys.argv[2], token=sys.argv[3])
+p = chimera.Peer("safetypeer", produces=["PEER_OUT"], consumes=["Q_MEZ"], master=m)
+p.start()
+m.close()  # the master's control slot is free again; the peer task stays, bound to this pid
+print("started", flush=True)
+for cycle in p.run(hz=200):
+    p.write(PEER_OUT=p.read()["Q_MEZ"])
+"""
+
+
+def test_python_peer_killed_9(arm, clean):
+    child = subprocess.Popen([sys.executable, "-c", PEER_CHILD, arm.name, arm.socket, TOKEN], stdout=subprocess.PIPE,
+                             text=True, env=arm.env)
+    try:
+        assert child.stdout.readline().strip() == "started"
+
+        def kill_peer(arm, done):
+            time.sleep(1.0)
+            child.send_signal(signal.SIGKILL)
+            child.wait(10)
+
+        measure_safely(arm, clean, kill_peer)
+        with arm.master() as m:
+            row = Arm.row(m, "safetypeer")  # the master checks its peers before every command
+            print("peer task:", row["state"], row["error"])
+            assert row["state"] == "ERROR" and "peer process %d is gone" % child.pid in row["error"]
+            m.kill("safetypeer")
+    finally:
+        if child.poll() is None:
+            child.kill()
+            child.wait()
+    assert still_on(arm) == []
+
+
+# ------------------------------------------------------------------ injections on an arm of their own
+
+def test_master_killed_9_leaves_the_next_start_working(clean):
+    """In Figure 3.7 the robot interface is a task of the master's process:
+    kill -9 of the master is kill -9 of the robot side too. What must hold:
+    the next start of the same subsystem takes over what the dead one left,
+    saying so, runs within the limits, and leaves nothing when it finishes."""
+    first = Arm("k")
+    measure_safely(first, clean)
+    first.proc.send_signal(signal.SIGKILL)
+    first.proc.wait(10)
+    print("left by the killed master:", leftovers(first.name))
+    first.log.close()
+    second = Arm("k")  # same subsystem name
+    try:
+        line = second.wait_log(r"chimera: segment \S+, .*: left by a process that died: removed.*").group(0)
+        print("next start:", line)
+        measure_safely(second, clean)
+    finally:
+        assert second.stop() == 0, second.log_text()
+    import shutil
+    shutil.rmtree(first.dir, ignore_errors=True)  # the killed master's socket folder
+    assert leftovers(first.name) == []
+
+
+def squat_as_nobody(arm):
+    """As `nobody`, creates the arm's table segment name, writable by all."""
+    import pwd
+    nobody = pwd.getpwnam("nobody")
+    pid = os.fork()
+    if pid == 0:
+        try:
+            os.setgid(nobody.pw_gid)
+            os.setuid(nobody.pw_uid)
+            os.umask(0)
+            fd = os.open("/dev/shm/chimera.%s.svar" % arm.name, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o666)
+            os.write(fd, b"squatter" * 512)
+            os._exit(0)
+        except BaseException:
+            os._exit(1)
+    _, status = os.waitpid(pid, 0)
+    assert status == 0, "nobody could not plant the squat"
+
+
+@pytest.mark.skipif(os.geteuid() != 0, reason="needs root (to become nobody)")
+def test_squatting_user(clean):
+    a = Arm("s", before_start=squat_as_nobody)
+    try:
+        line = a.wait_log(r"chimera: segment \S+, nobody's .*squatted.*: removed.*").group(0)
+        print("squat:", line)
+        measure_safely(a, clean)
+    finally:
+        assert a.stop() == 0, a.log_text()
+    assert leftovers(a.name) == []
