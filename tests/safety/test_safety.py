@@ -55,7 +55,7 @@ def measure_safely(arm, inject=None, seconds=SECONDS):
     machine stopped this process too (and says so)."""
     clean, meas, failures = measure_pair(arm, inject, seconds)
     if failures and max(clean.stall, meas.stall) > STALL_S:
-        print("stall detector: this process was stopped for %.0f ms, the run was disturbed: running again (%s)"
+        print("stall detector: a top-priority process woke %.1f ms late, the machine stopped the arm too: running again (%s)"
               % (max(clean.stall, meas.stall) * 1e3, "; ".join(failures)))
         clean, meas, failures = measure_pair(arm, inject, seconds)
     print("clean:   ", clean)
