@@ -3,10 +3,12 @@
 #include "driver.hpp"
 
 #include <fcntl.h>
+#include <sys/stat.h>
 #include <unistd.h>
 
 #include <bit>
 #include <cerrno>
+#include <cstdio>
 #include <cstdlib>
 #include <cstring>
 
@@ -163,12 +165,39 @@ namespace {
 // on bytes start..end of the device's lock file. OFD locks belong to the open
 // file description, so a second instance conflicts even in the same process,
 // and the kernel drops them when the process dies.
+// The ports' lock file, trusted only when it is ours and no one else may
+// write it: another user's file there could be locked by them for ever,
+// denying us the device. Root replaces such a file; anyone else is told whose
+// it is. Never through a symlink.
+int open_lock_file(const DeviceSpec& spec, const std::string& path) {
+    for (int attempt = 0;; ++attempt) {
+        const int fd = ::open(path.c_str(), O_RDWR | O_CREAT | O_NOFOLLOW | O_CLOEXEC, 0600);
+        if (fd < 0)
+            throw Error(detail::describe(spec) + ": cannot open lock file " + path + ": " + std::strerror(errno));
+        struct stat st {};
+        if (::fstat(fd, &st) != 0) {
+            const int e = errno;
+            ::close(fd);
+            throw Error(detail::describe(spec) + ": cannot stat lock file " + path + ": " + std::strerror(e));
+        }
+        if (st.st_uid == ::geteuid() && (st.st_mode & 022) == 0) return fd;
+        ::close(fd);
+        char mode[8];
+        std::snprintf(mode, sizeof mode, "%04o", static_cast<unsigned>(st.st_mode & 07777));
+        const std::string whose = "uid " + std::to_string(st.st_uid) + "'s, mode " + mode;
+        if (::geteuid() != 0 || attempt > 0)
+            throw Error(detail::describe(spec) + ": lock file " + path + " is " + whose +
+                        ", not this user's: remove it (sudo rm " + path + ") and open again");
+        std::fprintf(stderr, "chimera: %s: lock file %s was %s: removed, to be created anew\n",
+                     detail::describe(spec).c_str(), path.c_str(), whose.c_str());
+        if (::unlink(path.c_str()) != 0 && errno != ENOENT)
+            throw Error(detail::describe(spec) + ": cannot remove lock file " + path + ": " + std::strerror(errno));
+    }
+}
+
 int reserve_ports(const DeviceSpec& spec, int start, int end) {
     const std::string path = lock_directory() + "/chimera.iod." + spec.name + ".lock";
-    const int fd = ::open(path.c_str(), O_RDWR | O_CREAT | O_CLOEXEC, 0600);
-    if (fd < 0)
-        throw Error(detail::describe(spec) + ": cannot open lock file " + path + ": " +
-                    std::strerror(errno));
+    const int fd = open_lock_file(spec, path);
     struct flock fl {};
     fl.l_type = F_WRLCK;
     fl.l_whence = SEEK_SET;

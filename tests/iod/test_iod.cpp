@@ -5,6 +5,7 @@
 // their "kernel interface missing" errors are checked.
 #include "chimera/iod.hpp"
 #include "chimera/ipc/segment.hpp"
+#include "as_user.hpp"
 
 #include <gtest/gtest.h>
 
@@ -428,6 +429,42 @@ TEST_F(IodMem, DoubleOpenIsRefusedUntilClosed) {
               "instance");
     a.reset();
     EXPECT_NO_THROW(iod::open(mdb_, "board", 0, 0, iod::READ));
+}
+
+// Issue #29.5: a lock file another user made in the (shared) lock folder
+// could be held by them for ever; root replaces it, and no open follows a
+// symlink planted there.
+TEST_F(IodMem, ALockFileAnotherUserMadeIsReplacedByRoot) {
+    if (!chimera::test::can_switch_user()) GTEST_SKIP() << "needs root (setresuid to nobody)";
+    ASSERT_EQ(::chmod(lockdir_.c_str(), 01777), 0) << "a shared folder, as /dev/shm is";
+    const std::string lock = lockdir_ + "/chimera.iod.board.lock";
+    const pid_t child = fork();
+    if (child == 0) {
+        if (!chimera::test::become_nobody({})) _exit(10);
+        const int fd = ::open(lock.c_str(), O_RDWR | O_CREAT | O_EXCL, 0666);
+        _exit(fd >= 0 && ::fchmod(fd, 0666) == 0 ? 0 : 11);
+    }
+    int status = 0;
+    ASSERT_EQ(waitpid(child, &status, 0), child);
+    ASSERT_TRUE(WIFEXITED(status) && WEXITSTATUS(status) == 0) << "nobody could not plant " << lock;
+    auto a = iod::open(mdb_, "board", 0, 0, iod::RW);
+    struct stat st {};
+    ASSERT_EQ(::stat(lock.c_str(), &st), 0);
+    EXPECT_EQ(st.st_uid, 0u) << "the squatter's file was replaced";
+    EXPECT_EQ(st.st_mode & 0777, 0600u);
+}
+
+TEST_F(IodMem, ALockFileIsNeverOpenedThroughASymlink) {
+    const std::string lock = lockdir_ + "/chimera.iod.board.lock";
+    const std::string target = lockdir_ + "/target";
+    std::ofstream(target) << "kept";
+    ASSERT_EQ(::symlink(target.c_str(), lock.c_str()), 0);
+    const std::string what = what_of([&] { iod::open(mdb_, "board", 0, 0, iod::RW); });
+    EXPECT_EQ(what, "device board (mem.iod:1): cannot open lock file " + lock + ": Too many levels of symbolic links");
+    std::ifstream in(target);
+    std::string kept;
+    in >> kept;
+    EXPECT_EQ(kept, "kept");
 }
 
 TEST_F(IodMem, DoubleOpenIsRefusedAcrossProcesses) {
