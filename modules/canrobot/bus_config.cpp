@@ -2,6 +2,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <limits>
 #include <stdexcept>
 
 #include "canrobot/cia402.hpp"
@@ -55,6 +56,10 @@ BusConfig BusConfig::from_local(const LocalConfig& lc, std::size_t ndof) {
                                      std::to_string(c.torque_limit[j]) + " N m is more than the bus can carry (" +
                                      std::to_string(carried[j]) + " N m = 32.767 x RATED_TORQUE)");
     }
+    // Checked where they are used (CommandLimiter): their meaning depends on MODE.
+    constexpr double none = std::numeric_limits<double>::infinity();
+    c.vlimit = rb::local_vector(lc, "VLIMIT", ndof, none);
+    c.trate = rb::local_vector(lc, "TRATE", ndof, none);
     return c;
 }
 

@@ -34,7 +34,11 @@
 //     loop; turned on inside a reconfiguration, the drives are enabled that
 //     way, so the brakes open onto a hold, not onto a torque no controller
 //     has computed yet. Turn the interface on in the same reconfig as its
-//     controller.
+//     controller;
+//   - with VLIMIT and/or TRATE (optional, per joint), what it commands goes
+//     through canrobot/command_limits.hpp: in torque mode the torque (the
+//     robotics::JointLimiter of robotsim), in position mode the target's
+//     change per cycle; `get LIMITS` answers how often each limit acted.
 // The LOCAL keys are in README.md.
 #include <chimera/iod.hpp>
 #include <chimera/module.hpp>
@@ -47,6 +51,7 @@
 #include <cstring>
 #include <ctime>
 #include <memory>
+#include <optional>
 #include <stdexcept>
 #include <string>
 #include <thread>
@@ -54,6 +59,8 @@
 
 #include "canrobot/bus_config.hpp"
 #include "canrobot/cia402.hpp"
+#include "canrobot/command_limits.hpp"
+#include "robotics/dynamics.hpp"
 #include "robotics/ports.hpp"
 
 namespace rb = chimera::robotics;
@@ -118,6 +125,8 @@ constexpr chimera::LocalKey kCanRobotLocalKeys[] = {
     {"COUNTS_PER_REV", chimera::LocalType::numbers, 0.0, chimera::unbounded, false, "encoder counts per revolution per joint", "1048576"},
     {"RATED_TORQUE", chimera::LocalType::numbers, 0.0, chimera::unbounded, false, "drive rated torque per joint (N m)", ""},
     {"TLIMIT", chimera::LocalType::numbers, 0.0, chimera::unbounded, false, "torque limit per joint (N m)", ""},
+    {"VLIMIT", chimera::LocalType::numbers, 0.0, chimera::unbounded, false, "joint speed limit per joint (rad/s); none: no limit", ""},
+    {"TRATE", chimera::LocalType::numbers, 0.0, chimera::unbounded, false, "torque rate limit per joint (N m/s), torque mode; none: no limit", ""},
     {"HEARTBEAT_TIMEOUT", chimera::LocalType::number, 0.0, chimera::unbounded, false, "seconds without a drive heartbeat before failing", "0.5"},
     {"FEEDBACK_MISSES", chimera::LocalType::integer, 0.0, 1000000.0, false, "cycles without feedback before failing", "10"},
     {"ENABLE_TIMEOUT", chimera::LocalType::number, 0.0, chimera::unbounded, false, "seconds to enable the drives in on()", "1"},
@@ -143,6 +152,18 @@ public:
         if (mode != "torque" && mode != "position")
             rb::module_error(t, "LOCAL MODE '" + mode + "': expected torque or position");
         position_mode_ = mode == "position";
+        try {
+            limiter_.emplace(bus_, position_mode_);
+        } catch (const std::invalid_argument& e) {
+            rb::module_error(t, std::string("LOCAL ") + e.what());
+        }
+        if (limiter_->active() && !position_mode_) dyn_ = std::make_unique<rb::Dynamics>(model_);
+        q_now_.setZero(static_cast<Eigen::Index>(n_));
+        qd_now_.setZero(static_cast<Eigen::Index>(n_));
+        gravity_.setZero(static_cast<Eigen::Index>(n_));
+        q_cmd_.setZero(static_cast<Eigen::Index>(n_));
+        qd_cmd_.setZero(static_cast<Eigen::Index>(n_));
+        tau_cmd_.setZero(static_cast<Eigen::Index>(n_));
         hold_on_illegal_ = rb::local_word(t, "STABILITY", "hold") == "hold";
         heartbeat_timeout_ns_ = static_cast<std::int64_t>(rb::local_number(t, "HEARTBEAT_TIMEOUT", 0.5) * 1e9);
         feedback_misses_ = static_cast<int>(rb::local_number(t, "FEEDBACK_MISSES", 10));
@@ -241,6 +262,15 @@ public:
             }
         }
         for (std::size_t j = 0; j < n_; ++j) hold_q_[j] = nodes_[j].q;
+        start_limits_after_on(csp);
+        return chimera::Result::OK;
+    }
+
+    // get LIMITS: "speed_clamps N rate_clamps M" (joint-cycles each limit changed
+    // the command), or "none" without VLIMIT and TRATE.
+    chimera::Result get(chimera::Task& t) override {
+        if (t.arg() != "LIMITS") return chimera::Result::OK;
+        t.reply(limiter_->report());
         return chimera::Result::OK;
     }
 
@@ -255,13 +285,13 @@ public:
             for (std::size_t j = 0; j < n_; ++j) hold_q_[j] = nodes_[j].q;
         }
         holding_ = hold;
+        compute_commands(t.period());
         int unsent = 0;
         for (std::size_t j = 0; j < n_; ++j) {
             const bool csp = holding_ || position_mode_;
-            const double torque = csp ? 0.0 : clamp_torque(j, t_ref_[j]);
-            const double q = holding_ ? hold_q_[j] : position_mode_ ? q_ref_[j] : 0.0;
-            const double qd = holding_ || !qd_ref_ ? 0.0 : qd_ref_[j];
-            unsent += !send_targets(j, kCwEnableOperation, csp ? kModeCsp : kModeCst, torque, q, qd);
+            const auto jj = static_cast<Eigen::Index>(j);
+            unsent += !send_targets(j, kCwEnableOperation, csp ? kModeCsp : kModeCst, tau_cmd_[jj], q_cmd_[jj],
+                                    qd_cmd_[jj]);
         }
         unsent += !send_sync();
         // A transmit queue that stays full is a bus that is down (no ACK, bus-off).
@@ -495,6 +525,47 @@ private:
         return nodes_[joint].rpdo2->write(rpdo2.data(), rpdo2.size()) >= 0;
     }
 
+    // This cycle's commands in q_cmd_, qd_cmd_ (CSP) and tau_cmd_ (CST), the
+    // limits applied. While holding, the drives hold in their own CSP loop and
+    // the limits start again from the hold: in torque mode from the gravity
+    // torque (what that loop applies to carry the arm), in position mode from
+    // the held position.
+    void compute_commands(double dt) noexcept {
+        const auto n = static_cast<Eigen::Index>(n_);
+        for (Eigen::Index j = 0; j < n; ++j) {
+            const auto js = static_cast<std::size_t>(j);
+            const bool csp = holding_ || position_mode_;
+            tau_cmd_[j] = csp ? 0.0 : clamp_torque(js, t_ref_[js]);
+            q_cmd_[j] = holding_ ? hold_q_[js] : position_mode_ ? q_ref_[js] : 0.0;
+            qd_cmd_[j] = holding_ || !qd_ref_ ? 0.0 : qd_ref_[js];
+            q_now_[j] = nodes_[js].q;
+            qd_now_[j] = nodes_[js].qd;
+        }
+        if (!limiter_->active()) return;
+        if (position_mode_) {
+            if (holding_) limiter_->reset(q_cmd_);
+            else limiter_->limit_target(q_cmd_, qd_cmd_, dt);
+            return;
+        }
+        dyn_->gravity(q_now_, gravity_);
+        if (holding_) limiter_->reset(gravity_);
+        else limiter_->limit_torque(tau_cmd_, qd_now_, gravity_, dt);
+    }
+
+    // After on(): the limits start from what the drives do now — the target
+    // they were enabled on (CSP: where the arm is), or the torque the
+    // enabling sent (CST; T_REF, 0 before any controller ran). Holding, the
+    // cycle resets them from the hold.
+    void start_limits_after_on(bool csp) noexcept {
+        if (!limiter_->active()) return;
+        for (std::size_t j = 0; j < n_; ++j) {
+            const auto jj = static_cast<Eigen::Index>(j);
+            q_cmd_[jj] = nodes_[j].q;
+            tau_cmd_[jj] = csp ? 0.0 : clamp_torque(j, t_ref_[j]);
+        }
+        limiter_->reset(position_mode_ ? q_cmd_ : tau_cmd_);
+    }
+
     double clamp_torque(std::size_t joint, double torque) const noexcept {
         const double limit = bus_.torque_limit[static_cast<Eigen::Index>(joint)];
         return std::clamp(torque, -limit, limit);
@@ -581,6 +652,10 @@ private:
     double* q_mez_ = nullptr;
     double* qd_mez_ = nullptr;
     std::vector<double> hold_q_;
+    std::optional<chimera::canrobot::CommandLimiter> limiter_;
+    std::unique_ptr<rb::Dynamics> dyn_;  // torque mode with limits: the gravity torque they are centred on
+    Eigen::VectorXd q_now_, qd_now_, gravity_;  // the arm as the last feedback says
+    Eigen::VectorXd q_cmd_, qd_cmd_, tau_cmd_;  // this cycle's commands, limited
     std::vector<Node> nodes_;
     std::unique_ptr<iod::Device> sync_, nmt_;
     std::uint8_t sync_counter_ = 0;

@@ -36,10 +36,11 @@ Message parse_message(const chimera::RmodFile& rmod, const chimera::LocalConfig:
 
 StaleAction parse_stale(const chimera::RmodFile& rmod, const chimera::LocalConfig::Entry& e, const std::string& w) {
     if (w == "warn") return StaleAction::warn;
+    if (w == "hold") return StaleAction::hold;
     if (w == "zero") return StaleAction::zero;
     if (w == "illegal") return StaleAction::illegal;
     if (w == "error") return StaleAction::error;
-    fail(rmod, e.line, e.key + ": stale action '" + w + "': expected warn, zero, illegal or error");
+    fail(rmod, e.line, e.key + ": stale action '" + w + "': expected warn, hold, zero, illegal or error");
 }
 
 // TOPIC_<port> NAME pub|sub MESSAGE state|command [AGE_LIMIT ACTION]
@@ -225,6 +226,11 @@ BridgeConfig parse_config(const chimera::RmodFile& rmod) {
         it->stamp_port = e.values[0];
         stamp_ports.push_back(e.values[0]);
     }
+    // `hold` asks the consumers to hold on the stamp: without one, none can.
+    for (const TopicSpec& t : subs)
+        if (t.stale == StaleAction::hold && t.stamp_port.empty())
+            fail(rmod, t.line, "TOPIC_" + t.port + ": stale action hold needs a STAMP_" + t.port +
+                                   " line (the consumers hold on the stamp's -1)");
     parse_limits(rmod, subs);
     auto has_topic = [](const std::vector<TopicSpec>& list, const std::string& port) {
         return std::any_of(list.begin(), list.end(), [&](const TopicSpec& t) { return t.port == port; });
@@ -252,6 +258,7 @@ const char* type_name(Message m) noexcept {
 const char* to_string(StaleAction a) noexcept {
     switch (a) {
         case StaleAction::warn: return "warn";
+        case StaleAction::hold: return "hold";
         case StaleAction::zero: return "zero";
         case StaleAction::illegal: return "illegal";
         case StaleAction::error: return "error";

@@ -41,6 +41,8 @@ enum class Qos : std::uint8_t { state, command };
 /// What a subscription's cycle does while its newest sample is older than the age limit.
 enum class StaleAction : std::uint8_t {
     warn,     ///< a warning; the port keeps the last value received
+    hold,     ///< as warn (the last value kept, STAMP -1): the name that says the consumers
+              ///< hold on the stamp (pid, trajgen STALE hold), so a STAMP_<port> is required
     zero,     ///< a warning; the port reads zeros (a torque command's safe value)
     illegal,  ///< a warning and the illegal-configuration flag (§3.10) until fresh data returns:
               ///< critical modules (robotsim, canrobot) run their local-stability loop

@@ -121,7 +121,7 @@ TEST(DdsBridgeConfig, EachMistakeIsNamedWithFileLineAndKey) {
     EXPECT_EQ(with(q_ok, "t sub StateVar state 1e999 warn"),
               "bridge.rmod:8: TOPIC_T: age limit '1e999': expected seconds > 0");
     EXPECT_EQ(with(q_ok, "t sub StateVar state 0.1 panic"),
-              "bridge.rmod:8: TOPIC_T: stale action 'panic': expected warn, zero, illegal or error");
+              "bridge.rmod:8: TOPIC_T: stale action 'panic': expected warn, hold, zero, illegal or error");
     EXPECT_EQ(with(q_ok, "q sub StateVar state 0.1 warn"),
               "bridge.rmod:8: TOPIC_T: topic q is already TOPIC_Q's (one variable per topic)");
 
@@ -154,6 +154,21 @@ TEST(DdsBridgeConfig, EachMistakeIsNamedWithFileLineAndKey) {
     EXPECT_EQ(parse_config(clock).notify, Notify::spin);
     set(clock, "NOTIFY", "signal", 10);
     EXPECT_EQ(error_of(clock), "bridge.rmod:10: NOTIFY 'signal': expected poll, spin or wake");
+}
+
+// `hold` behaves as `warn` in the cycle (the last value kept, the stamp -1 while
+// stale, one warning each way); it names the intent that consumers hold on the
+// stamp, so a hold without a STAMP_ line is a mistake, not a silent warn.
+TEST(DdsBridgeConfig, HoldIsWarnThatNeedsAStampForItsConsumers) {
+    auto r = rmod({}, {"T", "T_RX"});
+    set(r, "TOPIC_T", "t sub StateVar state 0.1 hold", 8);
+    EXPECT_EQ(error_of(r), "bridge.rmod:8: TOPIC_T: stale action hold needs a STAMP_T line (the consumers hold on "
+                           "the stamp's -1)");
+    set(r, "STAMP_T", "T_RX", 9);
+    const auto c = parse_config(r);
+    EXPECT_EQ(c.topics[0].stale, StaleAction::hold);
+    EXPECT_STREQ(to_string(c.topics[0].stale), "hold");
+    EXPECT_EQ(c.topics[0].stamp_port, "T_RX");
 }
 
 // Joint names and the consumer side's options and limits (issue #29.6, #29.7).

@@ -7,6 +7,8 @@
 //   RATED_TORQUE    10 20 10 2 2 2         N m, the unit of torque on the bus (required)
 //   TLIMIT          97.6 186.4 ...         N m, the drive's maximum torque (default: the
 //                                          largest the bus can carry, 32.767 x RATED_TORQUE)
+//   VLIMIT          3 3 3 5 5 5            rad/s, joint speed limit (optional; canrobot/command_limits.hpp)
+//   TRATE           500 ...                N m/s, torque rate limit (optional; torque mode only)
 #pragma once
 
 #include <chimera/sbs_files.hpp>
@@ -25,6 +27,8 @@ struct BusConfig {
     Eigen::VectorXd counts_per_rev;
     Eigen::VectorXd rated_torque;
     Eigen::VectorXd torque_limit;
+    Eigen::VectorXd vlimit;  ///< rad/s; infinity where absent (no limit)
+    Eigen::VectorXd trate;   ///< N m/s; infinity where absent (no limit)
 
     /// Reads the keys above for a robot of `ndof` joints. Throws
     /// std::invalid_argument naming the .rmod, line and key.

@@ -6,6 +6,7 @@
 // monitoring, fault and fault reset, CSP holding position.
 #include "canrobot/bus_config.hpp"
 #include "canrobot/cia402.hpp"
+#include "canrobot/command_limits.hpp"
 #include "canrobot/drive_sim.hpp"
 #include "robotics/dynamics.hpp"
 
@@ -150,6 +151,115 @@ TEST(BusConfig, TheShippedRmodDescribesThePuma) {
     EXPECT_EQ(c.bus.nodes, (std::vector<int>{1, 2, 3, 4, 5, 6}));
     // Every peak torque is representable on the bus.
     for (Eigen::Index j = 0; j < 6; ++j) EXPECT_LE(c.bus.torque_limit[j], 32.767 * c.bus.rated_torque[j]);
+}
+
+// --- VLIMIT and TRATE: what canrobot commands, limited (issue #29.6) ------------------
+
+chimera::canrobot::BusConfig planar_bus(const std::string& limits) {
+    return DriveConfig::from_rmod(rmod_from("ROBOT planar2\nINTERFACE can0\nNODES 1 2\nRATED_TORQUE 10\n"
+                                            "TLIMIT 100\n" + limits)).bus;
+}
+
+std::string limiter_error(const std::string& limits, bool position_mode) {
+    try {
+        chimera::canrobot::CommandLimiter l(planar_bus(limits), position_mode);
+    } catch (const std::invalid_argument& e) {
+        return e.what();
+    }
+    return "(accepted)";
+}
+
+TEST(CanRobotLimits, AbsentKeysMeanNoLimitAndGetLimitsSaysNone) {
+    const auto bus = planar_bus("");
+    EXPECT_TRUE(std::isinf(bus.vlimit[0]) && std::isinf(bus.trate[1]));
+    chimera::canrobot::CommandLimiter l(bus, false);
+    EXPECT_FALSE(l.active());
+    EXPECT_EQ(l.report(), "none");
+    Eigen::VectorXd tau(2), zero = Eigen::VectorXd::Zero(2);
+    tau << 90.0, -90.0;
+    l.limit_torque(tau, zero, zero, 0.01);
+    EXPECT_EQ(tau, (Eigen::VectorXd(2) << 90.0, -90.0).finished());  // untouched: TLIMIT is the module's clamp
+}
+
+TEST(CanRobotLimits, OneValueOrOnePerJointAndOutOfRangeNamed) {
+    const auto bus = planar_bus("VLIMIT 2 3\nTRATE 500\n");
+    EXPECT_DOUBLE_EQ(bus.vlimit[0], 2.0);
+    EXPECT_DOUBLE_EQ(bus.vlimit[1], 3.0);
+    EXPECT_DOUBLE_EQ(bus.trate[0], 500.0);
+    EXPECT_DOUBLE_EQ(bus.trate[1], 500.0);
+    EXPECT_EQ(limiter_error("VLIMIT 2 0\n", false), "VLIMIT of joint 2 must be > 0");
+    EXPECT_EQ(limiter_error("VLIMIT 2 0\n", true), "VLIMIT of joint 2 must be > 0");
+    EXPECT_EQ(limiter_error("TRATE -1\n", false), "TRATE of joint 1 must be > 0");
+    EXPECT_NE(limiter_error("VLIMIT 1 2 3\n", false).find("3 values, expected 1 or 2"), std::string::npos);
+    // Position mode: the drive's loop makes the torque; a torque rate is refused, not ignored.
+    EXPECT_NE(limiter_error("TRATE 500\n", true).find("TRATE: in position mode"), std::string::npos);
+}
+
+TEST(CanRobotLimits, TorqueModeRateLimitsTheTorqueFromTheOneAppliedAndCounts) {
+    chimera::canrobot::CommandLimiter l(planar_bus("TRATE 1000\n"), false);  // 10 N m per 10 ms cycle
+    ASSERT_TRUE(l.active());
+    const Eigen::VectorXd zero = Eigen::VectorXd::Zero(2);
+    l.reset((Eigen::VectorXd(2) << 5.0, 0.0).finished());  // the torque the drives apply after on()
+    Eigen::VectorXd tau(2);
+    tau << 50.0, -3.0;
+    l.limit_torque(tau, zero, zero, 0.01);
+    EXPECT_DOUBLE_EQ(tau[0], 15.0);  // 5 + 10
+    EXPECT_DOUBLE_EQ(tau[1], -3.0);  // within the step: as asked
+    tau << 50.0, -3.0;
+    l.limit_torque(tau, zero, zero, 0.01);
+    EXPECT_DOUBLE_EQ(tau[0], 25.0);
+    EXPECT_EQ(l.rate_clamps(), 2u);
+    EXPECT_EQ(l.speed_clamps(), 0u);
+    EXPECT_EQ(l.report(), "speed_clamps 0 rate_clamps 2");
+}
+
+TEST(CanRobotLimits, TorqueModeSpeedEnvelopeIsCentredOnGravity) {
+    // VLIMIT 2, TLIMIT 100: k = 50 N m per rad/s. At qd = 1 with gravity 5 the torque
+    // may be 5 - 50 (2 + 1) = -145 .. 5 + 50 (2 - 1) = 55, then |torque| <= 100.
+    chimera::canrobot::CommandLimiter l(planar_bus("VLIMIT 2\n"), false);
+    const Eigen::VectorXd qd = (Eigen::VectorXd(2) << 1.0, 2.0).finished();
+    const Eigen::VectorXd gravity = (Eigen::VectorXd(2) << 5.0, 5.0).finished();
+    Eigen::VectorXd tau(2);
+    tau << 80.0, 80.0;
+    l.limit_torque(tau, qd, gravity, 0.01);
+    EXPECT_DOUBLE_EQ(tau[0], 55.0);
+    EXPECT_DOUBLE_EQ(tau[1], 5.0);  // at VLIMIT: held against gravity, not accelerated
+    tau << -120.0, -50.0;           // braking is allowed
+    l.limit_torque(tau, qd, gravity, 0.01);
+    EXPECT_DOUBLE_EQ(tau[0], -100.0);  // the envelope allows -145; TLIMIT does not
+    EXPECT_DOUBLE_EQ(tau[1], -50.0);
+    EXPECT_EQ(l.speed_clamps(), 2u);
+    EXPECT_EQ(l.rate_clamps(), 0u);
+}
+
+TEST(CanRobotLimits, PositionModeTargetMovesAtMostVlimitPerCycle) {
+    // VLIMIT 0.5 rad/s, 10 ms: the target moves at most 5 mrad a cycle; the
+    // velocity offset is clamped to +-0.5. A joint-cycle counts once.
+    chimera::canrobot::CommandLimiter l(planar_bus("VLIMIT 0.5\n"), true);
+    l.reset((Eigen::VectorXd(2) << 0.1, -0.2).finished());  // where the drives hold after on()
+    Eigen::VectorXd q(2), qd(2);
+    q << 0.2, -0.198;
+    qd << 1.0, 0.1;
+    l.limit_target(q, qd, 0.01);
+    EXPECT_DOUBLE_EQ(q[0], 0.105);   // 0.1 + 0.005
+    EXPECT_DOUBLE_EQ(q[1], -0.198);  // a 2 mrad step: as asked
+    EXPECT_DOUBLE_EQ(qd[0], 0.5);
+    EXPECT_DOUBLE_EQ(qd[1], 0.1);
+    q << 0.2, -0.198;
+    qd << 0.0, -0.7;
+    l.limit_target(q, qd, 0.01);
+    EXPECT_DOUBLE_EQ(q[0], 0.11);
+    EXPECT_DOUBLE_EQ(q[1], -0.198);
+    EXPECT_DOUBLE_EQ(qd[1], -0.5);  // the offset alone limited: counted
+    EXPECT_EQ(l.speed_clamps(), 3u);
+    EXPECT_EQ(l.report(), "speed_clamps 3 rate_clamps 0");
+    // A hold re-anchors: from there, the next step is again at most 5 mrad.
+    l.reset((Eigen::VectorXd(2) << 0.0, 0.0).finished());
+    q << -1.0, 0.004;
+    qd.setZero();
+    l.limit_target(q, qd, 0.01);
+    EXPECT_DOUBLE_EQ(q[0], -0.005);
+    EXPECT_DOUBLE_EQ(q[1], 0.004);
 }
 
 // --- the drives ------------------------------------------------------------------------
