@@ -96,7 +96,7 @@ same "LOCAL against the declarations" "$err" "$tmp/inf.rmod:12: LOCAL KI: 'inf' 
 $tmp/nan.rmod:12: LOCAL KD: 'nan' is not a number
 $tmp/huge.rmod:12: LOCAL ILIMIT: '1e309' is not a number
 $tmp/negative.rmod:12: LOCAL ILIMIT: -5 is out of range [0, inf]
-$tmp/typo.rmod:12: LOCAL ILIMT: not a key of pid (KP, KI, KD, ILIMIT, ULIMIT)"
+$tmp/typo.rmod:12: LOCAL ILIMT: not a key of pid (KP, KI, KD, ILIMIT, ULIMIT, STALE, SLEW)"
 CHIMERA_MODULE_PATH=$pid_dir run 0 check "$tmp/good.rmod" &&
 same "LOCAL checked" "$out" "$tmp/good.rmod: ok, rmod good, module pid, periodic at 100 Hz; in-consts GAIN; out-consts none; in-vars Q_REF; out-vars TAU; ports not checked (give the .sbs or .svar too); LOCAL checked against module pid"
 fi

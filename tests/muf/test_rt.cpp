@@ -729,44 +729,6 @@ TEST(MufTaskApi, ExecleftCountsDownAndSetDeadlineRaisesMinexec) {
 
 // ------------------------------------------------------------------ fifo backend
 
-TEST(MufFifo, OverloadOnlyTheNonCriticalTaskMisses) {
-    RtpuScheduler sch(options(Backend::fifo));
-    if (!sch.privileged()) GTEST_SKIP() << "SCHED_FIFO refused on this machine: no overload test";
-    // U = 0.35 + 0.35 + 0.40 = 1.10 of demand; the analysis reserves 0.8 for
-    // the first two (the critical set) and leaves "c" out of it.
-    auto make = [](const char* name, std::int64_t period, std::int64_t wcet) {
-        RtTaskParams p = task(name, period, wcet);
-        p.maxexec_check = false;
-        return p;
-    };
-    const std::int64_t start = clock_ns() + 20 * ms;
-    RtTaskParams pa = make("a", 20 * ms, 8 * ms), pb = make("b", 30 * ms, 12 * ms),
-                 pc = make("c", 40 * ms, 16 * ms);
-    pa.first_release_ns = pb.first_release_ns = pc.first_release_ns = start;
-    Runner a(sch, pa, [] { burn_cpu(7 * ms); });
-    Runner b(sch, pb, [] { burn_cpu(21 * ms / 2); });
-    Runner c(sch, pc, [] { burn_cpu(16 * ms); });
-    const Assignment as = sch.assignment();
-    ASSERT_EQ(as.crit, (std::vector<int>{crit::critical, crit::critical, crit::non_critical}));
-    ASSERT_TRUE(a.start() && b.start() && c.start());
-    // Under a second of overload: the kernel's fair server lends the starved
-    // SCHED_OTHER tasks time after about 0.95 s, which is not MUF's doing.
-    std::this_thread::sleep_until(std::chrono::steady_clock::now() + 620ms);
-    const RtTaskStatus sa = sch.status(a.handle()), sb = sch.status(b.handle()),
-                       sc = sch.status(c.handle());
-    a.stop();
-    b.stop();
-    c.stop();
-    EXPECT_GE(sa.cycles, 25u);
-    EXPECT_GE(sb.cycles, 16u);
-    EXPECT_EQ(sa.missed, 0u);
-    EXPECT_EQ(sb.missed, 0u);
-    EXPECT_EQ(sa.deadline_failures, 0u);
-    EXPECT_EQ(sb.deadline_failures, 0u);
-    EXPECT_GT(sc.missed + sc.deadline_failures, 0u);
-    EXPECT_GT(sch.reschedules(), 0u);
-}
-
 // The ranking keeps placed priorities where it can (fewer changes), but a task
 // just attached is not placed: a lone task, and the most urgent of a set, go to
 // the top of the band, never left at fifo_low below every other real-time
@@ -1588,6 +1550,75 @@ std::vector<std::pair<std::int64_t, std::int64_t>> sample_task_cpu(
     }
     sched_setaffinity(0, sizeof before, &before);
     return samples;
+}
+
+struct OverloadRun {
+    RtTaskStatus a, b, c;
+    std::uint64_t reschedules = 0;
+    std::int64_t worst_lost_ns = 0;  // the most CPU time any 20 ms stretch did not give the three tasks
+};
+
+// U = 0.35 + 0.35 + 0.40 = 1.10 of demand on one CPU for 620 ms: always
+// runnable, the three threads should have all of it. The stall detector
+// samples their CPU time every 5 ms from another CPU: a 20 ms stretch that
+// gave them less than its length by more than a's job margin (1 ms) was the
+// machine's (vCPU steal, a kernel that does not preempt), not MUF's.
+OverloadRun run_overload(RtpuScheduler& sch) {
+    auto make = [](const char* name, std::int64_t period, std::int64_t wcet) {
+        RtTaskParams p = task(name, period, wcet);
+        p.maxexec_check = false;
+        return p;
+    };
+    const std::int64_t start = clock_ns() + 20 * ms;
+    RtTaskParams pa = make("a", 20 * ms, 8 * ms), pb = make("b", 30 * ms, 12 * ms),
+                 pc = make("c", 40 * ms, 16 * ms);
+    pa.first_release_ns = pb.first_release_ns = pc.first_release_ns = start;
+    std::vector<std::unique_ptr<Runner>> runners;
+    runners.push_back(std::make_unique<Runner>(sch, pa, [] { burn_cpu(7 * ms); }));
+    runners.push_back(std::make_unique<Runner>(sch, pb, [] { burn_cpu(21 * ms / 2); }));
+    runners.push_back(std::make_unique<Runner>(sch, pc, [] { burn_cpu(16 * ms); }));
+    const Assignment as = sch.assignment();
+    EXPECT_EQ(as.crit, (std::vector<int>{crit::critical, crit::critical, crit::non_critical}));
+    for (auto& r : runners) EXPECT_TRUE(r->start()) << r->error();
+    // Under a second of overload: the kernel's fair server lends the starved
+    // SCHED_OTHER tasks time after about 0.95 s, which is not MUF's doing.
+    const auto samples = sample_task_cpu(runners, sch.options().cpu, start, 5 * ms, 124);
+    OverloadRun run;
+    run.a = sch.status(runners[0]->handle());
+    run.b = sch.status(runners[1]->handle());
+    run.c = sch.status(runners[2]->handle());
+    run.reschedules = sch.reschedules();
+    for (auto& r : runners) r->stop();
+    for (std::size_t j = 4; j < samples.size(); ++j) {
+        const auto& [t0, cpu0] = samples[j - 4];
+        const auto& [t1, cpu1] = samples[j];
+        if (t0 >= 0) run.worst_lost_ns = std::max(run.worst_lost_ns, (t1 - t0) - (cpu1 - cpu0));
+    }
+    return run;
+}
+
+TEST(MufFifo, OverloadOnlyTheNonCriticalTaskMisses) {
+    OverloadRun run;
+    for (int attempt = 1; attempt <= 3; ++attempt) {
+        RtpuScheduler sch(options(Backend::fifo));
+        if (!sch.privileged()) GTEST_SKIP() << "SCHED_FIFO refused on this machine: no overload test";
+        run = run_overload(sch);
+        const bool clean = run.a.missed + run.b.missed + run.a.deadline_failures + run.b.deadline_failures == 0;
+        const bool disturbed = run.worst_lost_ns > 1 * ms;
+        std::printf("run %d: critical a/b missed %llu/%llu, c missed %llu; a 20 ms stretch lost %.2f ms%s\n",
+                    attempt, static_cast<unsigned long long>(run.a.missed),
+                    static_cast<unsigned long long>(run.b.missed), static_cast<unsigned long long>(run.c.missed),
+                    run.worst_lost_ns / 1e6, disturbed ? " (disturbed: the machine held the CPU)" : "");
+        if (clean || !disturbed) break;
+    }
+    EXPECT_GE(run.a.cycles, 25u);
+    EXPECT_GE(run.b.cycles, 16u);
+    EXPECT_EQ(run.a.missed, 0u);
+    EXPECT_EQ(run.b.missed, 0u);
+    EXPECT_EQ(run.a.deadline_failures, 0u);
+    EXPECT_EQ(run.b.deadline_failures, 0u);
+    EXPECT_GT(run.c.missed + run.c.deadline_failures, 0u);
+    EXPECT_GT(run.reschedules, 0u);
 }
 
 // One hyperperiod of `set` on threads under `policy`.
