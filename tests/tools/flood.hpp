@@ -61,7 +61,7 @@ inline void raise_fd_limit() {
 /// more connections than the old global bound (512) at once.
 class Flood {
 public:
-    Flood(std::uint16_t port, std::string payload, std::size_t held = 300) {
+    Flood(std::uint16_t port, std::string payload, std::size_t held = 500) {
         for (int t = 0; t < 2; ++t)
             threads_.emplace_back([this, port, payload, held] { run(port, payload, held); });
     }
