@@ -3,6 +3,7 @@
 // permissions and the TCP token. The interpreter is tested separately; here
 // only what the server itself decides is checked.
 #include "client.hpp"
+#include "flood.hpp"
 #include "server.hpp"
 
 #include <gtest/gtest.h>
@@ -565,4 +566,172 @@ TEST_F(Network, StopDisconnectsTheControllingPeer) {
     ASSERT_TRUE(line);
     EXPECT_NE(json::parse(*line)["error"].get<std::string>().find("shutting down"), std::string::npos);
     EXPECT_EQ(done.get(), NetworkServer::SessionEnd::stopped);
+}
+
+// ------------------------------------------ issue #29.3: no denial without the token
+
+namespace {
+
+/// One connection from `source`: the greeting, then `line`, then its reply
+/// (null when the server closed without one).
+json ask_from(const char* source, std::uint16_t port, const std::string& line) {
+    const int fd = flood_test::connect_from(source, port);
+    if (fd < 0) return nullptr;
+    ::fcntl(fd, F_SETFL, 0);  // blocking from here, with a receive timeout
+    timeval tv{3, 0};
+    ::setsockopt(fd, SOL_SOCKET, SO_RCVTIMEO, &tv, sizeof tv);
+    const std::string out = line + "\n";
+    [[maybe_unused]] auto n = ::send(fd, out.data(), out.size(), MSG_NOSIGNAL);
+    std::string in;
+    char c = 0;
+    int lines = 0;
+    std::string reply;
+    while (lines < 2 && ::recv(fd, &c, 1, 0) == 1) {
+        if (c != '\n') {
+            (lines == 1 ? reply : in) += c;
+            continue;
+        }
+        ++lines;
+    }
+    ::close(fd);
+    return lines == 2 ? json::parse(reply) : json(nullptr);
+}
+
+// Stops the server when the test leaves, so serve_forever() returns even
+// when an assertion ended the test early.
+struct StopOnExit {
+    NetworkServer& server;
+    ~StopOnExit() { server.stop(); }
+};
+
+bool can_bind(const char* source) {
+    const int fd = ::socket(AF_INET, SOCK_STREAM | SOCK_CLOEXEC, 0);
+    sockaddr_in a{};
+    a.sin_family = AF_INET;
+    ::inet_pton(AF_INET, source, &a.sin_addr);
+    const bool ok = ::bind(fd, reinterpret_cast<sockaddr*>(&a), sizeof a) == 0;
+    ::close(fd);
+    return ok;
+}
+
+/// The operator at 127.0.0.1: connect, token, one command, quit; timed
+/// from the connect to the command's reply (control held and used).
+flood_test::Attempt operator_over_tcp(std::uint16_t port) {
+    const auto start = std::chrono::steady_clock::now();
+    flood_test::Attempt a;
+    try {
+        auto c = NetworkClient::connect_tcp("127.0.0.1", port);
+        const json t = c.request("token tok", 3000);
+        const json r = c.request("echo in control", 3000);
+        a.got_control = t["ok"].get<bool>() && r.value("text", "") == "in control";
+        if (!a.got_control) a.detail = t.dump() + " " + r.dump();
+        a.took = std::chrono::duration_cast<std::chrono::milliseconds>(std::chrono::steady_clock::now() - start);
+        c.request("quit", 3000);
+    } catch (const std::exception& e) {
+        a.detail = e.what();
+        a.took = std::chrono::duration_cast<std::chrono::milliseconds>(std::chrono::steady_clock::now() - start);
+    }
+    return a;
+}
+
+}  // namespace
+
+// Two threads from 127.0.0.2 connect every 2 ms each for 10 s, hold up to
+// 1000 connections, and send wrong tokens on a third of them (before the
+// fix: the 512 global slots filled and the operator was refused). The
+// operator at 127.0.0.1 connects 20 times: every time it gets control within
+// 1 s; the owner's Unix socket gets in as well.
+TEST_F(Network, ATokenlessFloodFromAnotherAddressNeverKeepsTheOperatorOut) {
+    if (!can_bind("127.0.0.2")) GTEST_SKIP() << "cannot bind 127.0.0.2 (no 127/8 on lo here)";
+    flood_test::raise_fd_limit();
+    ServerOptions o;
+    o.tcp = true;
+    o.token = "tok";
+    o.unix_path = path;
+    auto s = make(o);
+    std::atomic<bool> interrupt{false};
+    auto serving = std::async(std::launch::async, [&] { return s->serve_forever(&interrupt); });
+    const StopOnExit stop_first{*s};  // a failed assertion must not wait for serve_forever
+    flood_test::StallDetector stalls;
+    flood_test::Flood flood(s->tcp_port(), "token guess\n");
+    std::this_thread::sleep_for(1s);  // the flood is at full strength before the operator comes
+    auto note = [](const std::string& what) { std::printf("[ stall ] %s\n", what.c_str()); };
+    const auto tcp = flood_test::timed_attempts(20, 400ms, 1000ms, stalls, [&] { return operator_over_tcp(s->tcp_port()); }, note);
+    const auto local = flood_test::timed_attempts(3, 100ms, 1000ms, stalls, [&] {
+        const auto start = std::chrono::steady_clock::now();
+        flood_test::Attempt a;
+        try {
+            auto c = NetworkClient::connect_unix(path);
+            const json t = c.request("token tok", 3000);
+            a.got_control = t["ok"].get<bool>();
+            a.detail = t.dump();
+            c.request("quit", 3000);
+        } catch (const std::exception& e) {
+            a.detail = e.what();
+        }
+        a.took = std::chrono::duration_cast<std::chrono::milliseconds>(std::chrono::steady_clock::now() - start);
+        return a;
+    }, note);
+    const std::uint64_t flooded = flood.connections();
+    flood.stop();
+    long worst = 0;
+    int in_control = 0;
+    for (const auto& a : tcp) {
+        in_control += a.got_control ? 1 : 0;
+        worst = std::max<long>(worst, a.took.count());
+        EXPECT_TRUE(a.got_control) << a.detail;
+        EXPECT_LE(a.took, 1000ms);
+    }
+    for (const auto& a : local) EXPECT_TRUE(a.got_control && a.took <= 1000ms) << a.took.count() << " ms " << a.detail;
+    std::printf("[ flood ] %llu token-less connections from 127.0.0.2; operator: %d of 20 in control, slowest %ld ms\n",
+                static_cast<unsigned long long>(flooded), in_control, worst);
+    EXPECT_GT(flooded, 1000u) << "the flood was not a flood";
+    interrupt = true;
+    serving.get();
+}
+
+// Wrong tokens slow their address down: the n-th wrong one makes it wait
+// 100 ms * 2^(n-1) (said in the reply), and a token sent sooner is not judged
+// at all, the right one included; another address is not slowed, and the
+// right token once judged starts its address afresh.
+TEST_F(Network, WrongTokensAreThrottledPerAddressWithBackOff) {
+    if (!can_bind("127.0.0.2")) GTEST_SKIP() << "cannot bind 127.0.0.2 (no 127/8 on lo here)";
+    ServerOptions o;
+    o.tcp = true;
+    o.token = "tok";
+    auto s = make(o);
+    std::atomic<bool> interrupt{false};
+    auto serving = std::async(std::launch::async, [&] { return s->serve_forever(&interrupt); });
+    const StopOnExit stop_first{*s};
+    for (long expected : {100, 200, 400, 800}) {
+        const json r = ask_from("127.0.0.2", s->tcp_port(), "token guess");
+        ASSERT_EQ(r.value("error", ""), "wrong token") << r.dump();
+        EXPECT_EQ(r["data"]["retry_after_ms"], expected);
+        if (expected < 800) std::this_thread::sleep_for(std::chrono::milliseconds(expected + 20));
+    }
+    // Within the 800 ms: refused unjudged, the right token too.
+    const json early = ask_from("127.0.0.2", s->tcp_port(), "token tok");
+    EXPECT_NE(early.value("error", "").find("too many wrong tokens from 127.0.0.2: retry after"), std::string::npos)
+        << early.dump();
+    // The operator's address is not slowed by 127.0.0.2's guesses.
+    EXPECT_TRUE(ask_from("127.0.0.1", s->tcp_port(), "token tok")["ok"].get<bool>());
+    std::this_thread::sleep_for(850ms);
+    EXPECT_TRUE(ask_from("127.0.0.2", s->tcp_port(), "token tok")["ok"].get<bool>());
+    EXPECT_EQ(ask_from("127.0.0.2", s->tcp_port(), "token guess")["data"]["retry_after_ms"], 100);
+
+    // A guesser as fast as it can go for 1.5 s: judged about once per back-off.
+    std::this_thread::sleep_for(120ms);
+    int judged = 0, refused = 0;
+    const auto end = std::chrono::steady_clock::now() + 1500ms;
+    while (std::chrono::steady_clock::now() < end) {
+        const std::string e = ask_from("127.0.0.2", s->tcp_port(), "token guess").value("error", "");
+        judged += e == "wrong token";
+        refused += e.find("retry after") != std::string::npos;
+    }
+    std::printf("[ guess ] 1.5 s from one address: %d tokens judged, %d refused unjudged\n", judged, refused);
+    // 100+200+400+800 ms > 1.5 s: at most 4 judged (5 with a slow start).
+    EXPECT_LE(judged, 5);
+    EXPECT_GT(refused, judged);
+    interrupt = true;
+    serving.get();
 }

@@ -224,7 +224,7 @@ struct NetworkSetup {
     std::string tcp;        // [host:]port
     std::string http;       // [host:]port of the web console
     std::string token;
-    double auth_timeout_s = 5.0;  // to send the token, then the connection is closed
+    double auth_timeout_s = 2.0;  // to send the token, then the connection is closed
 };
 
 /// The token from --token-file: its first line, so it never shows in `ps`.
@@ -561,7 +561,7 @@ int main(int argc, char** argv) {
     app.add_option("--token-file", token_file,
                    "read the token from the first line of this file (mode 0600; keeps it out of ps)");
     app.add_option("--auth-timeout", net.auth_timeout_s,
-                   "seconds a TCP peer has to send its token before it is disconnected (default 5)")
+                   "seconds a TCP peer has to send its token before it is disconnected (default 2)")
         ->check(CLI::Range(0.1, 600.0));
     app.add_flag("--serve", serve,
                  "no prompt: the network has control from the start (after -c), until a peer sends finish");

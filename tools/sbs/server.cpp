@@ -14,6 +14,7 @@
 #include <sys/un.h>
 #include <unistd.h>
 
+#include <algorithm>
 #include <cerrno>
 #include <cstdio>
 #include <chrono>
@@ -145,13 +146,42 @@ struct NetworkServer::Peer {
     bool controlling = false;  // this peer's session holds control
     SessionEnd end = SessionEnd::peer_lost;  // why, once handle_input() said to close
     std::chrono::steady_clock::time_point deadline;  // to authenticate by
+    std::string source;        // the TCP peer's address; empty for the Unix socket
 };
 
 namespace {
 
-// Connections waiting for their token at once; more are refused so a flood
-// of idle connections cannot run the server out of file descriptors.
+// TCP connections waiting for their token at once, from all sources: a flood
+// of idle connections cannot run the server out of file descriptors. At the
+// bound the oldest one of the busiest source makes room (make_room_for).
 constexpr std::size_t kMaxPending = 512;
+// ... and from one source address: a flooder churns its own slots only, so
+// another address always finds one (issue #29.3).
+constexpr std::size_t kMaxPendingPerSource = 4;
+// Wrong tokens from one address: the n-th makes that address wait
+// kFirstBackOff * 2^(n-1), at most kMaxBackOff, before a token is judged again.
+constexpr std::chrono::milliseconds kFirstBackOff{100};
+constexpr std::chrono::milliseconds kMaxBackOff{10000};
+// Addresses remembered at most; the map is cleared of expired entries first.
+constexpr std::size_t kMaxThrottled = 4096;
+
+// "127.0.0.2" for a TCP peer; "" when the address cannot be read.
+std::string peer_address(int fd) {
+    sockaddr_storage ss{};
+    socklen_t len = sizeof ss;
+    if (::getpeername(fd, reinterpret_cast<sockaddr*>(&ss), &len) != 0) return {};
+    char text[INET6_ADDRSTRLEN] = {};
+    const void* addr = ss.ss_family == AF_INET6 ? static_cast<const void*>(&reinterpret_cast<sockaddr_in6&>(ss).sin6_addr)
+                                                : static_cast<const void*>(&reinterpret_cast<sockaddr_in&>(ss).sin_addr);
+    if (::inet_ntop(ss.ss_family, addr, text, sizeof text) == nullptr) return {};
+    return text;
+}
+
+std::chrono::milliseconds back_off_after(unsigned failures) {
+    const unsigned doublings = failures > 0 ? failures - 1 : 0;
+    if (doublings >= 10) return kMaxBackOff;
+    return std::min(kMaxBackOff, kFirstBackOff * (1 << doublings));
+}
 
 }  // namespace
 
@@ -449,7 +479,9 @@ void NetworkServer::accept_from(int listen_fd) {
             }
         }
         const bool had_control = peer_ != nullptr;
-        admit(fd, !options_.token.empty());
+        // The Unix socket is the owner's alone: it is never counted against
+        // the TCP bounds, so no flood can keep the owner out.
+        admit(fd, !options_.token.empty(), listen_fd == unix_fd_ ? std::string() : peer_address(fd));
         // Once a peer got control, the rest wait for the next round, after its
         // input: a peer that closed and at once reconnected must find its old
         // session over, not be refused by it.
@@ -457,14 +489,11 @@ void NetworkServer::accept_from(int listen_fd) {
     }
 }
 
-void NetworkServer::admit(int fd, bool needs_token) {
-    if (needs_token && pending_.size() >= kMaxPending) {
-        send_line(fd, error_line("hello", "too many connections waiting to authenticate"));
-        ::close(fd);
-        return;
-    }
+void NetworkServer::admit(int fd, bool needs_token, std::string source) {
+    if (needs_token && !source.empty()) make_room_for(source);
     auto peer = std::make_unique<Peer>();
     peer->fd = fd;
+    peer->source = std::move(source);
     peer->authenticated = !needs_token;
     peer->deadline = std::chrono::steady_clock::now() + options_.auth_timeout;
     // A peer that must authenticate first gets control only once it has: it
@@ -490,6 +519,64 @@ void NetworkServer::admit(int fd, bool needs_token) {
     } else {
         pending_.push_back(std::move(peer));
     }
+}
+
+// A newcomer is never refused for want of a slot: the oldest waiting
+// connection of its own address gives way (a flooder evicts only itself), and
+// at the global bound the oldest of the address with the most waiting does.
+void NetworkServer::make_room_for(const std::string& source) {
+    std::map<std::string, std::size_t> waiting;
+    std::size_t tcp_waiting = 0;
+    for (const auto& p : pending_) {
+        if (p->fd < 0 || p->source.empty()) continue;
+        ++waiting[p->source];
+        ++tcp_waiting;
+    }
+    if (waiting[source] >= kMaxPendingPerSource) {
+        evict_oldest_from(source, "a newer connection from " + source + " is waiting to authenticate (at most " +
+                                      std::to_string(kMaxPendingPerSource) + " per address)");
+        return;
+    }
+    if (tcp_waiting < kMaxPending) return;
+    const auto busiest = std::max_element(waiting.begin(), waiting.end(),
+                                          [](const auto& a, const auto& b) { return a.second < b.second; });
+    evict_oldest_from(busiest->first, "too many connections waiting to authenticate; " + busiest->first +
+                                          " has the most");
+}
+
+void NetworkServer::evict_oldest_from(const std::string& source, const std::string& why) {
+    // pending_ is in arrival order: the first match is the oldest.
+    const auto it = std::find_if(pending_.begin(), pending_.end(),
+                                 [&](const auto& p) { return p->fd >= 0 && p->source == source; });
+    if (it == pending_.end()) return;
+    send_line((*it)->fd, error_line("token", "connection closed: " + why));
+    close_peer(**it, SessionEnd::peer_lost);
+    pending_.erase(it);
+}
+
+// While an address is backing off after a wrong token, its tokens are not
+// judged at all, the right one included: a guesser gets one try per back-off
+// however many connections it opens, and the server thread never sleeps.
+std::string NetworkServer::refuse_while_throttled(const std::string& source) {
+    const auto it = throttle_.find(source);
+    if (source.empty() || it == throttle_.end()) return {};
+    const auto left = std::chrono::duration_cast<std::chrono::milliseconds>(it->second.retry_at -
+                                                                            std::chrono::steady_clock::now());
+    if (left.count() <= 0) return {};
+    return "too many wrong tokens from " + source + ": retry after " + std::to_string(left.count() + 1) + " ms";
+}
+
+std::chrono::milliseconds NetworkServer::note_wrong_token(const std::string& source) {
+    if (source.empty()) return std::chrono::milliseconds(0);  // the owner's Unix socket
+    const auto now = std::chrono::steady_clock::now();
+    if (throttle_.size() >= kMaxThrottled)
+        std::erase_if(throttle_, [&](const auto& e) { return e.second.retry_at + kMaxBackOff < now; });
+    if (throttle_.size() >= kMaxThrottled && !throttle_.contains(source)) return kMaxBackOff;  // full: not remembered
+    Throttle& t = throttle_[source];
+    ++t.failures;
+    const auto wait = back_off_after(t.failures);
+    t.retry_at = now + wait;
+    return wait;
 }
 
 std::string NetworkServer::claim_locked() {
@@ -731,13 +818,19 @@ bool NetworkServer::authenticate(Peer& peer, std::string_view command, const nlo
     // The first request must carry the token; anything else ends the
     // connection so a guesser gets one try per connection.
     const bool is_token = command.substr(0, 6) == "token ";
-    if (!is_token || !same_token(command.substr(6), options_.token)) {
-        send_line(peer.fd, to_json_line(Reply::failure("token", is_token ? "wrong token"
-                                                                         : "authenticate first: token TOKEN"),
-                                        id));
+    if (const std::string refusal = refuse_while_throttled(peer.source); is_token && !refusal.empty()) {
+        send_line(peer.fd, to_json_line(Reply::failure("token", refusal), id));
         peer.end = SessionEnd::peer_lost;
         return false;
     }
+    if (!is_token || !same_token(command.substr(6), options_.token)) {
+        Reply refused = Reply::failure("token", is_token ? "wrong token" : "authenticate first: token TOKEN");
+        if (is_token) refused.data = {{"retry_after_ms", note_wrong_token(peer.source).count()}};
+        send_line(peer.fd, to_json_line(refused, id));
+        peer.end = SessionEnd::peer_lost;
+        return false;
+    }
+    throttle_.erase(peer.source);  // the right token: that address starts afresh
     peer.authenticated = true;
     if (!take_control(peer)) {
         peer.end = SessionEnd::peer_lost;

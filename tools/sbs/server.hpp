@@ -19,6 +19,7 @@
 #include <condition_variable>
 #include <cstdint>
 #include <functional>
+#include <map>
 #include <memory>
 #include <mutex>
 #include <stdexcept>
@@ -44,8 +45,9 @@ struct ServerOptions {
     std::string token;              ///< required first line `token T` when non-empty;
                                     ///< mandatory whenever TCP is on: loopback is
                                     ///< reachable by every local user
-    std::chrono::milliseconds auth_timeout{5000};  ///< a peer that has not sent the
-                                    ///< token by then is closed (it never had control)
+    std::chrono::milliseconds auth_timeout{2000};  ///< a peer that has not sent the
+                                    ///< token by then is closed (it never had control);
+                                    ///< short, so an idle connection's slot comes back soon
     std::size_t max_request = 4096; ///< longest accepted request line, in bytes
     bool serve = false;             ///< the network has control from start(): no peer is
                                     ///< refused before serve_forever() is called
@@ -129,7 +131,11 @@ private:
     struct Peer;
     void run();
     void accept_from(int listen_fd);
-    void admit(int fd, bool needs_token);
+    void admit(int fd, bool needs_token, std::string source);
+    void make_room_for(const std::string& source);
+    void evict_oldest_from(const std::string& source, const std::string& why);
+    std::string refuse_while_throttled(const std::string& source);  // "" or the refusal
+    std::chrono::milliseconds note_wrong_token(const std::string& source);
     bool take_control(Peer& peer);   // false: refused, the peer is to be closed
     std::string claim_locked();      // mutex_ held: "" and the session is on, or the refusal
     void close_peer(Peer& peer, SessionEnd why);
@@ -159,6 +165,12 @@ private:
     // Connected peers that have not sent the token yet: they have no control
     // and are closed at their deadline, so an idle connection blocks nobody.
     std::vector<std::unique_ptr<Peer>> pending_;
+    // Wrong tokens per TCP source address, to slow a guesser down (issue #29.3).
+    struct Throttle {
+        unsigned failures = 0;
+        std::chrono::steady_clock::time_point retry_at;  // no token is judged before
+    };
+    std::map<std::string, Throttle> throttle_;
 
     mutable std::mutex mutex_;
     std::condition_variable changed_;

@@ -3,6 +3,7 @@
 #include "command_line.hpp"
 #include "command_table.hpp"
 #include "scope_stream.hpp"
+#include "web_gate.hpp"
 
 #include <civetweb.h>
 
@@ -156,6 +157,7 @@ struct WebConsole::Impl {
     NetworkServer::Executor execute;  // runs on `commands`
     NetworkServer& control;
     mg_context* ctx = nullptr;
+    std::unique_ptr<WebGate> gate;  // the public address; civetweb is behind it
     std::map<std::string, std::pair<std::string, std::string>> assets;  // path -> (mime, body)
 
     std::mutex mu;  // pages and their flags; held while the ticker writes to them
@@ -231,6 +233,20 @@ int WebConsole::Impl::accept_socket(const mg_connection* conn) {
     // Refused before the handshake: civetweb closes the connection.
     if (host == nullptr || !web_host_allowed(host, o.host)) return 1;
     if (!web_origin_allowed(origin == nullptr ? "" : origin, host)) return 1;
+    // Each page holds a civetweb worker: beyond the bound a page is told so
+    // at once rather than left waiting for a worker. Two stay for GETs.
+    std::size_t open = 0;
+    {
+        std::lock_guard lock(mu);
+        open = pages.size();
+    }
+    if (open + 2 >= static_cast<std::size_t>(o.threads)) {
+        mg_printf(const_cast<mg_connection*>(conn),
+                  "HTTP/1.1 503 Service Unavailable\r\nContent-Type: text/plain\r\nConnection: close\r\n\r\n"
+                  "%zu pages are open, the most this console serves: close one\n",
+                  open);
+        return 1;
+    }
     return 0;
 }
 
@@ -583,8 +599,10 @@ void WebConsole::start() {
         if (!body.empty()) im.assets["/chart.js"] = {"text/javascript; charset=utf-8", std::move(body)};
     }
 
-    const bool v6 = im.o.host.find(':') != std::string::npos;
-    const std::string listen = (v6 ? "[" + im.o.host + "]" : im.o.host) + ":" + std::to_string(im.o.port);
+    // civetweb listens on a private loopback port; the public address is the
+    // gate's (web_gate.hpp), which lets a connection reach a civetweb worker
+    // only with its request head complete, and bounds each source address.
+    const std::string listen = "127.0.0.1:0";
     const std::string threads = std::to_string(im.o.threads);
     const char* opts[] = {"listening_ports", listen.c_str(),
                           "num_threads", threads.c_str(),
@@ -601,7 +619,15 @@ void WebConsole::start() {
     mg_set_request_handler(im.ctx, "/", on_http, &im);
     mg_set_websocket_handler(im.ctx, "/ws", on_ws_connect, on_ws_ready, on_ws_data, on_ws_close, &im);
     mg_server_port ports[4]{};
-    if (mg_get_server_ports(im.ctx, 4, ports) > 0) port_ = static_cast<std::uint16_t>(ports[0].port);
+    if (mg_get_server_ports(im.ctx, 4, ports) <= 0) throw ServerError("--http: civetweb has no port");
+    GateOptions gate;
+    gate.host = im.o.host;
+    gate.port = im.o.port;
+    gate.backend_port = static_cast<std::uint16_t>(ports[0].port);
+    gate.head_timeout = im.o.auth_timeout;
+    im.gate = std::make_unique<WebGate>(gate);
+    im.gate->start();
+    port_ = im.gate->port();
     im.ticker = std::thread([&im] { im.run_ticker(); });
 }
 
@@ -614,6 +640,7 @@ void WebConsole::stop() {
     }
     im.wake.notify_all();
     if (im.ticker.joinable()) im.ticker.join();
+    if (im.gate) im.gate->stop();
     mg_stop(im.ctx);
     im.ctx = nullptr;
     mg_exit_library();

@@ -1,0 +1,49 @@
+// tools/sbs/web_gate.hpp — the front door of the web console (issue #29.3).
+//
+// civetweb gives every connection a worker thread from the moment it is
+// accepted, so idle or half-sent connections without the token could hold all
+// workers and keep the operator's page out. The gate listens on the public
+// address instead, in one poll() thread: a connection reaches civetweb (on a
+// private loopback port) only once its request head has fully arrived, within
+// a short deadline; at most a few per source address wait at once (a newer
+// one evicts that address's oldest), and a source may hold only a few
+// civetweb workers at once. Bytes are relayed unchanged both ways after that.
+#pragma once
+
+#include <chrono>
+#include <cstdint>
+#include <memory>
+#include <string>
+#include <thread>
+
+namespace chimera::cli {
+
+struct GateOptions {
+    std::string host;                        ///< public address to listen on
+    std::uint16_t port = 0;                  ///< 0: the kernel picks
+    std::uint16_t backend_port = 0;          ///< civetweb, on 127.0.0.1
+    std::chrono::milliseconds head_timeout{2000};  ///< to send the request head
+    std::size_t waiting_per_source = 4;      ///< connections still sending their head
+    std::size_t relayed_per_source = 8;      ///< civetweb workers one address may hold
+    std::size_t max_connections = 512;       ///< all connections, all sources
+};
+
+class WebGate {
+public:
+    explicit WebGate(GateOptions options);  ///< binds and listens; throws ServerError
+    ~WebGate();
+    WebGate(const WebGate&) = delete;
+    WebGate& operator=(const WebGate&) = delete;
+
+    void start();
+    void stop();
+    std::uint16_t port() const noexcept { return port_; }
+
+    struct Impl;
+
+private:
+    std::unique_ptr<Impl> impl_;
+    std::uint16_t port_ = 0;
+};
+
+}  // namespace chimera::cli
