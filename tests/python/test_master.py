@@ -109,8 +109,10 @@ def test_tcp_with_a_token(tmp_path):
         port = int(re.search(r"TCP 127.0.0.1:(\d+)", sub.output()).group(1))
         with pytest.raises(chimera.MasterError, match=r"^the master asks for a token"):
             chimera.Master(tcp=("127.0.0.1", port))
-        with pytest.raises(chimera.MasterError, match="^wrong token$"):
+        with pytest.raises(chimera.MasterError, match="^wrong token$") as wrong:
             chimera.Master(tcp=("127.0.0.1", port), token="guess")
+        # A wrong token makes this address wait before its next is judged (issue #29.3).
+        time.sleep(wrong.value.reply["data"]["retry_after_ms"] / 1000)
         with chimera.Master(tcp=("127.0.0.1", port), token="s3cret") as m:
             assert m.status("ramp")[0]["state"] == "OFF"
 
