@@ -13,7 +13,10 @@
 #include <sys/socket.h>
 #include <unistd.h>
 
+#include <gtest/gtest.h>
+
 #include <algorithm>
+#include <cstdio>
 #include <atomic>
 #include <chrono>
 #include <cstdint>
@@ -160,6 +163,22 @@ inline std::vector<Attempt> timed_attempts(int count, std::chrono::milliseconds 
         std::this_thread::sleep_for(spacing);
     }
     return kept;
+}
+
+/// The check of the operator's connects under a flood: each got
+/// control within `limit`; prints how many did and the slowest.
+inline void expect_each_in_control(const std::vector<Attempt>& tries, std::chrono::milliseconds limit,
+                                   std::uint64_t flooded) {
+    int in_control = 0;
+    long worst = 0;
+    for (const auto& a : tries) {
+        in_control += a.got_control ? 1 : 0;
+        worst = std::max<long>(worst, a.took.count());
+        EXPECT_TRUE(a.got_control) << a.detail;
+        EXPECT_LE(a.took, limit);
+    }
+    std::printf("[ flood ] %llu token-less connections from 127.0.0.2; operator: %d of %zu in control, slowest %ld ms\n",
+                static_cast<unsigned long long>(flooded), in_control, tries.size(), worst);
 }
 
 }  // namespace flood_test

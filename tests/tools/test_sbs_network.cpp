@@ -838,15 +838,6 @@ TEST(SbsNetwork, ATokenlessFloodNeverKeepsTheOperatorOutOfTheWebConsole) {
                                                   [](const std::string& what) { std::printf("[ stall ] %s\n", what.c_str()); });
     const std::uint64_t flooded = flood.connections();
     flood.stop();
-    int in_control = 0;
-    long worst = 0;
-    for (const auto& a : tries) {
-        in_control += a.got_control ? 1 : 0;
-        worst = std::max<long>(worst, a.took.count());
-        EXPECT_TRUE(a.got_control) << a.detail;
-        EXPECT_LE(a.took, 1000ms);
-    }
-    std::printf("[ flood ] %llu token-less connections from 127.0.0.2; operator: %d of 20 in control, slowest %ld ms\n",
-                static_cast<unsigned long long>(flooded), in_control, worst);
+    flood_test::expect_each_in_control(tries, 1000ms, flooded);
     EXPECT_GT(flooded, 1000u) << "the flood was not a flood";
 }
