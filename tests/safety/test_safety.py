@@ -9,6 +9,8 @@ foreign DDS publisher; kill -9 of the robot side is kill -9 of the master (in
 Figure 3.7 the robot interface is a task of the master's process)."""
 
 import os
+import pwd
+import shutil
 import signal
 import socket
 import subprocess
@@ -206,6 +208,16 @@ def test_python_peer_killed_9(arm):
 
 # ------------------------------------------------------------------ injections on an arm of their own
 
+def measure_after_its_cause(arm, cause, label):
+    """The arm's start logs a line naming the cause (regex CAUSE), then a
+    measured run within the limits; the master stops cleanly either way."""
+    try:
+        print(label, arm.wait_log(cause).group(0))
+        measure_safely(arm)
+    finally:
+        assert arm.stop() == 0, arm.log_text()
+
+
 def test_master_killed_9_leaves_the_next_start_working():
     """In Figure 3.7 the robot interface is a task of the master's process:
     kill -9 of the master is kill -9 of the robot side too. What must hold:
@@ -222,20 +234,13 @@ def test_master_killed_9_leaves_the_next_start_working():
     print("left by the killed master:", leftovers(first.name))
     first.log.close()
     second = Arm("k")  # same subsystem name
-    try:
-        line = second.wait_log(r"chimera: segment \S+, .*: left by a process that died: removed.*").group(0)
-        print("next start:", line)
-        measure_safely(second)
-    finally:
-        assert second.stop() == 0, second.log_text()
-    import shutil
+    measure_after_its_cause(second, r"chimera: segment \S+, .*: left by a process that died: removed.*", "next start:")
     shutil.rmtree(first.dir, ignore_errors=True)  # the killed master's socket folder
     assert leftovers(first.name) == []
 
 
 def squat_as_nobody(arm):
     """As `nobody`, creates the arm's table segment name, writable by all."""
-    import pwd
     nobody = pwd.getpwnam("nobody")
     pid = os.fork()
     if pid == 0:
@@ -255,10 +260,5 @@ def squat_as_nobody(arm):
 @pytest.mark.skipif(os.geteuid() != 0, reason="needs root (to become nobody)")
 def test_squatting_user():
     a = Arm("s", before_start=squat_as_nobody)
-    try:
-        line = a.wait_log(r"chimera: segment \S+, nobody's .*squatted.*: removed.*").group(0)
-        print("squat:", line)
-        measure_safely(a)
-    finally:
-        assert a.stop() == 0, a.log_text()
+    measure_after_its_cause(a, r"chimera: segment \S+, nobody's .*squatted.*: removed.*", "squat:")
     assert leftovers(a.name) == []
