@@ -1,6 +1,5 @@
 #include "command_table.hpp"
 
-#include <cmath>
 #include <cstdlib>
 #include <string_view>
 
