@@ -7,6 +7,7 @@
 #include "chimera/ipc/segment.hpp"
 #include "chimera/sbs.hpp"
 #include "chimera/svar.hpp"
+#include "cpu_loss.hpp"
 
 #include <gtest/gtest.h>
 
@@ -101,7 +102,8 @@ protected:
         return pred();
     }
     // Real-time scheduling is needed for the tests below (root on these machines).
-    bool fifo(TaskId t) { return sbs_->status(t).policy.find("SCHED_FIFO") != std::string::npos; }
+    static bool fifo_policy(const std::string& policy) { return policy.find("SCHED_FIFO") != std::string::npos; }
+    bool fifo(TaskId t) { return fifo_policy(sbs_->status(t).policy); }
 
     std::string name_;
     fs::path dir_;
@@ -146,30 +148,60 @@ TEST_F(SbsSched, PeriodicTasksGetFifoPrioritiesInMufUrgencyOrder) {
 }
 
 TEST_F(SbsSched, OverloadOnlyTheTaskOutsideTheCriticalSetMisses) {
-    Subsystem& s = init();
     // Demand 0.35 + 0.35 + 0.40 > 1; the analysis (WCET) keeps a and b (0.8)
     // in the critical set and leaves c out.
-    const TaskId a = s.spawn(rmod("a", "", "periodic", "PERIOD 0.02\nWCET 0.008\n", "BUSY_US 7000\n"), "rt");
-    const TaskId b = s.spawn(rmod("b", "", "periodic", "PERIOD 0.03\nWCET 0.012\n", "BUSY_US 10500\n"), "rt");
-    const TaskId c = s.spawn(rmod("c", "", "periodic", "PERIOD 0.04\nWCET 0.016\n", "BUSY_US 16000\n"), "rt");
-    ASSERT_TRUE(s.reconfig({{a, Control::on}, {b, Control::on}, {c, Control::on}}));
-    if (!fifo(a)) GTEST_SKIP() << "no SCHED_FIFO here: " << s.status(a).policy;
-    // Under a second: the kernel lends starved SCHED_OTHER threads time after 0.95 s.
-    std::this_thread::sleep_for(600ms);
-    const TaskStatus sa = s.status(a), sb = s.status(b), sc = s.status(c);
-    EXPECT_EQ(s.reconfig({{c, Control::off}, {b, Control::off}, {a, Control::off}}).message, "");
-    EXPECT_EQ(sa.crit, 5);
-    EXPECT_EQ(sb.crit, 5);
-    EXPECT_EQ(sc.crit, 3);
-    EXPECT_GE(sa.cycles, 20u);
-    EXPECT_GE(sb.cycles, 12u);
-    EXPECT_EQ(sa.misses, 0u);
-    EXPECT_EQ(sb.misses, 0u);
-    EXPECT_EQ(sa.deadline_failures, 0u);
-    EXPECT_EQ(sb.deadline_failures, 0u);
-    EXPECT_GT(sc.misses, 0u);
+    struct Run {
+        TaskStatus a, b, c;
+        std::int64_t worst_lost_ns = 0;
+    };
+    const auto overload = [&](int attempt) {
+        Subsystem& s = init();
+        const std::string n = std::to_string(attempt);
+        const TaskId a = s.spawn(rmod("a" + n, "", "periodic", "PERIOD 0.02\nWCET 0.008\n", "BUSY_US 7000\n"), "rt");
+        const TaskId b = s.spawn(rmod("b" + n, "", "periodic", "PERIOD 0.03\nWCET 0.012\n", "BUSY_US 10500\n"), "rt");
+        const TaskId c = s.spawn(rmod("c" + n, "", "periodic", "PERIOD 0.04\nWCET 0.016\n", "BUSY_US 16000\n"), "rt");
+        Run run;
+        if (!s.reconfig({{a, Control::on}, {b, Control::on}, {c, Control::on}})) {
+            ADD_FAILURE() << "reconfig refused";
+            return run;
+        }
+        if (!fifo(a)) return run;
+        // The stall detector runs while the overload does. Under a second: the
+        // kernel lends starved SCHED_OTHER threads time after 0.95 s.
+        const int cpu = get_nprocs() - 1;
+        run.worst_lost_ns = chimera::test::worst_cpu_loss({s.status(a).tid, s.status(b).tid, s.status(c).tid}, cpu,
+                                                         600ms, 5ms, 20ms);
+        run.a = s.status(a), run.b = s.status(b), run.c = s.status(c);
+        EXPECT_EQ(s.reconfig({{c, Control::off}, {b, Control::off}, {a, Control::off}}).message, "");
+        return run;
+    };
+    Run run;
+    for (int attempt = 1; attempt <= 3; ++attempt) {
+        if (attempt > 1) sbs_.reset();
+        run = overload(attempt);
+        if (!fifo_policy(run.a.policy)) GTEST_SKIP() << "no SCHED_FIFO here: " << run.a.policy;
+        const bool clean = run.a.misses + run.b.misses + run.a.deadline_failures + run.b.deadline_failures == 0;
+        // a's job has 1 ms of margin (7 ms of work, WCET 8 ms): a 20 ms
+        // stretch that lost more may have made a or b miss, not MUF.
+        const bool disturbed = run.worst_lost_ns > 1'000'000;
+        std::printf("run %d: critical a/b missed %llu/%llu, c missed %llu; a 20 ms stretch lost %.2f ms to others%s\n", attempt,
+                    static_cast<unsigned long long>(run.a.misses), static_cast<unsigned long long>(run.b.misses),
+                    static_cast<unsigned long long>(run.c.misses), run.worst_lost_ns / 1e6,
+                    disturbed ? " (disturbed: the machine held the CPU)" : "");
+        if (clean || !disturbed) break;
+    }
+    EXPECT_EQ(run.a.crit, 5);
+    EXPECT_EQ(run.b.crit, 5);
+    EXPECT_EQ(run.c.crit, 3);
+    EXPECT_GE(run.a.cycles, 20u);
+    EXPECT_GE(run.b.cycles, 12u);
+    EXPECT_EQ(run.a.misses, 0u);
+    EXPECT_EQ(run.b.misses, 0u);
+    EXPECT_EQ(run.a.deadline_failures, 0u);
+    EXPECT_EQ(run.b.deadline_failures, 0u);
+    EXPECT_GT(run.c.misses, 0u);
     // The profile published in the status segment counts the same misses.
-    EXPECT_EQ(sc.profile.miss, sc.misses);
+    EXPECT_EQ(run.c.profile.miss, run.c.misses);
 }
 
 TEST_F(SbsSched, DeadlineHandlerRunsInTheTaskThreadAndAbortsTheCycle) {
