@@ -300,10 +300,16 @@ uid_t process_uid(int pid) noexcept {
 // True when process `pid` runs (kill(pid, 0), as is_stale() asks).
 bool process_runs(int pid) noexcept { return pid > 0 && (kill(pid, 0) == 0 || errno == EPERM); }
 
-// Why a segment file of owner and mode `st` whose header is `h` (nullptr:
+// What a segment's header claims about it.
+struct Claim {
+    std::uint32_t magic = 0;
+    std::int32_t creator_pid = 0;
+};
+
+// Why a segment file of owner and mode `st` whose header claims `h` (nullptr:
 // this user may not read it) is not to be believed, or "". One check for
 // squatted() by name and for attach() on the open descriptor.
-std::string squat_reason(const struct stat& st, const SegmentHeader* h) {
+std::string squat_reason(const struct stat& st, const Claim* h) {
     if (S_ISLNK(st.st_mode)) return "squatted: a symbolic link, not a segment";
     if (!S_ISREG(st.st_mode)) return "squatted: not a regular file";
     if ((st.st_mode & 022) != 0) return "squatted: group or others may write to it";
@@ -327,10 +333,17 @@ std::string squat_reason(const struct stat& st, const SegmentHeader* h) {
     return "";
 }
 
-// The header of the open segment `fd` into `h`; false when it is too small
-// or unreadable.
-bool read_header(int fd, SegmentHeader& h) noexcept {
-    return pread(fd, &h, sizeof h, 0) == static_cast<ssize_t>(sizeof h);
+// What the header of the open segment `fd` claims; all zero (no chimera
+// header) when the file is too small to hold one, so that an empty file
+// planted under a name counts as one without a header, not as one this user
+// may not read.
+Claim read_claim(int fd) noexcept {
+    unsigned char bytes[sizeof(SegmentHeader)] = {};
+    Claim c;
+    if (pread(fd, bytes, sizeof bytes, 0) != static_cast<ssize_t>(sizeof bytes)) return c;
+    std::memcpy(&c.magic, bytes + offsetof(SegmentHeader, magic), sizeof c.magic);
+    std::memcpy(&c.creator_pid, bytes + offsetof(SegmentHeader, creator_pid), sizeof c.creator_pid);
+    return c;
 }
 
 }  // namespace
@@ -371,9 +384,9 @@ std::string squatted(const std::string& name) {
         return owner_and_mode(name, st) ? squat_reason(st, nullptr) : "";
     }
     struct stat st {};
-    SegmentHeader h;
+    const Claim h = read_claim(fd);
     std::string why;
-    if (fstat(fd, &st) == 0) why = squat_reason(st, read_header(fd, h) ? &h : nullptr);
+    if (fstat(fd, &st) == 0) why = squat_reason(st, &h);
     close(fd);
     return why;
 }
@@ -618,8 +631,8 @@ Segment Segment::map_published(const std::string& name, SegmentKind kind, const 
     // squatted one, so that its creator makes it anew; anyone else is told
     // whose it is. A watcher writes nothing and keeps its old behaviour.
     if (!read_only) {
-        SegmentHeader h;
-        if (const std::string why = squat_reason(st, read_header(fd, h) ? &h : nullptr); !why.empty()) {
+        const Claim h = read_claim(fd);
+        if (const std::string why = squat_reason(st, &h); !why.empty()) {
             close(fd);
             make_way(name, why);
             throw SegmentError(name, "does not exist", ENOENT);
