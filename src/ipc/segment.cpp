@@ -252,12 +252,17 @@ int open_segment(const std::string& name, int flags) {
     if (fd >= 0) return fd;
     const int err = errno;
     if (err == ENOENT) throw SegmentError(name, "does not exist", ENOENT);
+    if (err == ELOOP) {  // a symbolic link planted under the name: never followed
+        make_way(name, "squatted: a symbolic link, not a segment");
+        throw SegmentError(name, "does not exist", ENOENT);
+    }
     if (err == EACCES) throw SegmentError(name, permission_advice(name, (flags & O_ACCMODE) != O_RDONLY), EACCES);
     fail_errno(name, "shm_open", err);
 }
 
 // The owner and mode of segment `name`: fstat of the open segment, or lstat
-// of its file when this user may not open it. False when there is none.
+// of its file when this user may not open it, or when it is a symbolic link
+// (shm_open never follows one: O_NOFOLLOW, ELOOP). False when there is none.
 bool owner_and_mode(const std::string& name, struct stat& st) noexcept {
     const int fd = shm_open(name.c_str(), O_RDONLY, 0);
     if (fd >= 0) {
@@ -265,7 +270,7 @@ bool owner_and_mode(const std::string& name, struct stat& st) noexcept {
         close(fd);
         return ok;
     }
-    return errno == EACCES && lstat(("/dev/shm" + name).c_str(), &st) == 0;
+    return (errno == EACCES || errno == ELOOP) && lstat(("/dev/shm" + name).c_str(), &st) == 0;
 }
 
 // "nobody's (uid 65534, mode 0644)"
@@ -292,15 +297,53 @@ uid_t process_uid(int pid) noexcept {
     return found ? static_cast<uid_t>(effective) : static_cast<uid_t>(-1);
 }
 
-// The creator pid the header of segment `name` names, or 0 (not readable by
-// this user, or no chimera header).
-int header_creator(const std::string& name) noexcept {
-    const int fd = shm_open(name.c_str(), O_RDONLY, 0);
-    if (fd < 0) return 0;
-    SegmentHeader h;
-    const bool read = pread(fd, &h, sizeof h, 0) == static_cast<ssize_t>(sizeof h);
-    close(fd);
-    return read && h.magic == kSegmentMagic ? h.creator_pid : 0;
+// True when process `pid` runs (kill(pid, 0), as is_stale() asks).
+bool process_runs(int pid) noexcept { return pid > 0 && (kill(pid, 0) == 0 || errno == EPERM); }
+
+// What a segment's header claims about it.
+struct Claim {
+    std::uint32_t magic = 0;
+    std::int32_t creator_pid = 0;
+};
+
+// Why a segment file of owner and mode `st` whose header claims `h` (nullptr:
+// this user may not read it) is not to be believed, or "". One check for
+// squatted() by name and for attach() on the open descriptor.
+std::string squat_reason(const struct stat& st, const Claim* h) {
+    if (S_ISLNK(st.st_mode)) return "squatted: a symbolic link, not a segment";
+    if (!S_ISREG(st.st_mode)) return "squatted: not a regular file";
+    if ((st.st_mode & 022) != 0) return "squatted: group or others may write to it";
+    if (!h) return "";
+    const bool chimeras = h->magic == kSegmentMagic;
+    const int pid = chimeras ? h->creator_pid : 0;
+    const uid_t creator = process_uid(pid);
+    if (creator != static_cast<uid_t>(-1) && creator != st.st_uid)
+        return "squatted: its header names as its creator pid " + std::to_string(pid) + ", a process of " +
+               user_name(creator) + ", not of its owner";
+    // Another user's file that no live process of theirs stands behind: a
+    // fake naming a dead pid, or a crashed run's, is nobody's segment for us.
+    // A file without a header yet may be one being made (a few system calls
+    // between shm_open and init_header): only an old one counts.
+    if (st.st_uid == geteuid()) return "";
+    if (chimeras && !process_runs(pid))
+        return "squatted: it is another user's, and the creator its header names, pid " + std::to_string(pid) +
+               ", is not running";
+    if (!chimeras && std::time(nullptr) - st.st_ctime >= 10)
+        return "squatted: it is another user's, and holds no chimera header";
+    return "";
+}
+
+// What the header of the open segment `fd` claims; all zero (no chimera
+// header) when the file is too small to hold one, so that an empty file
+// planted under a name counts as one without a header, not as one this user
+// may not read.
+Claim read_claim(int fd) noexcept {
+    unsigned char bytes[sizeof(SegmentHeader)] = {};
+    Claim c;
+    if (pread(fd, bytes, sizeof bytes, 0) != static_cast<ssize_t>(sizeof bytes)) return c;
+    std::memcpy(&c.magic, bytes + offsetof(SegmentHeader, magic), sizeof c.magic);
+    std::memcpy(&c.creator_pid, bytes + offsetof(SegmentHeader, creator_pid), sizeof c.creator_pid);
+    return c;
 }
 
 }  // namespace
@@ -335,15 +378,17 @@ std::string permission_advice(const std::string& name, bool write) {
 }
 
 std::string squatted(const std::string& name) {
+    const int fd = shm_open(name.c_str(), O_RDONLY, 0);
+    if (fd < 0) {
+        struct stat st {};
+        return owner_and_mode(name, st) ? squat_reason(st, nullptr) : "";
+    }
     struct stat st {};
-    if (!owner_and_mode(name, st)) return "";
-    if ((st.st_mode & 022) != 0) return "squatted: group or others may write to it";
-    const int pid = header_creator(name);
-    const uid_t creator = process_uid(pid);
-    if (creator != static_cast<uid_t>(-1) && creator != st.st_uid)
-        return "squatted: its header names as its creator pid " + std::to_string(pid) + ", a process of " +
-               user_name(creator) + ", not of its owner";
-    return "";
+    const Claim h = read_claim(fd);
+    std::string why;
+    if (fstat(fd, &st) == 0) why = squat_reason(st, &h);
+    close(fd);
+    return why;
 }
 
 void make_way(const std::string& name, const std::string& why) {
@@ -361,6 +406,30 @@ void make_way(const std::string& name, const std::string& why) {
                  why.c_str());
     if (shm_unlink(name.c_str()) != 0 && errno != ENOENT) fail_errno(name, "shm_unlink", errno);
 }
+
+namespace {
+
+// Segment::create() found `name` taken. A squatted file is made way for
+// (make_way: root or its owner removes it, anyone else is refused naming the
+// owner), and so is another user's this user may not read, which it cannot
+// tell from a running segment and may not use either. True when the name was
+// freed (or vanished meanwhile); false when it stands: this user's own, or a
+// live segment of another user's.
+bool make_way_for_create(const std::string& name) {
+    std::string why = squatted(name);
+    if (why.empty()) {
+        struct stat st {};
+        if (!owner_and_mode(name, st)) return true;
+        const int fd = shm_open(name.c_str(), O_RDONLY, 0);
+        if (fd >= 0) close(fd);
+        if (st.st_uid == geteuid() || fd >= 0) return false;
+        why = "taken by another user's file, which this user may not read";
+    }
+    make_way(name, why);
+    return true;
+}
+
+}  // namespace
 
 std::string describe(std::string_view segment, const Fault& f) {
     if (!f) return "";
@@ -508,7 +577,9 @@ Segment Segment::create(const std::string& name, std::size_t size, SegmentKind k
     check_name(name);
     if (size < sizeof(SegmentHeader))
         throw SegmentError(name, "size " + std::to_string(size) + " is smaller than the header");
-    const int fd = shm_open(name.c_str(), O_RDWR | O_CREAT | O_EXCL, options.mode);
+    int fd = shm_open(name.c_str(), O_RDWR | O_CREAT | O_EXCL, options.mode);
+    if (fd < 0 && errno == EEXIST && make_way_for_create(name))
+        fd = shm_open(name.c_str(), O_RDWR | O_CREAT | O_EXCL, options.mode);
     if (fd < 0) {
         if (errno == EEXIST) throw SegmentError(name, "already exists", EEXIST);
         fail_errno(name, "shm_open", errno);
@@ -554,6 +625,18 @@ Segment Segment::map_published(const std::string& name, SegmentKind kind, const 
         const int err = errno;
         close(fd);
         fail_errno(name, "fstat", err);
+    }
+    // A user's attach believes the file it opened only when its owner stands
+    // behind it (squat_reason on this very descriptor): root removes a
+    // squatted one, so that its creator makes it anew; anyone else is told
+    // whose it is. A watcher writes nothing and keeps its old behaviour.
+    if (!read_only) {
+        const Claim h = read_claim(fd);
+        if (const std::string why = squat_reason(st, &h); !why.empty()) {
+            close(fd);
+            make_way(name, why);
+            throw SegmentError(name, "does not exist", ENOENT);
+        }
     }
     const auto size = static_cast<std::size_t>(st.st_size);
     if (size < sizeof(SegmentHeader)) {

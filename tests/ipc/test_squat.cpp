@@ -5,6 +5,7 @@
 // root removes a squatted one; another user is told whose it is and what to do.
 #include <gtest/gtest.h>
 
+#include <pwd.h>
 #include <sys/stat.h>
 #include <unistd.h>
 
@@ -39,6 +40,30 @@ int squat_as_nobody(const std::string& name) {
     Segment fake = make(name, 1, 0600);
     fake.header().creator_pid = 1;
     _exit(0);  // no destructor: the file stays, published
+}
+
+// In a forked child become nobody and leave a published segment NAME behind:
+// its header names the child itself, dead once it is reaped.
+int squat_as_nobody_and_die(const std::string& name) {
+    if (!chimera::test::become_nobody({})) return 10;
+    Segment fake = make(name, 1, 0600);
+    _exit(0);
+}
+
+// "nobody's (uid 65534, mode 0600)", as make_way() names nobody's file.
+std::string nobodys(const char* mode) {
+    const passwd* pw = getpwnam("nobody");
+    return std::string("nobody's (uid ") + std::to_string(pw ? pw->pw_uid : 0) + ", mode " + mode + ")";
+}
+
+// Root's line on stderr for a file of nobody's removed to make way.
+std::string removal(const std::string& name, const char* mode, const std::string& why) {
+    return "chimera: segment " + name + ", " + nobodys(mode) + ": " + why + ": removed, to be created anew\n";
+}
+
+std::string dead_creator(pid_t pid) {
+    return "squatted: it is another user's, and the creator its header names, pid " + std::to_string(pid) +
+           ", is not running";
 }
 
 }  // namespace
@@ -100,5 +125,112 @@ TEST(Squat, AUserWhoMayNotRemoveItIsToldWhoseItIsAndWhatToDo) {
               "segment " + name + ": squatted: group or others may write to it: it is root's (uid 0, mode 0666), and "
               "only root may remove it (sudo rm /dev/shm" + name + "), then start again");
     EXPECT_TRUE(Segment::exists(name));
+    roots.detach_destroy_if_last();
+}
+
+// The same squat with a dead creator (issue #29.5, every name): is_stale()
+// alone would not tell it from a crash leftover of root's, and create() met
+// "already exists". Root's create removes it, says whose it was, and makes its own.
+TEST(Squat, RootsCreateReplacesNobodysFakeNamingADeadCreator) {
+    CHIMERA_NOT_UNDER_TSAN("forked users");
+    if (!chimera::test::can_switch_user()) GTEST_SKIP() << "needs root (setresuid to nobody)";
+    const std::string name = unique_name("deadfake");
+    const pid_t squatter = fork_child([&] { return squat_as_nobody_and_die(name); });
+    ASSERT_EQ(wait_child(squatter), 0);
+    EXPECT_EQ(squatted(name), dead_creator(squatter));
+    testing::internal::CaptureStderr();
+    Segment mine = make(name, 7, 0600);
+    EXPECT_EQ(testing::internal::GetCapturedStderr(), removal(name, "0600", dead_creator(squatter)));
+    struct stat st {};
+    ASSERT_EQ(::stat(("/dev/shm" + name).c_str(), &st), 0);
+    EXPECT_EQ(st.st_uid, ::geteuid());
+    Segment other = Segment::attach(name, kKind);  // root's own now: believed
+    EXPECT_EQ(other.at_bytes<chimera::ipc::test::Body>(0)->value, 7u);
+    other.detach();
+    mine.detach_destroy_if_last();
+}
+
+// A user attaching first (a reader before its writer) must not map the fake:
+// root removes it and gets "does not exist", as before its creator made it.
+TEST(Squat, RootsAttachRemovesNobodysFakeInsteadOfMappingIt) {
+    CHIMERA_NOT_UNDER_TSAN("forked users");
+    if (!chimera::test::can_switch_user()) GTEST_SKIP() << "needs root (setresuid to nobody)";
+    const std::string name = unique_name("deadattach");
+    const pid_t squatter = fork_child([&] { return squat_as_nobody_and_die(name); });
+    ASSERT_EQ(wait_child(squatter), 0);
+    testing::internal::CaptureStderr();
+    try {
+        Segment::attach(name, kKind);
+        ADD_FAILURE() << "attached to nobody's fake";
+    } catch (const SegmentError& e) {
+        EXPECT_EQ(std::string(e.what()), "segment " + name + ": does not exist");
+        EXPECT_EQ(e.error_number(), ENOENT);
+    }
+    EXPECT_EQ(testing::internal::GetCapturedStderr(), removal(name, "0600", dead_creator(squatter)));
+    EXPECT_FALSE(Segment::exists(name));
+}
+
+// A non-root runner cannot read another user's 0600 file, so cannot tell a
+// fake from a live segment, and may not remove it: told whose it is and what to do.
+TEST(Squat, ANonRootCreateMeetingAnotherUsersFileIsToldWhoseItIs) {
+    CHIMERA_NOT_UNDER_TSAN("forked users");
+    if (!chimera::test::can_switch_user()) GTEST_SKIP() << "needs root (setresuid to nobody)";
+    const std::string name = unique_name("rootsfake");
+    ASSERT_EQ(wait_child(fork_child([&] {
+                  Segment fake = make(name, 1, 0600);
+                  _exit(0);  // no destructor: root's file stays, its creator dead
+                  return 0;
+              })),
+              0);
+    auto* message = shared_anon<Message>();
+    const pid_t child = fork_child([&] {
+        if (!chimera::test::become_nobody({})) return 10;
+        try {
+            make(name);
+            return 3;
+        } catch (const SegmentError& e) {
+            std::snprintf(message->text, sizeof message->text, "%s", e.what());
+            return e.error_number() == EPERM ? 0 : 4;
+        }
+    });
+    EXPECT_EQ(wait_child(child), 0);
+    EXPECT_EQ(std::string(message->text),
+              "segment " + name + ": taken by another user's file, which this user may not read: it is root's (uid 0, "
+              "mode 0600), and only root may remove it (sudo rm /dev/shm" + name + "), then start again");
+    EXPECT_TRUE(Segment::exists(name));
+    Segment::unlink(name);
+}
+
+// A symbolic link nobody plants under a segment name, pointing at root's
+// segment: neither root's attach nor its create follows it; the link goes,
+// the segment it points at stays untouched.
+TEST(Squat, APlantedSymlinkIsNeverFollowed) {
+    CHIMERA_NOT_UNDER_TSAN("forked users");
+    if (!chimera::test::can_switch_user()) GTEST_SKIP() << "needs root (setresuid to nobody)";
+    const std::string target = unique_name("linktarget"), link = unique_name("link");
+    Segment roots = make(target, 5, 0600);
+    const auto plant = [&] {
+        return wait_child(fork_child([&] {
+            if (!chimera::test::become_nobody({})) return 10;
+            return ::symlink(("/dev/shm" + target).c_str(), ("/dev/shm" + link).c_str()) == 0 ? 0 : 11;
+        }));
+    };
+    const std::string why = "squatted: a symbolic link, not a segment";
+    ASSERT_EQ(plant(), 0);
+    EXPECT_EQ(squatted(link), why);
+    testing::internal::CaptureStderr();
+    EXPECT_THROW(Segment::attach(link, kKind), SegmentError);
+    EXPECT_EQ(testing::internal::GetCapturedStderr(), removal(link, "0777", why));
+    struct stat st {};
+    EXPECT_NE(::lstat(("/dev/shm" + link).c_str(), &st), 0);
+
+    ASSERT_EQ(plant(), 0);
+    testing::internal::CaptureStderr();
+    Segment mine = make(link, 9, 0600);
+    EXPECT_EQ(testing::internal::GetCapturedStderr(), removal(link, "0777", why));
+    ASSERT_EQ(::lstat(("/dev/shm" + link).c_str(), &st), 0);
+    EXPECT_TRUE(S_ISREG(st.st_mode));
+    EXPECT_EQ(roots.at_bytes<chimera::ipc::test::Body>(0)->value, 5u);  // the target kept its body
+    mine.detach_destroy_if_last();
     roots.detach_destroy_if_last();
 }

@@ -2,7 +2,9 @@
 // a writer/reader stress test across processes and threads.
 #include <gtest/gtest.h>
 
+#include <pwd.h>
 #include <signal.h>
+#include <sys/stat.h>
 
 #include <atomic>
 #include <cstdio>
@@ -11,6 +13,7 @@
 #include <thread>
 
 #include "chimera/ipc/clock.hpp"
+#include "as_user.hpp"
 #include "chimera/tbuf.hpp"
 #include "sanitizer.hpp"
 #include "segment_guard.hpp"
@@ -847,3 +850,75 @@ TEST(Tbuf, AReaderTakingOverWaitsForALiveWriterInsidePublishWhoseGivenSlotADeadR
     EXPECT_TRUE(w_slot != r_slot && w_slot != (h.middle.load() & detail::kSlotMask)) << w_slot << r_slot;
 }
 
+
+// Squatted names (issue #29.5): any user may make /dev/shm/chimera.X... first,
+// a real triple buffer and all. A fake of nobody's whose creator is dead does
+// not stop root's writer: its create removes it, saying whose it was, and
+// root's buffer then works.
+TEST(Tbuf, NobodysFakeUnderTheNameDoesNotStopRootsWriter) {
+    CHIMERA_NOT_UNDER_TSAN("forked users");
+    if (!chimera::test::can_switch_user()) GTEST_SKIP() << "needs root (setresuid to nobody)";
+    const std::string name = unique_name("tbsquat");
+    const chimera::test::SegmentGuard cleanup(name.substr(1));
+    const pid_t squatter = fork_child([&] {
+        if (!chimera::test::become_nobody({})) return 10;
+        Tbuf fake = Tbuf::create(name, sizeof(Item));
+        _exit(0);  // no destructor: the file stays, naming this dead child
+        return 0;
+    });
+    ASSERT_EQ(wait_child(squatter), 0);
+    const passwd* nobody = getpwnam("nobody");
+    ASSERT_NE(nobody, nullptr);
+    testing::internal::CaptureStderr();
+    Tbuf w = Tbuf::create(name, sizeof(Item));
+    EXPECT_EQ(testing::internal::GetCapturedStderr(),
+              "chimera: segment " + name + ", nobody's (uid " + std::to_string(nobody->pw_uid) +
+                  ", mode 0600): squatted: it is another user's, and the creator its header names, pid " +
+                  std::to_string(squatter) + ", is not running: removed, to be created anew\n");
+    struct stat st {};
+    ASSERT_EQ(::stat(("/dev/shm" + name).c_str(), &st), 0);
+    EXPECT_EQ(st.st_uid, ::geteuid());
+    Tbuf r = Tbuf::attach(name);
+    Item in{}, out{};
+    make_item(in, 0);
+    EXPECT_EQ(w.write(&in), 0u);
+    const ReadResult res = r.read(&out);
+    EXPECT_EQ(res.status, ReadStatus::fresh);
+    EXPECT_EQ(check_item(out, res), 0);
+    r.detach();
+    EXPECT_TRUE(w.destroy());
+}
+
+// A writer that is not root meets another user's triple buffer it may not
+// read (root's, its creator dead): refused, told whose it is and what to do.
+TEST(Tbuf, ANonRootWriterMeetingAnotherUsersBufferIsToldWhoseItIs) {
+    CHIMERA_NOT_UNDER_TSAN("forked users");
+    if (!chimera::test::can_switch_user()) GTEST_SKIP() << "needs root (setresuid to nobody)";
+    const std::string name = unique_name("tbroots");
+    const chimera::test::SegmentGuard cleanup(name.substr(1));
+    ASSERT_EQ(wait_child(fork_child([&] {
+                  Tbuf fake = Tbuf::create(name, sizeof(Item));
+                  _exit(0);
+                  return 0;
+              })),
+              0);
+    struct Message {
+        char text[512];
+    };
+    auto* message = shared_anon<Message>();
+    const pid_t child = fork_child([&] {
+        if (!chimera::test::become_nobody({})) return 10;
+        try {
+            Tbuf::create(name, sizeof(Item));
+            return 3;
+        } catch (const ipc::SegmentError& e) {
+            std::snprintf(message->text, sizeof message->text, "%s", e.what());
+            return e.error_number() == EPERM ? 0 : 4;
+        }
+    });
+    EXPECT_EQ(wait_child(child), 0);
+    EXPECT_EQ(std::string(message->text),
+              "segment " + name + ": taken by another user's file, which this user may not read: it is root's (uid 0, "
+              "mode 0600), and only root may remove it (sudo rm /dev/shm" + name + "), then start again");
+    EXPECT_TRUE(ipc::Segment::exists(name));  // not removed: only root may
+}

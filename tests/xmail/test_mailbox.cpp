@@ -2,6 +2,7 @@
 #include "sanitizer.hpp"
 #include "segment_guard.hpp"
 #include <gtest/gtest.h>
+#include <pwd.h>
 #include <signal.h>
 #include <sys/wait.h>
 #include <unistd.h>
@@ -13,6 +14,7 @@
 #include <thread>
 #include <vector>
 
+#include "as_user.hpp"
 #include "chimera/ipc/clock.hpp"
 #include "chimera/xmail.hpp"
 #include "common.hpp"
@@ -522,4 +524,43 @@ TEST(Mailbox, ACorruptMailboxHeaderIsRefusedOnAttachNamingTheSegment) {
     h.bufsize = 256;
     h.nrtpu = 4;
     EXPECT_FALSE(xm::validate_mailbox(&b.header(), xm::layout::mailbox_size(small(256))));
+}
+
+// Squatted names (issue #29.5): nobody makes an RTPU's mailbox first, its
+// alive word set and its owner pid 1 (root's init, alive): before, root's RTPU
+// took it for a running one ("RTPU already running (pid 1)"). The segment's
+// creator, the squatter, is dead and the file is not root's: root removes it,
+// saying whose it was, and its RTPUs then talk through new mailboxes.
+TEST(Mailbox, NobodysFakeMailboxDoesNotStopRootsRtpu) {
+    CHIMERA_NOT_UNDER_TSAN("forked users");
+    if (!chimera::test::can_switch_user()) GTEST_SKIP() << "needs root (setresuid to nobody)";
+    const std::string sys = test_sys("squat");
+    const chimera::test::SegmentGuard cleanup("chimera." + sys + ".");
+    const pid_t squatter = fork();
+    if (squatter == 0) {
+        if (!chimera::test::become_nobody({})) _exit(10);
+        Mailbox fake(sys, "a", 0, small());
+        fake.header().owner_pid.store(1);
+        _exit(0);  // no destructor: the mailbox stays, alive, naming pid 1
+    }
+    int status = -1;
+    ASSERT_EQ(waitpid(squatter, &status, 0), squatter);
+    ASSERT_TRUE(WIFEXITED(status) && WEXITSTATUS(status) == 0) << status;
+    const passwd* nobody = getpwnam("nobody");
+    ASSERT_NE(nobody, nullptr);
+    testing::internal::CaptureStderr();
+    Mailbox a(sys, "a", 0, small());
+    EXPECT_EQ(testing::internal::GetCapturedStderr(),
+              "chimera: segment " + Mailbox::segment_name(sys, "a") + ", nobody's (uid " +
+                  std::to_string(nobody->pw_uid) +
+                  ", mode 0600): squatted: it is another user's, and the creator its header names, pid " +
+                  std::to_string(squatter) + ", is not running: removed, to be created anew\n");
+    EXPECT_EQ(a.header().owner_pid.load(), getpid());
+    Mailbox b(sys, "b", 1, small());
+    ASSERT_EQ(b.write(b.peer("a"), "hi", 2), Status::ok);
+    char buf[8];
+    xm::ReadInfo info;
+    ASSERT_EQ(a.read(buf, sizeof buf, &info), Status::ok);
+    EXPECT_EQ(std::string(buf, info.length), "hi");
+    EXPECT_EQ(info.from_bid, 1u);
 }

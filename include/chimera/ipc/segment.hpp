@@ -180,11 +180,18 @@ public:
     ~Segment();
 
     /// Creates a new segment of `size` bytes (header included, >= 64); fails
-    /// if the name exists ("segment /x: already exists").
+    /// if the name exists ("segment /x: already exists"). A squatted file
+    /// under the name (squatted()), or another user's this user may not read,
+    /// is made way for first (make_way(): root removes it, saying whose it
+    /// was; anyone else gets its EPERM error naming the owner).
     static Segment create(const std::string& name, std::size_t size, SegmentKind kind,
                           const CreateOptions& options = {});
     /// Attaches to a published segment and validates magic, byte order,
-    /// object type, layout version and size.
+    /// object type, layout version and size. The file it opens is first
+    /// checked as squatted() checks a name (fstat of the open descriptor; a
+    /// symbolic link is never followed): a squatted one is made way for
+    /// (make_way()) and the attach fails with "does not exist" (ENOENT), as if
+    /// its creator had not made it yet.
     static Segment attach(const std::string& name, SegmentKind kind,
                           const AttachOptions& options = {});
     /// Maps a published segment read-only, as a watcher: validated as by
@@ -284,13 +291,18 @@ CHIMERA_API std::string permission_advice(const std::string& name, bool write);
 /// Why the segment `name` is not to be believed (issue #29.5), or "" when it
 /// can be, or when there is none. Any local user can create a file in
 /// /dev/shm under any free name, header and all, so a header's claims count
-/// only when its owner stands behind them: a segment is squatted when group or
-/// others may write to it (chimera creates 0600 or 0640), or when its header's
-/// creator is a live process of another user than the file's owner (a fake
-/// naming pid 1 under nobody's file). Owner and mode come from fstat of the
-/// open segment (lstat of its file when this user may not open it); the
-/// creator's user from /proc/PID/status. E.g. "squatted: its header names as
-/// its creator pid 1, a process of root, not of its owner".
+/// only when its owner stands behind them: a segment is squatted when it is a
+/// symbolic link or not a regular file, when group or others may write to it
+/// (chimera creates 0600 or 0640), when its header's creator is a live
+/// process of another user than the file's owner (a fake naming pid 1 under
+/// nobody's file), or, for a file of another user than this one, when the
+/// creator its header names is not running (a fake naming a dead pid, or a
+/// crashed run's) or it has had no chimera header for 10 s. Owner and mode
+/// come from fstat of the open segment (lstat of its file when this user may
+/// not open it, or when it is a link); the creator's user from
+/// /proc/PID/status. E.g. "squatted: its header names as its creator pid 1, a
+/// process of root, not of its owner". Segment::create() and attach() apply
+/// the same check (issue #29.5: every segment name chimera makes).
 CHIMERA_API std::string squatted(const std::string& name);
 
 /// Makes way for a segment of this user's called `name` whose old file must
