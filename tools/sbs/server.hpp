@@ -125,6 +125,11 @@ public:
     /// `network`): the holder is to release it with SessionEnd::interrupted.
     bool control_wanted_back() const;
 
+    /// Wrong tokens per source address: the web console judges its pages'
+    /// tokens with this one too, so an address guessing the one token has one
+    /// back-off whichever door it knocks at.
+    TokenBackOff& token_back_off() noexcept { return back_off_; }
+
     /// Number of sessions that have ended so far (for tests and the prompt).
     std::uint64_t sessions_ended() const;
 
