@@ -912,3 +912,58 @@ TEST(SbsNetwork, WrongTokensOnAPageAreThrottledPerAddressWithBackOff) {
     EXPECT_EQ(page_token("127.0.0.2", port, "tok").value("ok", false), true);
     EXPECT_EQ(page_token("127.0.0.2", port, "guess")["data"]["retry_after_ms"], 100) << "started afresh";
 }
+
+// Issue #29.2: one reply to a network client is at most 1 MiB, and never
+// cut. `display all` of a table with a 300 000-element array (about 1.8 MB of
+// JSON) reaches the owner's Unix socket whole; a TCP peer and a web page get,
+// instead, the refusal naming the bound, its size and their request, and
+// their sessions go on.
+TEST(SbsNetwork, AReplyPastOneMiBIsRefusedToNetworkClientsNeverCut) {
+    Workspace ws;
+    ws.write("big.svar", "NAME  BIG\nTYPE  double\nDESC  large\nUNITS m\nNELEM 300000\nINIT  0\n\n"
+                         "NAME  X\nTYPE  double\nDESC  small\nUNITS m\nNELEM 1\nINIT  0\nEOF\n");
+    ws.write(ws.subsystem() + ".sbs", "SUBSYSTEM " + ws.subsystem() + "\nSVARFILE  " + ws.dir() +
+                                          "/big.svar\nRTPU      cpu0\nBACKEND   other\nEOF\n");
+    Master m(ws, {"--serve", "--listen", "--tcp", "127.0.0.1:0", "--http", "127.0.0.1:0", "--token", "tok"});
+    if (!m.stderr_has("web console of subsystem", 20000)) GTEST_SKIP() << "no web console here: " << m.err_text();
+    ASSERT_TRUE(m.stderr_has("/ (the page")) << m.err_text();
+    const auto at = m.err_text().find("TCP 127.0.0.1:");
+    ASSERT_NE(at, std::string::npos) << m.err_text();
+    const auto tcp_port = static_cast<std::uint16_t>(std::stoi(m.err_text().substr(at + 14)));
+
+    NetworkClient owner = connect(ws);
+    ASSERT_EQ(owner.request("token tok", 10000).value("ok", false), true);
+    const auto whole = owner.request("display all", 20000);
+    ASSERT_EQ(whole.value("ok", false), true) << whole.dump().substr(0, 300);
+    ASSERT_EQ(whole["data"]["vars"][0]["values"].size(), 300000u);
+    const std::size_t bytes = whole.dump(-1, ' ', false, nlohmann::json::error_handler_t::replace).size();
+    ASSERT_GT(bytes, 1048576u) << "the table is too small to test the bound";
+    owner.request("quit", 10000);
+    const nlohmann::json refusal = {
+        {"ok", false},
+        {"cmd", "display"},
+        {"error", "the reply to 'display all' is " + std::to_string(bytes) +
+                      " bytes, over the 1048576 (1 MiB) one reply to a network client may take, so none of it is "
+                      "sent; ask for less, e.g. display VAR... (names, or patterns such as Q*) rather than display all"}};
+
+    auto peer = NetworkClient::connect_tcp("127.0.0.1", tcp_port);
+    ASSERT_EQ(peer.request("token tok", 10000).value("ok", false), true);
+    EXPECT_EQ(peer.request("display all", 20000), refusal);
+    EXPECT_EQ(peer.request("display X", 10000)["data"]["vars"][0]["name"], "X") << "the session goes on";
+    peer.request("quit", 10000);
+
+    const int page = open_page("127.0.0.1", web_port(m));
+    ASSERT_GE(page, 0);
+    send_text(page, "token tok");
+    ASSERT_EQ(reply_to(page, "token").value("ok", false), true);
+    send_text(page, "display all");
+    EXPECT_EQ(reply_to(page, "display"), refusal);
+    send_text(page, "display X");
+    EXPECT_EQ(reply_to(page, "display")["data"]["vars"][0]["name"], "X") << "the page goes on";
+    ::close(page);
+
+    auto last = NetworkClient::connect_tcp("127.0.0.1", tcp_port);
+    ASSERT_EQ(last.request("token tok", 10000).value("ok", false), true);
+    last.request("finish", 10000);
+    EXPECT_EQ(m.wait(), 0) << m.err_text();
+}

@@ -162,6 +162,24 @@ TEST(ParseRequest, EachLineIsACommandAKeepAliveOrMalformedWithTheReason) {
     EXPECT_EQ(parse_request(R"({"id":3})").id, 3);  // echoed even in the error reply
 }
 
+// Issue #29.2: a reply of exactly kMaxClientReplyBytes goes as it is; one
+// byte more and the client gets a refusal naming the bound and its request
+// instead, with its id, and no part of the reply.
+TEST(ClientReply, AReplyPastTheBoundIsRefusedNamingItNeverCut) {
+    Reply r;
+    r.command = "display";
+    const std::size_t frame = to_json_line(r, 7).size();
+    r.text.assign(kMaxClientReplyBytes - frame, 'x');
+    ASSERT_EQ(to_json_line(r, 7).size(), kMaxClientReplyBytes);
+    EXPECT_EQ(to_client_line(r, 7, "display all"), to_json_line(r, 7));
+    r.text += 'x';
+    const json j = json::parse(to_client_line(r, 7, "display all"));
+    EXPECT_EQ(j, json({{"id", 7}, {"ok", false}, {"cmd", "display"},
+                       {"error", "the reply to 'display all' is 1048577 bytes, over the 1048576 (1 MiB) one reply "
+                                 "to a network client may take, so none of it is sent; ask for less, e.g. display "
+                                 "VAR... (names, or patterns such as Q*) rather than display all"}}));
+}
+
 // The back-off's rule without a clock: the waits double from 100 ms up to
 // 10 s; the owner's Unix socket ("") is never throttled; a first line that is
 // no token is refused without counting as a guess.

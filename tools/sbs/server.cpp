@@ -764,7 +764,9 @@ bool NetworkServer::handle_line(Peer& peer, std::string_view line) {
     if (reply.action == Action::network) {
         reply = Reply::failure(reply.command, "the network already has control");
     }
-    if (!send_line(peer.fd, to_json_line(reply, id))) {
+    // Bounded for TCP peers; the owner's Unix socket (no source) gets it all.
+    const std::string out = peer.source.empty() ? to_json_line(reply, id) : to_client_line(reply, id, command);
+    if (!send_line(peer.fd, out)) {
         peer.end = SessionEnd::peer_lost;
         return false;
     }

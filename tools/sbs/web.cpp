@@ -339,7 +339,7 @@ bool WebConsole::Impl::handle_message(Page& page, std::string_view line) {
         return true;
     }
     const Reply reply = run_command(page, request.command);
-    write(page.conn, to_json_line(reply, request.id));
+    write(page.conn, to_client_line(reply, request.id, request.command));
     if (page.scope) page.scope->start();  // a new scope streams after its reply
     {
         std::lock_guard lock(mu);
