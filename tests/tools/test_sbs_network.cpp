@@ -22,6 +22,7 @@
 #include <fstream>
 #include <iterator>
 #include <optional>
+#include <regex>
 #include <thread>
 
 using chimera::cli::ClientError;
@@ -711,9 +712,10 @@ using namespace std::chrono_literals;
 
 namespace {
 
-/// A blocking loopback TCP connection with a 3 s receive timeout, or -1.
-int dial(std::uint16_t port) {
-    const int fd = flood_test::connect_from("127.0.0.1", port);
+/// A blocking loopback TCP connection from `source` (a 127/8 address) with a
+/// 3 s receive timeout, or -1.
+int dial_from(const char* source, std::uint16_t port) {
+    const int fd = flood_test::connect_from(source, port);
     if (fd < 0) return -1;
     pollfd p{fd, POLLOUT, 0};
     ::poll(&p, 1, 3000);
@@ -722,6 +724,8 @@ int dial(std::uint16_t port) {
     ::setsockopt(fd, SOL_SOCKET, SO_RCVTIMEO, &tv, sizeof tv);
     return fd;
 }
+
+int dial(std::uint16_t port) { return dial_from("127.0.0.1", port); }
 
 bool send_all(int fd, const std::string& s) { return ::send(fd, s.data(), s.size(), MSG_NOSIGNAL) == static_cast<ssize_t>(s.size()); }
 
@@ -776,6 +780,35 @@ std::string upgrade_request(std::uint16_t port) {
     return "GET /ws HTTP/1.1\r\nHost: 127.0.0.1:" + std::to_string(port) +
            "\r\nUpgrade: websocket\r\nConnection: Upgrade\r\nSec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ==\r\n"
            "Sec-WebSocket-Version: 13\r\n\r\n";
+}
+
+/// A page's socket from `source`, open (101 and the greeting read), or -1.
+int open_page(const char* source, std::uint16_t port) {
+    const int fd = dial_from(source, port);
+    if (fd < 0) return -1;
+    send_all(fd, upgrade_request(port));
+    if (read_head(fd).rfind("HTTP/1.1 101", 0) != 0 || !read_frame(fd)) {
+        ::close(fd);
+        return -1;
+    }
+    return fd;
+}
+
+/// A new page from `source` sends `token T` first: the reply (null when the
+/// page could not be opened). The page is closed after.
+nlohmann::json page_token(const char* source, std::uint16_t port, const std::string& token) {
+    const int fd = open_page(source, port);
+    if (fd < 0) return nullptr;
+    send_text(fd, "token " + token);
+    auto reply = reply_to(fd, "token");
+    ::close(fd);
+    return reply;
+}
+
+/// The port in "... on http://127.0.0.1:PORT/" of the master's stderr.
+std::uint16_t web_port(const Master& m) {
+    const auto at = m.err_text().find("http://127.0.0.1:");
+    return at == std::string::npos ? 0 : static_cast<std::uint16_t>(std::stoi(m.err_text().substr(at + 17)));
 }
 
 /// The operator's browser at 127.0.0.1: GET / served, then a page's socket:
@@ -840,4 +873,97 @@ TEST(SbsNetwork, ATokenlessFloodNeverKeepsTheOperatorOutOfTheWebConsole) {
     flood.stop();
     flood_test::expect_each_in_control(tries, 1000ms, flooded);
     EXPECT_GT(flooded, 1000u) << "the flood was not a flood";
+}
+
+// Issue #29.3: wrong tokens on a page slow its address down as over TCP (the
+// one TokenBackOff): the reply says how long; a token sent sooner is refused
+// unjudged, the right one too; another address is not slowed; the right token
+// after the wait is accepted and starts the address afresh.
+TEST(SbsNetwork, WrongTokensOnAPageAreThrottledPerAddressWithBackOff) {
+    const int probe = flood_test::connect_from("127.0.0.2", 9);
+    if (probe < 0) GTEST_SKIP() << "cannot bind 127.0.0.2 (no 127/8 on lo here)";
+    ::close(probe);
+    Workspace ws;
+    Master m(ws, {"--serve", "--http", "127.0.0.1:0", "--token", "tok"});
+    if (!m.stderr_has("web console of subsystem", 20000)) GTEST_SKIP() << "no web console here: " << m.err_text();
+    ASSERT_TRUE(m.stderr_has("/ (the page")) << m.err_text();
+    const std::uint16_t port = web_port(m);
+    std::chrono::steady_clock::time_point last_guess;
+    for (long expected : {100, 200, 400, 800}) {
+        const auto r = page_token("127.0.0.2", port, "guess");
+        last_guess = std::chrono::steady_clock::now();
+        ASSERT_EQ(r.value("error", ""), "wrong token") << r.dump();
+        EXPECT_EQ(r["data"]["retry_after_ms"], expected);
+        // The back-off itself is what is waited for: it started before the reply came.
+        if (expected < 800) std::this_thread::sleep_for(std::chrono::milliseconds(expected + 20));
+    }
+    // Within the 800 ms: refused unjudged, the right token too.
+    const auto early = page_token("127.0.0.2", port, "tok");
+    std::smatch left;
+    const std::string why = early.value("error", "");
+    const std::regex refused("too many wrong tokens from 127\\.0\\.0\\.2: retry after ([0-9]+) ms");
+    ASSERT_TRUE(std::regex_match(why, left, refused)) << early.dump();
+    EXPECT_GT(std::stol(left[1]), 0);
+    EXPECT_LE(std::stol(left[1]), 800);
+    EXPECT_FALSE(early.contains("data")) << "an unjudged token adds no back-off";
+    // The operator's address is not slowed by 127.0.0.2's guesses.
+    EXPECT_EQ(page_token("127.0.0.1", port, "tok").value("ok", false), true);
+    std::this_thread::sleep_until(last_guess + std::chrono::milliseconds(850));
+    EXPECT_EQ(page_token("127.0.0.2", port, "tok").value("ok", false), true);
+    EXPECT_EQ(page_token("127.0.0.2", port, "guess")["data"]["retry_after_ms"], 100) << "started afresh";
+}
+
+// Issue #29.2: one reply to a network client is at most 1 MiB, and never
+// cut. `display all` of a table with a 300 000-element array (about 1.8 MB of
+// JSON) reaches the owner's Unix socket whole; a TCP peer and a web page get,
+// instead, the refusal naming the bound, its size and their request, and
+// their sessions go on.
+TEST(SbsNetwork, AReplyPastOneMiBIsRefusedToNetworkClientsNeverCut) {
+    Workspace ws;
+    ws.write("big.svar", "NAME  BIG\nTYPE  double\nDESC  large\nUNITS m\nNELEM 300000\nINIT  0\n\n"
+                         "NAME  X\nTYPE  double\nDESC  small\nUNITS m\nNELEM 1\nINIT  0\nEOF\n");
+    ws.write(ws.subsystem() + ".sbs", "SUBSYSTEM " + ws.subsystem() + "\nSVARFILE  " + ws.dir() +
+                                          "/big.svar\nRTPU      cpu0\nBACKEND   other\nEOF\n");
+    Master m(ws, {"--serve", "--listen", "--tcp", "127.0.0.1:0", "--http", "127.0.0.1:0", "--token", "tok"});
+    if (!m.stderr_has("web console of subsystem", 20000)) GTEST_SKIP() << "no web console here: " << m.err_text();
+    ASSERT_TRUE(m.stderr_has("/ (the page")) << m.err_text();
+    const auto at = m.err_text().find("TCP 127.0.0.1:");
+    ASSERT_NE(at, std::string::npos) << m.err_text();
+    const auto tcp_port = static_cast<std::uint16_t>(std::stoi(m.err_text().substr(at + 14)));
+
+    NetworkClient owner = connect(ws);
+    ASSERT_EQ(owner.request("token tok", 10000).value("ok", false), true);
+    const auto whole = owner.request("display all", 20000);
+    ASSERT_EQ(whole.value("ok", false), true) << whole.dump().substr(0, 300);
+    ASSERT_EQ(whole["data"]["vars"][0]["values"].size(), 300000u);
+    const std::size_t bytes = whole.dump(-1, ' ', false, nlohmann::json::error_handler_t::replace).size();
+    ASSERT_GT(bytes, 1048576u) << "the table is too small to test the bound";
+    owner.request("quit", 10000);
+    const nlohmann::json refusal = {
+        {"ok", false},
+        {"cmd", "display"},
+        {"error", "the reply to 'display all' is " + std::to_string(bytes) +
+                      " bytes, over the 1048576 (1 MiB) one reply to a network client may take, so none of it is "
+                      "sent; ask for less, e.g. display VAR... (names, or patterns such as Q*) rather than display all"}};
+
+    auto peer = NetworkClient::connect_tcp("127.0.0.1", tcp_port);
+    ASSERT_EQ(peer.request("token tok", 10000).value("ok", false), true);
+    EXPECT_EQ(peer.request("display all", 20000), refusal);
+    EXPECT_EQ(peer.request("display X", 10000)["data"]["vars"][0]["name"], "X") << "the session goes on";
+    peer.request("quit", 10000);
+
+    const int page = open_page("127.0.0.1", web_port(m));
+    ASSERT_GE(page, 0);
+    send_text(page, "token tok");
+    ASSERT_EQ(reply_to(page, "token").value("ok", false), true);
+    send_text(page, "display all");
+    EXPECT_EQ(reply_to(page, "display"), refusal);
+    send_text(page, "display X");
+    EXPECT_EQ(reply_to(page, "display")["data"]["vars"][0]["name"], "X") << "the page goes on";
+    ::close(page);
+
+    auto last = NetworkClient::connect_tcp("127.0.0.1", tcp_port);
+    ASSERT_EQ(last.request("token tok", 10000).value("ok", false), true);
+    last.request("finish", 10000);
+    EXPECT_EQ(m.wait(), 0) << m.err_text();
 }

@@ -1,8 +1,8 @@
 // The web console's scope stream (tools/sbs/scope_stream.hpp, issue 17.5)
 // against a ring written here: every sample sent once, in order, with its
-// number; at most `window` batches unacknowledged; the samples the ring
-// overwrote while the page did not acknowledge counted exactly, and the
-// numbers jumping by exactly that count; the writer's end sent once, last.
+// number; at most `window` batches, and the byte bound, unacknowledged; the
+// samples the ring overwrote while the page did not acknowledge counted
+// exactly, and the numbers jumping by exactly that count; the writer's end sent once, last.
 // No timing is asserted: the tests wait for what must come.
 #include <gtest/gtest.h>
 
@@ -130,6 +130,29 @@ TEST(ScopeStream, AtMostTheWindowUnacknowledgedThenMoreOnAck) {
     s.ack(99);  // a batch not sent yet is no acknowledgement
     std::this_thread::sleep_for(std::chrono::milliseconds(50));
     EXPECT_EQ(page.taken().size(), 5u);
+    s.stop();
+}
+
+// Issue #29.2: bytes bound what a page holds unacknowledged, whatever the
+// window: with a bound of 1 byte, one batch goes, then nothing until it is
+// acknowledged (a window of 1000 batches would let all ten go at once).
+TEST(ScopeStream, AtMostTheByteBoundUnacknowledgedThenMoreOnAck) {
+    const test::SegmentGuard cleanup(prefix());
+    const std::string name = unique_name("bytes");
+    sampler::RingWriter w = make_ring(name, 1024);
+    publish(w, 0, 100);
+    Page page;
+    ScopeSettings settings = fast(1000, 10);
+    settings.max_unacked_bytes = 1;
+    ScopeStream s("sample.8", name, page.sender(), settings);
+    s.start();
+    ASSERT_TRUE(page.wait([&] { return page.taken().size() == 1; }));
+    std::this_thread::sleep_for(std::chrono::milliseconds(50));  // 25 periods: nothing more may come
+    EXPECT_EQ(page.taken().size(), 1u);
+    s.ack(1);
+    ASSERT_TRUE(page.wait([&] { return page.taken().size() == 2; }));
+    std::this_thread::sleep_for(std::chrono::milliseconds(50));
+    EXPECT_EQ(page.taken().size(), 2u);
     s.stop();
 }
 

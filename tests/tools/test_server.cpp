@@ -5,6 +5,7 @@
 #include "client.hpp"
 #include "flood.hpp"
 #include "server.hpp"
+#include "token_back_off.hpp"
 
 #include <gtest/gtest.h>
 #include <cstring>
@@ -159,6 +160,46 @@ TEST(ParseRequest, EachLineIsACommandAKeepAliveOrMalformedWithTheReason) {
         EXPECT_TRUE(r.command.empty()) << b.line;
     }
     EXPECT_EQ(parse_request(R"({"id":3})").id, 3);  // echoed even in the error reply
+}
+
+// Issue #29.2: a reply of exactly kMaxClientReplyBytes goes as it is; one
+// byte more and the client gets a refusal naming the bound and its request
+// instead, with its id, and no part of the reply.
+TEST(ClientReply, AReplyPastTheBoundIsRefusedNamingItNeverCut) {
+    Reply r;
+    r.command = "display";
+    const std::size_t frame = to_json_line(r, 7).size();
+    r.text.assign(kMaxClientReplyBytes - frame, 'x');
+    ASSERT_EQ(to_json_line(r, 7).size(), kMaxClientReplyBytes);
+    EXPECT_EQ(to_client_line(r, 7, "display all"), to_json_line(r, 7));
+    r.text += 'x';
+    const json j = json::parse(to_client_line(r, 7, "display all"));
+    EXPECT_EQ(j, json({{"id", 7}, {"ok", false}, {"cmd", "display"},
+                       {"error", "the reply to 'display all' is 1048577 bytes, over the 1048576 (1 MiB) one reply "
+                                 "to a network client may take, so none of it is sent; ask for less, e.g. display "
+                                 "VAR... (names, or patterns such as Q*) rather than display all"}}));
+}
+
+// The back-off's rule without a clock: the waits double from 100 ms up to
+// 10 s; the owner's Unix socket ("") is never throttled; a first line that is
+// no token is refused without counting as a guess.
+TEST(TokenBackOff, WaitsDoubleToTheCapAndOnlyWrongTokensCount) {
+    EXPECT_EQ(TokenBackOff::after(1), 100ms);
+    EXPECT_EQ(TokenBackOff::after(2), 200ms);
+    EXPECT_EQ(TokenBackOff::after(7), 6400ms);
+    EXPECT_EQ(TokenBackOff::after(8), 10000ms);
+    EXPECT_EQ(TokenBackOff::after(40), 10000ms);
+    TokenBackOff b;
+    const auto wrong = b.judge("", "token guess", "tok");
+    ASSERT_TRUE(wrong.has_value());
+    EXPECT_EQ(wrong->error, "wrong token");
+    EXPECT_EQ(wrong->data, json({{"retry_after_ms", 0}}));
+    EXPECT_FALSE(b.judge("", "token tok", "tok").has_value()) << "the owner's socket waits for nothing";
+    const auto first = b.judge("10.0.0.1", "status", "tok");
+    ASSERT_TRUE(first.has_value());
+    EXPECT_EQ(first->error, "authenticate first: token TOKEN");
+    EXPECT_TRUE(first->data.is_null());
+    EXPECT_FALSE(b.judge("10.0.0.1", "token tok", "tok").has_value()) << "no token is no guess";
 }
 
 TEST_F(Network, UnixSocketIsOwnerOnly) {

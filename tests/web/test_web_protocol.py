@@ -63,15 +63,17 @@ def test_cross_site_websocket_is_refused(master):
 
 def test_wrong_or_missing_token_closes_the_socket(master):
     s = Socket(master.port)
-    r = s.authenticate("wrong")
-    assert not r["ok"] and r["error"] == "wrong token"
+    wrong = s.authenticate("wrong")
+    assert not wrong["ok"] and wrong["error"] == "wrong token"
+    assert wrong["data"] == {"retry_after_ms": 100}  # issue #29.3: this address now waits
     assert s.closed()
     s = Socket(master.port)
     s.send("status")
     r = s.recv()
     assert not r["ok"] and "authenticate first" in r["error"]
     assert s.closed()
-    # Still serving.
+    # Still serving, once the back-off (the condition itself) has passed.
+    time.sleep(wrong["data"]["retry_after_ms"] / 1000)
     assert page(master).request("status all")["ok"]
 
 

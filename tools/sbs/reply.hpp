@@ -43,6 +43,17 @@ nlohmann::json to_json(const Reply& reply, const nlohmann::json& id = nullptr);
 /// (invalid UTF-8 is replaced).
 std::string to_json_line(const Reply& reply, const nlohmann::json& id = nullptr);
 
+/// The most one reply to a network client (a TCP peer, a web page) may take,
+/// serialised (issue #29.2): a `display all` of a large table would otherwise
+/// be as big as the table. The owner's Unix socket and the prompt are not bounded.
+inline constexpr std::size_t kMaxClientReplyBytes = std::size_t{1} << 20;
+
+/// to_json_line() for a network client. A reply longer than
+/// kMaxClientReplyBytes is not sent, not even in part: a refusal naming the
+/// bound, `request` (the command as the client sent it) and how to ask for
+/// less takes its place. The command has run all the same.
+std::string to_client_line(const Reply& reply, const nlohmann::json& id, std::string_view request);
+
 /// The reply as a prompt shows it: the text, or "error: ..." for a failure.
 std::string to_text(const Reply& reply);
 

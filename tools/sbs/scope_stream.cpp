@@ -37,7 +37,11 @@ ScopeStream::~ScopeStream() { stop(); }
 void ScopeStream::ack(std::uint64_t batch) {
     {
         std::lock_guard lock(mu_);
-        if (batch > acked_ && batch <= sent_) acked_ = batch;
+        if (batch <= acked_ || batch > sent_) return;  // a batch not sent yet is no acknowledgement
+        for (; acked_ < batch; ++acked_) {
+            unacked_bytes_ -= unacked_sizes_.front();
+            unacked_sizes_.pop_front();
+        }
     }
     wake_.notify_all();
 }
@@ -57,7 +61,7 @@ void ScopeStream::run() {
     std::unique_lock lock(mu_);
     while (!stopping_) {
         // Send while the page keeps up, then sleep a period (or until an ack).
-        while (!stopping_ && sent_ - acked_ < settings_.window) {
+        while (!stopping_ && sent_ - acked_ < settings_.window && unacked_bytes_ < settings_.max_unacked_bytes) {
             lock.unlock();
             const bool sent = send_batch();
             lock.lock();
@@ -98,6 +102,8 @@ bool ScopeStream::send_batch() {
     {
         std::lock_guard lock(mu_);
         ++sent_;
+        unacked_sizes_.push_back(text.size());
+        unacked_bytes_ += text.size();
     }
     send_(text);
     return !closing;

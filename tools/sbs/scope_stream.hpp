@@ -5,11 +5,12 @@
 //
 // Flow control is the page's: each batch carries a number, the page
 // acknowledges the batches it has drawn (`scope ack N`), and at most
-// `window` batches are unacknowledged. A page that falls behind (a busy
-// browser buffers WebSocket messages without limit, so TCP would never say
-// so) stops the reading; the ring laps this reader and the samples it
-// overwrote are counted (RingReader's exact count) and reported in the next
-// batch. Every sample reaches the page once, in order, or is counted lost.
+// `window` batches, and max_unacked_bytes plus one batch, are
+// unacknowledged. A page that falls behind (a busy browser buffers WebSocket
+// messages without limit, so TCP would never say so) stops the reading; the
+// ring laps this reader and the samples it overwrote are counted
+// (RingReader's exact count) and reported in the next batch. Every sample
+// reaches the page once, in order, or is counted lost.
 #pragma once
 
 #include <chimera/sampler.hpp>
@@ -18,6 +19,7 @@
 #include <chrono>
 #include <condition_variable>
 #include <cstdint>
+#include <deque>
 #include <functional>
 #include <mutex>
 #include <string>
@@ -31,6 +33,9 @@ struct ScopeSettings {
     std::uint64_t window = 8;              ///< batches sent and not yet acknowledged
     std::size_t max_batch = 4096;          ///< samples per batch
     std::size_t max_values = 65536;        ///< samples x channels per batch (about 1.5 MB of JSON)
+    /// A batch is sent only while fewer bytes than this are unacknowledged,
+    /// so a page holds at most this plus one batch (issue #29.2).
+    std::size_t max_unacked_bytes = std::size_t{4} << 20;
 };
 
 /// Follows one ring and sends its samples as {"stream":"scope","data":{...}}
@@ -88,6 +93,8 @@ private:
     std::mutex mu_;
     std::condition_variable wake_;
     std::uint64_t acked_ = 0;
+    std::deque<std::size_t> unacked_sizes_;  // batches acked_+1 .. sent_, in bytes
+    std::size_t unacked_bytes_ = 0;
     bool stopping_ = false;
     std::thread thread_;
 };

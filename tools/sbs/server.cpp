@@ -21,6 +21,7 @@
 #include <cstdlib>
 #include <cstring>
 #include <memory>
+#include <optional>
 
 namespace chimera::cli {
 
@@ -158,29 +159,18 @@ constexpr std::size_t kMaxPending = 512;
 // ... and from one source address: a flooder churns its own slots only, so
 // another address always finds one (issue #29.3).
 constexpr std::size_t kMaxPendingPerSource = 4;
-// Wrong tokens from one address: the n-th makes that address wait
-// kFirstBackOff * 2^(n-1), at most kMaxBackOff, before a token is judged again.
-constexpr std::chrono::milliseconds kFirstBackOff{100};
-constexpr std::chrono::milliseconds kMaxBackOff{10000};
-// Addresses remembered at most; the map is cleared of expired entries first.
-constexpr std::size_t kMaxThrottled = 4096;
 
-// "127.0.0.2" for a TCP peer; "" when the address cannot be read.
+// "127.0.0.2" for a TCP peer. Never "": that is the owner's Unix socket,
+// which no TCP bound applies to.
 std::string peer_address(int fd) {
     sockaddr_storage ss{};
     socklen_t len = sizeof ss;
-    if (::getpeername(fd, reinterpret_cast<sockaddr*>(&ss), &len) != 0) return {};
+    if (::getpeername(fd, reinterpret_cast<sockaddr*>(&ss), &len) != 0) return "(unknown address)";
     char text[INET6_ADDRSTRLEN] = {};
     const void* addr = ss.ss_family == AF_INET6 ? static_cast<const void*>(&reinterpret_cast<sockaddr_in6&>(ss).sin6_addr)
                                                 : static_cast<const void*>(&reinterpret_cast<sockaddr_in&>(ss).sin_addr);
-    if (::inet_ntop(ss.ss_family, addr, text, sizeof text) == nullptr) return {};
+    if (::inet_ntop(ss.ss_family, addr, text, sizeof text) == nullptr) return "(unknown address)";
     return text;
-}
-
-std::chrono::milliseconds back_off_after(unsigned failures) {
-    const unsigned doublings = failures > 0 ? failures - 1 : 0;
-    if (doublings >= 10) return kMaxBackOff;
-    return std::min(kMaxBackOff, kFirstBackOff * (1 << doublings));
 }
 
 }  // namespace
@@ -554,31 +544,6 @@ void NetworkServer::evict_oldest_from(const std::string& source, const std::stri
     pending_.erase(it);
 }
 
-// While an address is backing off after a wrong token, its tokens are not
-// judged at all, the right one included: a guesser gets one try per back-off
-// however many connections it opens, and the server thread never sleeps.
-std::string NetworkServer::refuse_while_throttled(const std::string& source) {
-    const auto it = throttle_.find(source);
-    if (source.empty() || it == throttle_.end()) return {};
-    const auto left = std::chrono::duration_cast<std::chrono::milliseconds>(it->second.retry_at -
-                                                                            std::chrono::steady_clock::now());
-    if (left.count() <= 0) return {};
-    return "too many wrong tokens from " + source + ": retry after " + std::to_string(left.count() + 1) + " ms";
-}
-
-std::chrono::milliseconds NetworkServer::note_wrong_token(const std::string& source) {
-    if (source.empty()) return std::chrono::milliseconds(0);  // the owner's Unix socket
-    const auto now = std::chrono::steady_clock::now();
-    if (throttle_.size() >= kMaxThrottled)
-        std::erase_if(throttle_, [&](const auto& e) { return e.second.retry_at + kMaxBackOff < now; });
-    if (throttle_.size() >= kMaxThrottled && !throttle_.contains(source)) return kMaxBackOff;  // full: not remembered
-    Throttle& t = throttle_[source];
-    ++t.failures;
-    const auto wait = back_off_after(t.failures);
-    t.retry_at = now + wait;
-    return wait;
-}
-
 std::string NetworkServer::claim_locked() {
     if (session_active_) return "another network peer has control of subsystem " + options_.subsystem;
     if (!offered_)
@@ -799,7 +764,9 @@ bool NetworkServer::handle_line(Peer& peer, std::string_view line) {
     if (reply.action == Action::network) {
         reply = Reply::failure(reply.command, "the network already has control");
     }
-    if (!send_line(peer.fd, to_json_line(reply, id))) {
+    // Bounded for TCP peers; the owner's Unix socket (no source) gets it all.
+    const std::string out = peer.source.empty() ? to_json_line(reply, id) : to_client_line(reply, id, command);
+    if (!send_line(peer.fd, out)) {
         peer.end = SessionEnd::peer_lost;
         return false;
     }
@@ -817,20 +784,11 @@ bool NetworkServer::handle_line(Peer& peer, std::string_view line) {
 bool NetworkServer::authenticate(Peer& peer, std::string_view command, const nlohmann::json& id) {
     // The first request must carry the token; anything else ends the
     // connection so a guesser gets one try per connection.
-    const bool is_token = command.substr(0, 6) == "token ";
-    if (const std::string refusal = refuse_while_throttled(peer.source); is_token && !refusal.empty()) {
-        send_line(peer.fd, to_json_line(Reply::failure("token", refusal), id));
+    if (std::optional<Reply> refused = back_off_.judge(peer.source, command, options_.token)) {
+        send_line(peer.fd, to_json_line(*refused, id));
         peer.end = SessionEnd::peer_lost;
         return false;
     }
-    if (!is_token || !same_token(command.substr(6), options_.token)) {
-        Reply refused = Reply::failure("token", is_token ? "wrong token" : "authenticate first: token TOKEN");
-        if (is_token) refused.data = {{"retry_after_ms", note_wrong_token(peer.source).count()}};
-        send_line(peer.fd, to_json_line(refused, id));
-        peer.end = SessionEnd::peer_lost;
-        return false;
-    }
-    throttle_.erase(peer.source);  // the right token: that address starts afresh
     peer.authenticated = true;
     if (!take_control(peer)) {
         peer.end = SessionEnd::peer_lost;

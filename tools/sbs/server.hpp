@@ -13,6 +13,7 @@
 #pragma once
 
 #include "reply.hpp"
+#include "token_back_off.hpp"
 
 #include <atomic>
 #include <chrono>
@@ -124,6 +125,11 @@ public:
     /// `network`): the holder is to release it with SessionEnd::interrupted.
     bool control_wanted_back() const;
 
+    /// Wrong tokens per source address: the web console judges its pages'
+    /// tokens with this one too, so an address guessing the one token has one
+    /// back-off whichever door it knocks at.
+    TokenBackOff& token_back_off() noexcept { return back_off_; }
+
     /// Number of sessions that have ended so far (for tests and the prompt).
     std::uint64_t sessions_ended() const;
 
@@ -134,8 +140,6 @@ private:
     void admit(int fd, bool needs_token, std::string source);
     void make_room_for(const std::string& source);
     void evict_oldest_from(const std::string& source, const std::string& why);
-    std::string refuse_while_throttled(const std::string& source);  // "" or the refusal
-    std::chrono::milliseconds note_wrong_token(const std::string& source);
     bool take_control(Peer& peer);   // false: refused, the peer is to be closed
     std::string claim_locked();      // mutex_ held: "" and the session is on, or the refusal
     void close_peer(Peer& peer, SessionEnd why);
@@ -166,11 +170,7 @@ private:
     // and are closed at their deadline, so an idle connection blocks nobody.
     std::vector<std::unique_ptr<Peer>> pending_;
     // Wrong tokens per TCP source address, to slow a guesser down (issue #29.3).
-    struct Throttle {
-        unsigned failures = 0;
-        std::chrono::steady_clock::time_point retry_at;  // no token is judged before
-    };
-    std::map<std::string, Throttle> throttle_;
+    TokenBackOff back_off_;
 
     mutable std::mutex mutex_;
     std::condition_variable changed_;

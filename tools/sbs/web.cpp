@@ -19,6 +19,7 @@
 #include <future>
 #include <map>
 #include <mutex>
+#include <optional>
 #include <sstream>
 #include <thread>
 #include <vector>
@@ -146,6 +147,7 @@ struct Page {
     bool discarding = false;    // inside an oversized message
     std::string partial;        // a fragmented message so far
     std::chrono::steady_clock::time_point deadline;
+    std::string source;         // the browser's address, as the gate saw it
     // The page's scope (issue 17.5): its own sampler task and the thread that
     // streams its ring. Touched only by this connection's civetweb thread.
     std::unique_ptr<ScopeStream> scope;
@@ -254,6 +256,9 @@ void WebConsole::Impl::ready(mg_connection* conn) {
     auto page = std::make_unique<Page>();
     page->conn = conn;
     page->deadline = std::chrono::steady_clock::now() + o.auth_timeout;
+    // Never "" (the unthrottled Unix socket's): a page the gate no longer relays is about to close anyway.
+    page->source = gate->source_of(static_cast<std::uint16_t>(mg_get_request_info(conn)->remote_port));
+    if (page->source.empty()) page->source = "(unknown address)";
     nlohmann::json hello = {{"ok", true},           {"cmd", "hello"},
                             {"protocol", 1},        {"subsystem", o.subsystem},
                             {"pid", ::getpid()},    {"auth", "token"},
@@ -316,12 +321,10 @@ bool WebConsole::Impl::handle_message(Page& page, std::string_view line) {
         return page.authenticated;  // before the token, any bad line ends it
     }
     if (!page.authenticated) {
-        const bool is_token = request.command.substr(0, 6) == "token ";
-        if (!is_token || !same_token(std::string_view(request.command).substr(6), o.token)) {
-            write(page.conn, to_json_line(Reply::failure("token", is_token ? "wrong token"
-                                                                           : "authenticate first: token TOKEN"),
-                                          request.id));
-            return false;
+        // The TCP server's back-off: one per address for both doors (issue #29.3).
+        if (std::optional<Reply> refused = control.token_back_off().judge(page.source, request.command, o.token)) {
+            write(page.conn, to_json_line(*refused, request.id));
+            return false;  // one try per page
         }
         std::string graph_now;
         {
@@ -336,7 +339,7 @@ bool WebConsole::Impl::handle_message(Page& page, std::string_view line) {
         return true;
     }
     const Reply reply = run_command(page, request.command);
-    write(page.conn, to_json_line(reply, request.id));
+    write(page.conn, to_client_line(reply, request.id, request.command));
     if (page.scope) page.scope->start();  // a new scope streams after its reply
     {
         std::lock_guard lock(mu);
@@ -616,8 +619,6 @@ void WebConsole::start() {
     mg_init_library(0);
     im.ctx = mg_start(&callbacks, nullptr, opts);
     if (im.ctx == nullptr) throw ServerError("--http: cannot listen on " + listen);
-    mg_set_request_handler(im.ctx, "/", on_http, &im);
-    mg_set_websocket_handler(im.ctx, "/ws", on_ws_connect, on_ws_ready, on_ws_data, on_ws_close, &im);
     mg_server_port ports[4]{};
     if (mg_get_server_ports(im.ctx, 4, ports) <= 0) throw ServerError("--http: civetweb has no port");
     GateOptions gate;
@@ -626,6 +627,10 @@ void WebConsole::start() {
     gate.backend_port = static_cast<std::uint16_t>(ports[0].port);
     gate.head_timeout = im.o.auth_timeout;
     im.gate = std::make_unique<WebGate>(gate);
+    // The handlers only now: a page (even one dialling civetweb's port
+    // directly) finds the gate to ask for its address.
+    mg_set_request_handler(im.ctx, "/", on_http, &im);
+    mg_set_websocket_handler(im.ctx, "/ws", on_ws_connect, on_ws_ready, on_ws_data, on_ws_close, &im);
     im.gate->start();
     port_ = im.gate->port();
     im.ticker = std::thread([&im] { im.run_ticker(); });

@@ -18,6 +18,7 @@
 #include <cerrno>
 #include <cstring>
 #include <map>
+#include <mutex>
 #include <vector>
 
 namespace chimera::cli {
@@ -62,11 +63,18 @@ int connect_backend(std::uint16_t port) {
     return fd;
 }
 
+std::uint16_t local_port(int fd) {
+    sockaddr_in self{};
+    socklen_t len = sizeof self;
+    return ::getsockname(fd, reinterpret_cast<sockaddr*>(&self), &len) == 0 ? ntohs(self.sin_port) : 0;
+}
+
 }  // namespace
 
 struct Conn {
     int client = -1;
     int backend = -1;  // >= 0 once the head has come and is relayed
+    std::uint16_t relay_port = 0;  // backend's local port, while relayed
     std::string source;
     std::string head;  // what came before the head ended
     std::chrono::steady_clock::time_point deadline;
@@ -82,6 +90,9 @@ struct WebGate::Impl {
     std::thread thread;
     std::atomic<bool> stopping{false};
     std::vector<std::unique_ptr<Conn>> conns;  // in arrival order
+    // Relayed connections' sources by relay port, for civetweb's threads.
+    mutable std::mutex sources_mu;
+    std::map<std::uint16_t, std::string> sources;
 
     void run();
     void accept_all();
@@ -101,6 +112,11 @@ std::size_t WebGate::Impl::count(const std::string& source, bool relayed) const 
 }
 
 void WebGate::Impl::close(Conn& c) {
+    if (c.relay_port != 0) {
+        std::lock_guard lock(sources_mu);
+        sources.erase(c.relay_port);
+        c.relay_port = 0;
+    }
     if (c.client >= 0) ::close(c.client);
     if (c.backend >= 0) ::close(c.backend);
     c.client = c.backend = -1;
@@ -184,6 +200,11 @@ void WebGate::Impl::promote(Conn& c) {
     if (c.backend < 0) {
         refuse(c.client, "503 Service Unavailable", "the web console is not answering");
         return close(c);
+    }
+    c.relay_port = local_port(c.backend);  // before civetweb can see the head
+    if (c.relay_port != 0) {
+        std::lock_guard lock(sources_mu);
+        sources[c.relay_port] = c.source;
     }
     c.to_backend = std::move(c.head);
     c.head.clear();
@@ -296,6 +317,12 @@ WebGate::~WebGate() {
     stop();
     if (impl_->listen_fd >= 0) ::close(impl_->listen_fd);
     if (impl_->wake_fd >= 0) ::close(impl_->wake_fd);
+}
+
+std::string WebGate::source_of(std::uint16_t relay_port) const {
+    std::lock_guard lock(impl_->sources_mu);
+    const auto it = impl_->sources.find(relay_port);
+    return it == impl_->sources.end() ? std::string() : it->second;
 }
 
 void WebGate::start() {

@@ -38,6 +38,11 @@ public:
     void start();
     void stop();
     std::uint16_t port() const noexcept { return port_; }
+    /// The public address of the client whose request the gate relays from
+    /// its local port `relay_port` (the remote port civetweb sees), while it
+    /// relays it; "" otherwise. civetweb sees every page come from 127.0.0.1,
+    /// so this is how the console bounds a page's address (wrong tokens).
+    std::string source_of(std::uint16_t relay_port) const;
 
     struct Impl;
 
