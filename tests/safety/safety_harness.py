@@ -34,6 +34,8 @@ TASKS = ("puma_safe", "jtraj", "jpid", "grav_comp")
 # The limits puma_safe.rmod declares.
 VLIMIT = np.array([1, 1, 1, 2, 2, 2], dtype=float)
 TLIMIT = np.array([97.6, 186.4, 89.4, 24.2, 20.1, 21.3])
+TRATE = np.array([1000, 2000, 1000, 200, 200, 200], dtype=float)
+PERIOD = 0.002  # the robot interface's (FREQ 500)
 
 # The stall detector's wake-up later than this (the robot interface's 2 ms
 # period) means the machine stopped the arm too (StallDetector says how).
@@ -59,35 +61,49 @@ def sbs_source(name):
 
 
 class Arm:
-    """One `sbs` master running the arm under `safety<tag><pid>`."""
+    """One `sbs` master running the arm under `safety<tag><pid>`. SOURCE(name)
+    gives another .sbs than the arm's (TASKS its tasks), PREFIX a command it
+    runs under (ip netns exec), ENV more of its environment; WEB=False serves
+    the Unix socket only (TCP and HTTP inside a network namespace would be out
+    of this process's reach)."""
 
-    def __init__(self, tag, before_start=None):
+    def __init__(self, tag, before_start=None, source=sbs_source, tasks=TASKS, prefix=(), env=None, web=True):
         self.name = "safety%s%d" % (tag, os.getpid())
+        self.tasks = tasks
+        self.prefix = list(prefix)
+        self.web = web
         self.dir = tempfile.mkdtemp(prefix="chimera-%s-" % self.name)
         os.chmod(self.dir, 0o700)
         self.sbs = os.path.join(self.dir, self.name + ".sbs")
         with open(self.sbs, "w") as f:
-            f.write(sbs_source(self.name))
+            f.write(source(self.name))
         shutil.copy(os.path.join(HERE, "puma_safe.rmod"), self.dir)  # found beside the .sbs
         self.token_file = os.path.join(self.dir, "token")
         with open(self.token_file, "w") as f:
             f.write(TOKEN + "\n")
         os.chmod(self.token_file, 0o600)
-        self.env = dict(os.environ, XDG_RUNTIME_DIR=self.dir)
+        self.env = dict(os.environ, XDG_RUNTIME_DIR=self.dir, **(env or {}))
         self.socket = os.path.join(self.dir, "chimera", self.name + ".sock")
         self.log_path = os.path.join(self.dir, "sbs.log")
         if before_start:
             before_start(self)
-        self.start()
+        try:
+            self.start()
+        except BaseException:
+            self.stop()  # a master that never came up must not stay behind
+            raise
 
     def start(self):
         self.log = open(self.log_path, "a")
+        web = ["--tcp", "127.0.0.1:0", "--http", "127.0.0.1:0", "--token-file", self.token_file] if self.web else []
         self.proc = subprocess.Popen(
-            [SBS, self.sbs, "--listen", "--tcp", "127.0.0.1:0", "--http", "127.0.0.1:0",
-             "--token-file", self.token_file, "--serve", "--no-attach"],
+            self.prefix + [SBS, self.sbs, "--listen"] + web + ["--serve", "--no-attach"],
             stdin=subprocess.DEVNULL, stdout=self.log, stderr=self.log, env=self.env)
-        self.tcp_port = int(self.wait_log(r"listening on .*TCP 127\.0\.0\.1:(\d+)").group(1))
-        self.http_port = int(self.wait_log(r"web console of subsystem \S+ on http://127\.0\.0\.1:(\d+)/").group(1))
+        if self.web:
+            self.tcp_port = int(self.wait_log(r"listening on .*TCP 127\.0\.0\.1:(\d+)").group(1))
+            self.http_port = int(self.wait_log(r"web console of subsystem \S+ on http://127\.0\.0\.1:(\d+)/").group(1))
+        else:
+            self.wait_log(r"subsystem \S+ listening on ")
         self.wait_on()
 
     def log_text(self):
@@ -112,7 +128,7 @@ class Arm:
         deadline = time.time() + timeout
         while time.time() < deadline:
             with self.master() as m:
-                if all(self.row(m, t)["state"] == "ON" for t in TASKS):
+                if all(self.row(m, t)["state"] == "ON" for t in self.tasks):
                     return
             time.sleep(0.1)
         raise RuntimeError("the arm's tasks did not all turn ON")
@@ -122,9 +138,9 @@ class Arm:
         return next(t for t in m.status() if t["rmod"] == rmod)
 
     def misses(self):
-        """Missed releases, summed over the arm's four tasks."""
+        """Missed releases, summed over the arm's tasks."""
         with self.master() as m:
-            return sum(int(self.row(m, t)["miss"]) for t in TASKS)
+            return sum(int(self.row(m, t)["miss"]) for t in self.tasks)
 
     def stop(self):
         """Finishes the master (as the operator would) and removes the folder."""
@@ -202,7 +218,15 @@ class StallDetector:
 
 
 class Measurement:
-    """Peaks of |Q^_MEZ| and |T_MEZ| per joint, the sample rate, the misses."""
+    """Peaks of |Q^_MEZ| and |T_MEZ| per joint, of the torque rate, the
+    sample rate, the misses. The sampler runs on the arm's RTPU at its rate,
+    released with it: between two samples n periods apart (by the sampler's
+    cycle count or the time, whichever says more) at most n + 1 of the
+    arm's cycles ran, whatever the two tasks' order, each changing the
+    torque by at most TRATE x period; the torque rate of the two samples is
+    |dT| / ((n + 1) x period), which never reads above TRATE while the limit
+    holds (at the limit it reads TRATE / 2 when each sample follows one
+    cycle, as measured)."""
 
     def __init__(self, rec, misses, seconds, stall):
         self.samples = len(rec)
@@ -210,17 +234,30 @@ class Measurement:
         self.lost = rec.lost
         self.peak_speed = np.abs(rec["Q^_MEZ"]).max(axis=0) if self.samples else np.full(6, np.nan)
         self.peak_torque = np.abs(rec["T_MEZ"]).max(axis=0) if self.samples else np.full(6, np.nan)
+        if self.samples > 1:
+            periods = np.maximum(np.diff(np.asarray(rec.cycle, dtype=float)),
+                                 np.round(np.diff(np.asarray(rec.time_ns, dtype=float)) * 1e-9 / PERIOD))
+            self.peak_trate = (np.abs(np.diff(rec["T_MEZ"], axis=0)) / ((periods + 1) * PERIOD)[:, None]).max(axis=0)
+        else:
+            self.peak_trate = np.full(6, np.nan)
         self.misses = misses
         self.stall = stall
+        # With T_REF sampled (the robot's torque command as its bridge wrote
+        # it): the largest change between two samples, per joint.
+        self.peak_tref_step = (np.abs(np.diff(rec["T_REF"], axis=0)).max(axis=0)
+                               if "T_REF" in rec.variables and self.samples > 1 else None)
 
     def __str__(self):
-        return ("%d samples (%.0f Hz, %d lost), peak speed %s rad/s, peak torque %s N m, misses %d, "
-                "stall detector %.2f ms" % (self.samples, self.rate, self.lost, np.round(self.peak_speed, 3),
-                                             np.round(self.peak_torque, 1), self.misses, self.stall * 1e3))
+        return ("%d samples (%.0f Hz, %d lost), peak speed %s rad/s, peak torque %s N m, peak torque rate %s N m/s, "
+                "misses %d, stall detector %.2f ms" % (self.samples, self.rate, self.lost, np.round(self.peak_speed, 3),
+                                                       np.round(self.peak_torque, 1), np.round(self.peak_trate, 0),
+                                                       self.misses, self.stall * 1e3) +
+                ("" if self.peak_tref_step is None else ", peak T_REF step %s N m" % np.round(self.peak_tref_step, 1)))
 
 
-def measure(arm, seconds, inject=None):
-    """Samples the arm for SECONDS while INJECT(arm, stop_event) runs in a thread."""
+def measure(arm, seconds, inject=None, extra=()):
+    """Samples the arm for SECONDS while INJECT(arm, stop_event) runs in a
+    thread (EXTRA: variables sampled beside Q^_MEZ and T_MEZ)."""
     stall = StallDetector()
     stall.start()
     misses0 = arm.misses()
@@ -237,7 +274,7 @@ def measure(arm, seconds, inject=None):
     # The master's connection is held only to start and to kill the sampler:
     # its control slot is one for all interfaces, and injections need it.
     with arm.master() as m:
-        started = m.sample(["Q^_MEZ", "T_MEZ"], rtpu="robot")
+        started = m.sample(["Q^_MEZ", "T_MEZ"] + list(extra), rtpu="robot")
     ring = chimera.Ring.attach(started["ring"])
     if thread:
         thread.start()
@@ -262,3 +299,146 @@ def measure(arm, seconds, inject=None):
 def read_ring(ring):
     time_ns, cycle, values, lost = ring.read(None)
     return chimera.Recording(list(ring.channels), time_ns, cycle, values, lost, float(ring.rate))
+
+
+# ------------------------------------------------------------------ the arm over DDS
+
+EXAMPLE = os.path.join(HERE, "..", "..", "examples", "two_machines")
+ROBOT_TASKS = ("puma_safe", "robot_bridge")
+CTRL_TASKS = ("jtraj_hold", "jpid_hold", "controller_bridge")
+TORQUE_TOPIC = "rt/puma/joint_torques"
+
+
+class NetnsPair:
+    """Two network namespaces joined by a veth pair (scripts/netns_pair.sh,
+    as tests/ddsbridge/test_two_machines.sh makes them): nothing in them but
+    loopback and an end of the pair, so no DDS traffic leaves them, and the
+    link can be cut. `reason` says why not, when they cannot be made."""
+
+    def __init__(self):
+        script = os.path.join(HERE, "..", "..", "scripts", "netns_pair.sh")
+        self.names = []
+        self.reason = None
+        if os.geteuid() != 0:
+            self.reason = "network namespaces need CAP_NET_ADMIN (run as root)"
+            return
+        # The pair's names carry this shell's pid; 10.223.0/30 lives only inside them.
+        r = subprocess.run(["bash", "-c", '. "$0" && netns_pair_up sf 10.223.0 && echo "$NETNS_A $NETNS_B $VETH_A $VETH_B"',
+                            script], capture_output=True, text=True)
+        if r.returncode != 0:
+            self.reason = "cannot create a network namespace: " + r.stderr.strip()
+            return
+        self.ns_a, self.ns_b, self.veth_a, self.veth_b = r.stdout.split()
+        self.names = [self.ns_a, self.ns_b]
+
+    def link(self, up):
+        subprocess.run(["ip", "-n", self.ns_a, "link", "set", self.veth_a, "up" if up else "down"], check=True)
+
+    def down(self):
+        for ns in self.names:
+            subprocess.run(["ip", "netns", "del", ns], stderr=subprocess.DEVNULL)
+
+    def left(self):
+        """Those of the pair's namespaces that still exist."""
+        listed = subprocess.run(["ip", "netns", "list"], capture_output=True, text=True).stdout
+        return [ns for ns in self.names if re.search(r"(?m)^%s\b" % re.escape(ns), listed)]
+
+
+def dds_sbs_source(side, rtpu, cpu, tasks):
+    """An .sbs of one side of examples/two_machines (its table) under the
+    suite's name, its RTPU on CPU, TASKS spawned ON."""
+    def source(name):
+        return ("SUBSYSTEM %s\nSVARFILE  %s\nMASTER    %s\n\nRTPU      %s %d\nSCHEDULER RM\nERRPRINT  warnings\n"
+                "MINFREQ   1.0\nMAXFREQ   1000.0\n%sEOF\n" % (
+                    name, os.path.abspath(os.path.join(EXAMPLE, "two_machines.svar")), rtpu, rtpu, cpu,
+                    "".join("TASK %s %s ON\n" % (t, rtpu) for t in tasks)))
+    return source
+
+
+def bridge_rmod(side, domain, extra=""):
+    """A before_start that writes examples/two_machines' SIDE_bridge.rmod beside
+    the .sbs on this run's DDS domain (and copies the .rmod files the side's
+    tasks need)."""
+    def write(arm):
+        text = open(os.path.join(EXAMPLE, side + "_bridge.rmod")).read()
+        text = re.sub(r"(?m)^DOMAIN .*", "DOMAIN    %d" % domain, text)
+        text = re.sub(r"(?m)^CONFIG .*", "CONFIG    " + os.path.abspath(os.path.join(EXAMPLE, "cyclone.xml")), text)
+        text = text.replace("\nEOF", "\n" + extra + "EOF") if extra else text
+        with open(os.path.join(arm.dir, side + "_bridge.rmod"), "w") as f:
+            f.write(text)
+        for r in ("jtraj_hold.rmod", "jpid_hold.rmod"):
+            shutil.copy(os.path.join(EXAMPLE, r), arm.dir)
+    return write
+
+
+def port_status(status, port):
+    """The counts of PORT's line of a bridge's `get STATUS` (name -> int or
+    'yes'/'no')."""
+    m = re.search(r"(?m)^%s (counter .*)$" % re.escape(port), status)
+    if not m:
+        return {}
+    words = m.group(1).split()
+    return {k: (int(v) if re.fullmatch(r"\d+", v) else v) for k, v in zip(words[::2], words[1::2])}
+
+
+class DdsArm:
+    """The arm split over DDS as in examples/two_machines: the robot subsystem
+    (puma_safe, the declared limits, and the robot's bridge: torques in, stale
+    after 50 ms -> illegal configuration, the arm holds; a torque command must
+    name every joint, JOINT_SUBSET refuse) in one network namespace, the
+    controller (jtraj_hold, jpid_hold: STALE hold, and its bridge) in the
+    other, on a DDS domain id of this run. measure() samples the robot side;
+    misses() sums both subsystems' tasks."""
+
+    def __init__(self, pair):
+        self.pair = pair
+        self.domain = 1 + os.getpid() % 230  # ports of domain 230: 64900..
+        ctrl_cpu, robot_cpu = allowed_cpus()
+        self.robot = self.ctrl = None
+        try:
+            self.robot = Arm("dr", bridge_rmod("robot", self.domain, "JOINT_SUBSET refuse\n"),
+                             source=dds_sbs_source("robot", "robot", robot_cpu, ROBOT_TASKS), tasks=ROBOT_TASKS,
+                             prefix=["ip", "netns", "exec", pair.ns_a], env={"CHIMERA_DDS_INTERFACE": pair.veth_a},
+                             web=False)
+            self.ctrl = Arm("dc", bridge_rmod("controller", self.domain),
+                            source=dds_sbs_source("controller", "ctrl", ctrl_cpu, CTRL_TASKS), tasks=CTRL_TASKS,
+                            prefix=["ip", "netns", "exec", pair.ns_b], env={"CHIMERA_DDS_INTERFACE": pair.veth_b},
+                            web=False)
+            self.wait_fresh(10)
+        except BaseException:
+            self.stop()
+            raise
+        self.names = [self.robot.name, self.ctrl.name]
+
+    def master(self):
+        return self.robot.master()
+
+    def misses(self):
+        return self.robot.misses() + self.ctrl.misses()
+
+    def status(self):
+        """(robot's T_REF, controller's Q_MEZ) port counts."""
+        with self.robot.master() as m:
+            robot = port_status(m.get("robot_bridge", "STATUS"), "T_REF")
+        with self.ctrl.master() as m:
+            ctrl = port_status(m.get("controller_bridge", "STATUS"), "Q_MEZ")
+        return robot, ctrl
+
+    def fresh(self):
+        robot, ctrl = self.status()
+        return robot.get("stale") == "no" and ctrl.get("stale") == "no"
+
+    def wait_fresh(self, timeout):
+        """Seconds until both sides have fresh data, None after TIMEOUT."""
+        start = time.monotonic()
+        while time.monotonic() - start < timeout:
+            if self.fresh():
+                return time.monotonic() - start
+            time.sleep(0.02)
+        return None
+
+    def stop(self):
+        """Both masters finished, the namespaces deleted; the masters' exit codes."""
+        codes = [a.stop() for a in (self.robot, self.ctrl) if a]
+        self.pair.down()
+        return codes
