@@ -23,6 +23,8 @@
 #include <iterator>
 #include <optional>
 #include <regex>
+#include <set>
+#include <sstream>
 #include <thread>
 
 using chimera::cli::ClientError;
@@ -846,6 +848,33 @@ flood_test::Attempt operator_over_http(std::uint16_t port) {
     return a;
 }
 
+/// The TCP ports on which process `pid` listens, as this process's network
+/// namespace sees them: its listening sockets' inodes looked up in
+/// /proc/net/tcp and tcp6 (a socket in another namespace is not there).
+std::set<std::uint16_t> listening_ports_seen_here(pid_t pid) {
+    std::set<std::string> inodes;
+    const std::string fd_dir = "/proc/" + std::to_string(pid) + "/fd";
+    for (const auto& e : std::filesystem::directory_iterator(fd_dir)) {
+        std::error_code ec;
+        const std::string target = std::filesystem::read_symlink(e.path(), ec).string();
+        if (!ec && target.rfind("socket:[", 0) == 0) inodes.insert(target.substr(8, target.size() - 9));
+    }
+    std::set<std::uint16_t> ports;
+    for (const char* table : {"/proc/net/tcp", "/proc/net/tcp6"}) {
+        std::ifstream in(table);
+        std::string line;
+        std::getline(in, line);  // the heading
+        while (std::getline(in, line)) {
+            std::istringstream f(line);
+            std::string slot, local, remote, state, queues, timer, retr, uid, timeout, inode;
+            f >> slot >> local >> remote >> state >> queues >> timer >> retr >> uid >> timeout >> inode;
+            if (state == "0A" && inodes.count(inode))  // 0A: LISTEN
+                ports.insert(static_cast<std::uint16_t>(std::stoul(local.substr(local.find(':') + 1), nullptr, 16)));
+        }
+    }
+    return ports;
+}
+
 }  // namespace
 
 // Two threads from 127.0.0.2 connect to the web console every 2 ms each for
@@ -966,4 +995,23 @@ TEST(SbsNetwork, AReplyPastOneMiBIsRefusedToNetworkClientsNeverCut) {
     ASSERT_EQ(last.request("token tok", 10000).value("ok", false), true);
     last.request("finish", 10000);
     EXPECT_EQ(m.wait(), 0) << m.err_text();
+}
+
+// Issue #29.3: a civetweb worker is reached only through the gate. Where the
+// master may make a network namespace (root), civetweb's own port is in one
+// of its own: of the master's listening sockets, this machine's namespace
+// sees the console's public port alone, so no local user can dial civetweb
+// and hold its workers with idle sockets past the gate's bounds. The gate
+// still relays into it: the operator's page gets control.
+TEST(SbsNetwork, CivetwebsOwnPortIsOutOfEveryOtherProcesssReach) {
+    if (::geteuid() != 0) GTEST_SKIP() << "a network namespace needs root: not run as root";
+    Workspace ws;
+    Master m(ws, {"--serve", "--http", "127.0.0.1:0", "--token", "tok"});
+    if (!m.stderr_has("web console of subsystem", 20000)) GTEST_SKIP() << "no web console here: " << m.err_text();
+    ASSERT_TRUE(m.stderr_has("/ (the page")) << m.err_text();
+    const std::uint16_t port = web_port(m);
+    EXPECT_EQ(listening_ports_seen_here(m.pid()), std::set<std::uint16_t>{port}) << m.err_text();
+    EXPECT_EQ(m.err_text().find("past the gate"), std::string::npos) << m.err_text();
+    const auto a = operator_over_http(port);
+    EXPECT_TRUE(a.got_control) << a.detail;
 }

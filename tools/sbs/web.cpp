@@ -14,6 +14,7 @@
 
 #include <atomic>
 #include <condition_variable>
+#include <cstdio>
 #include <deque>
 #include <fstream>
 #include <future>
@@ -159,6 +160,7 @@ struct WebConsole::Impl {
     NetworkServer::Executor execute;  // runs on `commands`
     NetworkServer& control;
     mg_context* ctx = nullptr;
+    std::unique_ptr<PrivateNetwork> backend_net;  // civetweb's network namespace, where one could be made
     std::unique_ptr<WebGate> gate;  // the public address; civetweb is behind it
     std::map<std::string, std::pair<std::string, std::string>> assets;  // path -> (mime, body)
 
@@ -605,6 +607,8 @@ void WebConsole::start() {
     // civetweb listens on a private loopback port; the public address is the
     // gate's (web_gate.hpp), which lets a connection reach a civetweb worker
     // only with its request head complete, and bounds each source address.
+    // Where the process may, that port is in a network namespace of its own
+    // (civetweb's threads start in it), so no local user can dial it.
     const std::string listen = "127.0.0.1:0";
     const std::string threads = std::to_string(im.o.threads);
     const char* opts[] = {"listening_ports", listen.c_str(),
@@ -617,14 +621,20 @@ void WebConsole::start() {
     mg_callbacks callbacks{};
     callbacks.log_message = on_log;
     mg_init_library(0);
+    im.backend_net = std::make_unique<PrivateNetwork>(PrivateNetwork::enter());
     im.ctx = mg_start(&callbacks, nullptr, opts);
+    im.backend_net->leave();
     if (im.ctx == nullptr) throw ServerError("--http: cannot listen on " + listen);
     mg_server_port ports[4]{};
     if (mg_get_server_ports(im.ctx, 4, ports) <= 0) throw ServerError("--http: civetweb has no port");
+    if (!im.backend_net->made())
+        std::fprintf(stderr, "web console: civetweb's port 127.0.0.1:%d is on this machine's loopback (%s): local "
+                     "users can reach it past the gate\n", ports[0].port, im.backend_net->why_not().c_str());
     GateOptions gate;
     gate.host = im.o.host;
     gate.port = im.o.port;
     gate.backend_port = static_cast<std::uint16_t>(ports[0].port);
+    gate.backend_netns = im.backend_net->fd();
     gate.head_timeout = im.o.auth_timeout;
     im.gate = std::make_unique<WebGate>(gate);
     // The handlers only now: a page (even one dialling civetweb's port

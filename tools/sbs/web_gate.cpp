@@ -3,6 +3,7 @@
 #include "server.hpp"
 
 #include <arpa/inet.h>
+#include <net/if.h>
 #include <fcntl.h>
 #include <netdb.h>
 #include <netinet/in.h>
@@ -10,15 +11,18 @@
 #include <pthread.h>
 #include <sched.h>
 #include <sys/eventfd.h>
+#include <sys/ioctl.h>
 #include <sys/socket.h>
 #include <unistd.h>
 
 #include <algorithm>
 #include <atomic>
 #include <cerrno>
+#include <cstdio>
 #include <cstring>
 #include <map>
 #include <mutex>
+#include <utility>
 #include <vector>
 
 namespace chimera::cli {
@@ -46,6 +50,23 @@ void refuse(int fd, const char* status, const std::string& why) {
                             "\r\nContent-Type: text/plain; charset=utf-8\r\nConnection: close\r\nContent-Length: " +
                             std::to_string(body.size()) + "\r\n\r\n" + body;
     [[maybe_unused]] auto n = ::send(fd, out.data(), out.size(), MSG_NOSIGNAL | MSG_DONTWAIT);
+}
+
+// Brings up the loopback device of the calling thread's network namespace
+// (down in a new one). Returns 0 or an errno.
+int loopback_up() {
+    const int fd = ::socket(AF_INET, SOCK_DGRAM | SOCK_CLOEXEC, 0);
+    if (fd < 0) return errno;
+    ifreq ifr{};
+    std::strncpy(ifr.ifr_name, "lo", IFNAMSIZ - 1);
+    int rc = ::ioctl(fd, SIOCGIFFLAGS, &ifr);
+    if (rc == 0) {
+        ifr.ifr_flags = static_cast<short>(ifr.ifr_flags | IFF_UP);
+        rc = ::ioctl(fd, SIOCSIFFLAGS, &ifr);
+    }
+    const int err = rc == 0 ? 0 : errno;
+    ::close(fd);
+    return err;
 }
 
 int connect_backend(std::uint16_t port) {
@@ -245,6 +266,10 @@ void WebGate::Impl::pump(Conn& c, short client_events, short backend_events) {
 void WebGate::Impl::run() {
     sched_param sp{};
     ::pthread_setschedparam(::pthread_self(), SCHED_OTHER, &sp);  // never competes with real-time tasks
+    // Into civetweb's namespace: the backend connections are made there. The
+    // public socket was made in this one, and accepts here still.
+    if (o.backend_netns >= 0 && ::setns(o.backend_netns, CLONE_NEWNET) != 0)
+        std::fprintf(stderr, "web console: cannot join civetweb's network namespace: %s\n", std::strerror(errno));
     std::vector<pollfd> fds;
     std::vector<Conn*> owner;  // fds[i]'s connection, from index 2
     while (!stopping) {
@@ -282,6 +307,48 @@ void WebGate::Impl::run() {
     }
     for (auto& c : conns) close(*c);
     conns.clear();
+}
+
+PrivateNetwork PrivateNetwork::enter() {
+    PrivateNetwork net;
+    net.home_fd_ = ::open("/proc/thread-self/ns/net", O_RDONLY | O_CLOEXEC);
+    if (net.home_fd_ < 0) {
+        net.why_not_ = std::string("cannot open /proc/thread-self/ns/net: ") + std::strerror(errno);
+        return net;
+    }
+    if (::unshare(CLONE_NEWNET) != 0) {
+        net.why_not_ = std::string("cannot make a network namespace: ") + std::strerror(errno);
+        return net;
+    }
+    const int err = loopback_up();
+    net.fd_ = ::open("/proc/thread-self/ns/net", O_RDONLY | O_CLOEXEC);
+    if (err != 0 || net.fd_ < 0) {
+        net.why_not_ = std::string("cannot bring up its loopback: ") + std::strerror(err != 0 ? err : errno);
+        net.leave();
+    }
+    return net;
+}
+
+PrivateNetwork::PrivateNetwork(PrivateNetwork&& other) noexcept
+    : fd_(std::exchange(other.fd_, -1)), home_fd_(std::exchange(other.home_fd_, -1)),
+      why_not_(std::move(other.why_not_)) {}
+
+PrivateNetwork::~PrivateNetwork() {
+    if (fd_ >= 0) ::close(fd_);
+    if (home_fd_ >= 0) ::close(home_fd_);
+}
+
+void PrivateNetwork::leave() {
+    if (home_fd_ < 0) return;
+    if (::setns(home_fd_, CLONE_NEWNET) != 0)
+        throw ServerError(std::string("web console: cannot leave civetweb's network namespace: ") +
+                          std::strerror(errno));
+    ::close(home_fd_);
+    home_fd_ = -1;
+    if (!why_not_.empty() && fd_ >= 0) {
+        ::close(fd_);
+        fd_ = -1;
+    }
 }
 
 WebGate::WebGate(GateOptions options) : impl_(std::make_unique<Impl>()) {
