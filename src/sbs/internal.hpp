@@ -159,6 +159,10 @@ public:
     std::vector<Object> objects;
     std::vector<std::string> in_consts, out_consts, in_vars, out_vars;  // global names, transferred
     std::vector<std::string> internal;  // combined: produced and consumed inside the task
+    // Stands for a process outside the master (module `peer`, sbs.hpp
+    // kPeerModule): the runtime copies none of its ports, and its ERROR makes
+    // the configuration illegal only while an ON task reads its outputs.
+    bool peer = false;
 
     // --- local table and its transfer sets ---
     std::unique_ptr<svar::LocalTable> local;

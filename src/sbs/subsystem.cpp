@@ -182,12 +182,24 @@ void SubsystemCore::set_flag(std::uint32_t bit, bool on) noexcept {
     table.set_illegal_configuration(f);
 }
 
+// A peer in ERROR is a process outside the master that died (an observer, a
+// logger): the real-time tasks lose nothing unless one that is ON reads what
+// it produced, so only then is the configuration illegal (and the robot
+// interface holds). Any other task halted in ERROR makes it illegal (§3.10).
 void SubsystemCore::refresh_error_flag() noexcept {
+    const auto read_by_an_on_task = [this](const TaskCore& peer) {
+        for (const auto& o : tasks) {
+            if (!o || o.get() == &peer || o->state.load() != State::ON) continue;
+            for (const auto& v : o->in_vars)
+                if (std::find(peer.out_vars.begin(), peer.out_vars.end(), v) != peer.out_vars.end()) return true;
+        }
+        return false;
+    };
     bool any = false;
     {
         std::lock_guard<ipc::PiMutex> lock(tasks_mu);
         for (const auto& t : tasks)
-            if (t && t->state.load() == State::ERROR) any = true;
+            if (t && t->state.load() == State::ERROR && (!t->peer || read_by_an_on_task(*t))) any = true;
     }
     set_flag(kIllegalError, any);
 }

@@ -107,7 +107,7 @@ TaskCore::TaskCore(SubsystemCore& s, int task_id, const RtpuSpec& r, std::vector
         // program, sbs.hpp kPeerModule) that reads and writes the table
         // itself: its ports count for §3.3.1 and status, but the runtime
         // copies none of them, so it never overwrites what the process wrote.
-        const bool peer = rmods.size() == 1 && rmods.front().module == kPeerModule;
+        peer = rmods.size() == 1 && rmods.front().module == kPeerModule;
         const std::vector<std::string> none;
         set_in_vars = local->make_set(peer ? none : in_vars);
         set_out_vars = local->make_set(peer ? none : out_vars);

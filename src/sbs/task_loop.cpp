@@ -404,6 +404,7 @@ Answer TaskLoop::on() {
     t_.on_since_ns.store(ipc::now_ns());
     if (t_.profiler) t_.profiler->start();  // profiling restarts on the RTPU (§6.7)
     t_.set_state(State::ON);
+    t_.sbs.refresh_error_flag();  // it may read what a peer in ERROR produced
     return a;
 }
 
@@ -412,6 +413,7 @@ Answer TaskLoop::off() {
     const Outcome r = turn_off();
     if (ok_or_off(r)) {
         t_.set_state(State::OFF);
+        t_.sbs.refresh_error_flag();  // it may have been the last reader of a peer in ERROR
     } else {
         settle(r);
         a.result = "error in off(): " + std::string(err_message_.view());

@@ -71,6 +71,59 @@ def test_an_input_with_no_other_producer_is_satisfied_by_the_peer(subsystem, ech
         m.kill(echo)
 
 
+KILLED_CHILD = """
+import sys, chimera
+p = chimera.Peer(sys.argv[3], produces=[sys.argv[4]], subsystem=sys.argv[1], socket_path=sys.argv[2]).start()
+print("started", flush=True)
+for cycle in p.run(hz=50):
+    p.write({sys.argv[4]: [cycle] * 6})
+"""
+
+
+def start_peer(subsystem, name, produces):
+    """A peer process NAME producing PRODUCES, started."""
+    child = subprocess.Popen([sys.executable, "-c", KILLED_CHILD, subsystem.name, subsystem.socket, name, produces],
+                             stdout=subprocess.PIPE, text=True)
+    assert child.stdout.readline().strip() == "started"
+    return child
+
+
+def kill_9(subsystem, child, name):
+    """CHILD killed -9; the master has seen its task NAME go to ERROR."""
+    child.send_signal(signal.SIGKILL)
+    child.wait(10)
+    with subsystem.master() as m:
+        assert row(m, name)["state"] == "ERROR"  # the master checks its peers before every command
+
+
+def illegal(m):
+    return m.command("show graph")["data"]["illegal_configuration"]
+
+
+def test_a_dead_peer_makes_the_configuration_illegal_only_while_an_on_task_reads_it(subsystem, echo):
+    # An observer's death must not hold the robot (tests/safety: the arm held,
+    # its PID winding up, then let go at its torque limit).
+    kill_9(subsystem, start_peer(subsystem, "observer", "J3"), "observer")  # J3: read by no task
+    with subsystem.master() as m:
+        assert not illegal(m)
+        m.kill("observer")
+    feeder = start_peer(subsystem, "feeder", "Y")
+    with subsystem.master() as m:
+        m.spawn(echo)
+        m.reconfig([("on", echo)])  # echo reads Y
+        assert not illegal(m)
+    kill_9(subsystem, feeder, "feeder")
+    with subsystem.master() as m:
+        assert illegal(m), "echo reads what the dead peer produced"
+        m.off(echo)
+        assert not illegal(m), "nobody reads it any more"
+        m.on(echo)
+        assert illegal(m), "a reader turned on again"
+        m.off(echo)
+        m.kill(echo)
+        m.kill("feeder")
+        assert not illegal(m)
+
 def test_two_producers_are_refused_naming_both(subsystem):
     with subsystem.master() as m:
         with chimera.Peer("first", produces=["Y"], master=m):

@@ -201,6 +201,10 @@ def test_python_peer_killed_9(arm):
             row = Arm.row(m, "safetypeer")  # the master checks its peers before every command
             print("peer task:", row["state"], row["error"])
             assert row["state"] == "ERROR" and "peer process %d is gone" % child.pid in row["error"]
+            # No task reads PEER_OUT: the observer's death must not hold the
+            # robot (held, jpid wound T_REF up to its limit and the arm lunged
+            # when let go).
+            assert not m.command("show graph")["data"]["illegal_configuration"]
             m.kill("safetypeer")
     finally:
         if child.poll() is None:
