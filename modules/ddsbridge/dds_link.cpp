@@ -31,6 +31,7 @@ struct Link::Slot {
     std::vector<std::byte> item;  // the listener's staging item
     std::vector<char*> names;     // JointState.name (pub)
     std::unique_ptr<JointMap> joints;  // JointState (sub): the names matched, and the joints' values so far
+    SampleOrder order;                 // sub: the newest sample taken (a reordered one is refused)
     Notice notices[kRefusals];         // refusals to tell the task (index: Refusal)
     const Port* port = nullptr;
     ReceiveProbeFn probe = nullptr;  // set and called under listener_mu
@@ -137,9 +138,30 @@ void publisher_of(dds_entity_t reader, const dds_sample_info_t& info, char* out,
     dds_builtintopic_free_endpoint(ep);
 }
 
-// What was wrong with a refused sample, in words naming the joint or the count.
-void describe_refusal(const Link::Slot& slot, const Applied& a, std::span<const char* const> names, std::size_t values,
-                      char* out, std::size_t size) noexcept {
+// A header.stamp as seconds.nanoseconds (ROS time).
+void stamp_text(Clock ns, char* out, std::size_t size) noexcept {
+    const Clock sec = ns / 1'000'000'000, nsec = ns % 1'000'000'000;
+    std::snprintf(out, size, "%s%lld.%09lld", ns < 0 && sec == 0 ? "-" : "", static_cast<long long>(sec),
+                  static_cast<long long>(nsec < 0 ? -nsec : nsec));
+}
+
+// A reordered sample: its stamp (or, from the newest's writer, counter) and the newest taken's.
+void describe_reordered(const Link::Slot& slot, const SampleStamp& got, char* out, std::size_t size) noexcept {
+    const SampleStamp& newest = slot.order.newest();
+    char was[24], now[24];
+    stamp_text(got.source_ns, was, sizeof was);
+    stamp_text(newest.source_ns, now, sizeof now);
+    if (slot.order.by_counter(got))
+        std::snprintf(out, size, "counter %llu older than %llu (stamps %s, %s)",
+                      static_cast<unsigned long long>(got.counter), static_cast<unsigned long long>(newest.counter),
+                      was, now);
+    else
+        std::snprintf(out, size, "stamp %s older than %s", was, now);
+}
+
+// What was wrong with a refused sample, in words naming the joint, the count or the stamps.
+void describe_refusal(const Link::Slot& slot, const Applied& a, const SampleStamp& got,
+                      std::span<const char* const> names, std::size_t values, char* out, std::size_t size) noexcept {
     const Port& port = *slot.port;
     const char* field = port.spec.message == Message::joint_position ? "position"
                         : port.spec.message == Message::joint_velocity ? "velocity"
@@ -166,6 +188,9 @@ void describe_refusal(const Link::Slot& slot, const Applied& a, std::span<const 
         case Refusal::partial:
             std::snprintf(out, size, "%zu of %zu joints named (JOINT_SUBSET refuse)", names.size(), port.nelem);
             return;
+        case Refusal::reordered:
+            describe_reordered(slot, got, out, size);
+            return;
         case Refusal::none: break;
     }
     std::snprintf(out, size, "?");
@@ -175,7 +200,7 @@ void describe_refusal(const Link::Slot& slot, const Applied& a, std::span<const 
 // the topic and the publisher) the first time for its reason and then at most
 // once every Notice::kNoticeInterval.
 void refuse(Link::Slot& slot, dds_entity_t reader, const dds_sample_info_t& info, const Applied& a,
-            std::span<const char* const> names, std::size_t values, Clock now) noexcept {
+            const SampleStamp& got, std::span<const char* const> names, std::size_t values, Clock now) noexcept {
     const auto reason = static_cast<std::size_t>(a.refusal);
     slot.counts.rejected.fetch_add(1, std::memory_order_relaxed);
     const std::uint64_t n = slot.counts.refused[reason].fetch_add(1, std::memory_order_relaxed) + 1;
@@ -184,52 +209,67 @@ void refuse(Link::Slot& slot, dds_entity_t reader, const dds_sample_info_t& info
     if (notice.last_ns != 0 && now - notice.last_ns < Notice::kNoticeInterval) return;
     char who[64], what[160];
     publisher_of(reader, info, who, sizeof who);
-    describe_refusal(slot, a, names, values, what, sizeof what);
+    describe_refusal(slot, a, got, names, values, what, sizeof what);
     const TopicSpec& t = slot.port->spec;
-    // Most telling first: a task's warning keeps its first 159 characters.
-    std::snprintf(notice.text, sizeof notice.text, "%s refused a sample: %s (%llu %s so far), publisher %s, topic rt/%s",
-                  t.port.c_str(), what, static_cast<unsigned long long>(n), to_string(a.refusal), who, t.ros_name.c_str());
+    // Most telling first: a task's warning keeps its first 159 characters;
+    // a reordered sample's two stamps leave room for the topic only before
+    // the publisher.
+    const auto count = static_cast<unsigned long long>(n);
+    if (a.refusal == Refusal::reordered)
+        std::snprintf(notice.text, sizeof notice.text, "%s refused a sample: %s (%llu %s so far), topic rt/%s, publisher %s",
+                      t.port.c_str(), what, count, to_string(a.refusal), t.ros_name.c_str(), who);
+    else
+        std::snprintf(notice.text, sizeof notice.text, "%s refused a sample: %s (%llu %s so far), publisher %s, topic rt/%s",
+                      t.port.c_str(), what, count, to_string(a.refusal), who, t.ros_name.c_str());
     notice.last_ns = now;
     notice.pending.store(true, std::memory_order_release);
 }
 
 // One sample into the port's TBUF, stamped with its arrival: a StateVar of the
-// port's length, or a JointState matched by name (JointMap). A refused sample
-// changes nothing but the counts; a JointState that leaves a joint without any
-// value yet is held (its values kept for the next) and counted.
+// port's length, or a JointState matched by name (JointMap), not older than
+// the newest taken (SampleOrder). A refused sample changes nothing but the
+// counts; a JointState that leaves a joint without any value yet is
+// held (its values kept for the next) and counted.
 void receive(Link::Slot& slot, dds_entity_t reader, const void* sample, const dds_sample_info_t& info,
              Clock entered) noexcept {
     const Port& port = *slot.port;
+    const bool state_var = port.spec.message == Message::state_var;
     auto* joints = reinterpret_cast<double*>(slot.item.data() + sizeof(ReceivedHeader));
     const dds_sequence_double* data = nullptr;
     std::span<const char* const> names;
-    ReceivedHeader head{};
+    SampleStamp got{info.publication_handle, 0, 0};
     Applied a;
-    if (port.spec.message == Message::state_var) {
+    if (state_var) {
         const auto* s = static_cast<const chimera_msgs_msg_dds__StateVar_*>(sample);
         data = &s->data;
-        head = {stamp_ns(s->header), s->counter};
-        if (data->_length != port.nelem) {
-            a.refusal = Refusal::length;
-        } else {
-            std::memcpy(joints, data->_buffer, port.nelem * sizeof(double));
-            a.complete = true;
-        }
+        got.counter = s->counter;
+        got.source_ns = stamp_ns(s->header);
+        if (data->_length != port.nelem) a.refusal = Refusal::length;
     } else {
         auto* s = static_cast<sensor_msgs_msg_dds__JointState_*>(const_cast<void*>(sample));
         data = joint_field(*s, port.spec.message);
-        head = {stamp_ns(s->header), slot.counts.received.load(std::memory_order_relaxed)};
+        got.source_ns = stamp_ns(s->header);
         names = {const_cast<const char* const*>(s->name._buffer), s->name._length};
-        a = slot.joints->apply(names, {data->_buffer, data->_length}, joints);
+        a = slot.joints->check(names, {data->_buffer, data->_length});
     }
+    // What is wrong with the sample itself first; then its order.
+    if (a.refusal == Refusal::none && slot.order.older(got)) a.refusal = Refusal::reordered;
     if (a.refusal != Refusal::none) {
-        refuse(slot, reader, info, a, names, data->_length, entered);
+        refuse(slot, reader, info, a, got, names, data->_length, entered);
         return;
+    }
+    slot.order.taken(got);  // a held JointState too: its values are the port's next
+    if (state_var) {
+        std::memcpy(joints, data->_buffer, port.nelem * sizeof(double));
+        a.complete = true;
+    } else {
+        a = slot.joints->commit(names, {data->_buffer, data->_length}, joints);
     }
     if (!a.complete) {
         slot.counts.held.fetch_add(1, std::memory_order_relaxed);
         return;
     }
+    const ReceivedHeader head{got.source_ns, state_var ? got.counter : slot.counts.received.load(std::memory_order_relaxed)};
     std::memcpy(slot.item.data(), &head, sizeof head);
     const Clock stored = chimera::ipc::now_ns();
     (void)slot.tbuf.write(slot.item.data(), stored);
@@ -270,6 +310,7 @@ Link::Link(const BridgeConfig& config, std::vector<Port> ports) : config_(config
         s->item.assign(item, std::byte{0});
         if (p.spec.message != Message::state_var && p.spec.direction == Direction::pub)
             for (const std::string& n : p.joint_names) s->names.push_back(const_cast<char*>(n.c_str()));
+        s->order = SampleOrder(p.spec.message == Message::state_var);
         if (p.spec.message != Message::state_var && p.spec.direction == Direction::sub)
             s->joints = std::make_unique<JointMap>(p.joint_names, JointOptions{config_.refuse_subset, config_.accept_unnamed});
         slots_.push_back(std::move(s));

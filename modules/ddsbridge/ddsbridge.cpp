@@ -182,7 +182,7 @@ public:
     }
 
     // get STATUS: per subscribed port, "PORT counter C age S stale yes|no received N rejected R
-    // length L unnamed U unknown K duplicate D partial P held H clamped X" (rejected: all refused
+    // length L unnamed U unknown K duplicate D partial P reordered O held H clamped X" (rejected: all refused
     // samples; then by reason; held: JointStates waiting for a joint's first value; clamped: joint
     // values a limit changed); then "published N" (samples of all published ports).
     chimera::Result get(chimera::Task& t) override {

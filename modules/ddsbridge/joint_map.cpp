@@ -14,6 +14,7 @@ const char* to_string(Refusal r) noexcept {
         case Refusal::unknown: return "unknown";
         case Refusal::duplicate: return "duplicate";
         case Refusal::partial: return "partial";
+        case Refusal::reordered: return "reordered";
     }
     return "?";
 }
@@ -44,17 +45,18 @@ std::size_t JointMap::index_of(std::string_view name) const noexcept {
 }
 
 Applied JointMap::apply(std::span<const char* const> names, std::span<const double> values, double* joints) noexcept {
-    Applied out;
+    const Applied a = check(names, values);
+    return a.refusal != Refusal::none ? a : commit(names, values, joints);
+}
+
+Applied JointMap::check(std::span<const char* const> names, std::span<const double> values) noexcept {
     if (names.empty()) {
         if (!options_.accept_unnamed) return {Refusal::unnamed, 0, false};
         if (values.size() != names_.size()) return {Refusal::length, 0, false};
-        std::copy(values.begin(), values.end(), joints);
-        known_.assign(names_.size(), true);
-        unknown_left_ = 0;
-        return {Refusal::none, 0, true};
+        return {};
     }
     if (values.size() != names.size()) return {Refusal::length, 0, false};
-    // First every name, then the values: a refused message changes nothing.
+    // Every name before any value: a refused message changes nothing.
     if (++generation_ == 0) {  // wrapped: forget every old generation
         std::fill(named_in_.begin(), named_in_.end(), 0u);
         generation_ = 1;
@@ -67,6 +69,16 @@ Applied JointMap::apply(std::span<const char* const> names, std::span<const doub
         target_[i] = joint;  // i < size(): the checks above end a longer message before its last name
     }
     if (options_.refuse_subset && names.size() != names_.size()) return {Refusal::partial, 0, false};
+    return {};
+}
+
+Applied JointMap::commit(std::span<const char* const> names, std::span<const double> values, double* joints) noexcept {
+    if (names.empty()) {
+        std::copy(values.begin(), values.end(), joints);
+        known_.assign(names_.size(), true);
+        unknown_left_ = 0;
+        return {Refusal::none, 0, true};
+    }
     for (std::size_t i = 0; i < names.size(); ++i) {
         const std::size_t joint = target_[i];
         joints[joint] = values[i];
@@ -75,8 +87,7 @@ Applied JointMap::apply(std::span<const char* const> names, std::span<const doub
             --unknown_left_;
         }
     }
-    out.complete = unknown_left_ == 0;
-    return out;
+    return {Refusal::none, 0, unknown_left_ == 0};
 }
 
 JointLimiter::JointLimiter(Kind kind, std::vector<double> limits)

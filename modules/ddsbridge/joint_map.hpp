@@ -30,8 +30,9 @@ enum class Refusal : std::uint8_t {
     unknown,    ///< it names a joint the port does not have
     duplicate,  ///< it names a joint twice
     partial,    ///< it names a subset, and the .rmod requires every joint (JOINT_SUBSET refuse)
+    reordered,  ///< it is older than the newest sample the port took (SampleOrder)
 };
-inline constexpr std::size_t kRefusals = 6;  ///< Refusal values, none included
+inline constexpr std::size_t kRefusals = 7;  ///< Refusal values, none included
 const char* to_string(Refusal r) noexcept;
 
 struct JointOptions {
@@ -60,8 +61,14 @@ public:
     /// Puts `values` (value i goes with names[i]; no names: value j is joint j)
     /// on `joints` (size() doubles, the port's vector: the joints a message does
     /// not name keep what is there). Refused: `joints` untouched.
-    /// No allocation, no system call.
+    /// No allocation, no system call. check() then commit().
     Applied apply(std::span<const char* const> names, std::span<const double> values, double* joints) noexcept;
+    /// apply()'s checks alone: whether the message would be taken, or why not.
+    /// Changes no joint, so that the listener can still refuse it for another
+    /// reason (its age) before anything of it is applied.
+    Applied check(std::span<const char* const> names, std::span<const double> values) noexcept;
+    /// Applies the message check() took last (the same names and values).
+    Applied commit(std::span<const char* const> names, std::span<const double> values, double* joints) noexcept;
 
     /// Starts again: no joint has had a value yet.
     void reset() noexcept;
@@ -75,6 +82,44 @@ private:
     std::uint32_t generation_ = 0;
     std::vector<bool> known_;              // per joint: had a value since the start
     std::size_t unknown_left_ = 0;         // joints still without a value
+};
+
+/// Who sent a received sample, and when.
+struct SampleStamp {
+    std::uint64_t writer = 0;    ///< its DDS writer (instance handle): a restarted writer is another one
+    std::uint64_t counter = 0;   ///< StateVar: the sender's counter-stamp (0 for a writer's first value)
+    std::int64_t source_ns = 0;  ///< header.stamp, ns
+};
+
+/// The newest sample a subscription took, and whether another one is older
+/// (issue #29: a sample reordered by the network, or an old command replayed,
+/// must not take the port back to an older value). From the writer of the
+/// newest, a StateVar is compared by counter (by_counter: immune to the
+/// sender's clock being set back); from another writer (one that restarted
+/// from counter 0, say), or a JointState (no counter), by header.stamp.
+/// Equal is not older: a publisher that leaves header.stamp at zero, or
+/// splits its joints over messages of one stamp, is taken. Pure arithmetic.
+class SampleOrder {
+public:
+    explicit SampleOrder(bool by_counter = false) noexcept : by_counter_(by_counter) {}
+    /// Whether `s` is older than the newest taken (false before any).
+    bool older(const SampleStamp& s) const noexcept {
+        if (!any_) return false;
+        if (by_counter_ && s.writer == newest_.writer) return s.counter < newest_.counter;
+        return s.source_ns < newest_.source_ns;
+    }
+    /// `s` was taken: the newest now.
+    void taken(const SampleStamp& s) noexcept {
+        newest_ = s;
+        any_ = true;
+    }
+    const SampleStamp& newest() const noexcept { return newest_; }
+    bool by_counter(const SampleStamp& s) const noexcept { return any_ && by_counter_ && s.writer == newest_.writer; }
+
+private:
+    SampleStamp newest_;
+    bool any_ = false;
+    bool by_counter_ = false;
 };
 
 /// The consumer side's limits on one subscribed port (VLIMIT_<port>,

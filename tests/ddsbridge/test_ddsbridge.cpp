@@ -8,6 +8,8 @@
 //     only) decodes the samples from the wire: ROS 2 type names, rt/ topics,
 //     XCDR1, the QoS of each profile, the data;
 //   - a sample of the wrong length is dropped and counted, never half-copied;
+//   - a sample older than the newest taken (reordered, replayed) is refused,
+//     counted and told; a restarted writer and equal stamps are taken;
 //   - stale data: the publisher turned off, the subscriber's ports go to their
 //     stale action (zeros; the illegal-configuration flag) with a warning, and
 //     come back when it is turned on again;
@@ -470,18 +472,20 @@ INSTANTIATE_TEST_SUITE_P(PollAndSpin, BridgeLooking, ::testing::Values("poll", "
 // them), so the counts are exact.
 namespace {
 
-class JointWriter {
+// A participant of its own (a DDS writer GUID of its own) and one reliable writer.
+class Writer {
 public:
-    JointWriter(int domain, const std::string& topic) {
+    Writer(int domain, const std::string& topic, const dds_topic_descriptor_t* type) {
         participant_ = dds_create_participant(static_cast<dds_domainid_t>(domain), nullptr, nullptr);
-        const dds_entity_t t = dds_create_topic(participant_, &sensor_msgs_msg_dds__JointState__desc, topic.c_str(),
-                                                nullptr, nullptr);
+        const dds_entity_t t = dds_create_topic(participant_, type, topic.c_str(), nullptr, nullptr);
         dds_qos_t* q = dds_create_qos();
         dds_qset_reliability(q, DDS_RELIABILITY_RELIABLE, DDS_SECS(1));
         writer_ = dds_create_writer(participant_, t, q, nullptr);
         dds_delete_qos(q);
     }
-    ~JointWriter() { dds_delete(participant_); }
+    ~Writer() { dds_delete(participant_); }
+    Writer(const Writer&) = delete;
+    Writer& operator=(const Writer&) = delete;
     bool ok() const { return participant_ > 0 && writer_ > 0; }
     bool matched() const {
         dds_publication_matched_status_t st{};
@@ -490,19 +494,45 @@ public:
     // Until every sample written is in the bridge's reader (and so through its
     // listener, which Cyclone calls on delivery, before the reader acknowledges).
     bool delivered() const { return dds_wait_for_acks(writer_, DDS_SECS(10)) == DDS_RETCODE_OK; }
-    void send(const std::vector<std::string>& names, std::vector<double> efforts) {
+
+protected:
+    static void set_stamp(std_msgs_msg_dds__Header_& h, std::int64_t ns) {
+        h.stamp.sec = static_cast<int32_t>(ns / 1'000'000'000);
+        h.stamp.nanosec = static_cast<uint32_t>(ns % 1'000'000'000);
+    }
+    dds_entity_t participant_ = 0, writer_ = 0;
+};
+
+// JointStates with the efforts, stamped `stamp_ns` (header.stamp; 0 unless given).
+class JointWriter : public Writer {
+public:
+    JointWriter(int domain, const std::string& topic) : Writer(domain, topic, &sensor_msgs_msg_dds__JointState__desc) {}
+    void send(const std::vector<std::string>& names, std::vector<double> efforts, std::int64_t stamp_ns = 0) {
         std::vector<char*> n;
         for (const std::string& name : names) n.push_back(const_cast<char*>(name.c_str()));
         char empty[] = "";
         sensor_msgs_msg_dds__JointState_ s{};
         s.header.frame_id = empty;
+        set_stamp(s.header, stamp_ns);
         s.name = {static_cast<uint32_t>(n.size()), static_cast<uint32_t>(n.size()), n.data(), false};
         s.effort = {static_cast<uint32_t>(efforts.size()), static_cast<uint32_t>(efforts.size()), efforts.data(), false};
         ASSERT_EQ(dds_write(writer_, &s), DDS_RETCODE_OK);
     }
+};
 
-private:
-    dds_entity_t participant_ = 0, writer_ = 0;
+// chimera_msgs/StateVar samples, as another machine's bridge sends them.
+class StateWriter : public Writer {
+public:
+    StateWriter(int domain, const std::string& topic) : Writer(domain, topic, &chimera_msgs_msg_dds__StateVar__desc) {}
+    void send(std::uint64_t counter, std::int64_t stamp_ns, std::vector<double> data) {
+        char frame[] = "T";
+        chimera_msgs_msg_dds__StateVar_ s{};
+        s.header.frame_id = frame;
+        set_stamp(s.header, stamp_ns);
+        s.counter = counter;
+        s.data = {static_cast<uint32_t>(data.size()), static_cast<uint32_t>(data.size()), data.data(), false};
+        ASSERT_EQ(dds_write(writer_, &s), DDS_RETCODE_OK);
+    }
 };
 
 const std::vector<std::string> kAllJoints{"joint1", "joint2", "joint3", "joint4", "joint5", "joint6"};
@@ -536,9 +566,10 @@ protected:
     }
     long count(const std::string& key) { return status_count(sbs_->get(sub_, "STATUS"), "E", key); }
     // Sends one sample and waits until the bridge has counted it under `key`.
-    void send(const std::vector<std::string>& names, const std::vector<double>& efforts, const std::string& key) {
+    void send(const std::vector<std::string>& names, const std::vector<double>& efforts, const std::string& key,
+              std::int64_t stamp_ns = 0) {
         const long before = count(key);
-        writer_->send(names, efforts);
+        writer_->send(names, efforts, stamp_ns);
         ASSERT_TRUE(eventually([&] { return count(key) == before + 1; }))
             << "not counted as " << key << ": " << sbs_->get(sub_, "STATUS");
     }
@@ -620,4 +651,106 @@ TEST_F(BridgeByName, ATorqueRateLimitRampsWhatTheBridgeWritesAndCountsTheClamped
     for (const double v : seen) EXPECT_EQ(v, 0.5 * static_cast<int>(v / 0.5)) << "a whole number of steps: " << v;
     EXPECT_EQ(count("clamped"), 19);
     EXPECT_EQ(get<6>("E"), (std::array<double, 6>{10, 0, 0, 0, 0, 0}));
+}
+
+// A reordered sample (issue #29, "safe in operation"): one older than the
+// newest the port took — by the network, or an old command replayed — is
+// refused whole, counted and told; the port keeps the newer value. A
+// JointState is compared by header.stamp (equal stamps are taken); a
+// StateVar by counter from the writer of the newest, by stamp from another
+// (a writer restarted from counter 0 is taken). The writers are independent:
+// Cyclone's API and the IDL types only.
+namespace {
+
+constexpr std::int64_t kEpoch = 1'700'000'000'000'000'000;  // ns: 1700000000.000000000, ROS time
+
+}  // namespace
+
+TEST_F(BridgeByName, AJointStateOlderThanTheNewestTakenIsRefusedAndEqualStampsAreTaken) {
+    start_by_name("");  // its baseline: zero torques stamped 0
+    const long received = count("received");
+    send(kAllJoints, {1, 2, 3, 4, 5, 6}, "received", kEpoch + 300);
+    send(kAllJoints, {9, 9, 9, 9, 9, 9}, "reordered", kEpoch + 200);
+    const std::string reordered = next_warning();
+    EXPECT_EQ(reordered.rfind("E refused a sample: stamp 1700000000.000000200 older than 1700000000.000000300 "
+                              "(1 reordered so far), topic rt/" + topic_ + "/torques",
+                              0),
+              0u)
+        << reordered;
+    std::this_thread::sleep_for(50ms);  // cycles after the refusal
+    EXPECT_EQ(get<6>("E"), (std::array<double, 6>{1, 2, 3, 4, 5, 6})) << "the older sample reached E";
+
+    send({"joint1"}, {10}, "received", kEpoch + 300);  // equal: taken (a publisher's joints split over messages)
+    EXPECT_TRUE(eventually([&] { return get<6>("E") == std::array<double, 6>{10, 2, 3, 4, 5, 6}; }));
+    EXPECT_EQ(count("received"), received + 2);
+    EXPECT_EQ(count("rejected"), 1);
+    EXPECT_EQ(count("reordered"), 1);
+    EXPECT_EQ(sbs_->status(sub_).state, State::ON);
+}
+
+class BridgeOrder : public BridgeByName {
+protected:
+    // A bridge subscribing T (StateVar) only, and `writer` opened onto it.
+    void start_state(std::unique_ptr<StateWriter>& writer) {
+        sbs_ = Subsystem::init((dir_ / "t.sbs").string());
+        global_ = std::make_unique<chimera::svar::Table>(
+            chimera::svar::Table::attach(chimera::ipc::segment_name(name_, "svar")));
+        sub_ = sbs_->spawn(bridge_rmod("order", "INVAR none\nOUTVAR T\n",
+                                       "TOPIC_T " + topic_ + "/array sub StateVar command 30 warn\n"),
+                           "cpu0");
+        sbs_->control(sub_, Control::on);
+        open_writer(writer, 0, kEpoch, {0, 0, 0});
+    }
+    // A new writer (a participant of its own: another GUID) whose first
+    // sample, sent until one is counted, is `counter`, `stamp`, `value`.
+    void open_writer(std::unique_ptr<StateWriter>& writer, std::uint64_t counter, std::int64_t stamp,
+              const std::vector<double>& value) {
+        writer = std::make_unique<StateWriter>(domain_, "rt/" + topic_ + "/array");
+        ASSERT_TRUE(writer->ok());
+        ASSERT_TRUE(eventually([&] { return writer->matched(); })) << "the writer never matched the bridge";
+        const long before = state("received");
+        ASSERT_TRUE(eventually([&] {
+            writer->send(counter, stamp, value);
+            return state("received") > before;
+        }));
+        ASSERT_TRUE(writer->delivered());
+        (void)sbs_->status(sub_);  // hands over any warning so far
+    }
+    long state(const std::string& key) { return status_count(sbs_->get(sub_, "STATUS"), "T", key); }
+    void send(StateWriter& w, std::uint64_t counter, std::int64_t stamp, const std::vector<double>& value,
+              const std::string& key) {
+        const long before = state(key);
+        w.send(counter, stamp, value);
+        ASSERT_TRUE(eventually([&] { return state(key) == before + 1; }))
+            << "not counted as " << key << ": " << sbs_->get(sub_, "STATUS");
+    }
+};
+
+TEST_F(BridgeOrder, AStateVarIsComparedByCounterFromItsWriterAndByStampFromARestartedOrForeignOne) {
+    std::unique_ptr<StateWriter> a, b, c;
+    start_state(a);  // a's counter 0, stamped kEpoch
+    send(*a, 5, kEpoch + 300, {5, 5, 5}, "received");
+    // A newer stamp, an older counter of the same writer: refused by counter.
+    send(*a, 4, kEpoch + 400, {4, 4, 4}, "reordered");
+    const std::string reordered = next_warning();
+    EXPECT_EQ(reordered.rfind("T refused a sample: counter 4 older than 5 (stamps 1700000000.000000400, "
+                              "1700000000.000000300) (1 reordered so far), topic rt/" + topic_ + "/array",
+                              0),
+              0u)
+        << reordered;
+    std::this_thread::sleep_for(50ms);
+    EXPECT_EQ(get<3>("T"), (std::array<double, 3>{5, 5, 5})) << "the older sample reached T";
+
+    a.reset();  // the sender restarts: another writer, from counter 0, with newer stamps
+    open_writer(b, 0, kEpoch + 500, {6, 6, 6});
+    EXPECT_TRUE(eventually([&] { return get<3>("T") == std::array<double, 3>{6, 6, 6}; }));
+    open_writer(c, 0, kEpoch + 500, {6, 6, 6});  // another writer, the same stamp as b's newest: taken
+    send(*b, 1, kEpoch + 600, {7, 7, 7}, "received");  // newer by stamp than c's
+    // c replaying an old command: a higher counter than c's, an older stamp than b's newest.
+    send(*c, 99, kEpoch + 450, {9, 9, 9}, "reordered");
+    std::this_thread::sleep_for(50ms);
+    EXPECT_EQ(get<3>("T"), (std::array<double, 3>{7, 7, 7})) << "the replayed sample reached T";
+    EXPECT_EQ(state("rejected"), 2);
+    EXPECT_EQ(state("reordered"), 2);
+    EXPECT_EQ(state("length"), 0);
 }

@@ -8,6 +8,10 @@
 //   - a message of one value too few or too many for its names is refused;
 //   - the port is complete once every joint has had a value;
 //   - matching allocates nothing;
+//   - check() changes no joint, commit() applies what it took;
+//   - a sample older than the newest taken is told (SampleOrder): a StateVar
+//     by counter from the same writer, by stamp from another (a restarted
+//     writer from counter 0); a JointState by stamp; equal is not older;
 //   - a rate limit moves each joint by at most limit * period per cycle, a
 //     magnitude limit clamps; both count what they clamp.
 #include "joint_map.hpp"
@@ -143,6 +147,45 @@ TEST(JointMap, MatchingAllocatesNothing) {
         },
         chimera::test::AllocScope::this_thread);
     EXPECT_EQ(allocations, 0);
+}
+
+TEST(JointMap, CheckChangesNoJointAndCommitAppliesWhatItTook) {
+    JointMap m = map();
+    Joints q{1, 2, 3, 4, 5, 6};
+    const std::vector<const char*> names{"j6", "j1"};
+    const std::vector<double> values{60, 10};
+    EXPECT_EQ(m.check(names, values).refusal, Refusal::none);
+    EXPECT_EQ(q, (Joints{1, 2, 3, 4, 5, 6})) << "check() applies nothing";
+    const Applied a = m.commit(names, values, q.data());
+    EXPECT_EQ(a.refusal, Refusal::none);
+    EXPECT_FALSE(a.complete) << "four joints have had no value";
+    EXPECT_EQ(q, (Joints{10, 2, 3, 4, 5, 60}));
+    EXPECT_EQ(m.check(std::vector<const char*>{"j1", "j1"}, std::vector<double>{1, 1}).refusal, Refusal::duplicate);
+}
+
+TEST(SampleOrder, AStateVarIsComparedByCounterFromItsWriterAndByStampFromAnother) {
+    SampleOrder o(true);
+    EXPECT_FALSE(o.older({7, 5, 1000})) << "nothing taken yet";
+    o.taken({7, 5, 1000});
+    EXPECT_TRUE(o.older({7, 4, 2000})) << "an older counter of the same writer, whatever its stamp";
+    EXPECT_TRUE(o.by_counter({7, 4, 2000}));
+    EXPECT_FALSE(o.older({7, 5, 1000})) << "equal is not older";
+    EXPECT_FALSE(o.older({7, 6, 500})) << "a newer counter with its sender's clock set back";
+    EXPECT_FALSE(o.older({8, 0, 1001})) << "a restarted writer: counter 0, a newer stamp";
+    EXPECT_TRUE(o.older({8, 9, 999})) << "another writer's older stamp, whatever its counter";
+    EXPECT_FALSE(o.by_counter({8, 9, 999}));
+    o.taken({8, 0, 1001});
+    EXPECT_FALSE(o.older({8, 1, 1002}));
+    EXPECT_TRUE(o.older({7, 6, 1000})) << "the first writer again, compared by stamp";
+}
+
+TEST(SampleOrder, AJointStateIsComparedByStampOnlyAndEqualStampsAreTaken) {
+    SampleOrder o;  // no counter
+    o.taken({7, 5, 1000});
+    EXPECT_TRUE(o.older({7, 6, 999}));
+    EXPECT_FALSE(o.by_counter({7, 6, 999}));
+    EXPECT_FALSE(o.older({7, 4, 1000})) << "equal stamps: taken";
+    EXPECT_FALSE(o.older({9, 0, 1001}));
 }
 
 TEST(JointMap, TheRmodsNamesMustBeDistinct) {

@@ -348,17 +348,19 @@ REFUSALS = {
     "unknown": "T_REF refused a sample: unknown joint 'joint7'",
     "length": "T_REF refused a sample: 100000 effort values for 6 names",
     "unnamed": "T_REF refused a sample: no joint names (UNNAMED refuse)",
+    "reordered": "T_REF refused a sample: stamp ",
 }
 
 
 def test_dds_foreign_publisher(dds_arm):
     """A foreign participant on the robot's side of the link writes, on the
     torque topic, the controller's newest command with its joints reversed,
-    a subset of them, 64 joints, 100000 efforts and no names
-    (dds_foreign_writer.cpp): the reversed ones are the same command by
-    name, every other one is refused whole, counted and told with its reason
-    and topic; the limits hold and T_REF, the robot's torque command, never
-    jumps (tref_steps)."""
+    a subset of them, 64 joints, 100000 efforts and no names, and the first
+    command it read again with its old stamp (dds_foreign_writer.cpp): the
+    reversed ones are the same command by name, every other one is refused
+    whole (the replayed one as reordered: older than the newest taken),
+    counted and told with its reason and topic; the limits hold and T_REF, the
+    robot's torque command, never jumps (tref_steps)."""
     arm = dds_arm
     seen = {}
     before, _ = arm.status()
@@ -389,9 +391,10 @@ def test_dds_foreign_publisher(dds_arm):
     print("foreign writer:", out.strip(), err.strip()[-500:])
     assert code == 0, out + err
     sent = {k: int(v) for k, v in (w.split("=") for w in out.split()[1:])}
-    assert sent["reordered"] > 0 and sent["read"] > 0, sent
+    assert sent["reversed"] > 0 and sent["replayed"] > 0 and sent["read"] > 0, sent
     after, ctrl = arm.status()
-    counts = {k: after[k] - before[k] for k in ("rejected", "partial", "unknown", "length", "unnamed", "duplicate")}
+    counts = {k: after[k] - before[k]
+              for k in ("rejected", "partial", "unknown", "length", "unnamed", "reordered", "duplicate")}
     print("robot T_REF refusals during the run:", counts)
     for reason in REFUSALS:
         assert counts[reason] > 0, "no %s sample refused: %s, sent %s" % (reason, counts, sent)
@@ -402,5 +405,5 @@ def test_dds_foreign_publisher(dds_arm):
         assert line and ("topic " + TORQUE_TOPIC) in line, "no warning %r naming the topic:\n%s" % (text, log[-3000:])
         print(line)
     # The arm followed the controller, never stale: every refused sample left
-    # the port alone (tref_steps: a reordered one gave each joint its own torque).
+    # the port alone (tref_steps: a reversed one gave each joint its own torque).
     assert after["stale"] == "no" and ctrl["stale"] == "no"
