@@ -1033,6 +1033,8 @@ Reply Interpreter::cmd_sample(const Words& w) {
     f.local.set("RING", {name});
     if (!capacity.empty()) f.local.set("CAPACITY", {capacity});
     const auto s = sbs_.status(spawn_on(f, spec.name));
+    // Counted from now on as it was admitted: the .rmod the runtime got has no WCET.
+    rmods_[name].wcet = sampler_cycle_cost(channels.size());
     if (origin_ != Origin::local) client_rings_[name] = ring_bytes;
     const std::string ring = ipc::segment_name(sbs_.name(), name);
     const sampler::RingReader reader = sampler::RingReader::attach(ring);
