@@ -731,3 +731,17 @@ TEST(SbsCli, ASamplerThatWouldPushATaskOutOfTheCriticalSetIsRefused) {
     EXPECT_EQ(r[2]["data"]["rtpu"], "cpu0");
     EXPECT_EQ(r[3]["data"]["rtpu"], "fast");
 }
+
+// A running sampler counts in the next one's analysis with the cost it was
+// admitted with (C 20.1 us, U 0.004 at 200 Hz): beside heavy (U 0.990) two
+// fit, a third would not be guaranteed itself.
+TEST(SbsCli, RunningSamplersCountInTheNextOnesAnalysis) {
+    Workspace ws;
+    two_rtpus(ws);
+    ws.write("heavy.rmod", "MODULE ramp\nDESC a ramp that reserves 99% of its RTPU\nINVAR none\nOUTVAR X\n"
+                           "TASKTYPE periodic\nFREQ 200\nWCET 0.00495\n\nLOCAL\nSTEP 1\nEOF\n");
+    EXPECT_EQ(failing(ws, "spawn " + ws.dir() + "/heavy.rmod; on; sample X --rate 200; sample X --rate 200; "
+                      "sample X --rate 200"),
+              "sample refused: RTPU cpu0 (MUF) cannot take sample.3 at 200 Hz (C 20 us, U 0.004): it would not be in "
+              "the critical set itself (utilisation with it 1.002, bound 1.000); --rtpu fast takes it");
+}

@@ -21,6 +21,7 @@
 #include <filesystem>
 #include <fstream>
 #include <iterator>
+#include <map>
 #include <optional>
 #include <regex>
 #include <set>
@@ -706,6 +707,113 @@ TEST(SbsNetwork, AClientsSamplersAreBoundedAndNeverShrunk) {
     EXPECT_EQ(status["data"]["tasks"].size(), 9u) << "ramp and 8 samplers, no refused one";
     c.request("finish", 10000);
     EXPECT_EQ(m.wait(), 0) << m.err_text();
+}
+
+// ------------------------------------------ issue #29.2: a client's tasks are admitted like a sampler
+
+namespace {
+
+// cpu0 (MUF, 1..1000 Hz) and quick (up to 5 kHz); heavy reserves 99% of cpu0
+// (C 4.95 ms every 5 ms); fast runs at 2 kHz; brisk (C 100 us at 1 kHz)
+// would come before heavy in MUF's order and push it out; slow (C 100 us at
+// 10 Hz) fits beside it. Only heavy writes a variable, so verification never
+// stands in the way.
+void admission_tasks(const Workspace& ws) {
+    ws.write(ws.subsystem() + ".sbs", "SUBSYSTEM " + ws.subsystem() + "\nSVARFILE  " + sbs_test::env("SBS_TEST_DATA") +
+                                          "/tools.svar\nRTPU      cpu0\nBACKEND   other\n"
+                                          "RTPU      quick 0\nMAXFREQ   5000\nBACKEND   other\nEOF\n");
+    const auto rmod = [&](const std::string& name, const std::string& out, const std::string& timing) {
+        ws.write(name + ".rmod", "MODULE ramp\nDESC " + name + "\nINVAR none\nOUTVAR " + out +
+                                     "\nTASKTYPE periodic\n" + timing + "\nEOF\n");
+    };
+    rmod("heavy", "X", "FREQ 200\nWCET 0.00495");
+    rmod("fast", "none", "FREQ 2000");
+    rmod("brisk", "none", "FREQ 1000\nWCET 0.0001");
+    rmod("slow", "none", "FREQ 10\nWCET 0.0001");
+}
+
+}  // namespace
+
+// Issue #29.2: a TCP peer with control may not spawn a task at a rate outside
+// its RTPU's range (it is offered the RTPU that runs it), nor turn on or
+// re-rate one so that the RTPU's MUF analysis would lose heavy from its
+// critical set; `off heavy, on brisk` in one reconfig is judged item by item.
+// Each refusal is compared in full and leaves the tasks as they were.
+TEST(SbsNetwork, AClientsSpawnOnAndFreqAreAdmittedLikeASampler) {
+    Workspace ws;
+    admission_tasks(ws);
+    Master m(ws, {"--serve", "--tcp", "127.0.0.1:0", "--token", "s3cret", "-c", "spawn heavy; on"});
+    ASSERT_TRUE(m.stderr_has("TCP 127.0.0.1:")) << m.err_text();
+    ASSERT_TRUE(m.stderr_has("\n")) << m.err_text();
+    const int port = std::stoi(m.err_text().substr(m.err_text().find("TCP 127.0.0.1:") + 14));
+    auto c = NetworkClient::connect_tcp("127.0.0.1", static_cast<std::uint16_t>(port));
+    ASSERT_TRUE(c.request("token s3cret", 10000).value("ok", false));
+    const auto refused = [&](const std::string& command, const std::string& expected) {
+        const auto j = c.request(command, 10000);
+        EXPECT_FALSE(j.value("ok", true)) << command;
+        EXPECT_EQ(j.value("error", ""), expected) << command;
+    };
+    const auto granted = [&](const std::string& command) {
+        const auto j = c.request(command, 10000);
+        EXPECT_TRUE(j.value("ok", false)) << command << ": " << j.dump();
+        EXPECT_FALSE(j.value("data", nlohmann::json::object()).contains("admission")) << j.dump();
+        return j;
+    };
+    refused("spawn fast", "spawn fast refused: 2000 Hz is above RTPU cpu0's MAXFREQ (it runs tasks at 1 to 1000 Hz); "
+                          "spawn fast quick takes it");
+    EXPECT_EQ(granted("spawn fast quick")["data"]["rtpu"], "quick");
+    granted("spawn brisk");  // OFF: it takes no CPU until `on`
+    const std::string brisk = "RTPU cpu0 (MUF) cannot take brisk at 1000 Hz (C 100 us, U 0.100): the critical set "
+                              "would lose heavy (U 0.990) (utilisation with it 1.090, bound 1.000)";
+    refused("on brisk", "on brisk refused: " + brisk);
+    refused("reconfig on brisk", "reconfig on brisk refused: " + brisk);
+    granted("reconfig off heavy, on brisk");
+    refused("reconfig on heavy", "reconfig on heavy refused: RTPU cpu0 (MUF) cannot take heavy at 200 Hz (C 4950 us, "
+                                 "U 0.990): it would not be in the critical set itself (utilisation with it 1.090, "
+                                 "bound 1.000)");
+    granted("reconfig off brisk, on heavy");
+    granted("spawn slow");
+    granted("on slow");
+    refused("freq slow 2000", "freq slow refused: 2000 Hz is above RTPU cpu0's MAXFREQ (it runs tasks at 1 to 1000 Hz)");
+    refused("freq slow 500", "freq slow refused: RTPU cpu0 (MUF) cannot take slow at 500 Hz (C 100 us, U 0.050): the "
+                             "critical set would lose heavy (U 0.990) (utilisation with it 1.040, bound 1.000)");
+    EXPECT_EQ(granted("freq slow 20")["data"]["freq"], 20.0);
+    refused("freq brisk 2000", "freq brisk refused: 2000 Hz is above RTPU cpu0's MAXFREQ (it runs tasks at 1 to 1000 Hz)");
+    const auto status = c.request("status all", 10000);
+    std::map<std::string, std::string> states;
+    for (const auto& t : status["data"]["tasks"]) states[t["rmod"]] = t["state"];
+    EXPECT_EQ(states, (std::map<std::string, std::string>{{"brisk", "OFF"}, {"fast", "OFF"}, {"heavy", "ON"}, {"slow", "ON"}}))
+        << status.dump();
+    c.request("finish", 10000);
+    EXPECT_EQ(m.wait(), 0) << m.err_text();
+}
+
+// The owner (the prompt, -c, the .sbs) is not refused: the thesis lets the
+// operator run a task outside MINFREQ..MAXFREQ (it only scales criticality),
+// so the command runs and its reply carries the warning a client's refusal
+// would have given (docs/permissions.md).
+TEST(SbsNetwork, TheOwnerIsWarnedNotRefused) {
+    Workspace ws;
+    admission_tasks(ws);
+    const auto r = ws.sbs_run({"-c", "spawn heavy; on; spawn fast; spawn brisk; on brisk; freq brisk 2000; status all",
+                               "--json"});
+    EXPECT_EQ(r.status, 0) << r.out << r.err;
+    const std::vector<nlohmann::json> replies = sbs_test::json_lines(r.out);
+    ASSERT_EQ(replies.size(), 7u) << r.out;
+    const auto warning = [&](std::size_t i) {
+        EXPECT_TRUE(replies[i].value("ok", false)) << replies[i].dump();
+        return replies[i].value("data", nlohmann::json::object()).value("admission", "");
+    };
+    const std::string owner = " (run as the owner asked; a client would be refused)";
+    EXPECT_EQ(warning(0), "");
+    EXPECT_EQ(warning(2), "WARNING> spawn fast: 2000 Hz is above RTPU cpu0's MAXFREQ (it runs tasks at 1 to 1000 Hz)" + owner);
+    EXPECT_EQ(warning(4), "WARNING> on brisk: RTPU cpu0 (MUF) cannot take brisk at 1000 Hz (C 100 us, U 0.100): the "
+                          "critical set would lose heavy (U 0.990) (utilisation with it 1.090, bound 1.000)" + owner);
+    EXPECT_EQ(warning(5), "WARNING> freq brisk: 2000 Hz is above RTPU cpu0's MAXFREQ (it runs tasks at 1 to 1000 Hz)" + owner);
+    EXPECT_NE(replies[4].value("text", "").find("\n" + warning(4)), std::string::npos) << replies[4].dump();
+    std::map<std::string, std::string> states;
+    for (const auto& t : replies[6]["data"]["tasks"]) states[t["rmod"]] = t["state"];
+    EXPECT_EQ(states, (std::map<std::string, std::string>{{"brisk", "ON"}, {"fast", "OFF"}, {"heavy", "ON"}}));
 }
 
 // ------------------------------------------ issue #29.3: the web console under a flood

@@ -78,4 +78,10 @@ std::string analysis_problem(const RtpuSpec& rtpu, const std::vector<muf::TaskSp
     return why + " (utilisation with it " + number("%.3f", total) + ", bound " + number("%.3f", after.bound) + ")";
 }
 
+std::string admission_problem(const RtpuSpec& rtpu, double hz, const std::vector<muf::TaskSpec>& running,
+                              const muf::TaskSpec& candidate) {
+    const std::string range = rate_problem(rtpu, hz);
+    return range.empty() ? analysis_problem(rtpu, running, candidate) : range;
+}
+
 }  // namespace chimera::cli

@@ -1,7 +1,8 @@
-// tools/sbs/admission.hpp — whether a task a client starts may join an RTPU
-// (issue #29.2): its rate within the RTPU's MINFREQ..MAXFREQ, and the RTPU's
-// own analysis (muf::critical_set under its SCHEDULER, the one its scheduler
-// runs) still guaranteeing every task it guaranteed, and the newcomer too.
+// tools/sbs/admission.hpp — whether a task a client starts (a sampler, a
+// spawned task turned on, a new freq) may join an RTPU (issue #29.2): its
+// rate within the RTPU's MINFREQ..MAXFREQ, and the RTPU's own analysis
+// (muf::critical_set under its SCHEDULER, the one its scheduler runs) still
+// guaranteeing every task it guaranteed, and the newcomer too.
 // Pure functions of the numbers, so every refusal can give them.
 #pragma once
 
@@ -27,5 +28,10 @@ std::string rate_problem(const RtpuSpec& rtpu, double hz);
 /// candidate itself would not be guaranteed, with the utilisations and the bound.
 std::string analysis_problem(const RtpuSpec& rtpu, const std::vector<muf::TaskSpec>& running,
                              const muf::TaskSpec& candidate);
+
+/// The whole admission of a task at `hz` (its period 1/hz): "" when both
+/// rate_problem and analysis_problem are empty, else the first problem.
+std::string admission_problem(const RtpuSpec& rtpu, double hz, const std::vector<muf::TaskSpec>& running,
+                              const muf::TaskSpec& candidate);
 
 }  // namespace chimera::cli

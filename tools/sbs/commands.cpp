@@ -413,6 +413,21 @@ RmodFile combined_view(const std::string& name, const std::vector<RmodFile>& par
     return out;
 }
 
+// A task as its RTPU's analysis counts it: a periodic task, or a server
+// (sporadic or deferrable with WCET and FREQ), at the rate the interpreter
+// last gave it; nullopt for a task never released periodically.
+std::optional<muf::TaskSpec> analysed_spec(const std::string& name, const RmodFile& f) {
+    const bool server = is_aperiodic(f.type) && f.type != TaskType::background && f.wcet > 0 && f.freq > 0;
+    if ((f.type != TaskType::periodic || !(f.freq > 0)) && !server) return std::nullopt;
+    muf::TaskSpec t;
+    t.name = name;
+    t.period = 1.0 / f.freq;
+    t.wcet = f.wcet;
+    t.effective = f.effective;
+    t.crit = server && !f.crit ? std::optional<int>(muf::crit::server) : f.crit;
+    return t;
+}
+
 }  // namespace
 
 // spawn RMOD [RTPU] | spawn A+B+C [RTPU]: one task, or a combined task
@@ -450,23 +465,47 @@ Reply Interpreter::cmd_spawn(const Words& w) {
     if (is_task(name)) throw CommandError("spawn: task " + name + " already exists (kill it first)");
     if (origin_ != Origin::local)
         for (const auto& f : files) refuse_file_writer("spawn", name, sbs::module_local_keys(f, module_path()));
+    RmodFile view = files.size() == 1 ? std::move(files[0]) : combined_view(name, files);
+    const std::string warning = admit_spawn(name, view, rtpu);
     const sbs::TaskId id = paths.size() == 1 ? sbs_.spawn(paths[0], rtpu) : sbs_.spawn_combined(paths, rtpu);
-    rmods_[name] = files.size() == 1 ? std::move(files[0]) : combined_view(name, files);
+    rmods_[name] = std::move(view);
     files_of_[name] = paths;
     default_rmod_ = name;
     const auto s = sbs_.status(id);
     rtpu_of_[name] = s.rtpu;
     Reply r;
-    r.text = "spawned " + name + " (module " + s.module + ") on RTPU " + s.rtpu + "\n" + state_line(s);
+    r.text = "spawned " + name + " (module " + s.module + ") on RTPU " + s.rtpu + "\n" + state_line(s) +
+             (warning.empty() ? "" : "\n" + warning);
     r.data = {{"rmod", name}, {"file", join(paths, "+")}, {"files", paths}, {"module", s.module}, {"rtpu", s.rtpu},
               {"state", std::string(to_string(s.state))}};
+    if (!warning.empty()) r.data["admission"] = warning;
     return r;
+}
+
+// A spawned task is OFF and takes no CPU, so only its rate is checked here
+// (the analysis is at `on`, when the tasks beside it are known); a refusal
+// names the RTPUs whose range holds the rate.
+std::string Interpreter::admit_spawn(const std::string& name, const RmodFile& f, const std::string& rtpu) const {
+    const auto task = analysed_spec(name, f);
+    if (!task) return {};
+    const RtpuSpec& spec = sampler_rtpu(rtpu);
+    std::vector<std::string> others;
+    for (const RtpuSpec& r : sbs_.file().rtpus)
+        if (r.name != spec.name && rate_problem(r, f.freq).empty()) others.push_back(r.name);
+    const std::string spawn = "spawn " + name + " ";
+    const std::string hint = others.empty() ? "no RTPU runs tasks at " + cfg::number_text(f.freq) + " Hz"
+                                            : spawn + join(others, " or " + spawn) + " takes it";
+    return admit("spawn " + name, spec.name, *task, f.freq, nullptr, hint);
 }
 
 Reply Interpreter::cmd_control(const Words& w, sbs::Control signal) {
     if (w.size() > 2) throw CommandError("usage: " + w[0] + " [RMOD]");
     const sbs::TaskId id = task_of(w.size() == 2 ? w[1] : std::string());
-    if (signal == sbs::Control::on) refuse_file_writer("on", default_rmod_, sbs_.local_keys(id));
+    std::string warning;
+    if (signal == sbs::Control::on) {
+        refuse_file_writer("on", default_rmod_, sbs_.local_keys(id));
+        warning = admit_on("on", default_rmod_, tasks_on());
+    }
     try {
         sbs_.control(id, signal);
     } catch (const sbs::Error&) {
@@ -476,8 +515,9 @@ Reply Interpreter::cmd_control(const Words& w, sbs::Control signal) {
     const auto s = sbs_.status(id);
     if (s.state == State::NOT_CREATED) rmods_.erase(default_rmod_);
     Reply r;
-    r.text = state_line(s);
+    r.text = state_line(s) + (warning.empty() ? "" : "\n" + warning);
     r.data = {{"rmod", default_rmod_}, {"state", std::string(to_string(s.state))}};
+    if (!warning.empty()) r.data["admission"] = warning;
     return r;
 }
 
@@ -845,25 +885,69 @@ const RtpuSpec& Interpreter::sampler_rtpu(const std::string& name) const {
     throw CommandError("sample: no RTPU " + name + " in " + f.path + " (RTPUs: " + join(names) + ")");
 }
 
+std::set<std::string> Interpreter::tasks_on() const {
+    std::set<std::string> on;
+    for (const auto& [name, f] : rmods_)
+        if (const auto id = sbs_.find(name); id && sbs_.state(*id) == State::ON) on.insert(name);
+    return on;
+}
+
 // What the RTPU's scheduler counts in its analysis: its ON periodic tasks and
 // servers, at their current rates (a task not ON is never released).
 std::vector<muf::TaskSpec> Interpreter::analysed_tasks(const std::string& rtpu) const {
+    return analysed_tasks(rtpu, tasks_on());
+}
+
+// The same with `on` standing for the tasks ON (a reconfig's state part-way).
+std::vector<muf::TaskSpec> Interpreter::analysed_tasks(const std::string& rtpu, const std::set<std::string>& on) const {
     std::vector<muf::TaskSpec> out;
     for (const auto& [name, f] : rmods_) {
-        const auto on = rtpu_of_.find(name);
-        const auto id = sbs_.find(name);
-        if (on == rtpu_of_.end() || on->second != rtpu || !id || sbs_.state(*id) != State::ON) continue;
-        const bool server = is_aperiodic(f.type) && f.type != TaskType::background && f.wcet > 0 && f.freq > 0;
-        if (f.type != TaskType::periodic && !server) continue;
-        muf::TaskSpec t;
-        t.name = name;
-        t.period = 1.0 / (f.type == TaskType::periodic ? sbs_.freq_get(*id) : f.freq);
-        t.wcet = f.wcet;
-        t.effective = f.effective;
-        t.crit = server && !f.crit ? std::optional<int>(muf::crit::server) : f.crit;
-        out.push_back(std::move(t));
+        const auto where = rtpu_of_.find(name);
+        if (!on.count(name) || where == rtpu_of_.end() || where->second != rtpu) continue;
+        if (auto t = analysed_spec(name, f)) out.push_back(std::move(*t));
     }
     return out;
+}
+
+// Issue #29.2: what a client can start is admitted like a sampler; the owner
+// (prompt, -c, the .sbs) may run a task outside it, as the thesis lets the
+// operator do (an RTPU's MINFREQ..MAXFREQ only scales criticality, §4.5.1),
+// and is told so (docs/permissions.md).
+std::string Interpreter::admit(const std::string& what, const std::string& rtpu, const muf::TaskSpec& task, double hz,
+                               const std::vector<muf::TaskSpec>* running, const std::string& hint) const {
+    const RtpuSpec* spec = sbs_.file().find_rtpu(rtpu);
+    if (spec == nullptr) return {};
+    const std::string why = running ? admission_problem(*spec, hz, *running, task) : rate_problem(*spec, hz);
+    if (why.empty()) return {};
+    if (origin_ != Origin::local) throw CommandError(what + " refused: " + why + (hint.empty() ? "" : "; " + hint));
+    return "WARNING> " + what + ": " + why + " (run as the owner asked; a client would be refused)";
+}
+
+std::string Interpreter::admit_on(const std::string& what, const std::string& name, const std::set<std::string>& on) const {
+    const auto f = rmods_.find(name);
+    const auto where = rtpu_of_.find(name);
+    if (f == rmods_.end() || where == rtpu_of_.end() || on.count(name)) return {};  // ON already: the runtime says so
+    const auto task = analysed_spec(name, f->second);
+    if (!task) return {};
+    const auto running = analysed_tasks(where->second, on);
+    return admit(what + " " + name, where->second, *task, f->second.freq, &running);
+}
+
+// Each `on` is judged with the items before it applied, so `off a, on b` may
+// swap b for a; the first refusal stops the list before anything is sent.
+std::string Interpreter::admit_reconfig(const std::vector<std::vector<std::string>>& groups) const {
+    std::set<std::string> on = tasks_on();
+    std::string warnings;
+    for (const auto& g : groups) {
+        if (g[0] == "on") {
+            const std::string w = admit_on("reconfig on", g[1], on);
+            if (!w.empty()) warnings += "\n" + w;
+            on.insert(g[1]);
+        } else if (g[0] == "off" || g[0] == "kill") {
+            on.erase(g[1]);
+        }
+    }
+    return warnings;
 }
 
 // A sampler is a task (issue #29.2): its rate within the RTPU's MINFREQ and
@@ -874,10 +958,7 @@ void Interpreter::admit_sampler(const RtpuSpec& spec, const std::string& name, d
     candidate.name = name;
     candidate.period = 1.0 / rate;
     candidate.wcet = sampler_cycle_cost(channels);
-    const auto problem = [&](const RtpuSpec& r) {
-        const std::string range = rate_problem(r, rate);
-        return range.empty() ? analysis_problem(r, analysed_tasks(r.name), candidate) : range;
-    };
+    const auto problem = [&](const RtpuSpec& r) { return admission_problem(r, rate, analysed_tasks(r.name), candidate); };
     const std::string why = problem(spec);
     if (why.empty()) return;
     std::vector<std::string> others;
@@ -952,6 +1033,8 @@ Reply Interpreter::cmd_sample(const Words& w) {
     f.local.set("RING", {name});
     if (!capacity.empty()) f.local.set("CAPACITY", {capacity});
     const auto s = sbs_.status(spawn_on(f, spec.name));
+    // Counted from now on as it was admitted: the .rmod the runtime got has no WCET.
+    rmods_[name].wcet = sampler_cycle_cost(channels.size());
     if (origin_ != Origin::local) client_rings_[name] = ring_bytes;
     const std::string ring = ipc::segment_name(sbs_.name(), name);
     const sampler::RingReader reader = sampler::RingReader::attach(ring);
@@ -1354,6 +1437,7 @@ Reply Interpreter::cmd_reconfig(const Words& w) {
         items.emplace_back(*id, signal_of(g[0]));
         names.push_back(g[0] + " " + g[1]);
     }
+    const std::string warnings = admit_reconfig(groups);
     if (check_only) return reconfig_check(items, names);
     default_rmod_ = groups.back()[1];
     const auto res = sbs_.reconfig(std::span<const sbs::ReconfigItem>(items));
@@ -1369,8 +1453,9 @@ Reply Interpreter::cmd_reconfig(const Words& w) {
         r.data = {{"applied", applied}, {"failed", res.failed}};
         return r;
     }
-    r.text = "reconfig: " + std::to_string(res.processed) + " items applied: " + join(names, ", ");
+    r.text = "reconfig: " + std::to_string(res.processed) + " items applied: " + join(names, ", ") + warnings;
     r.data = {{"applied", applied}};
+    if (!warnings.empty()) r.data["admission"] = warnings.substr(1);
     return r;
 }
 
@@ -1435,18 +1520,41 @@ Reply Interpreter::cmd_freq(const Words& w) {
         (is_task(w[1]) ? rmod : hz) = w[1];
     }
     const sbs::TaskId id = task_of(rmod);
+    std::string warning;
     if (!hz.empty()) {
         char* end = nullptr;
         const double v = std::strtod(hz.c_str(), &end);
         if (end == hz.c_str() || *end != '\0' || !(v > 0) || !std::isfinite(v))
             throw CommandError("freq: '" + hz + "' is not a frequency in Hz (a positive number)");
+        if (frequency_problem(v).empty()) warning = admit_freq(default_rmod_, v);  // else freq_set says why
         sbs_.freq_set(id, v);
+        if (auto f = rmods_.find(default_rmod_); f != rmods_.end()) {  // the rate the analysis counts from now
+            f->second.freq = v;
+            f->second.period = 1.0 / v;
+        }
     }
     const double now = sbs_.freq_get(id);
     Reply r;
-    r.text = default_rmod_ + " " + fmt("%g", now) + " Hz";
+    r.text = default_rmod_ + " " + fmt("%g", now) + " Hz" + (warning.empty() ? "" : "\n" + warning);
     r.data = {{"rmod", default_rmod_}, {"freq", now}};
+    if (!warning.empty()) r.data["admission"] = warning;
     return r;
+}
+
+// A task ON is judged at `hz` beside the others ON; one not ON only by its
+// rate (its `on` runs the analysis).
+std::string Interpreter::admit_freq(const std::string& name, double hz) const {
+    const auto f = rmods_.find(name);
+    const auto where = rtpu_of_.find(name);
+    if (f == rmods_.end() || where == rtpu_of_.end()) return {};
+    RmodFile at = f->second;
+    at.freq = hz;
+    const auto task = analysed_spec(name, at);
+    if (!task) return {};
+    std::set<std::string> on = tasks_on();
+    if (!on.erase(name)) return admit("freq " + name, where->second, *task, hz, nullptr);
+    const auto running = analysed_tasks(where->second, on);
+    return admit("freq " + name, where->second, *task, hz, &running);
 }
 
 Reply Interpreter::cmd_help(const Words& w) {
@@ -1592,6 +1700,10 @@ namespace chimera::cli {
 Reply Interpreter::start_tasks() {
     const SbsFile& f = sbs_.file();
     std::vector<std::string> spawned, to_turn_on;
+    std::string warnings;  // the owner's tasks admission would refuse a client (docs/permissions.md)
+    const auto warned = [&](const Reply& r) {
+        if (r.data.is_object() && r.data.contains("admission")) warnings += "\n" + r.data["admission"].get<std::string>();
+    };
     auto fail = [&](int line, const std::string& why) {
         for (auto it = spawned.rbegin(); it != spawned.rend(); ++it) execute("kill " + *it);
         return Reply::failure("start", f.path + ":" + std::to_string(line) + ": " + why);
@@ -1600,6 +1712,7 @@ Reply Interpreter::start_tasks() {
         const std::string name = join(t.rmods, "+");
         Reply r = execute("spawn " + name + (t.rtpu.empty() ? "" : " " + t.rtpu));
         if (!r.ok) return fail(t.line, r.error);
+        warned(r);
         const std::string rmod = r.data.value("rmod", name);
         spawned.push_back(rmod);
         for (const TaskLine::Set& set : t.local) {
@@ -1613,9 +1726,11 @@ Reply Interpreter::start_tasks() {
         for (const auto& rmod : to_turn_on) items += (items.empty() ? "" : ", ") + std::string("on ") + rmod;
         const Reply r = execute("reconfig " + items);
         if (!r.ok) return fail(f.tasks.front().line, r.error);
+        warned(r);
     }
     Reply r;
     r.text = spawned.empty() ? "" : "started " + join(spawned) + (to_turn_on.empty() ? "" : "; on: " + join(to_turn_on));
+    if (!warnings.empty()) r.text += r.text.empty() ? warnings.substr(1) : warnings;
     r.data = {{"spawned", spawned}, {"on", to_turn_on}};
     return r;
 }

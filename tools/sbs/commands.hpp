@@ -15,6 +15,7 @@
 #include <map>
 #include <mutex>
 #include <optional>
+#include <set>
 #include <string>
 #include <string_view>
 #include <vector>
@@ -113,7 +114,22 @@ private:
     Reply cmd_sample(const Words& w);
     double producers_rate(const std::vector<std::string>& vars, std::string& why) const;
     const RtpuSpec& sampler_rtpu(const std::string& name) const;
+    std::set<std::string> tasks_on() const;
     std::vector<muf::TaskSpec> analysed_tasks(const std::string& rtpu) const;
+    std::vector<muf::TaskSpec> analysed_tasks(const std::string& rtpu, const std::set<std::string>& on) const;
+    /// Issue #29.2: "" when `task` at `hz` may run on `rtpu` beside `running`
+    /// (null: only its rate is checked). A client is refused (CommandError,
+    /// "WHAT refused: ..."); the owner gets the warning line it returns.
+    std::string admit(const std::string& what, const std::string& rtpu, const muf::TaskSpec& task, double hz,
+                      const std::vector<muf::TaskSpec>* running, const std::string& hint = {}) const;
+    /// admit() for a task about to be spawned from `f` on `rtpu` ("": the MASTER RTPU).
+    std::string admit_spawn(const std::string& name, const RmodFile& f, const std::string& rtpu) const;
+    /// admit() for turning on task `name` while the tasks `on` are ON.
+    std::string admit_on(const std::string& what, const std::string& name, const std::set<std::string>& on) const;
+    /// admit() for `freq NAME HZ`.
+    std::string admit_freq(const std::string& name, double hz) const;
+    /// admit() for the items of a reconfig, in order (an off or kill frees its share first).
+    std::string admit_reconfig(const std::vector<std::vector<std::string>>& groups) const;
     void admit_sampler(const RtpuSpec& spec, const std::string& name, double rate, std::size_t channels) const;
     static std::size_t ring_entries(const std::string& capacity, double rate);
     void bound_client_rings(std::size_t bytes);
