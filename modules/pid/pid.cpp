@@ -6,11 +6,13 @@
 //   OUTVAR  T_REF                                 N m
 //   [INVAR  STAMP]                                a ddsbridge stamp of Q_MEZ (3 doubles)
 //   LOCAL   KP KI KD ILIMIT ULIMIT  (1 value for all joints or NDOF values)
-//           [STALE hold|run] [SLEW]  with STAMP: while Q_MEZ is stale, hold the
-//                            last good T_REF and freeze the integral; on the
-//                            first fresh cycle reset the integral and slew T_REF
-//                            from the held value to the PID's at SLEW N m/s
-//                            (issue #29.6; default run: the stamp is ignored)
+//           [STALE hold|run] [SLEW]  hold: while Q_MEZ is stale (by STAMP) or the
+//                            configuration is illegal (the robot interface
+//                            holds the arm), hold the last good T_REF and
+//                            freeze the integral; on the first cycle after,
+//                            reset the integral and slew T_REF from the held
+//                            value to the PID's at SLEW N m/s (issue #29.6;
+//                            default run: neither is looked at)
 #include <chimera/module.hpp>
 
 #include <limits>
@@ -31,8 +33,8 @@ constexpr chimera::LocalKey kPidModuleLocalKeys[] = {
     {"KD", chimera::LocalType::numbers, 0.0, chimera::unbounded, true, "derivative gain per joint", ""},
     {"ILIMIT", chimera::LocalType::numbers, 0.0, chimera::unbounded, true, "integrator clamp per joint", ""},
     {"ULIMIT", chimera::LocalType::numbers, 0.0, chimera::unbounded, true, "output clamp per joint", ""},
-    {"STALE", chimera::LocalType::word, -chimera::unbounded, chimera::unbounded, false, "hold | run: what stale measurements (in-var STAMP) do", "run"},
-    {"SLEW", chimera::LocalType::numbers, 0.0, chimera::unbounded, true, "after stale measurements: T_REF slew rate per joint (N m/s; none: no limit)", ""},
+    {"STALE", chimera::LocalType::word, -chimera::unbounded, chimera::unbounded, false, "hold | run: what stale measurements (in-var STAMP) and an illegal configuration do", "run"},
+    {"SLEW", chimera::LocalType::numbers, 0.0, chimera::unbounded, true, "after a hold: T_REF slew rate per joint (N m/s; none: no limit)", ""},
 };
 
 class PidModule : public chimera::Module {
@@ -48,11 +50,8 @@ public:
         }
         const std::string stale = rb::local_word(t, "STALE", "run");
         if (stale != "hold" && stale != "run") rb::module_error(t, "LOCAL STALE '" + stale + "': expected hold or run");
-        if (stale == "hold") {
-            if (!rb::has_in_var(t, "STAMP"))
-                rb::module_error(t, "LOCAL STALE hold needs the in-var STAMP (the bridge's stamp of Q_MEZ)");
-            stamp_ = rb::vec_port(t, "STAMP", 3);
-        }
+        hold_ = stale == "hold";
+        if (hold_ && rb::has_in_var(t, "STAMP")) stamp_ = rb::vec_port(t, "STAMP", 3);
         q_ref_ = rb::vec_port(t, "Q_REF", n_);
         qd_ref_ = rb::vec_port(t, "Q^_REF", n_);
         q_mez_ = rb::vec_port(t, "Q_MEZ", n_);
@@ -72,7 +71,7 @@ public:
         const auto n = static_cast<Eigen::Index>(n_);
         using CMap = Eigen::Map<const Eigen::VectorXd>;
         Eigen::Map<Eigen::VectorXd> u(t_ref_, n);
-        const bool stale = rb::stamp_says_stale(stamp_);  // no stamp (STALE run): never
+        const bool stale = hold_ && rb::must_hold(stamp_, t.illegal_configuration());  // STALE run: never
         if (t_grav_) {
             pid_->update(stale, CMap(q_ref_, n), CMap(qd_ref_, n), CMap(q_mez_, n), CMap(qd_mez_, n),
                          CMap(t_grav_, n), t.period(), u);
@@ -102,7 +101,8 @@ private:
 
     std::size_t n_ = 0;
     std::optional<rb::StaleHoldPid> pid_;
-    const double* stamp_ = nullptr;  // STALE hold: the bridge's stamp of Q_MEZ
+    bool hold_ = false;              // STALE hold
+    const double* stamp_ = nullptr;  // STALE hold with STAMP: the bridge's stamp of Q_MEZ
     double *q_ref_ = nullptr, *qd_ref_ = nullptr, *q_mez_ = nullptr, *qd_mez_ = nullptr;
     double *t_grav_ = nullptr, *t_ref_ = nullptr;
     Eigen::VectorXd zero_;

@@ -47,6 +47,7 @@ void StaleHoldPid::reset() noexcept {
     pid_.reset();
     watch_.reset();
     out_.setZero();
+    has_output_ = false;
     std::fill(slewing_.begin(), slewing_.end(), 0);
 }
 
@@ -65,7 +66,10 @@ Freshness StaleHoldPid::update(bool stale, const Eigen::Ref<const Eigen::VectorX
         u = out_;  // the last good output; the integral is not touched
         return f;
     }
-    if (f == Freshness::recovered) {
+    // Held ever since reset() (turned on during a reconfiguration), the output
+    // was never the PID's, only a placeholder zero: start as `on` would
+    // rather than slew up from it (the arm was held by the robot meanwhile).
+    if (f == Freshness::recovered && has_output_) {
         // What the integral gathered before the link went is no guide to the
         // arm now: restart it, and move the output there from the held one.
         pid_.reset();
@@ -84,6 +88,7 @@ Freshness StaleHoldPid::update(bool stale, const Eigen::Ref<const Eigen::VectorX
     } else {
         out_ = target_;
     }
+    has_output_ = true;
     u = out_;
     return f;
 }

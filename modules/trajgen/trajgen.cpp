@@ -17,22 +17,25 @@
 //                            the previous one (for the first: from the start;
 //                            when cyclic, the return from the last POINT to the
 //                            first takes the first POINT's time too)
-//           [STALE hold|run] with the optional in-vars STAMP (a ddsbridge stamp,
-//                            3 doubles, of the measurements the controller
-//                            uses) and Z_MEZ (the measured position): hold
+//           [STALE hold|run] with the in-var Z_MEZ (the measured position) and
+//                            the optional STAMP (a ddsbridge stamp, 3 doubles,
+//                            of the measurements the controller uses): hold
 //                            stops the trajectory's clock while the stamp says
-//                            stale and, on the first fresh cycle, re-anchors
-//                            it at Z_MEZ (default run: the stamp is ignored)
+//                            stale or the configuration is illegal and, on the
+//                            first cycle after, re-anchors it at Z_MEZ
+//                            (default run: neither is looked at)
 // When not cyclic it sends sig::FINISH once the last point is reached and keeps
 // holding it.
 //
-// STALE hold (issue #29.6): while the measurements are stale the arm is held by
-// the robot interface, so a trajectory that ran on would be seconds ahead of
-// the arm when they return, and the controller would drive it there at its
-// torque limits. Instead the reference stops (Z held, Z^ and Z^^ zero: a
-// reference that does not move), and on recovery the segment that was under
-// way is planned again, with its full duration, from where the arm was measured
-// to the via point it was heading for; then the trajectory goes on from there.
+// STALE hold (issue #29.6): while the measurements are stale or the
+// configuration is illegal the arm is held by the robot interface, so a
+// trajectory that ran on would be seconds ahead of the arm when they return,
+// and the controller would drive it there at its torque limits. Instead the
+// reference stops, at the held arm (Z = Z_MEZ, Z^ and Z^^ zero): a controller
+// that restarts before this task's next cycle (the PID runs faster) finds no
+// error to jump on. On recovery the segment that was under way is planned
+// again, with its full duration, from where the arm was measured to the via
+// point it was heading for; then the trajectory goes on from there.
 #include <chimera/module.hpp>
 
 #include <memory>
@@ -52,7 +55,7 @@ constexpr chimera::LocalKey kTrajGenLocalKeys[] = {
     {"BLEND", chimera::LocalType::number, 0.0, chimera::unbounded, false, "blend time between segments (s)", "0.2"},
     {"CYCLIC", chimera::LocalType::word, -chimera::unbounded, chimera::unbounded, false, "yes | no: start over after the last point", "yes"},
     {"START", chimera::LocalType::word, -chimera::unbounded, chimera::unbounded, false, "current | first point", "current"},
-    {"STALE", chimera::LocalType::word, -chimera::unbounded, chimera::unbounded, false, "hold | run: what stale measurements (in-var STAMP) do", "run"},
+    {"STALE", chimera::LocalType::word, -chimera::unbounded, chimera::unbounded, false, "hold | run: what stale measurements (in-var STAMP) and an illegal configuration do", "run"},
     {"POINT*", chimera::LocalType::numbers, -chimera::unbounded, chimera::unbounded, false, "POINTn DURATION q1 ... qN: a via point", ""},
 };
 
@@ -144,7 +147,7 @@ public:
     }
 
     chimera::Result cycle(chimera::Task& t) override {
-        switch (watch_.update(rb::stamp_says_stale(stamp_))) {
+        switch (watch_.update(hold_ && rb::must_hold(stamp_, t.illegal_configuration()))) {
             case rb::Freshness::stale: hold_still(); return chimera::Result::OK;
             case rb::Freshness::recovered: reanchor(); break;
             case rb::Freshness::fresh: advance(t.period()); break;
@@ -158,16 +161,16 @@ public:
     }
 
 private:
-    // STALE hold needs the stamp and the measured position; the re-anchored
+    // STALE hold needs the measured position (the stamp is optional); the re-anchored
     // segment is allocated here, once, and re-aimed in the cycle.
     void init_stale_hold(chimera::Task& t, rb::Profile profile) {
         const std::string stale = rb::local_word(t, "STALE", "run");
         if (stale != "hold" && stale != "run") rb::module_error(t, "LOCAL STALE '" + stale + "': expected hold or run");
         if (stale == "run") return;
-        if (!rb::has_in_var(t, "STAMP") || !rb::has_in_var(t, "Z_MEZ"))
-            rb::module_error(t, "LOCAL STALE hold needs the in-vars STAMP (the bridge's stamp of the measurements) "
-                                "and Z_MEZ (the measured position)");
-        stamp_ = rb::vec_port(t, "STAMP", 3);
+        if (!rb::has_in_var(t, "Z_MEZ"))
+            rb::module_error(t, "LOCAL STALE hold needs the in-var Z_MEZ (the measured position, to restart from)");
+        hold_ = true;
+        if (rb::has_in_var(t, "STAMP")) stamp_ = rb::vec_port(t, "STAMP", 3);
         z_mez_ = rb::vec_port(t, "Z_MEZ", n_);
         reanchored_ = std::make_unique<rb::Trajectory>(n_, std::vector<Eigen::VectorXd>{p_, p_}, std::vector<double>{1.0},
                                                        profile, false, rb::local_number(t, "BLEND", 0.2));
@@ -185,9 +188,11 @@ private:
         detour_ = false;
     }
 
-    // Stale: the reference stays where it is and does not move.
+    // Held: the reference is the held arm, at rest. Not the trajectory's last
+    // point: the arm lags it, and a PID restarting on that error would jump.
     void hold_still() noexcept {
         const auto n = static_cast<Eigen::Index>(n_);
+        Eigen::Map<Eigen::VectorXd>(z_, n) = Eigen::Map<const Eigen::VectorXd>(z_mez_, n);
         if (zd_) Eigen::Map<Eigen::VectorXd>(zd_, n).setZero();
         if (zdd_) Eigen::Map<Eigen::VectorXd>(zdd_, n).setZero();
     }
@@ -248,7 +253,8 @@ private:
     double time_ = 0, approach_ = 0;
     Eigen::VectorXd first_, p_, v_, a_, target_;
     std::unique_ptr<rb::Trajectory> traj_, approach_traj_;
-    // STALE hold (nullptr stamp_: run on regardless).
+    // STALE hold (hold_ false: run on regardless; nullptr stamp_: the flag only).
+    bool hold_ = false;
     const double* stamp_ = nullptr;
     const double* z_mez_ = nullptr;
     rb::StaleWatch watch_;

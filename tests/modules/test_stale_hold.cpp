@@ -1,7 +1,7 @@
 // The deterministic parts of issue #29.6 ("a lost link never moves the arm
 // fast"), exactly, with a clock the test moves:
-//  - StaleHoldPid: while stale the output and the integral stay exactly what
-//    they were; on recovery the integral restarts and the output slews from
+//  - StaleHoldPid: while stale (or the configuration illegal, must_hold) the
+//    output and the integral stay exactly what they were; on recovery the integral restarts and the output slews from
 //    the held value to the PID's without exceeding the rate, then follows it;
 //  - SlewLimiter reaches its target in the expected number of steps, never
 //    past it, never faster than the rate;
@@ -126,6 +126,76 @@ TEST(StaleHoldPid, RestartsWithoutABump) {
         reference.update(v2(0.5 + 1e-3 * i, 0.5), zero, v2(0.5, 0.5), zero, zero, kDt, expected);
         ASSERT_EQ(u, expected);
     }
+}
+
+// An illegal configuration (§3.10; the robot interface holds the arm) is held
+// through like stale measurements: must_hold is what pid and trajgen feed
+// StaleWatch / StaleHoldPid with under STALE hold.
+TEST(MustHold, StaleStampOrIllegalConfiguration) {
+    const double fresh[3] = {7, 0.001, 1}, stale[3] = {7, 0.06, -1};
+    EXPECT_FALSE(rb::must_hold(nullptr, false));
+    EXPECT_FALSE(rb::must_hold(fresh, false));
+    EXPECT_TRUE(rb::must_hold(nullptr, true));  // no stamp (no bridge): the flag alone
+    EXPECT_TRUE(rb::must_hold(fresh, true));
+    EXPECT_TRUE(rb::must_hold(stale, false));
+    EXPECT_TRUE(rb::must_hold(stale, true));
+}
+
+TEST(StaleHoldPid, HoldsThroughAnIllegalConfigurationAndRestartsAtTheRate) {
+    const VectorXd slew = v2(512, 1024);  // 1 and 2 N m per cycle
+    rb::StaleHoldPid c(two_joint_pid(), slew);
+    VectorXd u(2);
+    const VectorXd zero = VectorXd::Zero(2);
+    const double fresh[3] = {1, 0.001, 1}, stale[3] = {1, 0.06, -1};
+    for (int i = 0; i < 200; ++i) c.update(rb::must_hold(fresh, false), v2(0.01, 0.02), zero, zero, zero, zero, kDt, u);
+    const VectorXd held = u, integral = c.pid().integral();
+    ASSERT_NE(integral[0], 0);
+    // Illegal for 1000 cycles (2 s), the reference running away from the held
+    // arm; the flag clears while the stamp still says stale: held throughout.
+    for (int i = 0; i < 1100; ++i) {
+        const bool illegal = i < 1000, stamp_stale = i >= 990;
+        const double q_ref = 0.01 + 1e-3 * i;
+        EXPECT_EQ(c.update(rb::must_hold(stamp_stale ? stale : fresh, illegal), v2(q_ref, q_ref), v2(0.5, 0.5), zero,
+                           zero, zero, kDt, u),
+                  rb::Freshness::stale);
+        ASSERT_EQ(u, held) << "held cycle " << i;
+        ASSERT_EQ(c.pid().integral(), integral) << "held cycle " << i;
+    }
+    // Legal and fresh, the reference re-anchored at the arm: one recovery,
+    // the integral restarted, T_REF moving from the held value at the rate.
+    VectorXd before = held;
+    for (int i = 0; c.slewing() > 0 || i == 0; ++i) {
+        const rb::Freshness f = c.update(rb::must_hold(fresh, false), v2(0.5, 0.5), zero, v2(0.5, 0.5), zero, zero,
+                                         kDt, u);
+        EXPECT_EQ(f, i == 0 ? rb::Freshness::recovered : rb::Freshness::fresh);
+        if (i == 0) {
+            EXPECT_EQ(c.pid().integral(), zero);
+        }
+        for (int j = 0; j < 2; ++j) ASSERT_LE(std::fabs(u[j] - before[j]), slew[j] * kDt) << "cycle " << i;
+        before = u;
+        ASSERT_LT(i, 10000);
+    }
+    EXPECT_EQ(u, zero);  // caught up with the PID: no error, no integral
+}
+
+// Turned on while the configuration is illegal (the flag is set while a
+// reconfiguration switches jpid for jpidg): nothing was applied, so nothing
+// is slewed from; the first legal cycle is the PID's, as after `on`.
+TEST(StaleHoldPid, HeldFromResetStartsAsOnWould) {
+    rb::StaleHoldPid c(two_joint_pid(), v2(512, 1024));
+    VectorXd u(2), expected(2);
+    const VectorXd zero = VectorXd::Zero(2), ff = v2(30, -40);
+    for (int i = 0; i < 3; ++i) c.update(false, v2(0.01, 0.02), zero, zero, zero, ff, kDt, u);  // an earlier run
+    c.reset();  // `on`
+    for (int i = 0; i < 5; ++i) {
+        EXPECT_EQ(c.update(true, v2(0.01, 0.02), zero, zero, zero, ff, kDt, u), rb::Freshness::stale);
+        ASSERT_EQ(u, zero);
+    }
+    rb::Pid reference = two_joint_pid();
+    EXPECT_EQ(c.update(false, v2(0.01, 0.02), zero, zero, zero, ff, kDt, u), rb::Freshness::recovered);
+    reference.update(v2(0.01, 0.02), zero, zero, zero, ff, kDt, expected);
+    EXPECT_EQ(u, expected);
+    EXPECT_EQ(c.slewing(), 0u);
 }
 
 TEST(JointLimiter, TorqueRateReachesTheCommandAtTheRate) {

@@ -246,13 +246,28 @@ class Measurement:
         # it): the largest change between two samples, per joint.
         self.peak_tref_step = (np.abs(np.diff(rec["T_REF"], axis=0)).max(axis=0)
                                if "T_REF" in rec.variables and self.samples > 1 else None)
+        # ... its peak per joint, and the longest run of samples in which it did not change at all.
+        self.peak_tref = np.abs(rec["T_REF"]).max(axis=0) if "T_REF" in rec.variables and self.samples else None
+        self.tref_held = longest_run(np.all(np.diff(rec["T_REF"], axis=0) == 0, axis=1)) \
+            if "T_REF" in rec.variables and self.samples > 1 else None
 
     def __str__(self):
         return ("%d samples (%.0f Hz, %d lost), peak speed %s rad/s, peak torque %s N m, peak torque rate %s N m/s, "
                 "misses %d, stall detector %.2f ms" % (self.samples, self.rate, self.lost, np.round(self.peak_speed, 3),
                                                        np.round(self.peak_torque, 1), np.round(self.peak_trate, 0),
                                                        self.misses, self.stall * 1e3) +
-                ("" if self.peak_tref_step is None else ", peak T_REF step %s N m" % np.round(self.peak_tref_step, 1)))
+                ("" if self.peak_tref_step is None else ", peak T_REF step %s N m" % np.round(self.peak_tref_step, 1)) +
+                ("" if self.peak_tref is None else ", peak |T_REF| %s N m, held %d samples"
+                 % (np.round(self.peak_tref, 1), self.tref_held)))
+
+
+def longest_run(flags):
+    """The most consecutive True in FLAGS."""
+    longest = run = 0
+    for f in flags:
+        run = run + 1 if f else 0
+        longest = max(longest, run)
+    return longest
 
 
 def measure(arm, seconds, inject=None, extra=()):

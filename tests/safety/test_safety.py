@@ -24,13 +24,15 @@ import numpy as np
 import pytest
 
 import chimera
-from safety_harness import (EXAMPLE, STALL_S, TASKS, TLIMIT, TOKEN, TORQUE_TOPIC, TRATE, VLIMIT, Arm, DdsArm,
-                            NetnsPair, leftovers, measure)
+from safety_harness import (EXAMPLE, PERIOD, STALL_S, TASKS, TLIMIT, TOKEN, TORQUE_TOPIC, TRATE, VLIMIT, Arm,
+                            DdsArm, NetnsPair, leftovers, measure)
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "web"))
 import webharness  # noqa: E402  (its WebSocket client)
 
 SECONDS = 3.0
+# jpid.rmod's SLEW (N m/s): after a hold, T_REF moves from the held value at this rate.
+SLEW = np.array([250, 500, 250, 50, 50, 50], dtype=float)
 
 
 def miss_bound(clean):
@@ -211,6 +213,107 @@ def test_python_peer_killed_9(arm):
             child.kill()
             child.wait()
     assert still_on(arm) == []
+
+
+READER_CHILD = """
+import sys, chimera
+m = chimera.Master(sys.argv[1], socket_path=sys.argv[2], token=sys.argv[3])
+p = chimera.Peer("safetyreader", consumes=["PEER_OUT"], master=m)
+p.start()
+m.close()
+print("started", flush=True)
+for cycle in p.run(hz=20):
+    p.read()
+"""
+
+ERROR_S = 2.0  # how long a task stays halted in ERROR
+
+
+def tref_restart(clean, meas):
+    """T_REF held exactly while illegal (for at least 90% of ERROR_S in
+    samples); its largest step within twice the clean run's plus SLEW x one
+    period (the restart's own step); its peak within 1.5 x the clean run's
+    plus 2 N m (wound up, it went to its ULIMIT: 186.4 N m on joint 2, 21.9
+    on joint 4, where the clean run needs 57 and 2)."""
+    failures = []
+    peak = 1.5 * clean.peak_tref + 2
+    if np.any(meas.peak_tref > peak):
+        failures.append("T_REF reached %s N m, bound %s (clean: %s)"
+                        % (np.round(meas.peak_tref, 1), np.round(peak, 1), np.round(clean.peak_tref, 1)))
+    if meas.tref_held < 0.9 * ERROR_S * meas.rate:
+        failures.append("T_REF held for %d samples at most, expected >= %d" % (meas.tref_held, 0.9 * ERROR_S * meas.rate))
+    bound = 2 * clean.peak_tref_step + SLEW * PERIOD
+    if np.any(meas.peak_tref_step > bound):
+        failures.append("T_REF jumped %s N m in one sample, bound %s (clean: %s)"
+                        % (np.round(meas.peak_tref_step, 2), np.round(bound, 2), np.round(clean.peak_tref_step, 2)))
+    return failures
+
+
+def peer_child(arm, code, children):
+    """A peer process running CODE, once it says it started (one at a time:
+    the master's control slot is one)."""
+    child = subprocess.Popen([sys.executable, "-c", code, arm.name, arm.socket, TOKEN], stdout=subprocess.PIPE,
+                             text=True, env=arm.env)
+    children.append(child)
+    assert child.stdout.readline().strip() == "started"
+    return child
+
+
+def test_task_in_error_holds_then_restarts_without_a_jump(arm):
+    """A task halted in ERROR (a Python peer killed -9 while an ON task, a
+    second peer, reads its output) makes the configuration illegal (§3.10)
+    for ERROR_S while the arm moves; killing that task clears it. The robot
+    interface holds the arm meanwhile, and jtraj and jpid hold with it
+    (STALE hold): T_REF stays exactly what it was and, once the flag
+    clears, never jumps (tref_restart). Before, the trajectory ran on and
+    jpid's integral wound up against the held arm: let go, it lunged (joint
+    6 at -1.9 then +1.9 rad/s, T_REF at its 21.3 N m limit)."""
+    children, seen = [], {}
+
+    def error_for_a_while(arm, done):
+        producer = seen["producer"] = peer_child(arm, PEER_CHILD, children)  # each run its own
+        time.sleep(0.5)
+        seen["log"] = len(arm.log_text())
+        producer.send_signal(signal.SIGKILL)
+        producer.wait(10)
+        with arm.master() as m:  # the master finds the peer gone on its next command
+            row = Arm.row(m, "safetypeer")
+            seen["error"] = row["state"], row["error"]
+            seen["illegal"] = m.command("show graph")["data"]["illegal_configuration"]
+        time.sleep(ERROR_S)
+        with arm.master() as m:
+            m.kill("safetypeer")
+            seen["legal_again"] = not m.command("show graph")["data"]["illegal_configuration"]
+        cleared = time.monotonic()
+        done.wait()
+        seen["after"] = time.monotonic() - cleared
+
+    try:
+        peer_child(arm, READER_CHILD, children)
+        measure_safely(arm, error_for_a_while, seconds=1.0 + ERROR_S + 2.5, extra=["T_REF"], check=tref_restart)
+        print("peer task:", *seen["error"])
+        assert seen["error"][0] == "ERROR" and "peer process %d is gone" % seen["producer"].pid in seen["error"][1]
+        assert seen["illegal"] and seen["legal_again"] and seen["after"] >= 2.0, seen
+        log = arm.log_text()[seen["log"]:]
+        line = next((line for line in log.splitlines() if "safetypeer" in line and "gone" in line), None)
+        assert line, log[-2000:]
+        print(line)
+    finally:
+        remove_peers(arm, children, ("safetypeer", "safetyreader"))
+    assert still_on(arm) == []
+
+
+def remove_peers(arm, children, names):
+    """Kills the peer processes and removes their tasks; none may be left."""
+    for child in children:
+        if child.poll() is None:
+            child.kill()
+            child.wait()
+    with arm.master() as m:
+        for name in names:
+            if any(t["rmod"] == name for t in m.status()):
+                m.kill(name)
+        assert not set(names) & {t["rmod"] for t in m.status()}
 
 
 # ------------------------------------------------------------------ injections on an arm of their own

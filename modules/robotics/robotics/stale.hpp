@@ -10,6 +10,8 @@
 //   - on the first fresh cycle: restart bumplessly (the PID's integral reset
 //     and its output slewed from the held one; the trajectory re-anchored at
 //     the measured position, trajgen.cpp).
+// The same key holds, and restarts the same way, while the subsystem's
+// configuration is illegal (must_hold): the robot interface then holds the arm.
 #pragma once
 
 #include <cstdint>
@@ -23,6 +25,15 @@ namespace chimera::robotics {
 
 /// A bridge stamp [counter, age, 1 | 0 | -1] says stale; no stamp (nullptr) never does.
 inline bool stamp_says_stale(const double* stamp) noexcept { return stamp != nullptr && stamp[2] < 0; }
+
+/// What STALE hold holds on: measurements the bridge's stamp says are stale,
+/// or the illegal-configuration flag (§3.10, Task::illegal_configuration).
+/// While the flag is set the robot interface (robotsim's STABILITY hold) holds
+/// the arm and ignores its command: the loop is as open as with stale data, and
+/// a PID or trajectory that ran on would make the arm lunge when let go.
+inline bool must_hold(const double* stamp, bool illegal_configuration) noexcept {
+    return illegal_configuration || stamp_says_stale(stamp);
+}
 
 enum class Freshness : std::uint8_t {
     fresh,      ///< fresh now and on the cycle before
@@ -68,7 +79,8 @@ private:
 /// integral frozen; on the first fresh cycle the integral is reset and the
 /// output slewed from the held value toward the PID's at `slew_rate` (per
 /// joint, N m/s) until it reaches it, after which that joint follows the PID
-/// directly again (until the next recovery).
+/// directly again (until the next recovery). Stale from reset() on, the held
+/// output is zero and the first fresh cycle starts the PID as reset() would.
 class StaleHoldPid {
 public:
     StaleHoldPid(Pid pid, Eigen::VectorXd slew_rate);
@@ -90,6 +102,7 @@ private:
     SlewLimiter slew_;
     StaleWatch watch_;
     Eigen::VectorXd out_, target_;
+    bool has_output_ = false;    // an output computed since reset(): one worth holding and slewing from
     std::vector<char> slewing_;  // per joint: still behind the PID since the recovery
 };
 
