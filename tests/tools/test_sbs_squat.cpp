@@ -11,6 +11,7 @@
 
 #include <gtest/gtest.h>
 
+#include <fcntl.h>
 #include <sched.h>
 #include <sys/mman.h>
 #include <sys/mount.h>
@@ -23,6 +24,7 @@
 #include <cstdio>
 #include <cstdlib>
 #include <string>
+#include <vector>
 
 #include "as_user.hpp"
 
@@ -66,12 +68,27 @@ int plant_fake(const std::string& name, ipc::ObjectType type) {
 
 // In a child of its own: a new mount namespace with a private tmpfs on /tmp,
 // the working directory kept on the test's folder (hidden by the mount, still
-// reachable as "."). 77 when the namespace or the mount is not permitted.
-int in_private_tmp(const std::string& cwd) {
+// reachable as "."). The folders under /tmp that `keep` names (a build tree
+// cloned there: the sbs program, its modules) are bound back into the new
+// /tmp from the old one, reached through a descriptor taken before the mount.
+// 77 when the namespace or a mount is not permitted.
+int in_private_tmp(const std::string& cwd, const std::vector<std::string>& keep) {
     if (::unshare(CLONE_NEWNS) != 0) return 77;
     if (::mount(nullptr, "/", nullptr, MS_REC | MS_PRIVATE, nullptr) != 0) return 77;
     if (::chdir(cwd.c_str()) != 0) return 11;
+    const int old_tmp = ::open("/tmp", O_PATH | O_DIRECTORY | O_CLOEXEC);
+    if (old_tmp < 0) return 13;
     if (::mount("tmpfs", "/tmp", "tmpfs", 0, "mode=1777") != 0) return 77;
+    for (const std::string& path : keep) {
+        if (path.rfind("/tmp/", 0) != 0) continue;
+        const std::string top = path.substr(5, path.find('/', 5) - 5);  // /tmp/TOP/...
+        const std::string at = "/tmp/" + top;
+        const std::string from = "/proc/self/fd/" + std::to_string(old_tmp) + "/" + top;
+        if (::access(at.c_str(), F_OK) == 0) continue;  // bound already
+        if (::mkdir(at.c_str(), 0700) != 0 || ::mount(from.c_str(), at.c_str(), nullptr, MS_BIND | MS_REC, nullptr) != 0)
+            return 77;
+    }
+    ::close(old_tmp);
     return 0;
 }
 
@@ -125,7 +142,9 @@ TEST(SbsSquat, ATmpChimera0OfNobodysDoesNotStopListenWithoutXdgRuntimeDir) {
     const std::string sbs_file = ws.subsystem() + ".sbs";  // relative: /tmp is covered in the child
     const pid_t child = ::fork();
     if (child == 0) {
-        if (const int err = in_private_tmp(ws.dir()); err != 0) _exit(err);
+        if (const int err = in_private_tmp(ws.dir(), {sbs_test::env("SBS_EXE"), sbs_test::env("SBS_TEST_DATA")});
+            err != 0)
+            _exit(err);
         if (as_nobody([] { ::umask(022); return ::mkdir("/tmp/chimera-0", 0755) == 0 ? 0 : 1; }) != 0) _exit(12);
         ::unsetenv("XDG_RUNTIME_DIR");  // as under sudo
         const auto run = sbs_test::run(sbs_test::env("SBS_EXE"),
@@ -157,7 +176,7 @@ TEST(SbsSquat, ASquattedFolderIsRefusedNamingItsOwnerToAnotherUser) {
     Report* report = shared_report();
     const pid_t child = ::fork();
     if (child == 0) {
-        if (const int err = in_private_tmp("/"); err != 0) _exit(err);
+        if (const int err = in_private_tmp("/", {}); err != 0) _exit(err);
         const std::string dir = "/tmp/chimera-" + std::to_string(nobody_uid());
         if (::mkdir(dir.c_str(), 0755) != 0) _exit(12);  // root's, where nobody's should be
         _exit(as_nobody([&] {
