@@ -66,9 +66,10 @@ Freshness StaleHoldPid::update(bool stale, const Eigen::Ref<const Eigen::VectorX
         u = out_;  // the last good output; the integral is not touched
         return f;
     }
-    // Held ever since reset() (turned on during a reconfiguration), the output
-    // was never the PID's, only a placeholder zero: start as `on` would
-    // rather than slew up from it (the arm was held by the robot meanwhile).
+    // Held ever since reset() (turned on during a reconfiguration), out_ is
+    // the zero reset() left, not an output the arm ever got: the first cycle
+    // after is the PID's own, as after `on`, with no slew up from that zero
+    // (the robot held the arm meanwhile).
     if (f == Freshness::recovered && has_output_) {
         // What the integral gathered before the link went is no guide to the
         // arm now: restart it, and move the output there from the held one.
