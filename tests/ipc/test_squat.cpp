@@ -22,16 +22,10 @@ using namespace chimera::ipc;
 using chimera::ipc::test::fork_child;
 using chimera::ipc::test::kKind;
 using chimera::ipc::test::make;
-using chimera::ipc::test::shared_anon;
 using chimera::ipc::test::unique_name;
 using chimera::ipc::test::wait_child;
 
 namespace {
-
-// What a forked child saw, for the parent to compare.
-struct Message {
-    char text[512];
-};
 
 // In a forked child become nobody: a published segment NAME whose header
 // names pid 1 (root's init) as its creator, left behind as a squatter would.
@@ -109,19 +103,7 @@ TEST(Squat, AUserWhoMayNotRemoveItIsToldWhoseItIsAndWhatToDo) {
     const std::string name = unique_name("roots");
     Segment roots = make(name, 1, 0600);
     ASSERT_EQ(::chmod(("/dev/shm" + name).c_str(), 0666), 0);
-    auto* message = shared_anon<Message>();
-    const pid_t child = fork_child([&] {
-        if (!chimera::test::become_nobody({})) return 10;
-        try {
-            make_way(name, squatted(name));
-            return 3;
-        } catch (const SegmentError& e) {
-            std::snprintf(message->text, sizeof message->text, "%s", e.what());
-            return e.error_number() == EPERM ? 0 : 4;
-        }
-    });
-    EXPECT_EQ(wait_child(child), 0);
-    EXPECT_EQ(std::string(message->text),
+    EXPECT_EQ(chimera::test::eperm_refusal_as_nobody<SegmentError>([&] { make_way(name, squatted(name)); }),
               "segment " + name + ": squatted: group or others may write to it: it is root's (uid 0, mode 0666), and "
               "only root may remove it (sudo rm /dev/shm" + name + "), then start again");
     EXPECT_TRUE(Segment::exists(name));
@@ -182,19 +164,7 @@ TEST(Squat, ANonRootCreateMeetingAnotherUsersFileIsToldWhoseItIs) {
                   return 0;
               })),
               0);
-    auto* message = shared_anon<Message>();
-    const pid_t child = fork_child([&] {
-        if (!chimera::test::become_nobody({})) return 10;
-        try {
-            make(name);
-            return 3;
-        } catch (const SegmentError& e) {
-            std::snprintf(message->text, sizeof message->text, "%s", e.what());
-            return e.error_number() == EPERM ? 0 : 4;
-        }
-    });
-    EXPECT_EQ(wait_child(child), 0);
-    EXPECT_EQ(std::string(message->text),
+    EXPECT_EQ(chimera::test::eperm_refusal_as_nobody<SegmentError>([&] { make(name); }),
               "segment " + name + ": taken by another user's file, which this user may not read: it is root's (uid 0, "
               "mode 0600), and only root may remove it (sudo rm /dev/shm" + name + "), then start again");
     EXPECT_TRUE(Segment::exists(name));

@@ -2,11 +2,15 @@
 // Only root can switch; the tests that need it skip otherwise.
 #pragma once
 
+#include "process.hpp"
+
 #include <grp.h>
 #include <pwd.h>
 #include <sys/types.h>
 #include <unistd.h>
 
+#include <cerrno>
+#include <cstdio>
 #include <string>
 #include <vector>
 
@@ -28,6 +32,34 @@ inline bool become_nobody(const std::vector<gid_t>& groups) {
     if (!pw) return false;
     return setgroups(groups.size(), groups.data()) == 0 && setresgid(pw->pw_gid, pw->pw_gid, pw->pw_gid) == 0 &&
            setresuid(pw->pw_uid, pw->pw_uid, pw->pw_uid) == 0 && geteuid() == pw->pw_uid;
+}
+
+/// Runs `attempt` as nobody in a forked child, where it must throw `Error`
+/// whose error_number() is EPERM (another user's name it may not take):
+/// that error's message. Anything else comes back as a text that says so,
+/// which no expected message equals.
+template <typename Error, typename F>
+std::string eperm_refusal_as_nobody(F&& attempt) {
+    struct Message {
+        char text[512];
+    };
+    auto* message = shared_anon<Message>();
+    const int rc = wait_child(fork_child([&] {
+        if (!become_nobody({})) return 10;
+        try {
+            attempt();
+            return 3;
+        } catch (const Error& e) {
+            std::snprintf(message->text, sizeof message->text, "%s", e.what());
+            return e.error_number() == EPERM ? 0 : 4;
+        }
+    }));
+    std::string text = message->text;
+    if (rc != 0)
+        text = "the child as nobody ended " + std::to_string(rc) +
+               " (10: could not switch, 3: not refused, 4: another errno): " + text;
+    munmap(message, sizeof *message);
+    return text;
 }
 
 }  // namespace chimera::test

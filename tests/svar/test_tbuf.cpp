@@ -902,22 +902,7 @@ TEST(Tbuf, ANonRootWriterMeetingAnotherUsersBufferIsToldWhoseItIs) {
                   return 0;
               })),
               0);
-    struct Message {
-        char text[512];
-    };
-    auto* message = shared_anon<Message>();
-    const pid_t child = fork_child([&] {
-        if (!chimera::test::become_nobody({})) return 10;
-        try {
-            Tbuf::create(name, sizeof(Item));
-            return 3;
-        } catch (const ipc::SegmentError& e) {
-            std::snprintf(message->text, sizeof message->text, "%s", e.what());
-            return e.error_number() == EPERM ? 0 : 4;
-        }
-    });
-    EXPECT_EQ(wait_child(child), 0);
-    EXPECT_EQ(std::string(message->text),
+    EXPECT_EQ(chimera::test::eperm_refusal_as_nobody<ipc::SegmentError>([&] { Tbuf::create(name, sizeof(Item)); }),
               "segment " + name + ": taken by another user's file, which this user may not read: it is root's (uid 0, "
               "mode 0600), and only root may remove it (sudo rm /dev/shm" + name + "), then start again");
     EXPECT_TRUE(ipc::Segment::exists(name));  // not removed: only root may
