@@ -1529,12 +1529,7 @@ void judge_losses(FigureRun& run, const TaskSet& burned, Policy policy, std::int
 std::vector<std::pair<std::int64_t, std::int64_t>> sample_task_cpu(
     const std::vector<std::unique_ptr<Runner>>& runners, int task_cpu, std::int64_t start, std::int64_t unit,
     std::int64_t hyperperiod) {
-    cpu_set_t before, others;
-    sched_getaffinity(0, sizeof before, &before);
-    CPU_ZERO(&others);
-    for (int c = 0; c < get_nprocs(); ++c)
-        if (c != task_cpu) CPU_SET(static_cast<unsigned>(c), &others);
-    if (CPU_COUNT(&others) > 0) sched_setaffinity(0, sizeof others, &others);
+    const chimera::test::OnOtherCpus elsewhere(task_cpu);
     const auto sample = [&] {
         std::int64_t cpu = 0;
         for (auto& r : runners) cpu += cpu_time_of_thread(r->tid());
@@ -1546,7 +1541,6 @@ std::vector<std::pair<std::int64_t, std::int64_t>> sample_task_cpu(
         std::this_thread::sleep_until(std::chrono::steady_clock::time_point(std::chrono::nanoseconds(at)));
         samples.push_back(sample());
     }
-    sched_setaffinity(0, sizeof before, &before);
     return samples;
 }
 
@@ -1599,11 +1593,8 @@ TEST(MufFifo, OverloadOnlyTheNonCriticalTaskMisses) {
         if (!sch.privileged()) GTEST_SKIP() << "SCHED_FIFO refused on this machine: no overload test";
         run = run_overload(sch);
         const bool clean = run.a.missed + run.b.missed + run.a.deadline_failures + run.b.deadline_failures == 0;
-        const bool disturbed = run.worst_lost_ns > 1 * ms;
-        std::printf("run %d: critical a/b missed %llu/%llu, c missed %llu; a 20 ms stretch lost %.2f ms to others%s\n",
-                    attempt, static_cast<unsigned long long>(run.a.missed),
-                    static_cast<unsigned long long>(run.b.missed), static_cast<unsigned long long>(run.c.missed),
-                    run.worst_lost_ns / 1e6, disturbed ? " (disturbed: the machine held the CPU)" : "");
+        const bool disturbed = chimera::test::overload_run_disturbed(attempt, run.a.missed, run.b.missed,
+                                                                     run.c.missed, run.worst_lost_ns);
         if (clean || !disturbed) break;
     }
     EXPECT_GE(run.a.cycles, 25u);

@@ -183,11 +183,8 @@ TEST_F(SbsSched, OverloadOnlyTheTaskOutsideTheCriticalSetMisses) {
         const bool clean = run.a.misses + run.b.misses + run.a.deadline_failures + run.b.deadline_failures == 0;
         // a's job has 1 ms of margin (7 ms of work, WCET 8 ms): a 20 ms
         // stretch that lost more may have made a or b miss, not MUF.
-        const bool disturbed = run.worst_lost_ns > 1'000'000;
-        std::printf("run %d: critical a/b missed %llu/%llu, c missed %llu; a 20 ms stretch lost %.2f ms to others%s\n", attempt,
-                    static_cast<unsigned long long>(run.a.misses), static_cast<unsigned long long>(run.b.misses),
-                    static_cast<unsigned long long>(run.c.misses), run.worst_lost_ns / 1e6,
-                    disturbed ? " (disturbed: the machine held the CPU)" : "");
+        const bool disturbed = chimera::test::overload_run_disturbed(attempt, run.a.misses, run.b.misses,
+                                                                     run.c.misses, run.worst_lost_ns);
         if (clean || !disturbed) break;
     }
     EXPECT_EQ(run.a.crit, 5);
