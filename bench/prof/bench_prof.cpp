@@ -1,4 +1,4 @@
-// Profiling cost per cycle (issue 5, ARCHITECTURE §7): TaskProfiler's
+// Profiling cost per cycle (issue 5, docs/architecture.md §11): TaskProfiler's
 // cycle_begin + cycle_end with the perf-page clock, with the
 // CLOCK_THREAD_CPUTIME_ID fallback, and nothing (profiling off), measured in
 // the same run; the LTTng tracepoint alone; the vDSO clock read the perf-page

@@ -85,13 +85,14 @@
 // error() that throws counts as answering ERROR.
 // Task::warning() is real-time safe: no allocation, no stdio, no wait.
 //
-// Timing failures (thesis §6.3, ARCHITECTURE §6). The scheduler watches every
-// periodic cycle: DEADLINE (not done by the end of its period), MAXEXEC (more
-// CPU time than the .rmod's WCET, or EFFECTIVE) and MINEXEC. A module opts in
-// by overriding timing_failure(): it runs in the task's own thread, from a
-// signal handler, so it may only do async-signal-safe work (atomics, the
-// chimera::muf task API such as set_criticality; no allocation, no locks, no
-// stdio, no Task methods other than the const accessors). Its answer:
+// Timing failures (thesis §6.3, docs/architecture.md §10). The scheduler
+// watches every periodic cycle: DEADLINE (not done by the end of its period),
+// MAXEXEC (more CPU time than the .rmod's WCET, or EFFECTIVE) and MINEXEC. A
+// module opts in by overriding timing_failure(): it runs in the task's own
+// thread, from a signal handler, so it may only do async-signal-safe work
+// (atomics, the chimera::muf task API such as set_criticality; no allocation,
+// no locks, no stdio, no Task methods other than the const accessors).
+// Its answer:
 //   FailureAction::resume       carry on (the default; the failure is counted)
 //   FailureAction::skip_next    carry on, and skip the next release
 //   FailureAction::abort_cycle  abandon the cycle: the runtime jumps back to the

@@ -1,6 +1,6 @@
 // chimera/prof.hpp — automatic task profiling and the status segment
 // (thesis §4.4.1 status fields, §6.7 automatic profiling, §6.4 execution
-// profiles; ARCHITECTURE §7).
+// profiles; docs/architecture.md §11).
 //
 // One shared-memory segment per subsystem, `/chimera.<subsystem>.status`,
 // holds one slot per task. Each slot has three parts:
@@ -115,7 +115,7 @@ enum class TaskType : char {
     background = 'B',  ///< background server
 };
 
-/// Task state, the status field `state` (ARCHITECTURE §4).
+/// Task state, the status field `state` (docs/architecture.md §7).
 enum class TaskState : std::uint32_t {
     not_created = 0,
     off = 1,

@@ -32,12 +32,12 @@
 // with add_module_path(), the .rmod's own folder, and the installed module
 // folder.
 //
-// Scheduling (thesis ch. 6, ARCHITECTURE §5): each RTPU of the .sbs gets one
-// muf::RtpuScheduler, made when its first task is spawned, with the policy of
-// its SCHEDULER line (RM, EDF or MUF) and the backend of its BACKEND key (fifo:
-// a dispatcher gives the task threads SCHED_FIFO priorities 10..79 in urgency
-// order; deadline: SCHED_DEADLINE reservations for the critical set; other:
-// SCHED_OTHER, best effort).
+// Scheduling (thesis ch. 6, docs/architecture.md §9): each RTPU of the .sbs
+// gets one muf::RtpuScheduler, made when its first task is spawned, with the
+// policy of its SCHEDULER line (RM, EDF or MUF) and the backend of its BACKEND
+// key (fifo: a dispatcher gives the task threads SCHED_FIFO priorities 10..79
+// in urgency order; deadline: SCHED_DEADLINE reservations for the critical set;
+// other: SCHED_OTHER, best effort).
 //  - A periodic task joins the scheduler when it is turned on and leaves it
 //    when it stops running (off, error, kill): a task that is not ON is never
 //    released and does not count in the RTPU's analysis. Its period is the

@@ -50,7 +50,8 @@
 //   [ERRPRINT  errors | warnings | none] default warnings
 //   [MINFREQ   hz]                       default 1.0
 //   [MAXFREQ   hz]                       default 1000.0 (must exceed MINFREQ)
-//   [BACKEND   fifo | deadline | other]  Linux scheduling backend (ARCHITECTURE §5);
+//   [BACKEND   fifo | deadline | other]  Linux scheduling backend
+//                                        (docs/architecture.md §9);
 //                                        `other` runs best-effort (SCHED_OTHER);
 //                                        default fifo
 //   [ACCOUNTING nanoseconds | halftick TICK]  how the RTPU's tasks' CPU time is

@@ -4,7 +4,7 @@
 // "call routine Y", move data in and out, wait for the result. Here the SPP is
 // an executive thread (chimexec, §7.4.2) with its own memory, optionally pinned
 // to a CPU and run SCHED_FIFO: a worker today, the same interface for an
-// accelerator later (ARCHITECTURE §2).
+// accelerator later (docs/architecture.md §13).
 //
 //   spp::Library lib;                       // the "compiled math library"
 //   lib.add_variable("x", 8 * sizeof(double));

@@ -1,5 +1,6 @@
-// chimera/trace.hpp — LTTng-ust tracepoints of the runtime (ARCHITECTURE §2,
-// "context-switch profiling": a full per-cycle trace when one is wanted).
+// chimera/trace.hpp — LTTng-ust tracepoints of the runtime
+// (docs/architecture.md §11, "context-switch profiling": a full per-cycle trace
+// when one is wanted).
 //
 // Built when the meson feature `lttng` finds liblttng-ust: libraries that
 // depend on chimera_prof_dep are compiled with CHIMERA_HAVE_LTTNG=1 and the

@@ -2,8 +2,8 @@
 // processes, mailbox interrupts, task wakeups, xmLock/xmLockFix, and the XM
 // server that acts as the name server for SHM, SEM and MSG objects (§5.4).
 //
-// Linux mapping (ARCHITECTURE §2). An RTPU is a process. Each RTPU owns one
-// mailbox segment `/chimera.<sys>.xm.<rtpu>` laid out as Figure 5.1:
+// Linux mapping (docs/architecture.md §6). An RTPU is a process. Each RTPU owns
+// one mailbox segment `/chimera.<sys>.xm.<rtpu>` laid out as Figure 5.1:
 //   - an alive status, with the owner's pid, so a peer that died without
 //     clearing it is still seen as dead;
 //   - `ntasks` wakeup words (futex words) for xmBlock/xmWakeup;

@@ -19,7 +19,7 @@ DeviceClass parse_class(cfg::Reader& r, const cfg::Line& l, const std::string& s
     r.fail(l, "unknown device class " + s + " (SIO, PIO, ADC, DAC, RCB, SBS, MEM)");
 }
 
-// The driver each class has on Linux (ARCHITECTURE §2).
+// The driver each class has on Linux (docs/architecture.md §13).
 std::string_view driver_for(DeviceClass c) {
     switch (c) {
     case DeviceClass::PIO: return "gpio";

@@ -4,8 +4,8 @@
 // wakes that task itself. The dispatcher re-ranks when the set, a criticality
 // or a deadline changes, computing every task's urgency (Figure 6.2) and
 // giving the task threads SCHED_FIFO priorities in urgency order, changing only
-// those that move (thesis §6.2.3, ARCHITECTURE §5). Under dynamic ranking a
-// task also looks at the ranking when it first runs after its release
+// those that move (thesis §6.2.3, docs/architecture.md §9). Under dynamic
+// ranking a task also looks at the ranking when it first runs after its release
 // (rank_at_release()), and changes priorities only where the order is wrong.
 //
 // It runs pinned to the RTPU's CPU at options.fifo_high, above every task of

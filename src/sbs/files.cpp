@@ -249,7 +249,7 @@ RmodFile parse_rmod(cfg::Reader& r, const std::string& path) {
                        (next ? next->keyword : std::string("EOF")));
     }
 
-    // Scheduling parameters (ARCHITECTURE §5, §6.4-6.5), each at most once, in any order.
+    // Scheduling parameters (thesis §6.4-6.5, docs/architecture.md §9), each at most once, in any order.
     std::set<std::string> timing;
     for (const cfg::Line* n = r.peek(); n && (n->keyword == "WCET" || n->keyword == "EFFECTIVE" ||
                                            n->keyword == "CRIT");

@@ -1,9 +1,9 @@
-// A task's place in its RTPU's scheduler (ARCHITECTURE §5, §6): the Pacer of
-// internal.hpp on top of muf::RtpuScheduler. Periodic tasks are released by
-// wait_release and completed by cycle_complete; their timing failures go to the
-// modules' timing_failure() hooks (and to the soft-task component of Listing 2);
-// aperiodic tasks run under a server of servers.hpp; synchronous tasks stay at
-// the RTPU's idle level, timed by their sync().
+// A task's place in its RTPU's scheduler (docs/architecture.md §9, §10): the
+// Pacer of internal.hpp on top of muf::RtpuScheduler. Periodic tasks are
+// released by wait_release and completed by cycle_complete; their timing
+// failures go to the modules' timing_failure() hooks (and to the soft-task
+// component of Listing 2); aperiodic tasks run under a server of servers.hpp;
+// synchronous tasks stay at the RTPU's idle level, timed by their sync().
 #include "internal.hpp"
 #include "servers.hpp"
 

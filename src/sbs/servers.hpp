@@ -13,7 +13,8 @@
 //
 // They live in src/sbs rather than modules/ because the task runtime
 // instantiates them from the TASKTYPE line and src/ never depends on
-// modules/ (ARCHITECTURE §3); they are not port-based objects themselves.
+// modules/ (docs/architecture.md §3); they are not port-based objects
+// themselves.
 //
 // Everything a handler touches is plain data and the task API: the handlers
 // run in the task's thread from a signal handler, async-signal-safe, with no

@@ -129,8 +129,8 @@ template <typename Body>
 }
 
 // An SVAR transfer under the table lock: timing-failure handlers are held off
-// until it is released (ARCHITECTURE §6), so an aborted cycle never leaves the
-// lock held.
+// until it is released (docs/architecture.md §10), so an aborted cycle never
+// leaves the lock held.
 template <typename Copy>
 svar::Status guarded(Copy&& copy) noexcept {
     muf::enter_critical();

@@ -1,6 +1,6 @@
 // The Linux backends of the MUF scheduler and timing failures (thesis §6.2.3,
-// §6.3; ARCHITECTURE §5, §6) on the real kernel: failures in the failing
-// thread, aborts that leave no lock held, handlers held off in critical
+// §6.3; docs/architecture.md §9, §10) on the real kernel: failures in the
+// failing thread, aborts that leave no lock held, handlers held off in critical
 // sections, an overload where only the non-critical task misses, the
 // dispatcher's priority order against the analysis, SCHED_DEADLINE admission.
 // Times are generous (tens of milliseconds) and only events are counted: the

@@ -1,8 +1,9 @@
 // Runs inside the PREEMPT_RT guest (tests/rtguest): the kernel facilities the
-// scheduler's deadline backend relies on (ARCHITECTURE §5, §6) — SCHED_DEADLINE
-// admission control and the SCHED_FLAG_DL_OVERRUN → SIGXCPU overrun signal —
-// and that the guest really is a PREEMPT_RT kernel. Behaviour only: timing
-// measured under TCG means nothing and is neither asserted nor printed.
+// scheduler's deadline backend relies on (docs/architecture.md §9, §10) —
+// SCHED_DEADLINE admission control and the SCHED_FLAG_DL_OVERRUN → SIGXCPU
+// overrun signal — and that the guest really is a PREEMPT_RT kernel.
+// Behaviour only: timing measured under TCG means nothing and is neither
+// asserted nor printed.
 #include <gtest/gtest.h>
 
 #include <atomic>
@@ -143,7 +144,7 @@ void on_xcpu(int) {
 }
 
 // A reservation that runs past its runtime with SCHED_FLAG_DL_OVERRUN gets
-// SIGXCPU (the timing-failure source of ARCHITECTURE §2). The signal is
+// SIGXCPU (a timing-failure source, docs/architecture.md §10). The signal is
 // process-directed, so every other thread blocks it and the worker receives it.
 TEST(RtGuest, DeadlineOverrunRaisesSigxcpu) {
     struct sigaction sa{};

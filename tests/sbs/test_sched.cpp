@@ -1,5 +1,5 @@
-// The task runtime on its RTPU's scheduler (ARCHITECTURE §5, §6; thesis
-// §6.2-6.5), through real .sbs/.svar/.rmod files and the `probe` module:
+// The task runtime on its RTPU's scheduler (docs/architecture.md §9, §10;
+// thesis §6.2-6.5), through real .sbs/.svar/.rmod files and the `probe` module:
 // SCHED_FIFO priorities in MUF urgency order, an overload where only the task
 // outside the critical set misses, a module's DEADLINE handler that aborts its
 // cycle, and the deferrable and sporadic servers of §6.5.2. Times are generous

@@ -1,6 +1,6 @@
 // The hot paths allocate nothing (issue 6: "no allocation on send/receive";
-// ARCHITECTURE §5: no allocation in the cycle path): msgSend/msgReceive of
-// single- and multi-block messages under every policy, including the full,
+// docs/architecture.md §8: no allocation in the cycle path): msgSend/msgReceive
+// of single- and multi-block messages under every policy, including the full,
 // empty, too-big and timed-out outcomes; semP/semV; xmWrite/xmRead,
 // xmMboxSend and xmWakeup/xmBlock once the peer is attached.
 //

@@ -1,6 +1,6 @@
 // chimtop fields: the §4.4.1 status fields as columns (name, width, text,
 // sort key), shared by the ncurses view, --once and --json; and the summary
-// line of each RTPU. Every time is in µs (tools/common/time_text.hpp): the
+// line of each RTPU. Every time is in µs (tools/common/status_text.hpp): the
 // column header says "[us]".
 #pragma once
 

@@ -1,13 +1,13 @@
 // chimtop — a top-like live view of a running Chimera subsystem (issue 5,
-// ARCHITECTURE §8). It attaches to /chimera.<subsystem>.status by name,
-// shows a summary line per RTPU and one row per task with the chosen §4.4.1
-// fields, and only READS the task groups of the status segment (seqlocked
-// snapshots: the tasks are never blocked). Counts are over this chimtop's
-// own window (`z` restarts it, nobody else's: issue 16.4). Started without a
-// subsystem it lists the running ones. The optional SVAR pane reads the
-// selected task's variables as a watcher (Table::watch: no table lock), once
-// per refresh. chimtop maps both segments read-only, so a member of the watch
-// group may run it (docs/permissions.md). The live view is in ui.cpp.
+// docs/architecture.md §15). It attaches to /chimera.<subsystem>.status by
+// name, shows a summary line per RTPU and one row per task with the chosen
+// §4.4.1 fields, and only READS the task groups of the status segment
+// (seqlocked snapshots: the tasks are never blocked). Counts are over this
+// chimtop's own window (`z` restarts it, nobody else's: issue 16.4). Started
+// without a subsystem it lists the running ones. The optional SVAR pane reads
+// the selected task's variables as a watcher (Table::watch: no table lock),
+// once per refresh. chimtop maps both segments read-only, so a member of the
+// watch group may run it (docs/permissions.md). The live view is in ui.cpp.
 #include <cerrno>
 #include <csignal>
 

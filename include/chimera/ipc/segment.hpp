@@ -1,10 +1,10 @@
 // chimera/ipc/segment.hpp — a POSIX shared-memory segment with a common header.
 //
 // Every shared object (SVAR table, TBUF, mailbox, status block...) is one
-// segment named `/chimera.<subsystem>.<object>` (ARCHITECTURE §2). At offset 0
-// sits a SegmentHeader that says what the segment is (magic, object type,
-// layout version, byte order) so that a process attaching to it with another
-// build of the library gets a clear error instead of reading garbage:
+// segment named `/chimera.<subsystem>.<object>` (docs/architecture.md §2). At
+// offset 0 sits a SegmentHeader that says what the segment is (magic, object
+// type, layout version, byte order) so that a process attaching to it with
+// another build of the library gets a clear error instead of reading garbage:
 //   "segment /chimera.x.y: layout version 3, this library expects 2".
 // Inside a segment every reference is an Offset<T> from the segment's start,
 // never a pointer: each process maps the segment at its own address.

@@ -1,5 +1,5 @@
 // chimera/muf/rt.hpp — the Linux backends of the MUF scheduler and timing
-// failures (thesis §6.2.3, §6.3; ARCHITECTURE §5, §6).
+// failures (thesis §6.2.3, §6.3; docs/architecture.md §9, §10).
 //
 // One RtpuScheduler per RTPU (one CPU). The task threads are created by the
 // runtime (src/sbs); each one calls, in its own thread:

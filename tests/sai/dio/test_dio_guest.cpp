@@ -380,8 +380,8 @@ TEST_F(DioGuest, SynchronousDinCyclesOnEdgesOnlyAndStillAnswersCommands) {
     EXPECT_NO_THROW(iod::open(db_, "pairs", 0, 1, iod::READ));
 }
 
-// No heap allocation in the cycle (ARCHITECTURE §5): operator new calls made
-// by each task's own thread over a run of cycles, with inputs changing.
+// No heap allocation in the cycle (docs/architecture.md §8): operator new calls
+// made by each task's own thread over a run of cycles, with inputs changing.
 TEST_F(DioGuest, CyclesDoNotAllocate) {
     const TaskId in = sbs_->spawn(rmod("din4", "din", "SVARALIAS DIN=DI\nSVARALIAS EDGES=DI_EDGES\nOUTVAR DIN EDGES\n",
                                        din_local("sim", "0 3", "INVERT 1\n")));
