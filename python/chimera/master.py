@@ -10,7 +10,9 @@ from __future__ import annotations
 
 import json
 import os
+import pwd
 import socket
+import struct
 from typing import Any, Dict, Iterable, List, Optional, Sequence, Tuple, Union
 
 
@@ -29,6 +31,23 @@ def default_socket_path(subsystem: str) -> str:
     xdg = os.environ.get("XDG_RUNTIME_DIR", "")
     folder = xdg + "/chimera" if xdg.startswith("/") else "/tmp/chimera-%d" % os.getuid()
     return os.path.join(folder, subsystem + ".sock")
+
+
+def _untrusted_master(sock: socket.socket, path: str) -> str:
+    """Why not to talk to the master reached at PATH, or "" when it runs as this user or root (issue #29.5).
+
+    Any local user may listen first on a path another user's client will use. The
+    text is tools/sbs/peer_user.cpp's untrusted_master(): keep them alike.
+    """
+    pid, uid, _gid = struct.unpack("3i", sock.getsockopt(socket.SOL_SOCKET, socket.SO_PEERCRED, struct.calcsize("3i")))
+    if uid in (0, os.geteuid()):
+        return ""
+    try:
+        user = pwd.getpwuid(uid).pw_name
+    except KeyError:
+        user = "uid %d" % uid
+    return ("socket %s is served by %s's (uid %d) process, pid %d, not by this user's or root's: not trusted; "
+            "stop that process or remove the socket (sudo rm %s), then start the master again" % (path, user, uid, pid, path))
 
 
 Word = Union[str, int, float]
@@ -56,6 +75,10 @@ class Master:
                 self._sock.close()
                 raise MasterError("hello", "cannot reach the master of %s at %s: %s (is it running with "
                                   "--listen or --serve?)" % (subsystem, path, e.strerror), {}) from None
+            why = _untrusted_master(self._sock, path)
+            if why:
+                self._sock.close()
+                raise MasterError("hello", why, {})
         self._file = self._sock.makefile("rb")
         self._next_id = 1
         self.hello = self._receive(None)

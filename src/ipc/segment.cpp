@@ -246,20 +246,6 @@ void set_mode(const std::string& name, int fd, mode_t mode) {
     if (fchmod(fd, mode) != 0) fail_errno(name, "fchmod", errno);
 }
 
-// shm_open(), with EACCES explained (who owns the segment, what to do).
-int open_segment(const std::string& name, int flags) {
-    const int fd = shm_open(name.c_str(), flags, 0);
-    if (fd >= 0) return fd;
-    const int err = errno;
-    if (err == ENOENT) throw SegmentError(name, "does not exist", ENOENT);
-    if (err == ELOOP) {  // a symbolic link planted under the name: never followed
-        make_way(name, "squatted: a symbolic link, not a segment");
-        throw SegmentError(name, "does not exist", ENOENT);
-    }
-    if (err == EACCES) throw SegmentError(name, permission_advice(name, (flags & O_ACCMODE) != O_RDONLY), EACCES);
-    fail_errno(name, "shm_open", err);
-}
-
 // The owner and mode of segment `name`: fstat of the open segment, or lstat
 // of its file when this user may not open it, or when it is a symbolic link
 // (shm_open never follows one: O_NOFOLLOW, ELOOP). False when there is none.
@@ -278,6 +264,40 @@ std::string owner_text(const struct stat& st) {
     char mode[8];
     std::snprintf(mode, sizeof mode, "%04o", static_cast<unsigned>(st.st_mode & 07777));
     return user_name(st.st_uid) + "'s (uid " + std::to_string(st.st_uid) + ", mode " + mode + ")";
+}
+
+// Whose the squatted file `st` under `name` is and what to do: ": it is
+// nobody's (uid 65534, mode 0644), and only nobody or root may remove it
+// (sudo rm /dev/shm/NAME), then start again".
+std::string whose_and_remedy(const std::string& name, const struct stat& st) {
+    const std::string may = st.st_uid == 0 ? "root" : user_name(st.st_uid) + " or root";
+    return ": it is " + owner_text(st) + ", and only " + may + " may remove it (sudo rm /dev/shm" + name +
+           "), then start again";
+}
+
+// A watcher's refusal of the squatted segment `name` (`why`: squat_reason()):
+// it shows nobody's data as a subsystem's, and, not being the runner,
+// removes nothing. "does not exist" when the file went meanwhile.
+[[noreturn]] void refuse_to_watch(const std::string& name, const std::string& why) {
+    struct stat st {};
+    if (!owner_and_mode(name, st)) throw SegmentError(name, "does not exist", ENOENT);
+    throw SegmentError(name, why + whose_and_remedy(name, st), EPERM);
+}
+
+// shm_open(), with EACCES explained (who owns the segment, what to do).
+int open_segment(const std::string& name, int flags) {
+    const int fd = shm_open(name.c_str(), flags, 0);
+    if (fd >= 0) return fd;
+    const int err = errno;
+    if (err == ENOENT) throw SegmentError(name, "does not exist", ENOENT);
+    if (err == ELOOP) {  // a symbolic link planted under the name: never followed
+        const std::string why = "squatted: a symbolic link, not a segment";
+        if ((flags & O_ACCMODE) == O_RDONLY) refuse_to_watch(name, why);
+        make_way(name, why);
+        throw SegmentError(name, "does not exist", ENOENT);
+    }
+    if (err == EACCES) throw SegmentError(name, permission_advice(name, (flags & O_ACCMODE) != O_RDONLY), EACCES);
+    fail_errno(name, "shm_open", err);
 }
 
 // The effective uid of the live process `pid` (/proc/PID/status, which a
@@ -306,10 +326,18 @@ struct Claim {
     std::int32_t creator_pid = 0;
 };
 
+// A file without a chimera header may be one being made (a few system calls
+// between shm_open and init_header): it counts as abandoned only once it has
+// been so for kHeaderlessGraceSeconds, judged at `now`.
+constexpr std::time_t kHeaderlessGraceSeconds = 10;
+bool headerless_long_enough(const struct stat& st, std::time_t now) noexcept {
+    return now - st.st_ctime >= kHeaderlessGraceSeconds;
+}
+
 // Why a segment file of owner and mode `st` whose header claims `h` (nullptr:
-// this user may not read it) is not to be believed, or "". One check for
-// squatted() by name and for attach() on the open descriptor.
-std::string squat_reason(const struct stat& st, const Claim* h) {
+// this user may not read it) is not to be believed at time `now`, or "". One
+// check for squatted() by name and for attach() and watch() on the open descriptor.
+std::string squat_reason(const struct stat& st, const Claim* h, std::time_t now) {
     if (S_ISLNK(st.st_mode)) return "squatted: a symbolic link, not a segment";
     if (!S_ISREG(st.st_mode)) return "squatted: not a regular file";
     if ((st.st_mode & 022) != 0) return "squatted: group or others may write to it";
@@ -322,13 +350,11 @@ std::string squat_reason(const struct stat& st, const Claim* h) {
                user_name(creator) + ", not of its owner";
     // Another user's file that no live process of theirs stands behind: a
     // fake naming a dead pid, or a crashed run's, is nobody's segment for us.
-    // A file without a header yet may be one being made (a few system calls
-    // between shm_open and init_header): only an old one counts.
     if (st.st_uid == geteuid()) return "";
     if (chimeras && !process_runs(pid))
         return "squatted: it is another user's, and the creator its header names, pid " + std::to_string(pid) +
                ", is not running";
-    if (!chimeras && std::time(nullptr) - st.st_ctime >= 10)
+    if (!chimeras && headerless_long_enough(st, now))
         return "squatted: it is another user's, and holds no chimera header";
     return "";
 }
@@ -377,16 +403,18 @@ std::string permission_advice(const std::string& name, bool write) {
     return s;
 }
 
-std::string squatted(const std::string& name) {
+std::string squatted(const std::string& name) { return squatted(name, std::time(nullptr)); }
+
+std::string squatted(const std::string& name, std::time_t now) {
     const int fd = shm_open(name.c_str(), O_RDONLY, 0);
     if (fd < 0) {
         struct stat st {};
-        return owner_and_mode(name, st) ? squat_reason(st, nullptr) : "";
+        return owner_and_mode(name, st) ? squat_reason(st, nullptr, now) : "";
     }
     struct stat st {};
     const Claim h = read_claim(fd);
     std::string why;
-    if (fstat(fd, &st) == 0) why = squat_reason(st, &h);
+    if (fstat(fd, &st) == 0) why = squat_reason(st, &h, now);
     close(fd);
     return why;
 }
@@ -395,15 +423,9 @@ void make_way(const std::string& name, const std::string& why) {
     struct stat st {};
     if (!owner_and_mode(name, st)) return;
     const uid_t me = geteuid();
-    const std::string owner = owner_text(st);
-    if (me != 0 && st.st_uid != me) {
-        const std::string who = user_name(st.st_uid);
-        const std::string may = st.st_uid == 0 ? "root" : who + " or root";
-        throw SegmentError(name, why + ": it is " + owner + ", and only " + may + " may remove it (sudo rm /dev/shm" +
-                                     name + "), then start again", EPERM);
-    }
-    std::fprintf(stderr, "chimera: segment %s, %s: %s: removed, to be created anew\n", name.c_str(), owner.c_str(),
-                 why.c_str());
+    if (me != 0 && st.st_uid != me) throw SegmentError(name, why + whose_and_remedy(name, st), EPERM);
+    std::fprintf(stderr, "chimera: segment %s, %s: %s: removed, to be created anew\n", name.c_str(),
+                 owner_text(st).c_str(), why.c_str());
     if (shm_unlink(name.c_str()) != 0 && errno != ENOENT) fail_errno(name, "shm_unlink", errno);
 }
 
@@ -626,17 +648,16 @@ Segment Segment::map_published(const std::string& name, SegmentKind kind, const 
         close(fd);
         fail_errno(name, "fstat", err);
     }
-    // A user's attach believes the file it opened only when its owner stands
-    // behind it (squat_reason on this very descriptor): root removes a
-    // squatted one, so that its creator makes it anew; anyone else is told
-    // whose it is. A watcher writes nothing and keeps its old behaviour.
-    if (!read_only) {
-        const Claim h = read_claim(fd);
-        if (const std::string why = squat_reason(st, &h); !why.empty()) {
-            close(fd);
-            make_way(name, why);
-            throw SegmentError(name, "does not exist", ENOENT);
-        }
+    // The file opened is believed only when its owner stands behind it
+    // (squat_reason on this very descriptor). An attaching user makes way for
+    // a squatted one (root removes it, so that its creator makes it anew); a
+    // watcher, not the runner, refuses it naming whose it is.
+    const Claim claim = read_claim(fd);
+    if (const std::string why = squat_reason(st, &claim, std::time(nullptr)); !why.empty()) {
+        close(fd);
+        if (read_only) refuse_to_watch(name, why);
+        make_way(name, why);
+        throw SegmentError(name, "does not exist", ENOENT);
     }
     const auto size = static_cast<std::size_t>(st.st_size);
     if (size < sizeof(SegmentHeader)) {
@@ -759,7 +780,7 @@ bool Segment::destroy_if_unused(const std::string& name) noexcept {
             // yet locked it leaves it without a header for a few system calls:
             // a young file without one is somebody's new segment, not garbage
             // (a cleanup of a name reused at once removed the new segment).
-            const bool being_made = h->magic != kSegmentMagic && std::time(nullptr) - st.st_ctime < 10;
+            const bool being_made = h->magic != kSegmentMagic && !headerless_long_enough(st, std::time(nullptr));
             if (!being_made)
                 h->state.store(static_cast<std::uint32_t>(SegmentState::destroyed), std::memory_order_seq_cst);
             munmap(p, sizeof(SegmentHeader));

@@ -5,7 +5,9 @@
 // root removes a squatted one; another user is told whose it is and what to do.
 #include <gtest/gtest.h>
 
+#include <fcntl.h>
 #include <pwd.h>
+#include <sys/mman.h>
 #include <sys/stat.h>
 #include <unistd.h>
 
@@ -203,4 +205,98 @@ TEST(Squat, APlantedSymlinkIsNeverFollowed) {
     EXPECT_EQ(roots.at_bytes<chimera::ipc::test::Body>(0)->value, 5u);  // the target kept its body
     mine.detach_destroy_if_last();
     roots.detach_destroy_if_last();
+}
+
+// A watcher (chimtop, status and table watchers) must not show a squatter's
+// data as the subsystem's, and is not the runner: it refuses, names the
+// owner and the remedy, and removes nothing. A genuine segment still watches.
+TEST(Squat, RootsWatchRefusesNobodysFakeAndLeavesIt) {
+    CHIMERA_NOT_UNDER_TSAN("forked users");
+    if (!chimera::test::can_switch_user()) GTEST_SKIP() << "needs root (setresuid to nobody)";
+    const std::string name = unique_name("watchfake");
+    ASSERT_EQ(wait_child(fork_child([&] { return squat_as_nobody(name); })), 0);
+    try {
+        Segment::watch(name, kKind);
+        ADD_FAILURE() << "watched nobody's fake";
+    } catch (const SegmentError& e) {
+        EXPECT_EQ(std::string(e.what()),
+                  "segment " + name + ": squatted: its header names as its creator pid 1, a process of root, not of "
+                  "its owner: it is " + nobodys("0600") + ", and only nobody or root may remove it (sudo rm /dev/shm" +
+                  name + "), then start again");
+        EXPECT_EQ(e.error_number(), EPERM);
+    }
+    EXPECT_TRUE(Segment::exists(name));  // a watcher removes nothing
+    Segment::unlink(name);
+
+    const std::string genuine = unique_name("watchown");
+    Segment own = make(genuine, 3, 0600);
+    Segment watcher = Segment::watch(genuine, kKind);
+    EXPECT_EQ(watcher.at_bytes<chimera::ipc::test::Body>(0)->value, 3u);
+    watcher.detach();
+    own.detach_destroy_if_last();
+}
+
+// A symbolic link planted under a name: a watcher neither follows nor removes it.
+TEST(Squat, RootsWatchRefusesAPlantedSymlinkAndLeavesIt) {
+    CHIMERA_NOT_UNDER_TSAN("forked users");
+    if (!chimera::test::can_switch_user()) GTEST_SKIP() << "needs root (setresuid to nobody)";
+    const std::string target = unique_name("watchlinktarget"), link = unique_name("watchlink");
+    Segment roots = make(target, 5, 0600);
+    ASSERT_EQ(wait_child(fork_child([&] {
+                  if (!chimera::test::become_nobody({})) return 10;
+                  return ::symlink(("/dev/shm" + target).c_str(), ("/dev/shm" + link).c_str()) == 0 ? 0 : 11;
+              })),
+              0);
+    try {
+        Segment::watch(link, kKind);
+        ADD_FAILURE() << "watched through nobody's link";
+    } catch (const SegmentError& e) {
+        EXPECT_EQ(std::string(e.what()), "segment " + link + ": squatted: a symbolic link, not a segment: it is " +
+                                             nobodys("0777") + ", and only nobody or root may remove it (sudo rm "
+                                             "/dev/shm" + link + "), then start again");
+        EXPECT_EQ(e.error_number(), EPERM);
+    }
+    struct stat st {};
+    EXPECT_EQ(::lstat(("/dev/shm" + link).c_str(), &st), 0);
+    ::unlink(("/dev/shm" + link).c_str());
+    roots.detach_destroy_if_last();
+}
+
+namespace {
+
+// In a forked child become nobody and leave a file NAME without a chimera
+// header, as a segment being made has for a few system calls.
+int headerless_as_nobody(const std::string& name) {
+    if (!chimera::test::become_nobody({})) return 10;
+    const int fd = ::shm_open(name.c_str(), O_RDWR | O_CREAT | O_EXCL, 0600);
+    return fd >= 0 && ::ftruncate(fd, 4096) == 0 ? 0 : 11;
+}
+
+}  // namespace
+
+// Another user's file without a header counts as squatted only once it has
+// had none for 10 s (ctime): judged at an exact `now`, no sleeping.
+TEST(Squat, AnotherUsersHeaderlessFileIsSquattedFrom10SecondsOn) {
+    CHIMERA_NOT_UNDER_TSAN("forked users");
+    if (!chimera::test::can_switch_user()) GTEST_SKIP() << "needs root (setresuid to nobody)";
+    const std::string name = unique_name("headerless");
+    ASSERT_EQ(wait_child(fork_child([&] { return headerless_as_nobody(name); })), 0);
+    struct stat st {};
+    ASSERT_EQ(::stat(("/dev/shm" + name).c_str(), &st), 0);
+    EXPECT_EQ(squatted(name, st.st_ctime + 9), "");  // may be one being made
+    EXPECT_EQ(squatted(name, st.st_ctime + 10), "squatted: it is another user's, and holds no chimera header");
+    EXPECT_EQ(squatted(name), "");  // just made: by the clock, young
+    Segment::unlink(name);
+}
+
+// This user's own file without a header is never squatted, however old.
+TEST(Squat, ThisUsersHeaderlessFileIsNeverSquatted) {
+    const std::string name = unique_name("ownheaderless");
+    const int fd = ::shm_open(name.c_str(), O_RDWR | O_CREAT | O_EXCL, 0600);
+    ASSERT_GE(fd, 0);
+    ::close(fd);
+    struct stat st {};
+    ASSERT_EQ(::stat(("/dev/shm" + name).c_str(), &st), 0);
+    EXPECT_EQ(squatted(name, st.st_ctime + 3600), "");
+    Segment::unlink(name);
 }

@@ -1,5 +1,11 @@
 """The master as a client object over its JSON socket (issue #18.3), errors with the master's words."""
 
+import os
+import pwd
+import select
+import shutil
+import socket
+import tempfile
 import time
 
 import pytest
@@ -137,3 +143,50 @@ def test_a_master_that_never_answers_is_stopped_when_serve_fails(tmp_path):
     pid = int(pid_file.read_text())
     with pytest.raises(ProcessLookupError):
         os.kill(pid, 0)
+
+
+def _squat_socket_as_nobody(path, ready, hold):
+    """In a forked child: as nobody, listen on PATH and greet every peer as a master would, until HOLD closes."""
+    try:
+        nobody = pwd.getpwnam("nobody")
+        os.setgroups([])
+        os.setresgid(nobody.pw_gid, nobody.pw_gid, nobody.pw_gid)
+        os.setresuid(nobody.pw_uid, nobody.pw_uid, nobody.pw_uid)
+        listener = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+        listener.bind(path)
+        listener.listen(4)
+        os.write(ready, b"x")
+        while hold not in select.select([listener, hold], [], [])[0]:
+            listener.accept()[0].sendall(b'{"ok":true,"cmd":"hello","subsystem":"fake","auth":"none"}\n')
+    finally:
+        os._exit(0)
+
+
+@pytest.mark.skipif(os.geteuid() != 0, reason="needs root (setresuid to nobody)")
+def test_a_socket_another_user_listens_on_is_refused_naming_the_user():
+    """A local user may listen first on the path root's client uses (issue #29.5): refused before a word is read."""
+    folder = tempfile.mkdtemp(prefix="chimera-pysquat-")
+    os.chmod(folder, 0o777)  # nobody may create its socket there
+    path = os.path.join(folder, "squatted.sock")
+    ready_r, ready_w = os.pipe()
+    hold_r, hold_w = os.pipe()
+    squatter = os.fork()
+    if squatter == 0:
+        os.close(ready_r)
+        os.close(hold_w)
+        _squat_socket_as_nobody(path, ready_w, hold_r)
+    os.close(ready_w)
+    os.close(hold_r)
+    try:
+        assert os.read(ready_r, 1) == b"x"
+        with pytest.raises(chimera.MasterError) as e:
+            chimera.Master(socket_path=path, timeout=5)
+        assert str(e.value) == (
+            "socket %s is served by nobody's (uid %d) process, pid %d, not by this user's or root's: not trusted; "
+            "stop that process or remove the socket (sudo rm %s), then start the master again"
+            % (path, pwd.getpwnam("nobody").pw_uid, squatter, path))
+    finally:
+        os.close(hold_w)
+        os.close(ready_r)
+        os.waitpid(squatter, 0)
+        shutil.rmtree(folder)

@@ -2,6 +2,7 @@
 // passing, the line protocol, malformed and oversized input, lost peers,
 // permissions and the TCP token. The interpreter is tested separately; here
 // only what the server itself decides is checked.
+#include "as_user.hpp"
 #include "client.hpp"
 #include "flood.hpp"
 #include "server.hpp"
@@ -12,6 +13,7 @@
 #include <netdb.h>
 #include <netinet/in.h>
 #include <poll.h>
+#include <pwd.h>
 
 #include <sys/socket.h>
 #include <sys/stat.h>
@@ -766,4 +768,63 @@ TEST_F(Network, WrongTokensAreThrottledPerAddressWithBackOff) {
     EXPECT_GT(refused, judged);
     interrupt = true;
     serving.get();
+}
+
+namespace {
+
+// As nobody, in a forked child: listens on `path` and greets every peer as a
+// master would, until `hold` is closed. Writes a byte to `ready` once listening.
+int squat_socket_as_nobody(const std::string& path, int ready, int hold) {
+    if (!chimera::test::become_nobody({})) return 10;
+    const int fd = ::socket(AF_UNIX, SOCK_STREAM, 0);
+    sockaddr_un addr{};
+    addr.sun_family = AF_UNIX;
+    std::strncpy(addr.sun_path, path.c_str(), sizeof addr.sun_path - 1);
+    if (::bind(fd, reinterpret_cast<sockaddr*>(&addr), sizeof addr) != 0 || ::listen(fd, 4) != 0) return 11;
+    if (::write(ready, "x", 1) != 1) return 12;
+    for (;;) {
+        pollfd p[2] = {{fd, POLLIN, 0}, {hold, POLLIN, 0}};
+        if (::poll(p, 2, -1) < 0 || p[1].revents != 0) return 0;
+        const int peer = ::accept(fd, nullptr, nullptr);
+        const char hello[] = "{\"ok\":true,\"cmd\":\"hello\",\"subsystem\":\"testsys\",\"auth\":\"none\"}\n";
+        if (peer >= 0 && ::write(peer, hello, sizeof hello - 1) < 0) return 13;
+    }
+}
+
+}  // namespace
+
+// Any local user may listen first on a socket path root's client will use
+// (issue #29.5): the client refuses such a peer before it reads a word,
+// naming the path, the peer's user and pid, and what to do.
+TEST(SquattedSocket, AClientRefusesAPeerOfAnotherUserNamingIt) {
+    if (!chimera::test::can_switch_user()) GTEST_SKIP() << "needs root (setresuid to nobody)";
+    TempDir dir;
+    ASSERT_EQ(::chmod(dir.path().c_str(), 0777), 0);  // nobody may create its socket there
+    const std::string path = dir.path() + "/squatted.sock";
+    int ready[2], hold[2];
+    ASSERT_EQ(::pipe(ready), 0);
+    ASSERT_EQ(::pipe(hold), 0);
+    const pid_t squatter = chimera::test::fork_child([&] {
+        ::close(ready[0]);
+        ::close(hold[1]);
+        return squat_socket_as_nobody(path, ready[1], hold[0]);
+    });
+    ::close(ready[1]);
+    ::close(hold[0]);
+    char byte = 0;
+    ASSERT_EQ(::read(ready[0], &byte, 1), 1);
+    const passwd* nobody = ::getpwnam("nobody");
+    try {
+        NetworkClient::connect_unix(path);
+        ADD_FAILURE() << "talked to nobody's socket";
+    } catch (const UntrustedMasterError& e) {
+        EXPECT_EQ(std::string(e.what()),
+                  "socket " + path + " is served by nobody's (uid " + std::to_string(nobody->pw_uid) +
+                      ") process, pid " + std::to_string(squatter) +
+                      ", not by this user's or root's: not trusted; stop that process or remove the socket (sudo rm " +
+                      path + "), then start the master again");
+    }
+    ::close(hold[1]);
+    ::close(ready[0]);
+    EXPECT_EQ(chimera::test::wait_child(squatter), 0);
 }

@@ -1,5 +1,7 @@
 #include "client.hpp"
 
+#include "peer_user.hpp"
+
 #include <netdb.h>
 #include <poll.h>
 #include <sys/socket.h>
@@ -62,7 +64,8 @@ NetworkClient NetworkClient::connect_unix(const std::string& path) {
         ::close(fd);
         throw ClientError("cannot connect to " + path + ": " + std::strerror(err));
     }
-    NetworkClient c(fd);
+    NetworkClient c(fd);  // closes fd on a throw
+    if (const std::string why = untrusted_master(fd, path); !why.empty()) throw UntrustedMasterError(why);
     c.hello_ = read_hello(c);
     return c;
 }

@@ -18,10 +18,18 @@ public:
     using std::runtime_error::runtime_error;
 };
 
+/// The process listening on the socket runs as neither this user nor root
+/// (issue #29.5): what() names it and what to do.
+class UntrustedMasterError : public ClientError {
+public:
+    using ClientError::ClientError;
+};
+
 class NetworkClient {
 public:
     /// Connects and reads the greeting line. Throws ClientError when nothing
-    /// listens there (the caller may then start the subsystem itself).
+    /// listens there (the caller may then start the subsystem itself), and
+    /// UntrustedMasterError, before reading a word, when another user does.
     static NetworkClient connect_unix(const std::string& path);
     static NetworkClient connect_tcp(const std::string& host, std::uint16_t port);
 

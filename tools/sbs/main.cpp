@@ -627,6 +627,9 @@ int main(int argc, char** argv) {
                 try {
                     auto client = cli::NetworkClient::connect_unix(path);
                     return attached(client, script, json);
+                } catch (const cli::UntrustedMasterError& e) {
+                    std::cerr << "sbs: subsystem " << file.subsystem << ": " << e.what() << std::endl;
+                    return 1;
                 } catch (const cli::ClientError& e) {
                     std::cerr << "sbs: subsystem " << file.subsystem << " is running but its master does not answer on "
                               << path << ": " << e.what() << std::endl;

@@ -1,11 +1,12 @@
 #include "server.hpp"
 
+#include "peer_user.hpp"
+
 #include <arpa/inet.h>
 #include <fcntl.h>
 #include <netdb.h>
 #include <netinet/in.h>
 #include <poll.h>
-#include <pwd.h>
 #include <pthread.h>
 #include <sched.h>
 #include <sys/eventfd.h>
@@ -44,11 +45,10 @@ namespace {
 
 // "nobody's (uid 65534), mode 0755, a directory"
 std::string describe_entry(const struct stat& st) {
-    const passwd* pw = ::getpwuid(st.st_uid);
     char mode[8];
     std::snprintf(mode, sizeof mode, "%04o", static_cast<unsigned>(st.st_mode & 07777));
     const char* kind = S_ISDIR(st.st_mode) ? "a directory" : S_ISLNK(st.st_mode) ? "a symbolic link" : "not a directory";
-    return std::string(pw ? pw->pw_name : "uid " + std::to_string(st.st_uid)) + "'s (uid " +
+    return user_name(st.st_uid) + "'s (uid " +
            std::to_string(st.st_uid) + "), mode " + mode + ", " + kind;
 }
 
@@ -460,9 +460,7 @@ void NetworkServer::accept_from(int listen_fd) {
             // File permissions keep other users out; root gets past them, so the
             // peer's credentials are checked as well.
             ucred cred{};
-            socklen_t len = sizeof cred;
-            if (::getsockopt(fd, SOL_SOCKET, SO_PEERCRED, &cred, &len) != 0 ||
-                (cred.uid != ::getuid() && cred.uid != 0)) {
+            if (!peer_credentials(fd, cred) || !trusted_user(cred.uid)) {
                 send_line(fd, error_line("hello", "permission denied"));
                 ::close(fd);
                 continue;

@@ -52,6 +52,7 @@
 #include <atomic>
 #include <cstddef>
 #include <cstdint>
+#include <ctime>
 #include <stdexcept>
 #include <string>
 #include <string_view>
@@ -198,6 +199,9 @@ public:
     /// attach(), but no user lock (not counted by users(), never keeps the
     /// segment alive or blocks its destroy). A segment this user may not read
     /// throws with error_number() EACCES and permission_advice() in what().
+    /// The file opened is checked as attach() checks it, but a squatted one
+    /// is refused, never removed (a watcher is not the runner): EPERM, its
+    /// owner and the remedy in what(), as make_way() says them.
     static Segment watch(const std::string& name, SegmentKind kind,
                          const AttachOptions& options = {});
 
@@ -302,8 +306,12 @@ CHIMERA_API std::string permission_advice(const std::string& name, bool write);
 /// not open it, or when it is a link); the creator's user from
 /// /proc/PID/status. E.g. "squatted: its header names as its creator pid 1, a
 /// process of root, not of its owner". Segment::create() and attach() apply
-/// the same check (issue #29.5: every segment name chimera makes).
+/// the same check, and watch() refuses what it finds (issue #29.5: every
+/// segment name chimera makes).
 CHIMERA_API std::string squatted(const std::string& name);
+/// squatted(name) judged at time `now` (time(2) seconds) instead of the
+/// clock's: how old a file without a header is (ctime) decides it exactly.
+CHIMERA_API std::string squatted(const std::string& name, std::time_t now);
 
 /// Makes way for a segment of this user's called `name` whose old file must
 /// go (`why`: squatted() or "left by a process that died"): removes it when
