@@ -656,7 +656,7 @@ TEST(CanRobotLimits, AJumpingReferenceMovesTheSimulatedPumaNoFasterThanVlimit) {
     const LoopPeaks free = closed_loop_jump("", 200);
     for (Eigen::Index j = 0; j < 6; ++j) EXPECT_GT(free.speed_any[j], vlimit[j]) << "joint " << j + 1;
     // With the limits, at 200 and 500 Hz, no joint reaches its VLIMIT — at the
-    // SYNCs nor between them (every physics step) — though the controller asks
+    // SYNCs nor between them (ten times a cycle) — though the controller asks
     // for its torque limit: the envelope cut the torque (0.72 to 0.97 x VLIMIT).
     for (double freq : {200.0, 500.0}) {
         const LoopPeaks p = closed_loop_jump(kPumaLimited, freq);
