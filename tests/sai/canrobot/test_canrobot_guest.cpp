@@ -578,6 +578,9 @@ JumpEpisode jump_episode(const std::string& rmod, const char* name) {
     EXPECT_TRUE(drives.ready()) << "candrive did not announce its drives";
     if (!drives.ready()) return ep;
     Fig37Run run(rmod, name);
+    // Spawned before anything runs: loading a module into the controller's
+    // process stalled the guest past the drives' RPDO timeout once, mid-run.
+    const TaskId jump = run.sbs().spawn(jump_trajectory(), "ctrl");
     run.on();
     // Settled at Q0 first, within 0.05 rad over a whole second. A starved
     // guest (tasks missing deadlines) lets the arm sag meanwhile, as the hold
@@ -590,7 +593,6 @@ JumpEpisode jump_episode(const std::string& rmod, const char* name) {
         ADD_FAILURE() << "before the jump: " << run.sbs().status(run.robot()).error << "\n" << bus_summary(bus);
         return ep;
     }
-    const TaskId jump = run.sbs().spawn(jump_trajectory(), "ctrl");
     ep.limits_before = run.sbs().get(run.robot(), "LIMITS");
     const std::uint64_t misses_before = run.sbs().status(run.robot()).misses;
 
