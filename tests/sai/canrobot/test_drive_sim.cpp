@@ -15,6 +15,7 @@
 
 #include <gtest/gtest.h>
 
+#include <algorithm>
 #include <cmath>
 #include <fstream>
 #include <functional>
@@ -555,6 +556,138 @@ TEST(DriveSimPuma, ThePumaStartsAtQ0Braked) {
     sim.tick(1'000'000'000, out);
     EXPECT_NEAR(sim.q()[1], 0.785398, 1e-9);
     EXPECT_NEAR(sim.q()[2], 3.141593, 1e-9);
+}
+
+// The loop the guest test runs over a real bus (CanRobotGuest.AReferenceThatJumps...),
+// here exactly: the simulated PUMA's drives, and a master that does each cycle
+// what canrobot does — read the TPDO2 latched at the previous SYNC, compute a
+// torque, limit it with CommandLimiter, send RPDO1, then SYNC — with a PD
+// controller (jpid's gains, ULIMIT) whose reference jumps 0.6 rad on every joint.
+struct LoopPeaks {
+    Eigen::VectorXd speed_at_sync, speed_any, step;  // rad/s; rad/s between SYNCs too; N m per cycle
+    Eigen::VectorXd step_unclamped;  // N m per cycle, over the cycles the speed envelope did not act
+    Eigen::VectorXd unit;            // N m, the bus's torque unit (RATED_TORQUE / 1000)
+    std::uint64_t speed_clamps = 0, rate_clamps = 0;
+};
+LoopPeaks closed_loop_jump(const std::string& limits, double freq, int late_every = 0, int late_by = 1) {
+    auto cfg = DriveConfig::from_rmod(rmod_from(
+        "ROBOT puma560\nINTERFACE vcan0\nNODES 1 2 3 4 5 6\nRATED_TORQUE 10 10 10 1 1 1\n"
+        "TLIMIT 97.6 186.4 89.4 24.2 20.1 21.3\nQ0 0 0.785398 3.141593 0 0.785398 0\nDRIVE_RPDO_TIMEOUT 0\n" + limits));
+    cfg.max_step = 0.0005;
+    DriveSim sim(cfg);
+    rb::Dynamics dyn(cfg.model);
+    CommandLimiter lim(cfg.bus, false);
+    const Eigen::Index n = 6;
+    const double dt = 1.0 / freq;
+    const auto period = static_cast<std::int64_t>(dt * 1e9);
+    std::int64_t now = 0;
+    std::vector<Frame> out;
+    sim.power_on(now, out);
+    auto send = [&](const Frame& f) { out.clear(); sim.receive(f, now, out); };
+    send(nmt(NmtCommand::start, 0));
+    Eigen::VectorXd q = cfg.q0, qd = Eigen::VectorXd::Zero(n), g(n), tau(n), target = cfg.q0.array() + 0.6;
+    dyn.gravity(q, g);
+    std::vector<std::uint16_t> cw(6, 0);
+    for (int i = 0; i < 4; ++i)
+        for (int j = 0; j < 6; ++j) {
+            cw[j] = controlword_toward_enabled(sim.state(j), cw[j]);
+            send(rpdo1(j + 1, cw[j], kModeCst, torque_to_permille(g[j], cfg.bus.rated_torque[j])));
+        }
+    send(sync_frame());
+    lim.reset(g);
+    const Eigen::VectorXd kp = (Eigen::VectorXd(6) << 400, 800, 400, 40, 40, 20).finished();
+    const Eigen::VectorXd kd = (Eigen::VectorXd(6) << 60, 120, 60, 6, 6, 3).finished();
+    LoopPeaks p;
+    p.speed_at_sync = p.speed_any = p.step = p.step_unclamped = Eigen::VectorXd::Zero(n);
+    p.unit = cfg.bus.rated_torque / 1000;
+    Eigen::VectorXd last_sent = g, last_limited = g;
+    for (int k = 0; k < static_cast<int>(4 * freq); ++k) {
+        // The cycle's start: late by `late_by` periods every `late_every` cycles.
+        const int wait = late_every && k % late_every == late_every - 1 ? late_by : 1;
+        for (int s = 0; s < 10 * wait; ++s) {
+            now += period / 10;
+            out.clear();
+            sim.tick(now, out);
+            p.speed_any = p.speed_any.cwiseMax(sim.qd().cwiseAbs());
+        }
+        dyn.gravity(q, g);
+        tau = (kp.array() * (target - q).array() - kd.array() * qd.array()).matrix();
+        for (Eigen::Index j = 0; j < n; ++j) tau[j] = std::clamp(tau[j], -cfg.bus.torque_limit[j], cfg.bus.torque_limit[j]);
+        // Which joints the speed envelope cuts (robotics/limits.hpp's order:
+        // TLIMIT, then TRATE from the torque sent before, then the envelope).
+        std::vector<bool> cut(6, false);
+        for (Eigen::Index j = 0; j < n; ++j) {
+            const double tl = cfg.bus.torque_limit[j], v = cfg.bus.vlimit[j], step = cfg.bus.trate[j] * dt;
+            const double rated = std::clamp(std::clamp(tau[j], -tl, tl), last_limited[j] - step, last_limited[j] + step);
+            if (std::isfinite(v))
+                cut[j] = rated > g[j] + tl / v * (v - qd[j]) || rated < g[j] - tl / v * (v + qd[j]);
+        }
+        lim.limit_torque(tau, qd, g, dt);
+        for (Eigen::Index j = 0; j < n; ++j) {
+            const std::int16_t pm = torque_to_permille(tau[j], cfg.bus.rated_torque[j]);
+            const double sent_t = permille_to_torque(pm, cfg.bus.rated_torque[j]);
+            p.step[j] = std::max(p.step[j], std::fabs(sent_t - last_sent[j]));
+            if (!cut[j]) p.step_unclamped[j] = std::max(p.step_unclamped[j], std::fabs(sent_t - last_sent[j]));
+            last_sent[j] = sent_t;
+            last_limited[j] = tau[j];
+            send(rpdo1(static_cast<int>(j) + 1, kCwEnableOperation, kModeCst, pm));
+        }
+        out.clear();
+        sim.receive(sync_frame(), now, out);
+        for (const Frame& f : out)
+            if (f.id > kTpdo2 && f.id <= kTpdo2 + 6) {
+                const auto j = static_cast<Eigen::Index>(f.id - kTpdo2 - 1);
+                q[j] = from_counts(static_cast<std::int32_t>(get_u32(f, 0)), kCounts);
+                qd[j] = from_counts(static_cast<std::int32_t>(get_u32(f, 4)), kCounts);
+                p.speed_at_sync[j] = std::max(p.speed_at_sync[j], std::fabs(qd[j]));
+            }
+    }
+    p.speed_clamps = lim.speed_clamps();
+    p.rate_clamps = lim.rate_clamps();
+    return p;
+}
+
+constexpr const char* kPumaLimited = "VLIMIT 1 1 1 2 2 2\nTRATE 1000 2000 1000 200 200 200\n";
+
+TEST(CanRobotLimits, AJumpingReferenceMovesTheSimulatedPumaNoFasterThanVlimit) {
+    const Eigen::VectorXd vlimit = (Eigen::VectorXd(6) << 1, 1, 1, 2, 2, 2).finished();
+    // The provocation is real: without limits the jump drives every joint
+    // past its VLIMIT (2.4 to 3.1 rad/s at the torque limits).
+    const LoopPeaks free = closed_loop_jump("", 200);
+    for (Eigen::Index j = 0; j < 6; ++j) EXPECT_GT(free.speed_any[j], vlimit[j]) << "joint " << j + 1;
+    // With the limits, at 200 and 500 Hz, no joint reaches its VLIMIT — at the
+    // SYNCs nor between them (ten times a cycle) — though the controller asks
+    // for its torque limit: the envelope cut the torque (0.72 to 0.97 x VLIMIT).
+    for (double freq : {200.0, 500.0}) {
+        const LoopPeaks p = closed_loop_jump(kPumaLimited, freq);
+        for (Eigen::Index j = 0; j < 6; ++j)
+            EXPECT_LE(p.speed_any[j], vlimit[j]) << "joint " << j + 1 << " at " << freq << " Hz";
+        EXPECT_GT(p.speed_clamps, 0u);
+        EXPECT_GT(p.rate_clamps, 0u);
+        // TRATE held on every cycle where the speed envelope did not cut the
+        // torque; where it did, the speed limit wins (robotics/limits.hpp)
+        // and the step may be larger — toward braking.
+        const Eigen::VectorXd trate = (Eigen::VectorXd(6) << 1000, 2000, 1000, 200, 200, 200).finished();
+        for (Eigen::Index j = 0; j < 6; ++j)
+            EXPECT_LE(p.step_unclamped[j], trate[j] / freq + p.unit[j] + 1e-9) << "joint " << j + 1 << " at " << freq << " Hz";
+    }
+    // TRATE alone: every cycle's step is within TRATE x period (plus the bus's
+    // unit of torque, for rounding), and the arm, unlimited in speed, still
+    // gets there faster than VLIMIT would allow.
+    const LoopPeaks rate = closed_loop_jump("TRATE 1000 2000 1000 200 200 200\n", 200);
+    const Eigen::VectorXd step = (Eigen::VectorXd(6) << 5, 10, 5, 1, 1, 1).finished();
+    for (Eigen::Index j = 0; j < 6; ++j) EXPECT_LE(rate.step[j], step[j] + rate.unit[j] + 1e-9) << "joint " << j + 1;
+    EXPECT_EQ(rate.speed_clamps, 0u);
+}
+
+// A master that is late (its cycle 3 periods long every 10th cycle) leaves the
+// last torque applied for those periods: the speed limit, applied by the
+// master on speeds a cycle old, is then passed (joint 3: 1.13 rad/s against
+// VLIMIT 1). What a master-side limit cannot do; pinned so that a change
+// (a drive-side speed limit) shows here.
+TEST(CanRobotLimits, ALateMasterLetsAJointPassItsVlimit) {
+    const LoopPeaks p = closed_loop_jump(kPumaLimited, 200, 10, 3);
+    EXPECT_GT(p.speed_any[2], 1.05);
 }
 
 }  // namespace
