@@ -246,6 +246,7 @@ struct HoldResult {
     chimera::State robot_state = chimera::State::NOT_CREATED;
     std::string robot_error;
     std::uint64_t misses = 0;  // deadline misses of all tasks during the hold
+    std::uint64_t samples = 0, refused_reads = 0;  // the test's reads of Q_REF, Q_MEZ, and those the lock refused
 
     // No runaway after the settling time, and settled in the last half second.
     // The bounds are loose: TCG runs the tasks late and irregularly, more so
@@ -294,7 +295,15 @@ public:
              t = std::chrono::duration<double>(Clock::now() - t0).count()) {
             if (meanwhile) meanwhile();
             std::this_thread::sleep_for(5ms);
-            EXPECT_TRUE(chimera::svar::transferred(local.copy_from_global(set)));
+            // The test reads as an observer, at no real-time priority: in a TCG
+            // guest on a loaded host a task preempted inside its copy can hold
+            // the table past the observer's lock timeout (seen in a run beside
+            // another whole suite). Such a sample is not taken, and counted.
+            ++res.samples;
+            if (!chimera::svar::transferred(local.copy_from_global(set))) {
+                ++res.refused_reads;
+                continue;
+            }
             double e = 0;
             for (std::size_t j = 0; j < kDof; ++j) e = std::max(e, std::fabs(q_ref[j] - q_mez[j]));
             const auto w = static_cast<std::size_t>(t / 0.5);
@@ -308,7 +317,10 @@ public:
                         st.ref_freq, st.mez_freq, st.max_cycle_time);
         std::printf("  error per 0.5 s:");
         for (double e : res.window_errors) std::printf(" %.4f", e);
-        std::printf("\n");
+        std::printf("\n  samples %llu, refused by the table lock %llu\n", static_cast<unsigned long long>(res.samples),
+                    static_cast<unsigned long long>(res.refused_reads));
+        // A hold judged from fewer than half its samples is not measured.
+        EXPECT_LE(2 * res.refused_reads, res.samples) << "the table lock refused most of the test's reads";
         res.misses = misses() - misses_before;
         const auto st = sbs_->status(robot_);
         res.robot_cycles = st.cycles;
