@@ -38,7 +38,12 @@
 //   - with VLIMIT and/or TRATE (optional, per joint), what it commands goes
 //     through canrobot/command_limits.hpp: in torque mode the torque (the
 //     robotics::JointLimiter of robotsim), in position mode the target's
-//     change per cycle; `get LIMITS` answers how often each limit acted.
+//     change per cycle; `get LIMITS` answers how often each limit acted. And
+//     init downloads them into every drive by SDO before NMT start (0x6080
+//     max motor speed from VLIMIT, 0x6087 torque slope from TRATE): the
+//     drives' own limits hold when this master is late or gone; a drive that
+//     refuses or does not answer fails init, naming node, joint, object and
+//     SDO abort code.
 // The LOCAL keys are in README.md.
 #include <chimera/iod.hpp>
 #include <chimera/module.hpp>
@@ -60,6 +65,7 @@
 #include "canrobot/bus_config.hpp"
 #include "canrobot/cia402.hpp"
 #include "canrobot/command_limits.hpp"
+#include "canrobot/sdo.hpp"
 #include "robotics/dynamics.hpp"
 #include "robotics/ports.hpp"
 
@@ -75,6 +81,8 @@ constexpr int kRpdo2Ports = 3;     // target position, velocity offset (2 x 32)
 constexpr int kTpdo1Ports = 5;     // statusword, mode display, error code (3 x 16)
 constexpr int kTpdo2Ports = 8;     // position, velocity (2 x 32)
 constexpr int kHeartbeatPort = 10; // NMT state (8)
+constexpr int kSdoRequestPorts = 11;   // SDO request, 8 bytes (8 x 8 bits)
+constexpr int kSdoResponsePorts = 19;  // SDO response, 8 bytes
 
 // on(): a step of the enabling a drive did not answer is sent again after this.
 constexpr std::chrono::milliseconds kStepResend{100};
@@ -103,7 +111,9 @@ std::string bus_database(const std::string& interface, const std::vector<int>& n
         db += "FRAME " + hex(cob_id(kRpdo2, n)) + " OUT 2 32\n";
         db += "FRAME " + hex(cob_id(kTpdo1, n)) + " IN 3 16\n";
         db += "FRAME " + hex(cob_id(kTpdo2, n)) + " IN 2 32\n";
-        db += "FRAME " + hex(cob_id(kHeartbeat, n)) + " IN 1 8\nEND\n";
+        db += "FRAME " + hex(cob_id(kHeartbeat, n)) + " IN 1 8\n";
+        db += "FRAME " + hex(cob_id(chimera::canrobot::sdo::kRequest, n)) + " OUT 8 8\n";
+        db += "FRAME " + hex(cob_id(chimera::canrobot::sdo::kResponse, n)) + " IN 8 8\nEND\n";
     }
     db += "DEVICE " + interface + ".sync RCB socketcan\nPATH " + interface + "\nFRAME 0x080 OUT 1 8\nEND\n";
     db += "DEVICE " + interface + ".nmt RCB socketcan\nPATH " + interface + "\nFRAME 0x000 OUT 2 8\nEND\nEOF\n";
@@ -190,6 +200,7 @@ public:
         hold_q_.assign(n_, 0.0);
 
         open_bus(t);
+        download_drive_limits(t);
         start_nodes(t);
         return chimera::Result::OK;
     }
@@ -383,6 +394,71 @@ private:
                                          ? " (another canrobot task or program is the master of this bus or node)"
                                          : ""));
         }
+    }
+
+    // With VLIMIT and/or TRATE, every drive gets its own limits by SDO (CiA
+    // 301 expedited download; canrobot/sdo.hpp), before NMT start: 0x6080 max
+    // motor speed (VLIMIT in counts/s) and 0x6087 torque slope (TRATE in
+    // thousandths of the rated torque per second). They act inside the drive,
+    // so they hold when this master is late or gone, which the limits of the
+    // cycle cannot. A drive that refuses (SDO abort) or does not answer within
+    // ENABLE_TIMEOUT fails init, naming node, joint, object and abort code.
+    void download_drive_limits(chimera::Task& t) {
+        namespace sdo = chimera::canrobot::sdo;
+        auto downloads = chimera::canrobot::drive_limit_downloads(bus_);
+        if (downloads.empty()) return;
+        std::vector<std::unique_ptr<iod::Device>> out_dev, in_dev;
+        try {
+            const std::string& ifc = bus_.interface;
+            const auto db = iod::Database::from_string(bus_database(ifc, bus_.nodes),
+                                                       std::string(t.rmod()) + ".rmod (CAN devices of " + ifc + ")");
+            for (int id : bus_.nodes) {
+                const std::string dev = ifc + ".node" + std::to_string(id);
+                out_dev.push_back(iod::open(db, dev, kSdoRequestPorts, kSdoResponsePorts - 1,
+                                            iod::WRITE | iod::BYTE | iod::WAITNONE));
+                in_dev.push_back(iod::open(db, dev, kSdoResponsePorts, kSdoResponsePorts + 7,
+                                           iod::READ | iod::BYTE | iod::WAITNONE));
+            }
+        } catch (const iod::Error& e) {
+            (void)kill(t);
+            rb::module_error(t, std::string("opening the drives' SDO channels: ") + e.what());
+        }
+        sdo::DownloadSequence seq(std::move(downloads), bus_.interface);
+        std::vector<Frame> out;
+        auto send_all = [&] {
+            for (const Frame& f : out) {
+                const auto j = static_cast<std::size_t>(std::find(bus_.nodes.begin(), bus_.nodes.end(),
+                                                                  static_cast<int>(f.id - sdo::kRequest)) -
+                                                        bus_.nodes.begin());
+                if (j < out_dev.size()) (void)out_dev[j]->write(f.data, 8);  // lost: resent below
+            }
+            out.clear();
+        };
+        seq.start(out);
+        send_all();
+        const auto deadline = Clock::now() + std::chrono::duration<double>(enable_timeout_);
+        auto resend_at = Clock::now() + std::chrono::milliseconds(100);
+        while (!seq.done() && !seq.failed() && Clock::now() <= deadline) {
+            std::this_thread::sleep_for(std::chrono::milliseconds(2));
+            for (std::size_t j = 0; j < in_dev.size(); ++j) {
+                Frame f{.id = cob_id(sdo::kResponse, bus_.nodes[j]), .len = 8, .data = {}};
+                if (in_dev[j]->read(f.data, 8) > 0) seq.receive(f, out);
+            }
+            if (Clock::now() >= resend_at) {  // a request or its answer lost
+                seq.resend(out);
+                resend_at = Clock::now() + std::chrono::milliseconds(100);
+            }
+            send_all();
+        }
+        if (seq.done()) return;
+        const std::string why = seq.failed() ? seq.failure()
+                                             : "no answer within ENABLE_TIMEOUT " + std::to_string(enable_timeout_) +
+                                                   " s to the SDO download of the drives' own limits (VLIMIT, TRATE): " +
+                                                   seq.unconfirmed();
+        out_dev.clear();
+        in_dev.clear();
+        (void)kill(t);
+        rb::module_error(t, "cannot set the drives' own speed and torque-slope limits: " + why);
     }
 
     void start_nodes(chimera::Task& t) {

@@ -59,4 +59,32 @@ std::string CommandLimiter::report() const {
     return "speed_clamps " + std::to_string(speed_clamps()) + " rate_clamps " + std::to_string(rate_clamps());
 }
 
+namespace {
+std::uint32_t floor_in_range(double v) noexcept {
+    if (!(v >= 1)) return 1;
+    if (v >= 2147483647.0) return 2147483647u;
+    return static_cast<std::uint32_t>(std::floor(v));
+}
+}  // namespace
+
+std::uint32_t max_motor_speed_counts(double vlimit, double counts_per_rev) noexcept {
+    return floor_in_range(vlimit * counts_per_rev / 6.283185307179586);
+}
+
+std::uint32_t torque_slope_permille(double trate, double rated_torque) noexcept {
+    return floor_in_range(trate * 1000.0 / rated_torque);
+}
+
+std::vector<sdo::Download> drive_limit_downloads(const BusConfig& bus) {
+    std::vector<sdo::Download> d;
+    for (std::size_t j = 0; j < bus.nodes.size(); ++j) {
+        const auto jj = static_cast<Eigen::Index>(j);
+        if (jj < bus.vlimit.size() && std::isfinite(bus.vlimit[jj]))
+            d.push_back({bus.nodes[j], j, sdo::kMaxMotorSpeed, max_motor_speed_counts(bus.vlimit[jj], bus.counts_per_rev[jj]), 4});
+        if (jj < bus.trate.size() && std::isfinite(bus.trate[jj]))
+            d.push_back({bus.nodes[j], j, sdo::kTorqueSlope, torque_slope_permille(bus.trate[jj], bus.rated_torque[jj]), 4});
+    }
+    return d;
+}
+
 }  // namespace chimera::canrobot

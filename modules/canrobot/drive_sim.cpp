@@ -3,8 +3,12 @@
 
 #include <algorithm>
 #include <cmath>
+#include <limits>
 #include <stdexcept>
 
+#include <Eigen/LU>
+
+#include "canrobot/sdo.hpp"
 #include "robotics/ports.hpp"
 
 #if CHIMERA_HAVE_SOCKETCAN
@@ -70,6 +74,8 @@ DriveSim::DriveSim(DriveConfig config) : cfg_(std::move(config)), sim_(cfg_.mode
     for (std::size_t j = 0; j < n; ++j) drives_[j].node = cfg_.bus.nodes[j];
     tau_.setZero(en);
     integral_.setZero(en);
+    demand_.setZero(en);
+    in_cst_.assign(n, 0);
     sim_.reset(cfg_.q0, Eigen::VectorXd::Zero(en));
     last_good_q_ = cfg_.q0;
     for (std::size_t j = 0; j < n; ++j) sim_.set_locked(j, true);  // unpowered: brakes on
@@ -110,6 +116,8 @@ void DriveSim::nmt_command(Drive& d, std::size_t joint, NmtCommand c, std::int64
         d.controlword = 0;
         d.pending_torque = d.torque_target = 0;
         d.pending_position_valid = false;
+        d.max_speed = d.torque_slope = 0;  // application parameters back to their power-on values
+        d.max_torque = 0;
         update_brake(joint);
         [[fallthrough]];
     case NmtCommand::reset_communication: {
@@ -196,26 +204,115 @@ bool DriveSim::advance(std::int64_t now) {
     now_ = now;
     const int steps = std::max(1, static_cast<int>(std::ceil(dt / cfg_.max_step)));
     const double h = dt / steps;
+    for (int s = 0; s < steps; ++s)
+        if (!step_once(h)) return false;
+    last_good_q_ = sim_.q();
+    return true;
+}
+
+double DriveSim::max_speed(std::size_t joint) const noexcept {
+    const std::uint32_t v = drives_[joint].max_speed;
+    return v ? from_counts(static_cast<std::int32_t>(v), cfg_.bus.counts_per_rev[static_cast<Eigen::Index>(joint)])
+             : std::numeric_limits<double>::infinity();
+}
+
+double DriveSim::torque_slope(std::size_t joint) const noexcept {
+    const std::uint32_t s = drives_[joint].torque_slope;
+    return s ? s * cfg_.bus.rated_torque[static_cast<Eigen::Index>(joint)] / 1000.0
+             : std::numeric_limits<double>::infinity();
+}
+
+double DriveSim::torque_limit(std::size_t joint) const noexcept {
+    const auto j = static_cast<Eigen::Index>(joint);
+    const std::uint16_t m = drives_[joint].max_torque;
+    const double tl = cfg_.bus.torque_limit[j];
+    return m ? std::min(tl, permille_to_torque(static_cast<std::int16_t>(m), cfg_.bus.rated_torque[j])) : tl;
+}
+
+bool DriveSim::step_once(double h) {
     const auto n = static_cast<Eigen::Index>(drives_.size());
-    for (int s = 0; s < steps; ++s) {
+    for (Eigen::Index j = 0; j < n; ++j) {
+        const auto js = static_cast<std::size_t>(j);
+        const Drive& d = drives_[js];
+        const double limit = torque_limit(js);
+        double t = 0;
+        const bool cst = producing_torque(d) && d.mode == kModeCst;
+        if (cst) {
+            // 0x6087: the demand moves toward the target at most slope x h,
+            // from the torque applied when CST began (0 from the brake).
+            if (!in_cst_[js]) demand_[j] = tau_[j];
+            const double target = permille_to_torque(d.torque_target, cfg_.bus.rated_torque[j]);
+            const double slope = torque_slope(js) * h;
+            demand_[j] = std::isfinite(slope) ? std::clamp(target, demand_[j] - slope, demand_[j] + slope) : target;
+            t = demand_[j];
+        } else if (producing_torque(d)) {  // CSP: the drive's own position loop
+            const double e = d.position_target - sim_.q()[j];
+            const double il = cfg_.csp.ilimit[j];
+            integral_[j] = std::clamp(integral_[j] + e * h, -il, il);
+            t = cfg_.csp.kp[j] * e + cfg_.csp.ki[j] * integral_[j] +
+                cfg_.csp.kd[j] * (d.velocity_offset - sim_.qd()[j]);
+        }
+        in_cst_[js] = cst;
+        tau_[j] = std::clamp(t, -limit, limit);
+    }
+    bool any_speed_limit = false;
+    for (std::size_t j = 0; j < drives_.size(); ++j)
+        any_speed_limit = any_speed_limit || (drives_[j].max_speed && producing_torque(drives_[j]));
+    if (!any_speed_limit) return sim_.step(tau_, h, 1);
+
+    // 0x6080: the step is tried; a joint that would end it faster than its
+    // limit gets the torque that ends it at the limit. The speed after a
+    // semi-implicit Euler step is affine in the torque (qd + h M^-1 (tau -
+    // bias), all at the step's start), so the joints concerned are solved
+    // together from the response to a unit torque on each; a joint the
+    // correction pushes over joins them, at most n rounds.
+    q_before_ = sim_.q();
+    qd_before_ = sim_.qd();
+    if (!sim_.step(tau_, h, 1)) return false;
+    std::vector<Eigen::Index> over;
+    auto vmax = [&](Eigen::Index j) { return max_speed(static_cast<std::size_t>(j)); };
+    auto find_over = [&]() {
+        bool added = false;
         for (Eigen::Index j = 0; j < n; ++j) {
             const Drive& d = drives_[static_cast<std::size_t>(j)];
-            const double limit = cfg_.bus.torque_limit[j];
-            double t = 0;
-            if (producing_torque(d) && d.mode == kModeCst) {
-                t = permille_to_torque(d.torque_target, cfg_.bus.rated_torque[j]);
-            } else if (producing_torque(d)) {  // CSP: the drive's own position loop
-                const double e = d.position_target - sim_.q()[j];
-                const double il = cfg_.csp.ilimit[j];
-                integral_[j] = std::clamp(integral_[j] + e * h, -il, il);
-                t = cfg_.csp.kp[j] * e + cfg_.csp.ki[j] * integral_[j] +
-                    cfg_.csp.kd[j] * (d.velocity_offset - sim_.qd()[j]);
+            if (!d.max_speed || !producing_torque(d) || std::fabs(sim_.qd()[j]) <= vmax(j)) continue;
+            if (std::find(over.begin(), over.end(), j) == over.end()) {
+                over.push_back(j);
+                added = true;
             }
-            tau_[j] = std::clamp(t, -limit, limit);
         }
+        return added;
+    };
+    if (!find_over()) return true;
+    ++speed_limited_;
+    for (Eigen::Index round = 0; round < n; ++round) {
+        qd_base_ = sim_.qd();
+        const auto m = static_cast<Eigen::Index>(over.size());
+        Eigen::MatrixXd response(m, m);
+        Eigen::VectorXd want(m);
+        for (Eigen::Index c = 0; c < m; ++c) {
+            tau_try_ = tau_;
+            tau_try_[over[c]] += 1.0;
+            sim_.reset(q_before_, qd_before_);
+            if (!sim_.step(tau_try_, h, 1)) return false;
+            for (Eigen::Index r = 0; r < m; ++r) response(r, c) = sim_.qd()[over[r]] - qd_base_[over[r]];
+        }
+        for (Eigen::Index r = 0; r < m; ++r) {
+            const Eigen::Index j = over[r];
+            // Aim just inside the limit, so rounding never leaves it above.
+            const double target = std::copysign(vmax(j) * (1 - 1e-12), qd_base_[j]);
+            want[r] = target - qd_base_[j];
+        }
+        const Eigen::VectorXd change = response.fullPivLu().solve(want);
+        for (Eigen::Index r = 0; r < m; ++r) {
+            const Eigen::Index j = over[r];
+            const double limit = torque_limit(static_cast<std::size_t>(j));
+            if (std::isfinite(change[r])) tau_[j] = std::clamp(tau_[j] + change[r], -limit, limit);
+        }
+        sim_.reset(q_before_, qd_before_);
         if (!sim_.step(tau_, h, 1)) return false;
+        if (!find_over()) break;
     }
-    last_good_q_ = sim_.q();
     return true;
 }
 
@@ -258,6 +355,10 @@ void DriveSim::receive(const Frame& f, std::int64_t now, Out& out) {
     }
     const std::uint32_t function = f.id & 0x780;
     const int j = joint_of(static_cast<int>(f.id & 0x7F));
+    if (j >= 0 && function == sdo::kRequest) {
+        sdo_request(drives_[static_cast<std::size_t>(j)], f, out);
+        return;
+    }
     if (j < 0 || (function != kRpdo1 && function != kRpdo2)) return;
     const auto joint = static_cast<std::size_t>(j);
     Drive& d = drives_[joint];
@@ -301,6 +402,42 @@ void DriveSim::receive(const Frame& f, std::int64_t now, Out& out) {
         d.pending_velocity = static_cast<std::int32_t>(get_u32(f, 4));
         d.pending_position_valid = true;
     }
+}
+
+// The SDO server (canrobot/sdo.hpp): expedited downloads of the limits, in
+// pre-operational and operational (CiA 301: not in stopped).
+void DriveSim::sdo_request(Drive& d, const Frame& f, Out& out) {
+    if (d.nmt != NmtState::preoperational && d.nmt != NmtState::operational) {
+        ++ignored_;
+        return;
+    }
+    const auto r = sdo::decode_request(f);
+    if (!r) {
+        ++ignored_;  // not an SDO frame (not 8 bytes)
+        return;
+    }
+    auto abort = [&](std::uint32_t code) { out.push_back(sdo::abort_frame(d.node, r->index, r->subindex, code, true)); };
+    if (r->kind == sdo::Request::Kind::abort) return;  // the master gave up: nothing outstanding here
+    if (r->kind != sdo::Request::Kind::download) return abort(sdo::kAbortCommand);
+    std::uint8_t size = 0;
+    std::uint32_t max = 0;
+    switch (r->index) {
+    case sdo::kMaxMotorSpeed:
+    case sdo::kTorqueSlope: size = 4; max = 0x7FFFFFFF; break;
+    case sdo::kMaxTorque: size = 2; max = 0x7FFF; break;
+    default: return abort(sdo::kAbortNoObject);
+    }
+    if (r->subindex != 0) return abort(sdo::kAbortNoSubindex);
+    if (r->size != 0 && r->size != size) return abort(sdo::kAbortLength);
+    // 0 would be a drive that cannot move: refused, as anything beyond the
+    // objects' signed range (a velocity actual is an i32).
+    if (r->value == 0 || r->value > max) return abort(sdo::kAbortRange);
+    switch (r->index) {
+    case sdo::kMaxMotorSpeed: d.max_speed = r->value; break;
+    case sdo::kTorqueSlope: d.torque_slope = r->value; break;
+    default: d.max_torque = static_cast<std::uint16_t>(r->value); break;
+    }
+    out.push_back(sdo::download_response(d.node, r->index, r->subindex));
 }
 
 void DriveSim::tick(std::int64_t now, Out& out) {

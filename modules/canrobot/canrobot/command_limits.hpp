@@ -17,10 +17,12 @@
 #include <cstdint>
 #include <optional>
 #include <string>
+#include <vector>
 
 #include <Eigen/Core>
 
 #include "canrobot/bus_config.hpp"
+#include "canrobot/sdo.hpp"
 #include "robotics/limits.hpp"
 #include "robotics/stale.hpp"
 
@@ -59,5 +61,15 @@ private:
     Eigen::VectorXd vlimit_;
     std::uint64_t target_clamps_ = 0;
 };
+
+/// The drives' own limits for the declared VLIMIT and TRATE, as canrobot
+/// downloads them at init (canrobot/sdo.hpp), joint by joint: 0x6080 max
+/// motor speed = VLIMIT in counts/s (the unit of 0x606C velocity actual),
+/// rounded down so the drive's limit is never above VLIMIT; 0x6087 torque
+/// slope = TRATE in thousandths of RATED_TORQUE per second, rounded down.
+/// Both at least 1 and at most 2^31 - 1. Nothing for a joint without them.
+std::vector<sdo::Download> drive_limit_downloads(const BusConfig& bus);
+std::uint32_t max_motor_speed_counts(double vlimit, double counts_per_rev) noexcept;
+std::uint32_t torque_slope_permille(double trate, double rated_torque) noexcept;
 
 }  // namespace chimera::canrobot

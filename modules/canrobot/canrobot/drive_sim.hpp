@@ -16,6 +16,23 @@
 // operation enabled) is held by its brake: its position is frozen and its
 // velocity zero (exact when all joints are braked or all free; with some
 // braked, the others' accelerations ignore the braked joints' reaction).
+//
+// The drives' own limits, set by SDO download (canrobot/sdo.hpp; unset after
+// power-on and reset node: no limit), act inside every integration step, so
+// they hold whatever the master does (late, silent, wrong):
+//   0x6087 torque slope (thousandths of the rated torque per second, as the
+//     target torque): in CST the torque demand moves toward the target torque
+//     at most slope x step per step (from the torque applied when CST began);
+//   0x6080 max motor speed (counts/s, the unit of 0x606C velocity actual): in
+//     CST and CSP the drive's inner loop, modelled as faster than a step,
+//     changes the torque of a joint that would end the step faster than the
+//     limit to the torque that ends it at the limit (solved exactly for the
+//     joints concerned together, the arm's coupling included), within the
+//     torque limit: the speed never exceeds it at the end of any step unless
+//     the torque limit cannot hold the joint (gravity beyond it). This
+//     correction may change the torque faster than the slope: speed wins;
+//   0x6072 max torque (thousandths of the rated torque): lowers the torque
+//     limit below the .rmod's TLIMIT.
 #pragma once
 
 #include <chimera/sbs_files.hpp>
@@ -89,6 +106,14 @@ public:
     const Eigen::VectorXd& q() const noexcept { return sim_.q(); }
     const Eigen::VectorXd& qd() const noexcept { return sim_.qd(); }
     std::uint64_t syncs() const noexcept { return syncs_; }
+    /// The drive's max motor speed (0x6080) in rad/s; infinity while unset.
+    double max_speed(std::size_t joint) const noexcept;
+    /// The drive's torque slope (0x6087) in N m/s; infinity while unset.
+    double torque_slope(std::size_t joint) const noexcept;
+    /// The drive's torque limit: TLIMIT, or 0x6072 when lower (N m).
+    double torque_limit(std::size_t joint) const noexcept;
+    /// Steps in which the max motor speed changed a joint's torque (any joint).
+    std::uint64_t speed_limited_steps() const noexcept { return speed_limited_; }
     /// Frames received for these drives that were ignored (not operational, short).
     std::uint64_t ignored_frames() const noexcept { return ignored_; }
 
@@ -111,6 +136,10 @@ private:
         std::uint16_t sent_statusword = 0xFFFF;          // last TPDO1 contents, for "on change"
         std::int16_t sent_mode = -1;
         std::uint16_t sent_error = 0xFFFF;
+        // Set by SDO download (0: unset, no limit); reset node clears them.
+        std::uint32_t max_speed = 0;     // 0x6080, counts/s
+        std::uint32_t torque_slope = 0;  // 0x6087, thousandths of the rated torque per second
+        std::uint16_t max_torque = 0;    // 0x6072, thousandths of the rated torque
     };
 
     int joint_of(int node) const noexcept;
@@ -123,6 +152,9 @@ private:
     void nmt_command(Drive& d, std::size_t joint, cia402::NmtCommand c, std::int64_t now, Out& out);
     void send_tpdo1(Drive& d, std::int64_t now, Out& out, bool only_if_changed);
     void send_tpdo2(std::size_t joint, Out& out);
+    void sdo_request(Drive& d, const Frame& f, Out& out);
+    /// One integration step of `h` with the drives' torques and limits.
+    bool step_once(double h);
     bool producing_torque(const Drive& d) const noexcept {
         return d.state == cia402::DriveState::operation_enabled &&
                (d.mode == cia402::kModeCst || d.mode == cia402::kModeCsp);
@@ -132,6 +164,10 @@ private:
     std::vector<Drive> drives_;
     robotics::ArmSimulator sim_;
     Eigen::VectorXd tau_, integral_, last_good_q_;
+    Eigen::VectorXd demand_;          // CST torque demand after the torque slope (N m)
+    std::vector<char> in_cst_;        // the joint produced CST torque in the last step
+    Eigen::VectorXd q_before_, qd_before_, qd_base_, tau_try_;  // the speed limit's re-steps
+    std::uint64_t speed_limited_ = 0;
     std::int64_t now_ = 0;       // time the physics has reached
     bool powered_ = false;
     std::uint64_t syncs_ = 0;

@@ -728,15 +728,17 @@ std::string vector_text(const std::array<double, kDof>& v) {
 //   - every torque step within TRATE x period (plus one unit of the bus's
 //     torque, for rounding), except steps that brake the joint: the speed
 //     envelope comes after the rate limit and wins (robotics/limits.hpp);
-//   - every joint's speed within VLIMIT, and the arm at the new reference
-//     (every joint within 0.05 rad) within the 4000 cycles the window may
-//     last — asserted when the robot task missed no deadline in the window.
-//     canrobot limits the torque it sends on the speed latched a cycle before,
-//     and the drive applies the last torque until the next SYNC: a master
-//     that runs late lets a joint pass VLIMIT (CanRobotLimits.ALateMaster...,
-//     exactly, on the host), and a starved TCG guest runs late (3.4 rad/s on
-//     joint 3 in one run, the controller at a quarter of its rate and never
-//     settling). Such a run prints its peaks and is not judged on them.
+//   - every joint's speed within VLIMIT, always: canrobot downloaded VLIMIT
+//     into the drives at init (0x6080 max motor speed, rounded down to
+//     counts/s), and the drives hold it at every integration step whatever
+//     the master does. Before that download, a starved TCG guest whose master
+//     ran late let joint 3 reach 3.4 rad/s in one run (the master's limit
+//     uses the speed latched a cycle before; CanRobotLimits.TheDrivesOwnLimits...,
+//     exactly, on the host);
+//   - the arm at the new reference (every joint within 0.05 rad) within the
+//     4000 cycles the window may last — asserted when the robot task missed
+//     no deadline in the window (a starved run's controller may run at a
+//     quarter of its rate and never settle; it prints its peaks).
 TEST(CanRobotGuest, AReferenceThatJumpsMovesTheArmWithinVlimitAndTrate) {
     REQUIRE_VCAN();
     const JumpEpisode lim = jump_episode(
@@ -751,7 +753,7 @@ TEST(CanRobotGuest, AReferenceThatJumpsMovesTheArmWithinVlimitAndTrate) {
     if (on_time) {
         EXPECT_GT(lim.syncs_to_arrive, 0u) << "the arm never arrived at the new reference";
     } else {
-        std::printf("limited: the robot task missed %llu deadlines in the window: speeds and arrival not judged\n",
+        std::printf("limited: the robot task missed %llu deadlines in the window: arrival not judged\n",
                     static_cast<unsigned long long>(lim.robot_misses));
     }
     for (std::size_t j = 0; j < kDof; ++j) {
@@ -761,9 +763,7 @@ TEST(CanRobotGuest, AReferenceThatJumpsMovesTheArmWithinVlimitAndTrate) {
         EXPECT_GE(lim.steps[j] + lim.gaps + lim.csp_frames + 2, lim.syncs) << "joint " << j + 1;
         EXPECT_LE(lim.peak_step_not_braking[j], kTrate[j] * kGuestPeriod * 1000 / kRated[j] + 1 + 1e-9)
             << "joint " << j + 1;
-        if (on_time) {
-            EXPECT_LE(lim.peak_speed[j], kVlimit[j]) << "joint " << j + 1;
-        }
+        EXPECT_LE(lim.peak_speed[j], kVlimit[j]) << "joint " << j + 1 << (on_time ? "" : " (robot task missed deadlines)");
     }
     unsigned long long speed0 = 0, rate0 = 0, speed1 = 0, rate1 = 0;
     ASSERT_EQ(std::sscanf(lim.limits_before.c_str(), "speed_clamps %llu rate_clamps %llu", &speed0, &rate0), 2)

@@ -8,6 +8,7 @@
 #include "canrobot/cia402.hpp"
 #include "canrobot/command_limits.hpp"
 #include "canrobot/drive_sim.hpp"
+#include "canrobot/sdo.hpp"
 #include "robotics/dynamics.hpp"
 
 #include <chimera/cfg.hpp>
@@ -21,6 +22,7 @@
 #include <functional>
 #include <numbers>
 #include <string>
+#include <tuple>
 #include <vector>
 
 namespace {
@@ -294,6 +296,110 @@ Frame rpdo2(int node, std::int32_t position, std::int32_t velocity) {
 Frame nmt(NmtCommand c, int node) { return frame(kNmt, {static_cast<std::uint8_t>(c), static_cast<std::uint8_t>(node)}); }
 Frame sync_frame() { return frame(kSync, {1}); }
 
+// --- SDO (CiA 301 expedited download, abort) ---------------------------------------------
+
+std::vector<int> bytes_of(const Frame& f) { return std::vector<int>(f.data, f.data + f.len); }
+
+TEST(Sdo, ExpeditedDownloadRequestsAreExact) {
+    const Frame four = sdo::download_request(3, 0x6080, 0, 0x12345678);
+    EXPECT_EQ(four.id, 0x603u);
+    EXPECT_EQ(bytes_of(four), (std::vector<int>{0x23, 0x80, 0x60, 0x00, 0x78, 0x56, 0x34, 0x12}));
+    // n = 4 - size in bits 3..2, e and s set; the unused data bytes are 0.
+    EXPECT_EQ(bytes_of(sdo::download_request(127, 0x6072, 0, 0xABCD1234, 3)),
+              (std::vector<int>{0x27, 0x72, 0x60, 0x00, 0x34, 0x12, 0xCD, 0x00}));
+    EXPECT_EQ(sdo::download_request(127, 0x6072, 0, 0, 3).id, 0x67Fu);
+    EXPECT_EQ(bytes_of(sdo::download_request(1, 0x6072, 2, 0xABCD1234, 2)),
+              (std::vector<int>{0x2B, 0x72, 0x60, 0x02, 0x34, 0x12, 0x00, 0x00}));
+    EXPECT_EQ(bytes_of(sdo::download_request(1, 0x1017, 0, 0xFF, 1)),
+              (std::vector<int>{0x2F, 0x17, 0x10, 0x00, 0xFF, 0x00, 0x00, 0x00}));
+    EXPECT_EQ(sdo::download_request(1, 0x6080, 0, 7, 9).data[0], 0x23);  // size outside 1..4: 4
+}
+
+TEST(Sdo, ResponsesAndAbortsAreExact) {
+    const Frame ok = sdo::download_response(3, 0x6087, 0);
+    EXPECT_EQ(ok.id, 0x583u);
+    EXPECT_EQ(bytes_of(ok), (std::vector<int>{0x60, 0x87, 0x60, 0x00, 0, 0, 0, 0}));
+    const Frame refused = sdo::abort_frame(3, 0x6080, 0, sdo::kAbortRange, true);
+    EXPECT_EQ(refused.id, 0x583u);
+    EXPECT_EQ(bytes_of(refused), (std::vector<int>{0x80, 0x80, 0x60, 0x00, 0x30, 0x00, 0x09, 0x06}));
+    EXPECT_EQ(sdo::abort_frame(3, 0x6080, 0, sdo::kAbortTimeout, false).id, 0x603u);  // the master's abort
+    EXPECT_EQ(sdo::kAbortNoObject, 0x06020000u);
+    EXPECT_EQ(sdo::kAbortRange, 0x06090030u);
+    EXPECT_EQ(sdo::kAbortTimeout, 0x05040000u);
+    EXPECT_EQ(sdo::kAbortGeneral, 0x08000000u);
+    EXPECT_EQ(sdo::abort_name(0x06020000), "object does not exist in the object dictionary");
+    EXPECT_EQ(sdo::abort_name(0x06090030), "value range of parameter exceeded");
+    EXPECT_EQ(sdo::abort_name(0x05040000), "SDO protocol timed out");
+    EXPECT_EQ(sdo::abort_name(0x08000000), "general error");
+    EXPECT_EQ(sdo::abort_name(0x12345678), "");
+    EXPECT_EQ(sdo::object_name(0x6080), "max motor speed");
+    EXPECT_EQ(sdo::object_name(0x6087), "torque slope");
+}
+
+TEST(Sdo, DecodeReadsWhatEncodeWrote) {
+    auto r = sdo::decode_request(sdo::download_request(5, 0x6087, 0, 0x00C0FFEE));
+    ASSERT_TRUE(r);
+    EXPECT_EQ(r->kind, sdo::Request::Kind::download);
+    EXPECT_EQ(r->index, 0x6087);
+    EXPECT_EQ(r->subindex, 0);
+    EXPECT_EQ(r->value, 0x00C0FFEEu);
+    EXPECT_EQ(r->size, 4);
+    r = sdo::decode_request(sdo::download_request(5, 0x6072, 1, 0xFFFFBEEF, 2));
+    ASSERT_TRUE(r);
+    EXPECT_EQ(r->size, 2);
+    EXPECT_EQ(r->subindex, 1);
+    EXPECT_EQ(r->value, 0xBEEFu);  // only the bytes the size covers
+    // Size not indicated (e = 1, s = 0: 0x22): four bytes, size 0.
+    r = sdo::decode_request(frame(0x605, {0x22, 0x80, 0x60, 0, 1, 2, 3, 4}));
+    ASSERT_TRUE(r);
+    EXPECT_EQ(r->kind, sdo::Request::Kind::download);
+    EXPECT_EQ(r->size, 0);
+    EXPECT_EQ(r->value, 0x04030201u);
+    // An upload (0x40) and a segmented download (0x21) are not in the subset.
+    EXPECT_EQ(sdo::decode_request(frame(0x605, {0x40, 0x80, 0x60, 0, 0, 0, 0, 0}))->kind, sdo::Request::Kind::unsupported);
+    EXPECT_EQ(sdo::decode_request(frame(0x605, {0x21, 0x80, 0x60, 0, 8, 0, 0, 0}))->kind, sdo::Request::Kind::unsupported);
+    r = sdo::decode_request(sdo::abort_frame(5, 0x6080, 0, sdo::kAbortTimeout, false));
+    EXPECT_EQ(r->kind, sdo::Request::Kind::abort);
+    EXPECT_EQ(r->value, sdo::kAbortTimeout);
+    EXPECT_FALSE(sdo::decode_request(frame(0x605, {0x23, 0x80, 0x60, 0})));  // not 8 bytes
+    EXPECT_FALSE(sdo::decode_request(sdo::download_response(5, 0x6080, 0)));  // a response
+    EXPECT_FALSE(sdo::decode_request(frame(0x600, {0x23, 0x80, 0x60, 0, 0, 0, 0, 0})));  // node 0
+
+    auto a = sdo::decode_response(sdo::abort_frame(5, 0x6080, 0, sdo::kAbortNoObject, true));
+    ASSERT_TRUE(a);
+    EXPECT_EQ(a->kind, sdo::Response::Kind::aborted);
+    EXPECT_EQ(a->abort_code, 0x06020000u);
+    EXPECT_EQ(a->index, 0x6080);
+    a = sdo::decode_response(sdo::download_response(5, 0x6087, 0));
+    EXPECT_EQ(a->kind, sdo::Response::Kind::downloaded);
+    EXPECT_EQ(a->index, 0x6087);
+    EXPECT_EQ(sdo::decode_response(frame(0x585, {0x43, 0x80, 0x60, 0, 0, 0, 0, 0}))->kind, sdo::Response::Kind::other);
+    EXPECT_FALSE(sdo::decode_response(sdo::download_request(5, 0x6080, 0, 1)));
+}
+
+TEST(Sdo, DriveLimitsAreVlimitAndTrateInTheDrivesUnits) {
+    const auto bus = BusConfig::from_local(
+        rmod_from("ROBOT planar2\nINTERFACE vcan0\nNODES 3 4\nRATED_TORQUE 10 2\nVLIMIT 1 2.5\nTRATE 1000\n").local, 2);
+    const auto d = drive_limit_downloads(bus);
+    ASSERT_EQ(d.size(), 4u);
+    // 1 rad/s at 2^20 counts/rev = 166886.05 counts/s, rounded down (never above VLIMIT).
+    EXPECT_EQ(d[0].node, 3);
+    EXPECT_EQ(d[0].joint, 0u);
+    EXPECT_EQ(d[0].index, 0x6080);
+    EXPECT_EQ(d[0].value, 166886u);
+    EXPECT_EQ(d[1].index, 0x6087);
+    EXPECT_EQ(d[1].value, 100000u);  // 1000 N m/s of 10 N m rated: 100 000 permille/s
+    EXPECT_EQ(d[2].node, 4);
+    EXPECT_EQ(d[2].value, 417215u);  // 2.5 rad/s
+    EXPECT_EQ(d[3].value, 500000u);  // 1000 N m/s of 2 N m
+    EXPECT_LE(from_counts(static_cast<std::int32_t>(d[2].value), kCounts), 2.5);
+    EXPECT_EQ(max_motor_speed_counts(1e12, kCounts), 0x7FFFFFFFu);
+    EXPECT_EQ(torque_slope_permille(1e-9, 10), 1u);
+    EXPECT_TRUE(drive_limit_downloads(BusConfig::from_local(
+                    rmod_from("ROBOT planar2\nINTERFACE vcan0\nNODES 3 4\nRATED_TORQUE 10\n").local, 2))
+                    .empty());
+}
+
 // A bus with the drives on it, a clock the test moves, and every frame the
 // drives sent.
 class Drives : public ::testing::Test {
@@ -548,6 +654,228 @@ TEST_F(Drives, FramesForOtherNodesAreNotAnswered) {
     EXPECT_EQ(sim.state(0), DriveState::switch_on_disabled);
 }
 
+// --- the drives' own limits, downloaded by SDO ---------------------------------------------
+
+Frame sdo_download(int node, std::uint16_t index, std::uint32_t value, std::uint8_t size = 4, std::uint8_t sub = 0) {
+    return sdo::download_request(node, index, sub, value, size);
+}
+
+TEST_F(Drives, AnswersSdoDownloadsOfItsLimitsAndAbortsTheRest) {
+    EXPECT_EQ(sim.nmt(0), NmtState::preoperational);  // SDO works before NMT start
+    EXPECT_TRUE(std::isinf(sim.max_speed(0)));
+    EXPECT_TRUE(std::isinf(sim.torque_slope(0)));
+    auto answer = [&](const Frame& request) {
+        const auto out = send(request);
+        EXPECT_EQ(out.size(), 1u);
+        return out.empty() ? Frame{} : out[0];
+    };
+    Frame a = answer(sdo_download(3, 0x6080, 166886));
+    EXPECT_EQ(a.id, 0x583u);
+    EXPECT_EQ(bytes_of(a), bytes_of(sdo::download_response(3, 0x6080, 0)));
+    EXPECT_NEAR(sim.max_speed(0), 1.0, 1e-5);
+    EXPECT_LE(sim.max_speed(0), 1.0);
+    EXPECT_TRUE(std::isinf(sim.max_speed(1)));  // node 4 untouched
+    a = answer(sdo_download(4, 0x6087, 2500));
+    EXPECT_EQ(bytes_of(a), bytes_of(sdo::download_response(4, 0x6087, 0)));
+    EXPECT_DOUBLE_EQ(sim.torque_slope(1), 25.0);  // 2500 permille/s of 10 N m
+    a = answer(sdo_download(3, 0x6072, 500, 2));
+    EXPECT_EQ(bytes_of(a), bytes_of(sdo::download_response(3, 0x6072, 0)));
+    EXPECT_DOUBLE_EQ(sim.torque_limit(0), 5.0);
+    // Refusals, each an abort naming the object.
+    auto refused = [&](const Frame& request, std::uint16_t index, std::uint8_t sub, std::uint32_t code) {
+        EXPECT_EQ(bytes_of(answer(request)), bytes_of(sdo::abort_frame(request.id - 0x600, index, sub, code, true)))
+            << std::hex << index << " code " << code;
+    };
+    refused(sdo_download(3, 0x6081, 100), 0x6081, 0, 0x06020000);          // profile velocity: not in this drive
+    refused(sdo_download(3, 0x1017, 100, 2), 0x1017, 0, 0x06020000);       // heartbeat time: a .rmod key here
+    refused(sdo_download(3, 0x6080, 0), 0x6080, 0, 0x06090030);            // a drive that cannot move
+    refused(sdo_download(3, 0x6080, 0x80000000u), 0x6080, 0, 0x06090030);  // beyond the i32 of 0x606C
+    refused(sdo_download(4, 0x6087, 0), 0x6087, 0, 0x06090030);
+    refused(sdo_download(3, 0x6072, 40000, 2), 0x6072, 0, 0x06090030);
+    refused(sdo_download(3, 0x6080, 100, 4, 1), 0x6080, 1, 0x06090011);    // no sub-index 1
+    refused(sdo_download(3, 0x6080, 100, 2), 0x6080, 0, 0x06070010);       // a u32 sent as 2 bytes
+    refused(frame(0x603, {0x40, 0x80, 0x60, 0, 0, 0, 0, 0}), 0x6080, 0, 0x05040001);  // upload: not in the subset
+    EXPECT_NEAR(sim.max_speed(0), 1.0, 1e-5);  // the refused values changed nothing
+    EXPECT_DOUBLE_EQ(sim.torque_slope(1), 25.0);
+    EXPECT_TRUE(send(sdo::abort_frame(3, 0x6080, 0, sdo::kAbortTimeout, false)).empty());  // the master's abort: no answer
+    EXPECT_TRUE(send(frame(0x603, {0x23, 0x80, 0x60, 0})).empty());  // not 8 bytes: ignored
+}
+
+TEST_F(Drives, SdoIsNotAnsweredWhenStoppedAndResetNodeForgetsTheLimits) {
+    send(nmt(NmtCommand::start, 0));
+    EXPECT_EQ(send(sdo_download(3, 0x6080, 1000)).size(), 1u);  // operational: answered
+    send(nmt(NmtCommand::stop, 3));
+    EXPECT_TRUE(send(sdo_download(3, 0x6080, 2000)).empty());
+    EXPECT_DOUBLE_EQ(sim.max_speed(0), from_counts(1000, kCounts));
+    send(nmt(NmtCommand::reset_node, 3));
+    EXPECT_TRUE(std::isinf(sim.max_speed(0)));
+}
+
+// The drives of the planar arm with no RPDO deadline: a master that stops
+// sending leaves the last torque applied for as long as the test runs.
+DriveConfig planar_no_deadline() {
+    return DriveConfig::from_rmod(rmod_from("ROBOT planar2\nINTERFACE vcan0\nNODES 3 4\nRATED_TORQUE 10\nQ0 0.4 -0.3\n"
+                                            "DRIVE_RPDO_TIMEOUT 0\nDRIVE_STEP 0.00025\n"));
+}
+
+// Enables both drives in CST and applies `torque` (permille) at a SYNC, then
+// never sends again; runs 1 s one integration step at a time, calling
+// `each_step` after each.
+void dead_master(DriveSim& sim, std::int16_t torque3, std::int16_t torque4, const std::function<void()>& each_step,
+                 const std::vector<Frame>& downloads = {}) {
+    std::vector<Frame> out;
+    std::int64_t now = 0;
+    sim.power_on(now, out);
+    for (const Frame& f : downloads) sim.receive(f, now, out);
+    sim.receive(nmt(NmtCommand::start, 0), now, out);
+    std::uint16_t cw3 = 0, cw4 = 0;
+    for (int i = 0; i < 3; ++i) {
+        cw3 = controlword_toward_enabled(sim.state(0), cw3);
+        cw4 = controlword_toward_enabled(sim.state(1), cw4);
+        sim.receive(rpdo1(3, cw3, kModeCst, torque3), now, out);
+        sim.receive(rpdo1(4, cw4, kModeCst, torque4), now, out);
+    }
+    sim.receive(sync_frame(), now, out);
+    ASSERT_EQ(sim.state(0), DriveState::operation_enabled);
+    const auto step = static_cast<std::int64_t>(sim.config().max_step * 1e9);
+    for (int s = 0; s < 4000; ++s) {
+        now += step;
+        out.clear();
+        sim.tick(now, out);  // exactly one integration step
+        each_step();
+    }
+    EXPECT_EQ(sim.state(0), DriveState::operation_enabled);  // nothing stopped it but its own limits
+}
+
+TEST(DriveLimits, MaxMotorSpeedHoldsUnderATorqueADeadMasterLeftOn) {
+    // 30 and -20 N m (3000, -2000 permille of 10 N m), then silence: without
+    // 0x6080 both joints run away.
+    {
+        DriveSim sim(planar_no_deadline());
+        double peak0 = 0, peak1 = 0;
+        dead_master(sim, 3000, -2000, [&] {
+            peak0 = std::max(peak0, std::fabs(sim.qd()[0]));
+            peak1 = std::max(peak1, std::fabs(sim.qd()[1]));
+        });
+        EXPECT_GT(peak0, 5.0);
+        EXPECT_GT(peak1, 5.0);
+    }
+    // With 0.5 and 1 rad/s downloaded, at the end of every integration step
+    // each joint is within its limit — and reaches it (the torque drives it there).
+    DriveSim sim(planar_no_deadline());
+    const std::uint32_t v0 = max_motor_speed_counts(0.5, kCounts), v1 = max_motor_speed_counts(1.0, kCounts);
+    const double lim0 = from_counts(static_cast<std::int32_t>(v0), kCounts);
+    const double lim1 = from_counts(static_cast<std::int32_t>(v1), kCounts);
+    double peak0 = 0, peak1 = 0;
+    int steps = 0;
+    dead_master(sim, 3000, -2000, [&] {
+        ++steps;
+        EXPECT_LE(std::fabs(sim.qd()[0]), lim0) << "step " << steps;
+        EXPECT_LE(std::fabs(sim.qd()[1]), lim1) << "step " << steps;
+        peak0 = std::max(peak0, std::fabs(sim.qd()[0]));
+        peak1 = std::max(peak1, std::fabs(sim.qd()[1]));
+    }, {sdo_download(3, 0x6080, v0), sdo_download(4, 0x6080, v1)});
+    EXPECT_EQ(steps, 4000);
+    EXPECT_GT(peak0, 0.999 * lim0);
+    EXPECT_GT(peak1, 0.999 * lim1);
+    EXPECT_GT(sim.speed_limited_steps(), 1000u);
+    // The drive did it by changing the torque it applies (not the 30 N m
+    // asked for: against gravity and the other link, braking may need more),
+    // within its torque limit.
+    EXPECT_NE(sim.torque(0), 30.0);
+    EXPECT_LE(std::fabs(sim.torque(0)), sim.torque_limit(0));
+    EXPECT_LE(std::fabs(sim.torque(1)), sim.torque_limit(1));
+}
+
+TEST(DriveLimits, TorqueSlopeBoundsEveryStepOfTheAppliedTorque) {
+    // 0x6087 = 100 000 permille/s = 1000 N m/s of 10 N m: a step to 30 N m
+    // takes 30 ms, at most 0.25 N m per 0.25 ms step; the other joint, with no
+    // slope, jumps at once.
+    DriveSim sim(planar_no_deadline());
+    double last0 = 0, step0 = 0;
+    int steps = 0, ramp_steps = 0;
+    bool jumped = false;
+    dead_master(sim, 3000, 1000, [&] {
+        if (++steps == 1) jumped = std::fabs(sim.torque(1) - 10.0) < 1e-9;
+        step0 = std::max(step0, std::fabs(sim.torque(0) - last0));
+        if (std::fabs(sim.torque(0) - 30.0) > 1e-9) ramp_steps = steps;
+        last0 = sim.torque(0);
+    }, {sdo_download(3, 0x6087, 100000)});
+    EXPECT_LE(step0, 1000.0 * 0.00025 + 1e-9);
+    EXPECT_GE(step0, 1000.0 * 0.00025 - 1e-9);
+    EXPECT_EQ(ramp_steps, 119);  // 30 N m / 0.25 N m: the 120th step applies the target
+    EXPECT_TRUE(jumped);
+}
+
+// A master's downloads (sdo::DownloadSequence) against the drives: what
+// canrobot does at init when VLIMIT or TRATE is declared.
+struct DownloadRun {
+    bool done = false, failed = false;
+    std::string failure, unconfirmed;
+    std::size_t requests = 0;
+};
+DownloadRun run_downloads(DriveSim& sim, std::vector<sdo::Download> downloads) {
+    sdo::DownloadSequence seq(std::move(downloads), "vcan0");
+    std::vector<Frame> to_drives, from_drives;
+    DownloadRun r;
+    seq.start(to_drives);
+    // Until nothing more is sent (the caller's timeout, here: the bus is quiet).
+    while (!to_drives.empty()) {
+        r.requests += to_drives.size();
+        from_drives.clear();
+        for (const Frame& f : to_drives) sim.receive(f, 0, from_drives);
+        to_drives.clear();
+        for (const Frame& f : from_drives) seq.receive(f, to_drives);
+    }
+    r.done = seq.done();
+    r.failed = seq.failed();
+    r.failure = seq.failure();
+    r.unconfirmed = seq.unconfirmed();
+    return r;
+}
+
+TEST(DriveLimits, TheMastersDownloadsSetEveryDrivesLimitsOrNameTheRefusal) {
+    DriveSim sim(DriveConfig::from_rmod(rmod_from(
+        "ROBOT puma560\nINTERFACE vcan0\nNODES 1 2 3 4 5 6\nRATED_TORQUE 10 10 10 1 1 1\n"
+        "VLIMIT 1 1 1 2 2 2\nTRATE 1000 2000 1000 200 200 200\n")));
+    std::vector<Frame> out;
+    sim.power_on(0, out);
+    const auto downloads = drive_limit_downloads(sim.config().bus);
+    ASSERT_EQ(downloads.size(), 12u);
+    const DownloadRun ok = run_downloads(sim, downloads);
+    EXPECT_TRUE(ok.done);
+    EXPECT_EQ(ok.requests, 12u);
+    EXPECT_EQ(ok.unconfirmed, "");
+    for (std::size_t j = 0; j < 6; ++j) {
+        const double v = j < 3 ? 1.0 : 2.0;
+        EXPECT_LE(sim.max_speed(j), v);
+        EXPECT_GT(sim.max_speed(j), v - 1e-5);
+        EXPECT_NEAR(sim.torque_slope(j), sim.config().bus.trate[static_cast<Eigen::Index>(j)], 1e-9);
+    }
+    // A drive that refuses: the first abort fails the sequence, naming node,
+    // joint, object, value and abort code; nothing more is sent.
+    std::vector<sdo::Download> bad = downloads;
+    bad[4].value = 0;  // node 3's 0x6080
+    const DownloadRun refused = run_downloads(sim, bad);
+    EXPECT_FALSE(refused.done);
+    EXPECT_TRUE(refused.failed);
+    EXPECT_EQ(refused.failure,
+              "node 3 (joint 3) on vcan0 refused 0x6080 max motor speed = 0: SDO abort 0x06090030 value range of "
+              "parameter exceeded");
+    const DownloadRun unknown = run_downloads(sim, {{2, 1, 0x6081, 5, 4}});
+    EXPECT_EQ(unknown.failure,
+              "node 2 (joint 2) on vcan0 refused 0x6081 = 5: SDO abort 0x06020000 object does not exist in the object "
+              "dictionary");
+    // A node that is not on the bus never answers: the caller's timeout
+    // names what is unconfirmed.
+    const DownloadRun silent = run_downloads(sim, {{1, 0, 0x6080, 5, 4}, {9, 1, 0x6080, 5, 4}, {9, 1, 0x6087, 5, 4}});
+    EXPECT_FALSE(silent.done);
+    EXPECT_FALSE(silent.failed);
+    EXPECT_EQ(silent.unconfirmed,
+              "node 9 (joint 2) on vcan0: 0x6080 max motor speed not confirmed; node 9 (joint 2) on vcan0: 0x6087 "
+              "torque slope not confirmed");
+}
+
 TEST(DriveSimPuma, ThePumaStartsAtQ0Braked) {
     DriveSim sim(DriveConfig::from_rmod(chimera::read_rmod(CANROBOT_RMOD_DIR "/puma_can.rmod")));
     std::vector<Frame> out;
@@ -569,7 +897,10 @@ struct LoopPeaks {
     Eigen::VectorXd unit;            // N m, the bus's torque unit (RATED_TORQUE / 1000)
     std::uint64_t speed_clamps = 0, rate_clamps = 0;
 };
-LoopPeaks closed_loop_jump(const std::string& limits, double freq, int late_every = 0, int late_by = 1) {
+// `drive_limits`: the drives get VLIMIT and TRATE as their own 0x6080 and
+// 0x6087 before NMT start, downloaded as canrobot does at init.
+LoopPeaks closed_loop_jump(const std::string& limits, double freq, int late_every = 0, int late_by = 1,
+                           bool drive_limits = false) {
     auto cfg = DriveConfig::from_rmod(rmod_from(
         "ROBOT puma560\nINTERFACE vcan0\nNODES 1 2 3 4 5 6\nRATED_TORQUE 10 10 10 1 1 1\n"
         "TLIMIT 97.6 186.4 89.4 24.2 20.1 21.3\nQ0 0 0.785398 3.141593 0 0.785398 0\nDRIVE_RPDO_TIMEOUT 0\n" + limits));
@@ -584,6 +915,10 @@ LoopPeaks closed_loop_jump(const std::string& limits, double freq, int late_ever
     std::vector<Frame> out;
     sim.power_on(now, out);
     auto send = [&](const Frame& f) { out.clear(); sim.receive(f, now, out); };
+    if (drive_limits) {
+        const DownloadRun r = run_downloads(sim, drive_limit_downloads(cfg.bus));
+        EXPECT_TRUE(r.done) << r.failure << r.unconfirmed;
+    }
     send(nmt(NmtCommand::start, 0));
     Eigen::VectorXd q = cfg.q0, qd = Eigen::VectorXd::Zero(n), g(n), tau(n), target = cfg.q0.array() + 0.6;
     dyn.gravity(q, g);
@@ -683,11 +1018,22 @@ TEST(CanRobotLimits, AJumpingReferenceMovesTheSimulatedPumaNoFasterThanVlimit) {
 // A master that is late (its cycle 3 periods long every 10th cycle) leaves the
 // last torque applied for those periods: the speed limit, applied by the
 // master on speeds a cycle old, is then passed (joint 3: 1.13 rad/s against
-// VLIMIT 1). What a master-side limit cannot do; pinned so that a change
-// (a drive-side speed limit) shows here.
-TEST(CanRobotLimits, ALateMasterLetsAJointPassItsVlimit) {
-    const LoopPeaks p = closed_loop_jump(kPumaLimited, 200, 10, 3);
-    EXPECT_GT(p.speed_any[2], 1.05);
+// VLIMIT 1; at 50 Hz, on time, up to 3.2 x VLIMIT). With VLIMIT and TRATE
+// downloaded into the drives (0x6080, 0x6087), as canrobot does at init, the
+// drives hold every joint within VLIMIT whatever the master does — checked at
+// every integration step at 200 Hz (ten ticks a 5 ms cycle, 0.5 ms steps).
+TEST(CanRobotLimits, TheDrivesOwnLimitsHoldVlimitWhenTheMasterIsLate) {
+    const Eigen::VectorXd vlimit = (Eigen::VectorXd(6) << 1, 1, 1, 2, 2, 2).finished();
+    // The provocation: the master's limits alone let joint 3 pass VLIMIT.
+    const LoopPeaks master_only = closed_loop_jump(kPumaLimited, 200, 10, 3);
+    EXPECT_GT(master_only.speed_any[2], 1.05);
+    for (const auto& [freq, every, by] : {std::tuple{200.0, 10, 3}, std::tuple{200.0, 3, 10}, std::tuple{50.0, 0, 1}}) {
+        const LoopPeaks p = closed_loop_jump(kPumaLimited, freq, every, by, true);
+        for (Eigen::Index j = 0; j < 6; ++j)
+            EXPECT_LE(p.speed_any[j], vlimit[j])
+                << "joint " << j + 1 << " at " << freq << " Hz, late by " << by << " every " << every;
+        EXPECT_GT(p.speed_any.maxCoeff(), 0.5) << "the arm moved";
+    }
 }
 
 }  // namespace
