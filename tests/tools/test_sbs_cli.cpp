@@ -523,6 +523,54 @@ TEST(SbsCli, SaveWritesASbsThatStartsTheSameSubsystem) {
     EXPECT_NE(failing(ws, "save " + ws.dir() + "/x.txt").find("ends in .sbs"), std::string::npos);
 }
 
+namespace {
+
+// Figure 3.7's table under this workspace's subsystem name, on its two RTPUs
+// without real-time priority; "" when its modules are not built here.
+std::string fig3_7_sbs(const Workspace& ws) {
+    if (!std::filesystem::exists(sbs_test::env("CHIMERA_LIB_DIR") + "/modules/pid/pid.so")) return {};
+    const std::string svar = sbs_test::env("CHIMERA_INCLUDE_DIR") + "/../examples/fig3_7_pid/fig3_7.svar";
+    const std::string rtpu = "\nBACKEND   other\nMINFREQ   1\nMAXFREQ   1000\n";
+    return ws.write(ws.subsystem() + ".sbs", "SUBSYSTEM " + ws.subsystem() + "\nSVARFILE  " + svar +
+                                                 "\nMASTER    ctrl\nRTPU      ctrl 0" + rtpu + "RTPU      robot 1" + rtpu +
+                                                 "EOF\n");
+}
+
+}  // namespace
+
+// Issue #35.1: TASK lines in spawn order, so the consts a task reads are
+// produced by a line before it (in name order jpid came before puma_torque).
+TEST(SbsCli, SaveWritesTaskLinesInSpawnOrderSoFigure37Restarts) {
+    Workspace ws;
+    if (fig3_7_sbs(ws).empty()) GTEST_SKIP() << "the robotics modules are not built";
+    const std::string saved = ws.dir() + "/saved.sbs";
+    ok_json(ws, "spawn puma_torque robot; spawn jtraj; spawn jpid; reconfig on puma_torque, on jtraj, on jpid; save " + saved);
+    const Outcome again = run_sbs_file(saved, "status");
+    ASSERT_EQ(again.status, 0) << again.out << again.err;
+    const auto replies = json_lines(again.out);
+    ASSERT_EQ(replies.size(), 1u) << again.out;
+    std::vector<std::string> tasks;
+    for (const auto& t : replies[0]["data"]["tasks"]) tasks.push_back(t["rmod"].get<std::string>() + " " + t["state"].get<std::string>());
+    EXPECT_EQ(tasks, (std::vector<std::string>{"puma_torque ON", "jtraj ON", "jpid ON"})) << again.out;
+}
+
+// A configuration that would not start again is refused, nothing written:
+// the producer of NDOF killed and spawned after its consumer; a task ON whose
+// input no task ON produces (`on` allows it, the starting reconfig does not).
+TEST(SbsCli, SaveRefusesTaskLinesThatWouldNotStart) {
+    Workspace ws;
+    if (fig3_7_sbs(ws).empty()) GTEST_SKIP() << "the robotics modules are not built";
+    const std::string saved = ws.dir() + "/saved.sbs";
+    const std::string error =
+        failing(ws, "spawn puma_torque robot; spawn jpid; kill puma_torque; spawn puma_torque robot; save " + saved);
+    EXPECT_NE(error.find("in-const NDOF"), std::string::npos) << error;
+    EXPECT_NE(error.find("nothing written"), std::string::npos) << error;
+    EXPECT_FALSE(std::filesystem::exists(saved));
+    const std::string unfed = failing(ws, "spawn puma_torque robot; spawn jpid; on puma_torque; save " + saved);
+    EXPECT_NE(unfed.find("variable T_REF read by puma_torque is produced by no module"), std::string::npos) << unfed;
+    EXPECT_FALSE(std::filesystem::exists(saved));
+}
+
 TEST(SbsCli, ModuleLoadFromAPathMakesItsRmodsSpawn) {
     Workspace ws;
     // A .rmod whose module is on no folder of the module path: its folder holds no library.

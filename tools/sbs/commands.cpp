@@ -1735,6 +1735,46 @@ Reply Interpreter::start_tasks() {
     return r;
 }
 
+// The tasks `save` writes (those spawned from .rmod files), in the order
+// spawn accepted them: a const's producer before its readers, unless it was
+// killed and spawned again later (check_saved_starts refuses that).
+std::vector<std::string> Interpreter::saved_tasks() const {
+    std::vector<std::pair<int, std::string>> by_id;
+    for (const auto& [name, file] : rmods_)
+        if (const auto id = sbs_.find(name); id && files_of_.count(name)) by_id.emplace_back(id->value, name);
+    std::sort(by_id.begin(), by_id.end());
+    std::vector<std::string> names;
+    for (auto& [id, name] : by_id) names.push_back(std::move(name));
+    return names;
+}
+
+// Throws unless the saved TASK lines (of the tasks `names`) would start: each
+// line's in-consts come from a line before it (or its own combined task) or a
+// .svar INIT, as spawn demands, and the tasks marked ON pass the verification
+// of the reconfig that turns them on (§3.3.1).
+void Interpreter::check_saved_starts(const SbsFile& saved, const std::vector<std::string>& names) {
+    svar::Table& t = *table();
+    std::set<std::string> produced;
+    for (const TaskLine& line : saved.tasks) {
+        std::vector<RmodFile> files;
+        for (const auto& p : line.rmods) files.push_back(read_rmod(p));
+        for (const auto& f : files)
+            for (const auto& v : f.global_out_consts()) produced.insert(v);
+        for (const auto& f : files)
+            for (const auto& v : f.global_in_consts()) {
+                const auto ix = t.find(v);
+                if (!produced.count(v) && !(ix && t.var(*ix).has_init()))
+                    throw std::runtime_error("TASK line " + std::to_string(line.line) + ": in-const " + v + " of " +
+                                             f.name + " is produced by no TASK line before it");
+            }
+    }
+    std::vector<sbs::TaskId> on;
+    for (std::size_t i = 0; i < saved.tasks.size() && i < names.size(); ++i)
+        if (const auto id = sbs_.find(names[i]); saved.tasks[i].on && id) on.push_back(*id);
+    if (const auto problems = sbs_.verification_problems(on); !problems.empty())
+        throw std::runtime_error("the tasks marked ON would not be turned on: " + problems.front().message);
+}
+
 // The running configuration as .sbs text (see cmd_save).
 std::string Interpreter::saved_sbs() const {
     const SbsFile& f = sbs_.file();
@@ -1748,9 +1788,9 @@ std::string Interpreter::saved_sbs() const {
                "\nBACKEND   " + std::string(to_string(r.backend)) + "\n";
         if (r.half_tick) out += "ACCOUNTING halftick " + fmt("%.17g", r.tick) + "\n";
     }
-    for (const auto& [name, file] : rmods_) {
+    for (const std::string& name : saved_tasks()) {
+        const RmodFile& file = rmods_.at(name);
         const auto files = files_of_.find(name);
-        if (files == files_of_.end()) continue;
         std::vector<std::string> paths;
         for (const auto& p : files->second) paths.push_back(fs::absolute(p).lexically_normal().string());
         const auto id = sbs_.find(name);
@@ -1770,12 +1810,13 @@ Reply Interpreter::cmd_save(const Words& w) {
     const fs::path path(w[1]);
     if (path.extension() != ".sbs") throw CommandError("save: " + w[1] + ": the file name ends in .sbs");
     const std::string text = saved_sbs();
-    // What is written must read back as a .sbs: checked before it replaces anything.
+    // What is written must read back as a .sbs that starts: checked before it replaces anything.
     try {
         cfg::Reader reader = cfg::Reader::from_string(text, w[1]);
-        parse_sbs(reader, "");
+        check_saved_starts(parse_sbs(reader, ""), saved_tasks());
     } catch (const std::exception& e) {
-        throw CommandError(std::string("save: the configuration does not read back (") + e.what() + "); nothing written");
+        throw CommandError(std::string("save: the configuration does not read back and start (") + e.what() +
+                           "); nothing written");
     }
     const fs::path tmp = path.string() + ".tmp";
     {
@@ -1791,7 +1832,7 @@ Reply Interpreter::cmd_save(const Words& w) {
         throw CommandError("save: cannot replace " + w[1]);
     }
     Reply r;
-    r.text = "saved subsystem " + sbs_.name() + " to " + w[1] + " (" + std::to_string(files_of_.size()) + " task line(s))";
+    r.text = "saved subsystem " + sbs_.name() + " to " + w[1] + " (" + std::to_string(saved_tasks().size()) + " task line(s))";
     r.data = {{"file", w[1]}, {"sbs", text}};
     return r;
 }

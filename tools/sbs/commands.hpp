@@ -158,6 +158,8 @@ private:
     Reply cmd_save(const Words& w);
     Reply module_load(const Words& w);
     std::string saved_sbs() const;
+    std::vector<std::string> saved_tasks() const;
+    void check_saved_starts(const SbsFile& saved, const std::vector<std::string>& names);
     struct Users {
         std::vector<std::string> producers, consumers;  // live tasks writing / reading a variable
     };
