@@ -261,6 +261,16 @@ TEST(SbsCli, SetvarShowSvarShowRtpu) {
     EXPECT_NE(failing(ws, "show thread").find("usage: show rtpu|svar"), std::string::npos);
 }
 
+// Issue #35.3: killing the default task (as `record` does with its sampler)
+// makes the previous default the default again, or none.
+TEST(SbsCli, AKilledDefaultFallsBackToThePreviousOne) {
+    Workspace ws;
+    const auto r = ok_json(ws, "spawn ramp; spawn follow; kill; status; kill ramp; status");
+    ASSERT_EQ(r.size(), 6u);
+    EXPECT_EQ(r[3]["rmod"], "ramp");
+    EXPECT_EQ(r[5]["rmod"], "");
+}
+
 // Issue #16.3: spawn a+b (§3.8.1): one task, the objects' methods in the
 // order given; X passes from ramp to the follower inside the task and is never
 // written to the global table.
@@ -305,7 +315,8 @@ TEST(SbsCli, ControlSignalsAndTheirRefusals) {
     EXPECT_NE(failing(ws, "spawn ramp; on; on").find("already ON"), std::string::npos);
     EXPECT_NE(failing(ws, "spawn ramp; off").find("already OFF"), std::string::npos);
     EXPECT_NE(failing(ws, "spawn ramp; clear").find("not in ERROR"), std::string::npos);
-    EXPECT_NE(failing(ws, "spawn ramp; kill; kill").find("NOT-CREATED"), std::string::npos);
+    EXPECT_NE(failing(ws, "spawn ramp; kill; kill ramp").find("NOT-CREATED"), std::string::npos);
+    EXPECT_NE(failing(ws, "spawn ramp; kill; kill").find("no default RMOD"), std::string::npos);  // gone with ramp
     EXPECT_NE(failing(ws, "spawn ramp; on ramp extra").find("usage: on [RMOD]"), std::string::npos);
     // Two producers of X may not be ON together (§3.3.1).
     const std::string two = failing(ws, "spawn ramp; spawn ramp2; on ramp; on ramp2");
@@ -659,6 +670,7 @@ TEST(SbsCli, RecordWritesOneRowPerSampleAtTheProducersRate) {
     EXPECT_EQ(r[2]["data"]["channels"], 4);
     EXPECT_EQ(r[2]["text"], "recorded 100 samples of 4 channel(s) at 200 Hz to " + csv + ", 0 lost");
     ASSERT_EQ(r[3]["data"]["tasks"].size(), 1u) << "the sampler task is killed at the end";
+    EXPECT_EQ(r[3]["rmod"], "ramp") << "the default RMOD is not left on the killed sampler";
     EXPECT_FALSE(std::filesystem::exists("/dev/shm/chimera." + ws.subsystem() + ".sample.1"));
     EXPECT_FALSE(std::filesystem::exists(csv + ".part"));
     std::string header;

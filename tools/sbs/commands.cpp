@@ -209,13 +209,16 @@ Reply Interpreter::execute(std::string_view command, Origin origin) {
     // The web console names every task it means: its requests (many pages,
     // polling) must not move the prompt's default RMOD.
     struct KeepDefault {
-        std::string& value;
-        std::string saved;
+        Interpreter& in;
+        std::string saved, saved_previous;
         bool keep;
         ~KeepDefault() {
-            if (keep) value = saved;
+            if (!keep) return;
+            in.default_rmod_ = saved;
+            in.previous_rmod_ = saved_previous;
+            if (!saved.empty() && !in.is_task(saved)) in.forget_task(saved);  // a page killed it
         }
-    } keep_default{default_rmod_, default_rmod_, origin == Origin::web};
+    } keep_default{*this, default_rmod_, previous_rmod_, origin == Origin::web};
     // `complete LINE`: the TAB candidates for LINE, raw (a trailing blank
     // matters: it starts a new word), for a prompt attached over the network.
     if (command == "complete" || command.substr(0, 9) == "complete ") {
@@ -313,6 +316,19 @@ Reply Interpreter::run(const Words& w) {
 // consumes the first warning, which only a status command may show (§4.4.1).
 bool Interpreter::is_task(std::string_view name) const { return rmods_.count(std::string(name)) != 0; }
 
+void Interpreter::make_default(const std::string& name) {
+    if (name == default_rmod_) return;
+    previous_rmod_ = default_rmod_;
+    default_rmod_ = name;
+}
+
+void Interpreter::forget_task(const std::string& name) {
+    rmods_.erase(name);
+    if (default_rmod_ != name) return;
+    default_rmod_ = is_task(previous_rmod_) ? previous_rmod_ : std::string();
+    previous_rmod_.clear();
+}
+
 std::vector<std::string> Interpreter::live_rmods() const {
     std::vector<std::string> out;
     for (const auto& [name, file] : rmods_) out.push_back(name);
@@ -334,14 +350,14 @@ std::string state_line(const sbs::TaskStatus& s) {
 
 sbs::TaskId Interpreter::task_of(const std::string& rmod) {
     const std::string name = rmod.empty() ? default_rmod_ : rmod;
-    if (name.empty()) throw CommandError("no default RMOD yet: name the task");
+    if (name.empty()) throw CommandError("no default RMOD (none yet, or it was killed): name the task");
     const auto id = sbs_.find(name);
     if (!id) {
         const auto live = live_rmods();
         throw CommandError("no task " + name + " in subsystem " + sbs_.name() +
                            (live.empty() ? " (no task spawned)" : " (tasks: " + join(live) + ")"));
     }
-    default_rmod_ = name;
+    make_default(name);
     return *id;
 }
 
@@ -470,7 +486,7 @@ Reply Interpreter::cmd_spawn(const Words& w) {
     const sbs::TaskId id = paths.size() == 1 ? sbs_.spawn(paths[0], rtpu) : sbs_.spawn_combined(paths, rtpu);
     rmods_[name] = std::move(view);
     files_of_[name] = paths;
-    default_rmod_ = name;
+    make_default(name);
     const auto s = sbs_.status(id);
     rtpu_of_[name] = s.rtpu;
     Reply r;
@@ -501,22 +517,23 @@ std::string Interpreter::admit_spawn(const std::string& name, const RmodFile& f,
 Reply Interpreter::cmd_control(const Words& w, sbs::Control signal) {
     if (w.size() > 2) throw CommandError("usage: " + w[0] + " [RMOD]");
     const sbs::TaskId id = task_of(w.size() == 2 ? w[1] : std::string());
+    const std::string name = default_rmod_;
     std::string warning;
     if (signal == sbs::Control::on) {
-        refuse_file_writer("on", default_rmod_, sbs_.local_keys(id));
-        warning = admit_on("on", default_rmod_, tasks_on());
+        refuse_file_writer("on", name, sbs_.local_keys(id));
+        warning = admit_on("on", name, tasks_on());
     }
     try {
         sbs_.control(id, signal);
     } catch (const sbs::Error&) {
-        if (sbs_.status(id).state == State::NOT_CREATED) rmods_.erase(default_rmod_);
+        if (sbs_.status(id).state == State::NOT_CREATED) forget_task(name);
         throw;
     }
     const auto s = sbs_.status(id);
-    if (s.state == State::NOT_CREATED) rmods_.erase(default_rmod_);
+    if (s.state == State::NOT_CREATED) forget_task(name);
     Reply r;
     r.text = state_line(s) + (warning.empty() ? "" : "\n" + warning);
-    r.data = {{"rmod", default_rmod_}, {"state", std::string(to_string(s.state))}};
+    r.data = {{"rmod", name}, {"state", std::string(to_string(s.state))}};
     if (!warning.empty()) r.data["admission"] = warning;
     return r;
 }
@@ -1439,11 +1456,11 @@ Reply Interpreter::cmd_reconfig(const Words& w) {
     }
     const std::string warnings = admit_reconfig(groups);
     if (check_only) return reconfig_check(items, names);
-    default_rmod_ = groups.back()[1];
+    make_default(groups.back()[1]);
     const auto res = sbs_.reconfig(std::span<const sbs::ReconfigItem>(items));
     for (std::size_t i = 0; i < items.size(); ++i)
         if (items[i].signal == sbs::Control::kill && sbs_.status(items[i].task).state == State::NOT_CREATED)
-            rmods_.erase(groups[i][1]);
+            forget_task(groups[i][1]);
     Reply r;
     nlohmann::json applied = nlohmann::json::array();
     for (std::size_t i = 0; i < res.processed; ++i) applied.push_back(names[i]);
