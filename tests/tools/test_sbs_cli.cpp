@@ -261,6 +261,18 @@ TEST(SbsCli, SetvarShowSvarShowRtpu) {
     EXPECT_NE(failing(ws, "show thread").find("usage: show rtpu|svar"), std::string::npos);
 }
 
+// Issue #35.4, #35.5: `show` alone lists what it shows; TAB after `show `
+// offers every one of them (the same table the command reads its word from).
+TEST(SbsCli, ShowAloneListsWhatItShowsAndCompletionOffersThem) {
+    Workspace ws;
+    const auto r = ok_json(ws, "show; complete show g; complete show r");
+    ASSERT_EQ(r.size(), 3u);
+    EXPECT_EQ(r[0]["data"]["topics"], nlohmann::json({"rtpu", "svar", "graph"})) << r[0].dump();
+    EXPECT_NE(r[0]["text"].get<std::string>().find("show graph"), std::string::npos) << r[0].dump();
+    EXPECT_EQ(r[1]["data"]["candidates"], nlohmann::json({"graph"})) << r[1].dump();
+    EXPECT_EQ(r[2]["data"]["candidates"], nlohmann::json({"rtpu"})) << r[2].dump();
+}
+
 // Issue #35.3: killing the default task (as `record` does with its sampler)
 // makes the previous default the default again, or none.
 TEST(SbsCli, AKilledDefaultFallsBackToThePreviousOne) {

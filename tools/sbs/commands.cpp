@@ -1127,9 +1127,44 @@ Interpreter::Users Interpreter::users_of(const std::string& name) const {
     return u;
 }
 
+namespace {
+
+// What `show` shows: its parser, `show` alone and TAB completion read this table.
+struct ShowTopic {
+    const char* name;
+    const char* usage;
+    const char* what;
+};
+constexpr ShowTopic kShowTopics[] = {
+    {"rtpu", "show rtpu [NAME...]", "the RTPUs: CPU, scheduler, backend, tasks, planned utilisation"},
+    {"svar", "show svar [VAR...]", "the variables with the tasks producing and consuming them"},
+    {"graph", "show graph", "the port graph and the problems of the tasks ON"},
+};
+
+bool is_show_topic(const std::string& word) {
+    return std::any_of(std::begin(kShowTopics), std::end(kShowTopics), [&](const ShowTopic& t) { return word == t.name; });
+}
+
+// `show` alone: what it can show, one line each.
+Reply show_topics_reply() {
+    Reply r;
+    r.text = "show what:";
+    std::vector<std::string> names;
+    for (const auto& t : kShowTopics) {
+        r.text += "\n  " + pad(t.usage, 22) + " " + t.what;
+        names.push_back(t.name);
+    }
+    r.data = {{"topics", names}};
+    return r;
+}
+
+}  // namespace
+
 Reply Interpreter::cmd_show(const Words& w) {
-    if (w.size() == 2 && w[1] == "graph") return show_graph();
-    if (w.size() < 2 || (w[1] != "rtpu" && w[1] != "svar")) throw CommandError("usage: show rtpu|svar|graph [NAME...]");
+    if (w.size() == 1) return show_topics_reply();
+    if (!is_show_topic(w[1]) || (w[1] == "graph" && w.size() > 2))
+        throw CommandError("usage: show rtpu|svar|graph [NAME...] (show alone lists them)");
+    if (w[1] == "graph") return show_graph();
     const std::vector<std::string> names(w.begin() + 2, w.end());
     auto wanted = [&](const std::string& n) {
         return names.empty() || std::any_of(names.begin(), names.end(), [&](const std::string& p) { return glob_match(p, n); });
@@ -1669,7 +1704,8 @@ std::vector<std::string> Interpreter::complete_locked(std::string_view line) {
                     for (const auto& r : sbs_.file().rtpus) cand.insert(r.name);
                 }
             } else if (c == "show") {
-                if (index == 1) cand.insert({"rtpu", "svar"});
+                if (index == 1)
+                    for (const auto& t : kShowTopics) cand.insert(t.name);
                 else if (words[1] == "svar") variables();
                 else if (words[1] == "rtpu") for (const auto& r : sbs_.file().rtpus) cand.insert(r.name);
             } else if (c == "setvar") {
