@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
-# The main job: install what is needed, build the demo (and only what it
-# needs), and run the example subsystem. Package and build output go to
+# The main job: install what is needed, build the demo (only what it needs,
+# and chimtop and sbs, which the README runs beside it), and run the example
+# subsystem. Package and build output go to
 # build/demo-setup.log; the screen shows the demo.
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -21,6 +22,6 @@ if [ -f build/build.ninja ]; then
 else
     step "configuring" meson setup build
 fi
-step "building the demo and its modules" ninja -C build demo-only
+step "building the demo, its modules, chimtop and sbs" ninja -C build demo-only
 echo
 exec build/examples/demo "$@"

@@ -12,13 +12,13 @@ demo_packages=(
   libgtest-dev                                   # configure requires it (-Dtests is on by default, and the demo shares build/ with scripts/test.sh)
   libcli11-dev nlohmann-json3-dev libedit-dev    # configure requires them: every tool's options, --json output, sbs line editing
   libeigen3-dev liborocos-kdl-dev libkdl-parser-dev liburdfdom-dev  # robotics modules: the demo's trajectory generator, PID and PUMA simulator
+  libncurses-dev                                 # chimtop, which the README runs beside the demo
 )
 test_packages=(
   make                                           # the Makefile chimgen writes for a module built outside the tree
   libgmock-dev libbenchmark-dev                  # the tests' mocks, bench/
   libgpiod-dev gpiod                             # PIO driver (optional)
   liblttng-ust-dev lttng-tools babeltrace2       # tracing (optional)
-  libncurses-dev                                 # chimtop
   linux-libc-dev                                 # SocketCAN, perf_event, futex headers
   rt-tests tmux util-linux                       # cyclictest (bench), terminal tests, taskset
   help2man                                       # the programs' man pages, from their --help

@@ -6,6 +6,8 @@ can run here, work (issue #36):
     matches something), and every file a header's example quotes ("x.sbs");
   - every program a README command starts with that the build makes (meson's
     executable targets: chimgen, sbs, ...) is built;
+  - every program of the build that README's "What the main job shows" runs
+    (build/...) is built by `ninja demo-only`, what scripts/demo.sh builds;
   - README's stages (`scripts/test.sh --stage X`) are in `scripts/test.sh --list`;
   - `chimcfg check` accepts every .svar/.sbs/.rmod they name;
   - the README's chimgen recipe runs as written in a scratch folder, against
@@ -160,6 +162,28 @@ for first, block in blocks:
                         fail(where, f"'{w}' does not exist (from the top of the tree)")
                     elif w.endswith((".sbs", ".svar", ".rmod")):
                         config_files.append((where, w))
+
+# ---- the programs the demo's section runs are built by the demo (scripts/demo.sh: ninja demo-only)
+def demo_only_inputs():
+    q = subprocess.run(["ninja", "-C", build, "-t", "query", "demo-only"], capture_output=True, text=True)
+    if q.returncode != 0:
+        return None
+    return {l.strip(" |") for l in q.stdout.splitlines() if l.startswith("    ")}
+
+
+demo_inputs = demo_only_inputs()
+built_programs = {os.path.relpath(f, build) for f in programs.values()}
+in_demo_section = False
+for n, line in enumerate(readme, 1):
+    if line.startswith("## "):
+        in_demo_section = line.strip() == "## What the main job shows"
+    if not in_demo_section or demo_inputs is None:
+        continue
+    for prog in re.findall(r"`build/([^`\s]+)", line):
+        if prog in built_programs and prog not in demo_inputs:
+            fail(f"README.md:{n}", f"runs build/{prog}, which scripts/demo.sh (ninja demo-only) does not build")
+if demo_inputs is None:
+    print("note: no target demo-only here (the demo is not built): its programs are not checked")
 
 # ---- scripts/test.sh's stages the README names
 listed = subprocess.run([os.path.join(src, "scripts/test.sh"), "--list"], capture_output=True, text=True)

@@ -261,6 +261,28 @@ TEST(SbsCli, SetvarShowSvarShowRtpu) {
     EXPECT_NE(failing(ws, "show thread").find("usage: show rtpu|svar"), std::string::npos);
 }
 
+// Issue #35.4, #35.5: `show` alone lists what it shows; TAB after `show `
+// offers every one of them (the same table the command reads its word from).
+TEST(SbsCli, ShowAloneListsWhatItShowsAndCompletionOffersThem) {
+    Workspace ws;
+    const auto r = ok_json(ws, "show; complete show g; complete show r");
+    ASSERT_EQ(r.size(), 3u);
+    EXPECT_EQ(r[0]["data"]["topics"], nlohmann::json({"rtpu", "svar", "graph"})) << r[0].dump();
+    EXPECT_NE(r[0]["text"].get<std::string>().find("show graph"), std::string::npos) << r[0].dump();
+    EXPECT_EQ(r[1]["data"]["candidates"], nlohmann::json({"graph"})) << r[1].dump();
+    EXPECT_EQ(r[2]["data"]["candidates"], nlohmann::json({"rtpu"})) << r[2].dump();
+}
+
+// Issue #35.3: killing the default task (as `record` does with its sampler)
+// makes the previous default the default again, or none.
+TEST(SbsCli, AKilledDefaultFallsBackToThePreviousOne) {
+    Workspace ws;
+    const auto r = ok_json(ws, "spawn ramp; spawn follow; kill; status; kill ramp; status");
+    ASSERT_EQ(r.size(), 6u);
+    EXPECT_EQ(r[3]["rmod"], "ramp");
+    EXPECT_EQ(r[5]["rmod"], "");
+}
+
 // Issue #16.3: spawn a+b (§3.8.1): one task, the objects' methods in the
 // order given; X passes from ramp to the follower inside the task and is never
 // written to the global table.
@@ -305,7 +327,8 @@ TEST(SbsCli, ControlSignalsAndTheirRefusals) {
     EXPECT_NE(failing(ws, "spawn ramp; on; on").find("already ON"), std::string::npos);
     EXPECT_NE(failing(ws, "spawn ramp; off").find("already OFF"), std::string::npos);
     EXPECT_NE(failing(ws, "spawn ramp; clear").find("not in ERROR"), std::string::npos);
-    EXPECT_NE(failing(ws, "spawn ramp; kill; kill").find("NOT-CREATED"), std::string::npos);
+    EXPECT_NE(failing(ws, "spawn ramp; kill; kill ramp").find("NOT-CREATED"), std::string::npos);
+    EXPECT_NE(failing(ws, "spawn ramp; kill; kill").find("no default RMOD"), std::string::npos);  // gone with ramp
     EXPECT_NE(failing(ws, "spawn ramp; on ramp extra").find("usage: on [RMOD]"), std::string::npos);
     // Two producers of X may not be ON together (§3.3.1).
     const std::string two = failing(ws, "spawn ramp; spawn ramp2; on ramp; on ramp2");
@@ -523,6 +546,54 @@ TEST(SbsCli, SaveWritesASbsThatStartsTheSameSubsystem) {
     EXPECT_NE(failing(ws, "save " + ws.dir() + "/x.txt").find("ends in .sbs"), std::string::npos);
 }
 
+namespace {
+
+// Figure 3.7's table under this workspace's subsystem name, on its two RTPUs
+// without real-time priority; "" when its modules are not built here.
+std::string fig3_7_sbs(const Workspace& ws) {
+    if (!std::filesystem::exists(sbs_test::env("CHIMERA_LIB_DIR") + "/modules/pid/pid.so")) return {};
+    const std::string svar = sbs_test::env("CHIMERA_INCLUDE_DIR") + "/../examples/fig3_7_pid/fig3_7.svar";
+    const std::string rtpu = "\nBACKEND   other\nMINFREQ   1\nMAXFREQ   1000\n";
+    return ws.write(ws.subsystem() + ".sbs", "SUBSYSTEM " + ws.subsystem() + "\nSVARFILE  " + svar +
+                                                 "\nMASTER    ctrl\nRTPU      ctrl 0" + rtpu + "RTPU      robot 1" + rtpu +
+                                                 "EOF\n");
+}
+
+}  // namespace
+
+// Issue #35.1: TASK lines in spawn order, so the consts a task reads are
+// produced by a line before it (in name order jpid came before puma_torque).
+TEST(SbsCli, SaveWritesTaskLinesInSpawnOrderSoFigure37Restarts) {
+    Workspace ws;
+    if (fig3_7_sbs(ws).empty()) GTEST_SKIP() << "the robotics modules are not built";
+    const std::string saved = ws.dir() + "/saved.sbs";
+    ok_json(ws, "spawn puma_torque robot; spawn jtraj; spawn jpid; reconfig on puma_torque, on jtraj, on jpid; save " + saved);
+    const Outcome again = run_sbs_file(saved, "status");
+    ASSERT_EQ(again.status, 0) << again.out << again.err;
+    const auto replies = json_lines(again.out);
+    ASSERT_EQ(replies.size(), 1u) << again.out;
+    std::vector<std::string> tasks;
+    for (const auto& t : replies[0]["data"]["tasks"]) tasks.push_back(t["rmod"].get<std::string>() + " " + t["state"].get<std::string>());
+    EXPECT_EQ(tasks, (std::vector<std::string>{"puma_torque ON", "jtraj ON", "jpid ON"})) << again.out;
+}
+
+// A configuration that would not start again is refused, nothing written:
+// the producer of NDOF killed and spawned after its consumer; a task ON whose
+// input no task ON produces (`on` allows it, the starting reconfig does not).
+TEST(SbsCli, SaveRefusesTaskLinesThatWouldNotStart) {
+    Workspace ws;
+    if (fig3_7_sbs(ws).empty()) GTEST_SKIP() << "the robotics modules are not built";
+    const std::string saved = ws.dir() + "/saved.sbs";
+    const std::string error =
+        failing(ws, "spawn puma_torque robot; spawn jpid; kill puma_torque; spawn puma_torque robot; save " + saved);
+    EXPECT_NE(error.find("in-const NDOF"), std::string::npos) << error;
+    EXPECT_NE(error.find("nothing written"), std::string::npos) << error;
+    EXPECT_FALSE(std::filesystem::exists(saved));
+    const std::string unfed = failing(ws, "spawn puma_torque robot; spawn jpid; on puma_torque; save " + saved);
+    EXPECT_NE(unfed.find("variable T_REF read by puma_torque is produced by no module"), std::string::npos) << unfed;
+    EXPECT_FALSE(std::filesystem::exists(saved));
+}
+
 TEST(SbsCli, ModuleLoadFromAPathMakesItsRmodsSpawn) {
     Workspace ws;
     // A .rmod whose module is on no folder of the module path: its folder holds no library.
@@ -611,6 +682,7 @@ TEST(SbsCli, RecordWritesOneRowPerSampleAtTheProducersRate) {
     EXPECT_EQ(r[2]["data"]["channels"], 4);
     EXPECT_EQ(r[2]["text"], "recorded 100 samples of 4 channel(s) at 200 Hz to " + csv + ", 0 lost");
     ASSERT_EQ(r[3]["data"]["tasks"].size(), 1u) << "the sampler task is killed at the end";
+    EXPECT_EQ(r[3]["rmod"], "ramp") << "the default RMOD is not left on the killed sampler";
     EXPECT_FALSE(std::filesystem::exists("/dev/shm/chimera." + ws.subsystem() + ".sample.1"));
     EXPECT_FALSE(std::filesystem::exists(csv + ".part"));
     std::string header;

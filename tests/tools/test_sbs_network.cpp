@@ -478,6 +478,20 @@ TEST(SbsNetwork, AttachToARunningMaster) {
     EXPECT_EQ(m.wait(), 0) << m.err_text();
 }
 
+// Issue #35.2: an attached sbs fed commands on a pipe exits 1 when one failed.
+TEST(SbsNetwork, AttachedOnAPipeExitsNonZeroAfterAFailedCommand) {
+    Workspace ws;
+    Master m(ws, {"--serve", "-c", "spawn ramp"});
+    ASSERT_TRUE(sbs_test::wait_for_file(ws.socket_path()));
+    const auto failed = ws.sbs_run({}, "status\nbogus\nstatus\n");
+    EXPECT_EQ(failed.status, 1) << failed.out << failed.err;
+    EXPECT_NE(failed.out.find("error: unknown command 'bogus'"), std::string::npos) << failed.out;
+    const auto fine = ws.sbs_run({}, "status\n");
+    EXPECT_EQ(fine.status, 0) << fine.out << fine.err;
+    EXPECT_EQ(ws.sbs_run({"-c", "finish"}).status, 0);
+    EXPECT_EQ(m.wait(), 0) << m.err_text();
+}
+
 TEST(SbsNetwork, PromptPassesControlAndGetsItBack) {
     Workspace ws;
     auto a = ws.sbs_args({"--listen"});

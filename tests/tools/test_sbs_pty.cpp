@@ -146,6 +146,11 @@ TEST(SbsPty, PromptCommandErrorCompletionQuit) {
     ASSERT_TRUE(t.expect("SBS " + name + "<ramp> ")) << t.last();
     EXPECT_NE(t.last().find("ON"), std::string::npos) << t.last();
 
+    // TAB after `show ` offers graph too (issue #35.5).
+    t.type("show gr\t\r");
+    ASSERT_TRUE(t.expect("X -> Y")) << t.last();  // follow's line of the graph
+    ASSERT_TRUE(t.expect("SBS " + name + "<ramp> "));
+
     // Ctrl-C gives a fresh prompt; it does not end the program.
     t.type("displ");
     t.type("\x03");

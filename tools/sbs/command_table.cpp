@@ -47,7 +47,7 @@ const std::vector<CommandInfo>& command_table() {
          Access::depends, nullptr},
         {"setvar", "setvar VAR[IDX] VALUE... [--force]", "write a state variable of the running table (halcmd setp): range-checked against the .svar MIN/MAX; refused while a task produces it unless --force",
          Access::acts, "writes a state variable"},
-        {"show", "show rtpu|svar [NAME...] | show graph", "show the RTPUs (CPU, policy, scheduler, tasks, planned utilisation) or the variables with producers and consumers (halcmd show thread / show sig); graph: the port graph (tasks, their ports, states, RTPUs) and the §3.3.1 problems of the tasks ON",
+        {"show", "show [rtpu|svar [NAME...] | graph]", "alone: list what it shows; show the RTPUs (CPU, policy, scheduler, tasks, planned utilisation) or the variables with producers and consumers (halcmd show thread / show sig); graph: the port graph (tasks, their ports, states, RTPUs) and the §3.3.1 problems of the tasks ON",
          Access::reads, nullptr},
         {"sleep", "sleep SECONDS", "pause (lets the tasks run between the commands of a script; at most 60 s)",
          Access::acts, "holds the master's one command thread for up to 60 s"},

@@ -209,13 +209,16 @@ Reply Interpreter::execute(std::string_view command, Origin origin) {
     // The web console names every task it means: its requests (many pages,
     // polling) must not move the prompt's default RMOD.
     struct KeepDefault {
-        std::string& value;
-        std::string saved;
+        Interpreter& in;
+        std::string saved, saved_previous;
         bool keep;
         ~KeepDefault() {
-            if (keep) value = saved;
+            if (!keep) return;
+            in.default_rmod_ = saved;
+            in.previous_rmod_ = saved_previous;
+            if (!saved.empty() && !in.is_task(saved)) in.forget_task(saved);  // a page killed it
         }
-    } keep_default{default_rmod_, default_rmod_, origin == Origin::web};
+    } keep_default{*this, default_rmod_, previous_rmod_, origin == Origin::web};
     // `complete LINE`: the TAB candidates for LINE, raw (a trailing blank
     // matters: it starts a new word), for a prompt attached over the network.
     if (command == "complete" || command.substr(0, 9) == "complete ") {
@@ -313,6 +316,19 @@ Reply Interpreter::run(const Words& w) {
 // consumes the first warning, which only a status command may show (§4.4.1).
 bool Interpreter::is_task(std::string_view name) const { return rmods_.count(std::string(name)) != 0; }
 
+void Interpreter::make_default(const std::string& name) {
+    if (name == default_rmod_) return;
+    previous_rmod_ = default_rmod_;
+    default_rmod_ = name;
+}
+
+void Interpreter::forget_task(const std::string& name) {
+    rmods_.erase(name);
+    if (default_rmod_ != name) return;
+    default_rmod_ = is_task(previous_rmod_) ? previous_rmod_ : std::string();
+    previous_rmod_.clear();
+}
+
 std::vector<std::string> Interpreter::live_rmods() const {
     std::vector<std::string> out;
     for (const auto& [name, file] : rmods_) out.push_back(name);
@@ -334,14 +350,14 @@ std::string state_line(const sbs::TaskStatus& s) {
 
 sbs::TaskId Interpreter::task_of(const std::string& rmod) {
     const std::string name = rmod.empty() ? default_rmod_ : rmod;
-    if (name.empty()) throw CommandError("no default RMOD yet: name the task");
+    if (name.empty()) throw CommandError("no default RMOD (none yet, or it was killed): name the task");
     const auto id = sbs_.find(name);
     if (!id) {
         const auto live = live_rmods();
         throw CommandError("no task " + name + " in subsystem " + sbs_.name() +
                            (live.empty() ? " (no task spawned)" : " (tasks: " + join(live) + ")"));
     }
-    default_rmod_ = name;
+    make_default(name);
     return *id;
 }
 
@@ -470,7 +486,7 @@ Reply Interpreter::cmd_spawn(const Words& w) {
     const sbs::TaskId id = paths.size() == 1 ? sbs_.spawn(paths[0], rtpu) : sbs_.spawn_combined(paths, rtpu);
     rmods_[name] = std::move(view);
     files_of_[name] = paths;
-    default_rmod_ = name;
+    make_default(name);
     const auto s = sbs_.status(id);
     rtpu_of_[name] = s.rtpu;
     Reply r;
@@ -501,22 +517,23 @@ std::string Interpreter::admit_spawn(const std::string& name, const RmodFile& f,
 Reply Interpreter::cmd_control(const Words& w, sbs::Control signal) {
     if (w.size() > 2) throw CommandError("usage: " + w[0] + " [RMOD]");
     const sbs::TaskId id = task_of(w.size() == 2 ? w[1] : std::string());
+    const std::string name = default_rmod_;
     std::string warning;
     if (signal == sbs::Control::on) {
-        refuse_file_writer("on", default_rmod_, sbs_.local_keys(id));
-        warning = admit_on("on", default_rmod_, tasks_on());
+        refuse_file_writer("on", name, sbs_.local_keys(id));
+        warning = admit_on("on", name, tasks_on());
     }
     try {
         sbs_.control(id, signal);
     } catch (const sbs::Error&) {
-        if (sbs_.status(id).state == State::NOT_CREATED) rmods_.erase(default_rmod_);
+        if (sbs_.status(id).state == State::NOT_CREATED) forget_task(name);
         throw;
     }
     const auto s = sbs_.status(id);
-    if (s.state == State::NOT_CREATED) rmods_.erase(default_rmod_);
+    if (s.state == State::NOT_CREATED) forget_task(name);
     Reply r;
     r.text = state_line(s) + (warning.empty() ? "" : "\n" + warning);
-    r.data = {{"rmod", default_rmod_}, {"state", std::string(to_string(s.state))}};
+    r.data = {{"rmod", name}, {"state", std::string(to_string(s.state))}};
     if (!warning.empty()) r.data["admission"] = warning;
     return r;
 }
@@ -1110,9 +1127,44 @@ Interpreter::Users Interpreter::users_of(const std::string& name) const {
     return u;
 }
 
+namespace {
+
+// What `show` shows: its parser, `show` alone and TAB completion read this table.
+struct ShowTopic {
+    const char* name;
+    const char* usage;
+    const char* what;
+};
+constexpr ShowTopic kShowTopics[] = {
+    {"rtpu", "show rtpu [NAME...]", "the RTPUs: CPU, scheduler, backend, tasks, planned utilisation"},
+    {"svar", "show svar [VAR...]", "the variables with the tasks producing and consuming them"},
+    {"graph", "show graph", "the port graph and the problems of the tasks ON"},
+};
+
+bool is_show_topic(const std::string& word) {
+    return std::any_of(std::begin(kShowTopics), std::end(kShowTopics), [&](const ShowTopic& t) { return word == t.name; });
+}
+
+// `show` alone: what it can show, one line each.
+Reply show_topics_reply() {
+    Reply r;
+    r.text = "show what:";
+    std::vector<std::string> names;
+    for (const auto& t : kShowTopics) {
+        r.text += "\n  " + pad(t.usage, 22) + " " + t.what;
+        names.push_back(t.name);
+    }
+    r.data = {{"topics", names}};
+    return r;
+}
+
+}  // namespace
+
 Reply Interpreter::cmd_show(const Words& w) {
-    if (w.size() == 2 && w[1] == "graph") return show_graph();
-    if (w.size() < 2 || (w[1] != "rtpu" && w[1] != "svar")) throw CommandError("usage: show rtpu|svar|graph [NAME...]");
+    if (w.size() == 1) return show_topics_reply();
+    if (!is_show_topic(w[1]) || (w[1] == "graph" && w.size() > 2))
+        throw CommandError("usage: show rtpu|svar|graph [NAME...] (show alone lists them)");
+    if (w[1] == "graph") return show_graph();
     const std::vector<std::string> names(w.begin() + 2, w.end());
     auto wanted = [&](const std::string& n) {
         return names.empty() || std::any_of(names.begin(), names.end(), [&](const std::string& p) { return glob_match(p, n); });
@@ -1439,11 +1491,11 @@ Reply Interpreter::cmd_reconfig(const Words& w) {
     }
     const std::string warnings = admit_reconfig(groups);
     if (check_only) return reconfig_check(items, names);
-    default_rmod_ = groups.back()[1];
+    make_default(groups.back()[1]);
     const auto res = sbs_.reconfig(std::span<const sbs::ReconfigItem>(items));
     for (std::size_t i = 0; i < items.size(); ++i)
         if (items[i].signal == sbs::Control::kill && sbs_.status(items[i].task).state == State::NOT_CREATED)
-            rmods_.erase(groups[i][1]);
+            forget_task(groups[i][1]);
     Reply r;
     nlohmann::json applied = nlohmann::json::array();
     for (std::size_t i = 0; i < res.processed; ++i) applied.push_back(names[i]);
@@ -1652,7 +1704,8 @@ std::vector<std::string> Interpreter::complete_locked(std::string_view line) {
                     for (const auto& r : sbs_.file().rtpus) cand.insert(r.name);
                 }
             } else if (c == "show") {
-                if (index == 1) cand.insert({"rtpu", "svar"});
+                if (index == 1)
+                    for (const auto& t : kShowTopics) cand.insert(t.name);
                 else if (words[1] == "svar") variables();
                 else if (words[1] == "rtpu") for (const auto& r : sbs_.file().rtpus) cand.insert(r.name);
             } else if (c == "setvar") {
@@ -1735,6 +1788,46 @@ Reply Interpreter::start_tasks() {
     return r;
 }
 
+// The tasks `save` writes (those spawned from .rmod files), in the order
+// spawn accepted them: a const's producer before its readers, unless it was
+// killed and spawned again later (check_saved_starts refuses that).
+std::vector<std::string> Interpreter::saved_tasks() const {
+    std::vector<std::pair<int, std::string>> by_id;
+    for (const auto& [name, file] : rmods_)
+        if (const auto id = sbs_.find(name); id && files_of_.count(name)) by_id.emplace_back(id->value, name);
+    std::sort(by_id.begin(), by_id.end());
+    std::vector<std::string> names;
+    for (auto& [id, name] : by_id) names.push_back(std::move(name));
+    return names;
+}
+
+// Throws unless the saved TASK lines (of the tasks `names`) would start: each
+// line's in-consts come from a line before it (or its own combined task) or a
+// .svar INIT, as spawn demands, and the tasks marked ON pass the verification
+// of the reconfig that turns them on (§3.3.1).
+void Interpreter::check_saved_starts(const SbsFile& saved, const std::vector<std::string>& names) {
+    svar::Table& t = *table();
+    std::set<std::string> produced;
+    for (const TaskLine& line : saved.tasks) {
+        std::vector<RmodFile> files;
+        for (const auto& p : line.rmods) files.push_back(read_rmod(p));
+        for (const auto& f : files)
+            for (const auto& v : f.global_out_consts()) produced.insert(v);
+        for (const auto& f : files)
+            for (const auto& v : f.global_in_consts()) {
+                const auto ix = t.find(v);
+                if (!produced.count(v) && !(ix && t.var(*ix).has_init()))
+                    throw std::runtime_error("TASK line " + std::to_string(line.line) + ": in-const " + v + " of " +
+                                             f.name + " is produced by no TASK line before it");
+            }
+    }
+    std::vector<sbs::TaskId> on;
+    for (std::size_t i = 0; i < saved.tasks.size() && i < names.size(); ++i)
+        if (const auto id = sbs_.find(names[i]); saved.tasks[i].on && id) on.push_back(*id);
+    if (const auto problems = sbs_.verification_problems(on); !problems.empty())
+        throw std::runtime_error("the tasks marked ON would not be turned on: " + problems.front().message);
+}
+
 // The running configuration as .sbs text (see cmd_save).
 std::string Interpreter::saved_sbs() const {
     const SbsFile& f = sbs_.file();
@@ -1748,9 +1841,9 @@ std::string Interpreter::saved_sbs() const {
                "\nBACKEND   " + std::string(to_string(r.backend)) + "\n";
         if (r.half_tick) out += "ACCOUNTING halftick " + fmt("%.17g", r.tick) + "\n";
     }
-    for (const auto& [name, file] : rmods_) {
+    for (const std::string& name : saved_tasks()) {
+        const RmodFile& file = rmods_.at(name);
         const auto files = files_of_.find(name);
-        if (files == files_of_.end()) continue;
         std::vector<std::string> paths;
         for (const auto& p : files->second) paths.push_back(fs::absolute(p).lexically_normal().string());
         const auto id = sbs_.find(name);
@@ -1770,12 +1863,13 @@ Reply Interpreter::cmd_save(const Words& w) {
     const fs::path path(w[1]);
     if (path.extension() != ".sbs") throw CommandError("save: " + w[1] + ": the file name ends in .sbs");
     const std::string text = saved_sbs();
-    // What is written must read back as a .sbs: checked before it replaces anything.
+    // What is written must read back as a .sbs that starts: checked before it replaces anything.
     try {
         cfg::Reader reader = cfg::Reader::from_string(text, w[1]);
-        parse_sbs(reader, "");
+        check_saved_starts(parse_sbs(reader, ""), saved_tasks());
     } catch (const std::exception& e) {
-        throw CommandError(std::string("save: the configuration does not read back (") + e.what() + "); nothing written");
+        throw CommandError(std::string("save: the configuration does not read back and start (") + e.what() +
+                           "); nothing written");
     }
     const fs::path tmp = path.string() + ".tmp";
     {
@@ -1791,7 +1885,7 @@ Reply Interpreter::cmd_save(const Words& w) {
         throw CommandError("save: cannot replace " + w[1]);
     }
     Reply r;
-    r.text = "saved subsystem " + sbs_.name() + " to " + w[1] + " (" + std::to_string(files_of_.size()) + " task line(s))";
+    r.text = "saved subsystem " + sbs_.name() + " to " + w[1] + " (" + std::to_string(saved_tasks().size()) + " task line(s))";
     r.data = {{"file", w[1]}, {"sbs", text}};
     return r;
 }

@@ -145,6 +145,11 @@ private:
     /// std::runtime_error naming what is wrong. Makes it the default RMOD.
     sbs::TaskId task_of(const std::string& rmod);
     bool is_task(std::string_view name) const;
+    /// Makes `name` the default RMOD, the one before it the previous.
+    void make_default(const std::string& name);
+    /// Drops a task that is gone; when it was the default, the previous
+    /// default (if it still exists) or none becomes the default.
+    void forget_task(const std::string& name);
     std::vector<std::string> live_rmods() const;
     /// A .rmod file for `name`: a path, or NAME[.rmod] in the module path.
     std::optional<std::string> find_rmod_file(const std::string& name) const;
@@ -158,6 +163,8 @@ private:
     Reply cmd_save(const Words& w);
     Reply module_load(const Words& w);
     std::string saved_sbs() const;
+    std::vector<std::string> saved_tasks() const;
+    void check_saved_starts(const SbsFile& saved, const std::vector<std::string>& names);
     struct Users {
         std::vector<std::string> producers, consumers;  // live tasks writing / reading a variable
     };
@@ -166,6 +173,7 @@ private:
     sbs::Subsystem& sbs_;
     std::vector<std::string> extra_dirs_;
     std::string default_rmod_;
+    std::string previous_rmod_;  // the default before it: the default again when it is killed
     std::vector<std::string> fields_;
     std::map<std::string, RmodFile> rmods_;  // rmod name -> the file it was spawned from
     std::map<std::string, std::string> rtpu_of_;  // rmod name -> its RTPU (rmods_ says which are live)

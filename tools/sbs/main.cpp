@@ -457,6 +457,7 @@ int attached(cli::NetworkClient& client, const std::string& script, bool json) {
               << " (pid " << hello.value("pid", 0) << ")" << std::endl;
     std::string line;
     std::string rmod;
+    int status = 0;
     const bool tty = ::isatty(STDIN_FILENO) != 0;
     std::optional<LineEditor> editor;
     if (tty) {
@@ -482,10 +483,11 @@ int attached(cli::NetworkClient& client, const std::string& script, bool json) {
             break;
         }
         const Reply r = run_line(exec, line, json, false);
+        if (!r.ok) status = 1;
         if (r.ok) rmod = r.rmod;  // an error reply carries no RMOD: the prompt keeps its own
         if (r.action == Action::quit || r.command == "finish") break;
     }
-    return 0;
+    return tty ? 0 : status;  // commands on a pipe: 1 when one failed, as at the master's prompt
 }
 
 /// The user `subsystem` runs as when that is not this user ("" otherwise):
@@ -522,6 +524,7 @@ int watch(const std::string& subsystem, const std::string& owner, const std::str
     const bool tty = ::isatty(STDIN_FILENO) != 0;
     std::optional<LineEditor> editor;
     if (tty) editor.emplace([](std::string_view) { return std::vector<std::string>{}; });
+    int status = 0;
     for (;;) {
         std::string line;
         if (tty) {
@@ -532,9 +535,11 @@ int watch(const std::string& subsystem, const std::string& owner, const std::str
         } else if (!std::getline(std::cin, line)) {
             break;
         }
-        if (run_line(exec, line, json, false).action == Action::quit) break;
+        const Reply r = run_line(exec, line, json, false);
+        if (!r.ok) status = 1;
+        if (r.action == Action::quit) break;
     }
-    return 0;
+    return tty ? 0 : status;
 }
 
 }  // namespace

@@ -183,7 +183,7 @@ Reply record(const Executor& exec, std::string_view command, const std::atomic<b
     } catch (const std::exception& e) {
         f.failure = e.what();
     }
-    (void)exec("kill " + rmod);  // also after a failure: the task is record's own
+    const Reply killed = exec("kill " + rmod);  // also after a failure: the task is record's own
     out.close();
     if (!out && f.failure.empty()) f.failure = "cannot write " + part;
     // What was taken is kept when the operator interrupts; any other failure leaves no file.
@@ -197,6 +197,7 @@ Reply record(const Executor& exec, std::string_view command, const std::atomic<b
                     std::to_string(f.rows) + " written to " + a.file;
     Reply r = f.failure.empty() ? Reply{} : Reply::failure("record", "record: " + f.failure);
     r.command = "record";
+    r.rmod = killed.rmod;  // the default RMOD the master fell back to, for an attached prompt
     r.data = {{"file", a.file}, {"samples", f.rows}, {"channels", f.width}, {"rate", rate}, {"lost", f.lost},
               {"ring", ring}};
     if (f.failure.empty())
