@@ -845,14 +845,21 @@ TEST(Profiler, MissesReportedFromASignalHandlerMidPublicationAreKept) {
         g_signal_profiler = nullptr;
     });
     while (!ready) std::this_thread::yield();
-    std::uint64_t bad = 0, last_miss = 0, regressions = 0;
+    // A snapshot that says it is consistent must be (the profile's
+    // invariants hold); one that says it is not is a reader the writer, which
+    // publishes without a pause, kept out for the seqlock's 200 ms (seen
+    // twice in 334 under ASan on 2 CPUs): counted, and bounded so that the
+    // invariants are checked on most snapshots.
+    std::uint64_t bad = 0, starved = 0, taken = 0, last_miss = 0, regressions = 0;
     for (int i = 0; i < 1000; ++i) {
         pthread_kill(task.native_handle(), SIGUSR1);
         if (i % 3 == 0) {
             const auto s = seg.snapshot()[0];
+            ++taken;
             std::uint64_t sum = 0;
             for (auto c : s.histogram.counts) sum += c;
-            if (!s.consistent || (s.cycle > 0 && s.accounted != s.cycle - 1) || sum != s.accounted) ++bad;
+            if (!s.consistent) ++starved;
+            else if ((s.cycle > 0 && s.accounted != s.cycle - 1) || sum != s.accounted) ++bad;
             if (s.miss < last_miss) ++regressions;
             last_miss = s.miss;
         }
@@ -867,7 +874,8 @@ TEST(Profiler, MissesReportedFromASignalHandlerMidPublicationAreKept) {
     const auto s = seg.snapshot()[0];
     EXPECT_GT(g_signals_handled.load(), 0u);
     EXPECT_EQ(s.miss, g_signals_handled.load()) << "a miss reported mid-publication was lost";
-    EXPECT_EQ(bad, 0u);
+    EXPECT_EQ(bad, 0u) << "consistent snapshots that break the profile's invariants";
+    EXPECT_LE(starved * 10, taken) << starved << " of " << taken << " snapshots found no consistent moment";
     EXPECT_EQ(regressions, 0u);
 }
 
