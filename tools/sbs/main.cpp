@@ -11,6 +11,7 @@
 // socket, `sbs FILE.sbs` attaches to it as a network peer instead; when it
 // runs as another user, this sbs only watches it (status, display: issue 16.7).
 #include "client.hpp"
+#include "peer_user.hpp"
 #include "record.hpp"
 #include "command_line.hpp"
 #include "commands.hpp"
@@ -30,7 +31,6 @@
 
 #include <fcntl.h>
 #include <poll.h>
-#include <pwd.h>
 #include <sys/stat.h>
 #include <unistd.h>
 
@@ -498,8 +498,7 @@ std::string other_owner(const std::string& subsystem) {
     if (::stat(path.c_str(), &st) != 0 || st.st_uid == ::geteuid()) return "";
     // A squatted name is nobody's subsystem: starting one replaces it or says whose it is.
     if (!ipc::squatted(ipc::segment_name(subsystem, "status")).empty()) return "";
-    const passwd* pw = ::getpwuid(st.st_uid);
-    return pw ? pw->pw_name : "uid " + std::to_string(st.st_uid);
+    return cli::user_name(st.st_uid);
 }
 
 /// sbs as a watcher of another user's subsystem: `status` and `display`
