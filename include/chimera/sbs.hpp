@@ -280,9 +280,11 @@ public:
     void control(TaskId task, Control signal, std::string_view arg = {});
 
     /// sbsReconfig: verifies the configuration that would result (§3.3.1,
-    /// both equations, over the tasks ON afterwards), raises the
-    /// illegal-configuration flag, applies the items in order, stops at the
-    /// first failure, lowers the flag (unless a task is in ERROR).
+    /// both equations, over the tasks ON afterwards), applies the items in
+    /// order and stops at the first failure. One that takes longer than a
+    /// cycle (the period of the fastest periodic task ON before or after it)
+    /// raises the illegal-configuration flag when that cycle has passed and
+    /// lowers it at its end (§3.10); one done within the cycle raises nothing.
     ReconfigResult reconfig(std::span<const ReconfigItem> items);
     ReconfigResult reconfig(std::initializer_list<ReconfigItem> items) {
         return reconfig(std::span<const ReconfigItem>(items.begin(), items.size()));
@@ -345,6 +347,8 @@ public:
 
     /// The illegal-configuration flag (§3.10).
     bool illegal_configuration() const noexcept;
+    /// Reconfigurations that outlasted their cycle and raised the flag.
+    std::uint64_t late_reconfigs() const noexcept;
 
     /// sbsFinish: turns every ON task off, kills every task, joins the threads,
     /// removes the shared segments. Idempotent.

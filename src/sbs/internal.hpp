@@ -284,11 +284,12 @@ public:
     std::atomic<std::uint64_t> signals_dropped{0};
 
     // The illegal-configuration flag bits in the SVAR table (§3.10).
-    static constexpr std::uint32_t kIllegalReconfig = 1u;  // reconfiguration in progress
+    static constexpr std::uint32_t kIllegalReconfig = 1u;  // a reconfiguration outlasted a cycle
     static constexpr std::uint32_t kIllegalError = 2u;     // a task is halted in ERROR
     static constexpr std::uint32_t kIllegalTask = 4u;      // set by a task
     ipc::PiMutex flag_mu;
     void set_flag(std::uint32_t bit, bool on) noexcept;
+    std::atomic<std::uint64_t> late_reconfigs{0};  // those that raised kIllegalReconfig
     void refresh_error_flag() noexcept;
 
     // Errors and warnings per the RTPU's ERRPRINT. A task thread only queues

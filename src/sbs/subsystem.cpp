@@ -13,7 +13,9 @@
 #include <filesystem>
 #include <map>
 #include <sched.h>
+#include <pthread.h>
 #include <sstream>
+#include <thread>
 
 namespace chimera::sbs {
 
@@ -511,6 +513,95 @@ std::vector<detail::TaskCore*> on_after(detail::SubsystemCore& c, std::span<cons
     return on_set;
 }
 
+// §3.10: the illegal-configuration flag is for a reconfiguration that takes
+// longer than a single cycle. One done within a period of the fastest
+// periodic task ON before or after it loses no cycle, so it raises nothing: a
+// critical task would otherwise fall back to locally stable execution, and a
+// trajectory with STALE hold restart its segment, at every controller swap.
+std::int64_t reconfig_grace_ns(detail::SubsystemCore& c, const std::vector<detail::TaskCore*>& on_after_set) {
+    std::int64_t grace = 0;
+    const auto shorter = [&grace](const detail::TaskCore& t) {
+        const std::int64_t p = t.period_ns.load();
+        if (t.type == TaskType::periodic && p > 0 && (grace == 0 || p < grace)) grace = p;
+    };
+    {
+        std::lock_guard<ipc::PiMutex> lock(c.tasks_mu);
+        for (const auto& t : c.tasks)
+            if (t && t->state.load() == State::ON) shorter(*t);
+    }
+    for (const auto* t : on_after_set) shorter(*t);
+    return grace;
+}
+
+// Raises the flag once the grace has passed with the reconfiguration still
+// under way, from a thread of its own at the dispatchers' priority (the master
+// is waiting for a task then, and may be SCHED_OTHER); lowers it at the end.
+class LateReconfigFlag {
+public:
+    LateReconfigFlag(detail::SubsystemCore& c, std::int64_t grace_ns) : c_(c) {
+        if (grace_ns <= 0) {  // no periodic task: nothing cycles, nothing to wait for
+            raise();
+            state_.store(kRaised);
+            return;
+        }
+        const std::int64_t deadline = ipc::now_ns() + grace_ns;
+        raiser_ = std::thread([this, deadline] { wait_then_raise(deadline); });
+    }
+    ~LateReconfigFlag() {
+        std::uint32_t running = kRunning;
+        if (state_.compare_exchange_strong(running, kDone)) ipc::futex_wake_all(state_, ipc::FutexScope::process);
+        if (raiser_.joinable()) raiser_.join();
+        if (state_.load() == kRaised) c_.set_flag(detail::SubsystemCore::kIllegalReconfig, false);
+    }
+    LateReconfigFlag(const LateReconfigFlag&) = delete;
+    LateReconfigFlag& operator=(const LateReconfigFlag&) = delete;
+
+private:
+    static constexpr std::uint32_t kRunning = 0, kDone = 1, kRaised = 2;
+
+    void wait_then_raise(std::int64_t deadline) noexcept {
+        pthread_setname_np(pthread_self(), "chimera-reconfig");
+        sched_param sp{};
+        sp.sched_priority = muf::RtpuOptions{}.fifo_high;
+        pthread_setschedparam(pthread_self(), SCHED_FIFO, &sp);  // refused without privilege: late, not lost
+        while (state_.load() == kRunning && ipc::now_ns() < deadline)
+            ipc::futex_wait_until(state_, kRunning, deadline, ipc::FutexScope::process);
+        std::uint32_t running = kRunning;
+        if (state_.compare_exchange_strong(running, kRaised)) raise();
+    }
+    void raise() noexcept {
+        c_.late_reconfigs.fetch_add(1, std::memory_order_relaxed);
+        c_.set_flag(detail::SubsystemCore::kIllegalReconfig, true);
+    }
+
+    detail::SubsystemCore& c_;
+    std::atomic<std::uint32_t> state_{kRunning};
+    std::thread raiser_;
+};
+
+// While it applies the items, a SCHED_OTHER caller runs at the priority the
+// idle task threads answer at (just below every job): on a loaded machine a
+// master left to the fair scheduler would stretch a swap past the cycle.
+class PromptCaller {
+public:
+    PromptCaller() {
+        if (pthread_getschedparam(pthread_self(), &policy_, &param_) != 0 || policy_ != SCHED_OTHER) return;
+        sched_param sp{};
+        sp.sched_priority = muf::RtpuOptions{}.fifo_low - 1;
+        boosted_ = pthread_setschedparam(pthread_self(), SCHED_FIFO, &sp) == 0;  // refused: as it was
+    }
+    ~PromptCaller() {
+        if (boosted_) pthread_setschedparam(pthread_self(), policy_, &param_);
+    }
+    PromptCaller(const PromptCaller&) = delete;
+    PromptCaller& operator=(const PromptCaller&) = delete;
+
+private:
+    int policy_ = SCHED_OTHER;
+    sched_param param_{};
+    bool boosted_ = false;
+};
+
 }  // namespace
 
 std::vector<VerifyProblem> Subsystem::reconfig_problems(std::span<const ReconfigItem> items) const {
@@ -541,7 +632,9 @@ ReconfigResult Subsystem::reconfig(std::span<const ReconfigItem> items) {
         return out;
     }
 
-    c.set_flag(detail::SubsystemCore::kIllegalReconfig, true);
+    const std::int64_t grace_ns = reconfig_grace_ns(c, on_set);
+    PromptCaller prompt;
+    LateReconfigFlag late(c, grace_ns);
     for (std::size_t i = 0; i < items.size(); ++i) {
         try {
             control(items[i].task, items[i].signal, items[i].arg);
@@ -559,7 +652,6 @@ ReconfigResult Subsystem::reconfig(std::span<const ReconfigItem> items) {
             break;
         }
     }
-    c.set_flag(detail::SubsystemCore::kIllegalReconfig, false);
     return out;
 }
 
@@ -812,6 +904,7 @@ void Subsystem::sig_send(TaskId from, int signal) {
 }
 
 bool Subsystem::illegal_configuration() const noexcept { return core_->table.illegal_configuration() != 0; }
+std::uint64_t Subsystem::late_reconfigs() const noexcept { return core_->late_reconfigs.load(); }
 
 void Subsystem::finish() {
     auto& c = *core_;

@@ -71,16 +71,28 @@ protected:
         Sample just_before, first_jpidg;  // around the reconfiguration
         chimera::State jpid_after = chimera::State::NOT_CREATED, jpidg_after = chimera::State::NOT_CREATED;
         std::uint64_t jpidg_cycles = 0;
+        double swap_ms = 0;
+        bool swap_late = false;  // it outlasted a cycle and raised the illegal-configuration flag
         std::string failure;  // set-up failure, reported by every test
     };
     static std::unique_ptr<Run> run_;
 
+    // §3.10 promises no lost cycle for a swap done within a cycle (2 ms); one
+    // that outlasts it (the master, SCHED_OTHER, held up by other work) raises
+    // the illegal-configuration flag, the robot holds and the trajectory
+    // restarts its segment, by design. Such a run was disturbed: it is said,
+    // and recorded again, at most twice.
     static void SetUpTestSuite() {
-        run_ = std::make_unique<Run>();
-        try {
-            record(*run_);
-        } catch (const std::exception& e) {
-            run_->failure = e.what();
+        for (int attempt = 1; attempt <= 3; ++attempt) {
+            run_ = std::make_unique<Run>();
+            try {
+                record(*run_);
+            } catch (const std::exception& e) {
+                run_->failure = e.what();
+            }
+            if (!run_->swap_late) return;
+            std::printf("run %d disturbed: the swap took %.2f ms, longer than the 2 ms cycle (flag raised)%s\n",
+                        attempt, run_->swap_ms, attempt < 3 ? "; recording again" : "");
         }
     }
     static void TearDownTestSuite() { run_.reset(); }
@@ -132,7 +144,11 @@ protected:
             sample_until(2.5);
             run.just_before = look();
             run.samples.push_back(run.just_before);
+            const auto late_before = sbs->late_reconfigs();
+            const auto swap_start = Clock::now();
             run.swap = sbs->reconfig({{jpid, Control::off}, {jpidg, Control::on}});
+            run.swap_ms = std::chrono::duration<double, std::milli>(Clock::now() - swap_start).count();
+            run.swap_late = sbs->late_reconfigs() != late_before;
             swapped = true;
             // The first torques jpidg produced.
             while (sbs->status(jpidg).cycles < 1 && Clock::now() - t0 < std::chrono::seconds(4))
@@ -189,6 +205,8 @@ TEST_F(Fig37, ArmFollowsTheTrajectoryAfterSettling) {
 TEST_F(Fig37, ReconfigurationSwapsControllersWithNoLostCycle) {
     const Run& r = *run_;
     ASSERT_TRUE(r.swap.ok) << r.swap.message;
+    ASSERT_FALSE(r.swap_late) << "three swaps in a row outlasted the 2 ms cycle (last " << r.swap_ms << " ms)";
+    std::printf("the swap took %.2f ms\n", r.swap_ms);
     EXPECT_EQ(r.swap.processed, 2u);
     EXPECT_EQ(r.jpid_after, chimera::State::OFF);
     EXPECT_EQ(r.jpidg_after, chimera::State::ON);

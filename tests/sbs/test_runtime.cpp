@@ -74,9 +74,9 @@ protected:
     void write(const std::string& file, const std::string& text) { std::ofstream(dir_ / file) << text; }
     // A .rmod using the probe module; `body` holds everything after DESC up to TASKTYPE/FREQ.
     std::string rmod(const std::string& name, const std::string& body, const std::string& type = "sporadic",
-                     const std::string& local = "") {
+                     const std::string& local = "", const std::string& freq = "100") {
         std::string t = "MODULE probe\nDESC test probe " + name + "\n" + body + "TASKTYPE " + type + "\n";
-        if (type == "periodic" || type == "synchronous") t += "FREQ 100\n";
+        if (type == "periodic" || type == "synchronous") t += "FREQ " + freq + "\n";
         if (!local.empty()) t += "LOCAL\n" + local;
         t += "EOF\n";
         write(name + ".rmod", t);
@@ -491,17 +491,44 @@ TEST_F(Sbs, ReconfigStopsAtTheFailingItemAndSaysWhich) {
     EXPECT_EQ(s.status(b).state, State::OFF);
 }
 
-TEST_F(Sbs, ReconfigSwapsControllersUnderTheIllegalFlag) {
+// §3.10: the illegal-configuration flag is for a reconfiguration longer than
+// a cycle. A swap done within the period of the fastest task (here 1 s) raises
+// nothing: no task sees the flag, the count of late ones stays 0.
+TEST_F(Sbs, ReconfigWithinACycleRaisesNoFlag) {
+    auto& s = init();
+    auto src = s.spawn(rmod("src", "SVARALIAS OUT=A\nOUTVAR OUT\n", "periodic", "", "1"));
+    auto c1 = s.spawn(rmod("c1", "SVARALIAS IN=A\nSVARALIAS OUT=B\nINVAR IN\nOUTVAR OUT\n", "periodic", "", "1"));
+    auto c2 = s.spawn(rmod("c2", "SVARALIAS IN=A\nSVARALIAS OUT=B\nINVAR IN\nOUTVAR OUT\n", "periodic", "OUT_ON 0\n", "1"));
+    ASSERT_TRUE(s.reconfig({{src, Control::on}, {c1, Control::on}}));
+    auto res = s.reconfig({{c1, Control::off}, {c2, Control::on}});
+    ASSERT_TRUE(res) << res.message;
+    EXPECT_EQ(last("c2", "on").substr(last("c2", "on").size() - 5), "ILL=0");
+    EXPECT_FALSE(s.illegal_configuration());
+    EXPECT_EQ(s.late_reconfigs(), 0u);
+    EXPECT_EQ(s.status(c1).state, State::OFF);
+    EXPECT_EQ(s.status(c2).state, State::ON);
+}
+
+// One that outlasts the cycle (c2's on() takes 100 ms, the tasks run at
+// 100 Hz) raises the flag once the cycle has passed: c2's on() sees it, and so
+// do the cycles src runs meanwhile; it is lowered when the swap is done.
+TEST_F(Sbs, ReconfigLongerThanACycleRaisesTheFlagUntilDone) {
     auto& s = init();
     auto src = s.spawn(rmod("src", "SVARALIAS OUT=A\nOUTVAR OUT\n", "periodic"));
     auto c1 = s.spawn(rmod("c1", "SVARALIAS IN=A\nSVARALIAS OUT=B\nINVAR IN\nOUTVAR OUT\n", "periodic"));
-    auto c2 = s.spawn(rmod("c2", "SVARALIAS IN=A\nSVARALIAS OUT=B\nINVAR IN\nOUTVAR OUT\n", "periodic", "OUT_ON 0\n"));
+    auto c2 = s.spawn(rmod("c2", "SVARALIAS IN=A\nSVARALIAS OUT=B\nINVAR IN\nOUTVAR OUT\n", "periodic",
+                           "OUT_ON 0\nON_MS 100\n"));
     ASSERT_TRUE(s.reconfig({{src, Control::on}, {c1, Control::on}}));
     ASSERT_TRUE(eventually([&] { return s.status(c1).cycles >= 3; }));
     auto res = s.reconfig({{c1, Control::off}, {c2, Control::on}});
     ASSERT_TRUE(res) << res.message;
-    EXPECT_EQ(last("c2", "on").substr(last("c2", "on").size() - 5), "ILL=1");  // flag raised during the swap
+    EXPECT_EQ(last("c2", "on").substr(last("c2", "on").size() - 5), "ILL=1");  // raised during the swap
     EXPECT_FALSE(s.illegal_configuration());                                 // and lowered after it
+    EXPECT_EQ(s.late_reconfigs(), 1u);
+    bool src_saw_it = false;
+    for (const auto& line : log_of("src"))
+        if (line.rfind("src cycle", 0) == 0 && line.substr(line.size() - 5) == "ILL=1") src_saw_it = true;
+    EXPECT_TRUE(src_saw_it);
     EXPECT_EQ(s.status(c1).state, State::OFF);
     EXPECT_EQ(s.status(c2).state, State::ON);
     ASSERT_TRUE(eventually([&] { return s.status(c2).cycles >= 3; }));

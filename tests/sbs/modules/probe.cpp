@@ -11,6 +11,7 @@
 //   SYNC_MS n                     sync() sleeps n ms (synchronous tasks)
 //   BUSY_US n                     cycle() burns n us of the thread's own CPU time
 //   SLEEP_MS n                    cycle() then sleeps n ms (read at init and set)
+//   ON_MS n                       on() sleeps n ms before it records (a slow on)
 //   FAILURE resume|skip|abort     timing_failure()'s answer (read at init and set)
 // get FAILURES answers "deadline maxexec minexec wrong_thread": the timing
 // failures timing_failure() saw, and how many of them ran outside the task's
@@ -73,6 +74,8 @@ public:
         return Result::OK;
     }
     Result on(Task& t) override {
+        if (const double ms = t.local().number("ON_MS", 0.0); ms > 0)
+            std::this_thread::sleep_for(std::chrono::microseconds(static_cast<long>(ms * 1e3)));
         record(t, "on");
         if (out_ && t.local().has("OUT_ON")) *out_ = t.local().number("OUT_ON", 0.0);
         return act(t, "ON");
