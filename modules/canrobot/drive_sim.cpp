@@ -6,7 +6,6 @@
 #include <limits>
 #include <stdexcept>
 
-#include <Eigen/LU>
 
 #include "canrobot/sdo.hpp"
 #include "robotics/ports.hpp"
@@ -76,6 +75,14 @@ DriveSim::DriveSim(DriveConfig config) : cfg_(std::move(config)), sim_(cfg_.mode
     integral_.setZero(en);
     demand_.setZero(en);
     in_cst_.assign(n, 0);
+    // The speed limit's storage, sized once: a step allocates nothing.
+    q_before_.setZero(en);
+    qd_before_.setZero(en);
+    qd_base_.setZero(en);
+    tau_try_.setZero(en);
+    over_.reserve(n);
+    response_.setZero(en, en);
+    want_.setZero(en);
     sim_.reset(cfg_.q0, Eigen::VectorXd::Zero(en));
     last_good_q_ = cfg_.q0;
     for (std::size_t j = 0; j < n; ++j) sim_.set_locked(j, true);  // unpowered: brakes on
@@ -269,49 +276,82 @@ bool DriveSim::step_once(double h) {
     q_before_ = sim_.q();
     qd_before_ = sim_.qd();
     if (!sim_.step(tau_, h, 1)) return false;
-    std::vector<Eigen::Index> over;
-    auto vmax = [&](Eigen::Index j) { return max_speed(static_cast<std::size_t>(j)); };
-    auto find_over = [&]() {
-        bool added = false;
-        for (Eigen::Index j = 0; j < n; ++j) {
-            const Drive& d = drives_[static_cast<std::size_t>(j)];
-            if (!d.max_speed || !producing_torque(d) || std::fabs(sim_.qd()[j]) <= vmax(j)) continue;
-            if (std::find(over.begin(), over.end(), j) == over.end()) {
-                over.push_back(j);
-                added = true;
-            }
-        }
-        return added;
-    };
+    over_.clear();
     if (!find_over()) return true;
     ++speed_limited_;
     for (Eigen::Index round = 0; round < n; ++round) {
-        qd_base_ = sim_.qd();
-        const auto m = static_cast<Eigen::Index>(over.size());
-        Eigen::MatrixXd response(m, m);
-        Eigen::VectorXd want(m);
-        for (Eigen::Index c = 0; c < m; ++c) {
-            tau_try_ = tau_;
-            tau_try_[over[c]] += 1.0;
-            sim_.reset(q_before_, qd_before_);
-            if (!sim_.step(tau_try_, h, 1)) return false;
-            for (Eigen::Index r = 0; r < m; ++r) response(r, c) = sim_.qd()[over[r]] - qd_base_[over[r]];
-        }
-        for (Eigen::Index r = 0; r < m; ++r) {
-            const Eigen::Index j = over[r];
-            // Aim just inside the limit, so rounding never leaves it above.
-            const double target = std::copysign(vmax(j) * (1 - 1e-12), qd_base_[j]);
-            want[r] = target - qd_base_[j];
-        }
-        const Eigen::VectorXd change = response.fullPivLu().solve(want);
-        for (Eigen::Index r = 0; r < m; ++r) {
-            const Eigen::Index j = over[r];
-            const double limit = torque_limit(static_cast<std::size_t>(j));
-            if (std::isfinite(change[r])) tau_[j] = std::clamp(tau_[j] + change[r], -limit, limit);
-        }
-        sim_.reset(q_before_, qd_before_);
-        if (!sim_.step(tau_, h, 1)) return false;
+        if (!correct_over(h)) return false;
         if (!find_over()) break;
+    }
+    return true;
+}
+
+// Adds to over_ (capacity n, reserved) the joints producing torque faster than
+// their 0x6080 limit; true when one was added.
+bool DriveSim::find_over() noexcept {
+    bool added = false;
+    const auto n = static_cast<Eigen::Index>(drives_.size());
+    for (Eigen::Index j = 0; j < n; ++j) {
+        const Drive& d = drives_[static_cast<std::size_t>(j)];
+        if (!d.max_speed || !producing_torque(d) || std::fabs(sim_.qd()[j]) <= max_speed(static_cast<std::size_t>(j)))
+            continue;
+        if (std::find(over_.begin(), over_.end(), j) == over_.end()) {
+            over_.push_back(j);
+            added = true;
+        }
+    }
+    return added;
+}
+
+// One round: the response of the over_ joints' speeds to a unit torque on
+// each, the torque change that puts them just inside their limits, the step
+// again with it. False when the simulation diverged.
+bool DriveSim::correct_over(double h) {
+    qd_base_ = sim_.qd();
+    const auto m = static_cast<Eigen::Index>(over_.size());
+    for (Eigen::Index c = 0; c < m; ++c) {
+        tau_try_ = tau_;
+        tau_try_[over_[c]] += 1.0;
+        sim_.reset(q_before_, qd_before_);
+        if (!sim_.step(tau_try_, h, 1)) return false;
+        for (Eigen::Index r = 0; r < m; ++r) response_(r, c) = sim_.qd()[over_[r]] - qd_base_[over_[r]];
+    }
+    for (Eigen::Index r = 0; r < m; ++r) {
+        const Eigen::Index j = over_[r];
+        // Aim just inside the limit, so rounding never leaves it above.
+        want_[r] = std::copysign(max_speed(static_cast<std::size_t>(j)) * (1 - 1e-12), qd_base_[j]) - qd_base_[j];
+    }
+    if (solve_in_place(response_.topLeftCorner(m, m), want_.head(m))) {
+        for (Eigen::Index r = 0; r < m; ++r) {
+            const Eigen::Index j = over_[r];
+            const double limit = torque_limit(static_cast<std::size_t>(j));
+            if (std::isfinite(want_[r])) tau_[j] = std::clamp(tau_[j] + want_[r], -limit, limit);
+        }
+    }
+    sim_.reset(q_before_, qd_before_);
+    return sim_.step(tau_, h, 1);
+}
+
+// a x = b by Gaussian elimination with partial pivoting, in place (x in b):
+// the few joints over their limit, with no allocation. False when a pivot
+// vanishes (a joint whose speed no torque moves).
+bool DriveSim::solve_in_place(Eigen::Ref<Eigen::MatrixXd> a, Eigen::Ref<Eigen::VectorXd> b) noexcept {
+    const Eigen::Index m = a.rows();
+    for (Eigen::Index k = 0; k < m; ++k) {
+        Eigen::Index p = k;
+        for (Eigen::Index r = k + 1; r < m; ++r)
+            if (std::fabs(a(r, k)) > std::fabs(a(p, k))) p = r;
+        if (!(std::fabs(a(p, k)) > 1e-300)) return false;
+        a.row(k).swap(a.row(p));
+        std::swap(b[k], b[p]);
+        for (Eigen::Index r = k + 1; r < m; ++r) {
+            const double f = a(r, k) / a(k, k);
+            a.row(r).tail(m - k) -= f * a.row(k).tail(m - k);
+            b[r] -= f * b[k];
+        }
+    }
+    for (Eigen::Index k = m - 1; k >= 0; --k) {
+        b[k] = (b[k] - a.row(k).tail(m - k - 1).dot(b.tail(m - k - 1))) / a(k, k);
     }
     return true;
 }

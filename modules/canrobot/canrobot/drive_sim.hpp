@@ -155,6 +155,9 @@ private:
     void sdo_request(Drive& d, const Frame& f, Out& out);
     /// One integration step of `h` with the drives' torques and limits.
     bool step_once(double h);
+    bool find_over() noexcept;
+    bool correct_over(double h);
+    static bool solve_in_place(Eigen::Ref<Eigen::MatrixXd> a, Eigen::Ref<Eigen::VectorXd> b) noexcept;
     bool producing_torque(const Drive& d) const noexcept {
         return d.state == cia402::DriveState::operation_enabled &&
                (d.mode == cia402::kModeCst || d.mode == cia402::kModeCsp);
@@ -166,7 +169,12 @@ private:
     Eigen::VectorXd tau_, integral_, last_good_q_;
     Eigen::VectorXd demand_;          // CST torque demand after the torque slope (N m)
     std::vector<char> in_cst_;        // the joint produced CST torque in the last step
-    Eigen::VectorXd q_before_, qd_before_, qd_base_, tau_try_;  // the speed limit's re-steps
+    // The speed limit's re-steps: the joints over it, their response to a
+    // unit torque, the change wanted (sized at construction).
+    Eigen::VectorXd q_before_, qd_before_, qd_base_, tau_try_;
+    std::vector<Eigen::Index> over_;
+    Eigen::MatrixXd response_;
+    Eigen::VectorXd want_;
     std::uint64_t speed_limited_ = 0;
     std::int64_t now_ = 0;       // time the physics has reached
     bool powered_ = false;

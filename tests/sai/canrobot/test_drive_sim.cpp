@@ -10,6 +10,7 @@
 #include "canrobot/drive_sim.hpp"
 #include "canrobot/sdo.hpp"
 #include "robotics/dynamics.hpp"
+#include "alloc_counter.hpp"
 
 #include <chimera/cfg.hpp>
 #include <chimera/sbs_files.hpp>
@@ -785,6 +786,27 @@ TEST(DriveLimits, MaxMotorSpeedHoldsUnderATorqueADeadMasterLeftOn) {
     EXPECT_NE(sim.torque(0), 30.0);
     EXPECT_LE(std::fabs(sim.torque(0)), sim.torque_limit(0));
     EXPECT_LE(std::fabs(sim.torque(1)), sim.torque_limit(1));
+}
+
+TEST(DriveLimits, TheSpeedLimitedStepAllocatesNothing) {
+    // candrive steps the arm in its real-time thread: holding 0x6080 re-steps
+    // and solves for the joints over their limit, from storage sized once.
+    DriveSim sim(planar_no_deadline());
+    const std::uint32_t v0 = max_motor_speed_counts(0.5, kCounts), v1 = max_motor_speed_counts(1.0, kCounts);
+    int steps = 0;
+    long allocations = -1;
+    std::uint64_t limited_before = 0;
+    dead_master(sim, 3000, -2000, [&] {
+        ++steps;
+        if (steps == 1000) {
+            limited_before = sim.speed_limited_steps();
+            chimera::test::alloc_count_start();
+        } else if (steps == 3000) {
+            allocations = chimera::test::alloc_count_stop();
+        }
+    }, {sdo_download(3, 0x6080, v0), sdo_download(4, 0x6080, v1)});
+    EXPECT_GT(sim.speed_limited_steps() - limited_before, 1000u);  // the limit was at work meanwhile
+    EXPECT_EQ(allocations, 0);
 }
 
 TEST(DriveLimits, TorqueSlopeBoundsEveryStepOfTheAppliedTorque) {
