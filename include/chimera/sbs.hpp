@@ -284,7 +284,8 @@ public:
     /// order and stops at the first failure. One that takes longer than a
     /// cycle (the period of the fastest periodic task ON before or after it)
     /// raises the illegal-configuration flag when that cycle has passed and
-    /// lowers it at its end (§3.10); one done within the cycle raises nothing.
+    /// lowers it at its end (§3.10); one done within the cycle raises nothing;
+    /// with no periodic task, the flag is up for the whole reconfiguration.
     ReconfigResult reconfig(std::span<const ReconfigItem> items);
     ReconfigResult reconfig(std::initializer_list<ReconfigItem> items) {
         return reconfig(std::span<const ReconfigItem>(items.begin(), items.size()));
@@ -347,7 +348,7 @@ public:
 
     /// The illegal-configuration flag (§3.10).
     bool illegal_configuration() const noexcept;
-    /// Reconfigurations that outlasted their cycle and raised the flag.
+    /// Reconfigurations that outlasted their cycle (and so raised the flag).
     std::uint64_t late_reconfigs() const noexcept;
 
     /// sbsFinish: turns every ON task off, kills every task, joins the threads,

@@ -539,8 +539,8 @@ std::int64_t reconfig_grace_ns(detail::SubsystemCore& c, const std::vector<detai
 class LateReconfigFlag {
 public:
     LateReconfigFlag(detail::SubsystemCore& c, std::int64_t grace_ns) : c_(c) {
-        if (grace_ns <= 0) {  // no periodic task: nothing cycles, nothing to wait for
-            raise();
+        if (grace_ns <= 0) {  // no periodic task, no cycle to wait for: raised at once, as ever
+            c_.set_flag(detail::SubsystemCore::kIllegalReconfig, true);
             state_.store(kRaised);
             return;
         }
@@ -567,9 +567,7 @@ private:
         while (state_.load() == kRunning && ipc::now_ns() < deadline)
             ipc::futex_wait_until(state_, kRunning, deadline, ipc::FutexScope::process);
         std::uint32_t running = kRunning;
-        if (state_.compare_exchange_strong(running, kRaised)) raise();
-    }
-    void raise() noexcept {
+        if (!state_.compare_exchange_strong(running, kRaised)) return;
         c_.late_reconfigs.fetch_add(1, std::memory_order_relaxed);
         c_.set_flag(detail::SubsystemCore::kIllegalReconfig, true);
     }

@@ -509,6 +509,20 @@ TEST_F(Sbs, ReconfigWithinACycleRaisesNoFlag) {
     EXPECT_EQ(s.status(c2).state, State::ON);
 }
 
+// With no periodic task there is no cycle to wait for: the flag is up for the
+// whole reconfiguration, as it was before the grace, and no swap counts as late.
+TEST_F(Sbs, ReconfigOfSporadicTasksRaisesTheFlagAtOnce) {
+    auto& s = init();
+    auto c1 = s.spawn(rmod("c1", "SVARALIAS OUT=B\nOUTVAR OUT\n"));
+    auto c2 = s.spawn(rmod("c2", "SVARALIAS OUT=B\nOUTVAR OUT\n", "sporadic", "OUT_ON 0\n"));
+    ASSERT_TRUE(s.reconfig({{c1, Control::on}}));
+    auto res = s.reconfig({{c1, Control::off}, {c2, Control::on}});
+    ASSERT_TRUE(res) << res.message;
+    EXPECT_EQ(last("c2", "on").substr(last("c2", "on").size() - 5), "ILL=1");
+    EXPECT_FALSE(s.illegal_configuration());
+    EXPECT_EQ(s.late_reconfigs(), 0u);
+}
+
 // One that outlasts the cycle (c2's on() takes 100 ms, the tasks run at
 // 100 Hz) raises the flag once the cycle has passed: c2's on() sees it, and so
 // do the cycles src runs meanwhile; it is lowered when the swap is done.
