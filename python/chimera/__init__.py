@@ -23,6 +23,7 @@ from typing import Iterable, List, Optional
 
 from ._core import (  # noqa: F401  (re-exported)
     TASK_STATUS_FIELDS,
+    __version__,
     ChimeraError,
     LockTimeout,
     ProducerConflict,

@@ -9,6 +9,7 @@ import numpy.typing as npt
 
 _Values = Union[float, int, Sequence[float], npt.ArrayLike, bytes]
 
+__version__: str
 TASK_STATUS_FIELDS: List[str]
 
 class ChimeraError(RuntimeError): ...

@@ -9,6 +9,10 @@
 #include <cstdlib>
 #include <string>
 
+#ifndef CHIMERA_VERSION
+#error "CHIMERA_VERSION must be defined by the build (meson.project_version())"
+#endif
+
 namespace chimera::python {
 
 void bind_svar(py::module_& m) {
@@ -124,6 +128,7 @@ PYBIND11_MODULE(_core, m) {
     namespace py = pybind11;
     refuse_an_incompatible_numpy();
     m.doc() = "Chimera for Linux: state variables, triple buffers and task status from Python (issue #18).";
+    m.attr("__version__") = CHIMERA_VERSION;
     static py::exception<std::runtime_error> base(m, "ChimeraError", PyExc_RuntimeError);
     static py::exception<cp::SvarError> svar_error(m, "SvarError", base.ptr());
     static py::exception<cp::LockTimeout> lock_timeout(m, "LockTimeout", svar_error.ptr());
