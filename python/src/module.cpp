@@ -17,13 +17,13 @@ namespace chimera::python {
 
 void bind_svar(py::module_& m) {
     py::class_<VarRecord>(m, "VarInfo", "One state variable of the table: its .svar definition and its users.")
-        .def_readonly("name", &VarRecord::name)
-        .def_readonly("index", &VarRecord::index)
+        .def_readonly("name", &VarRecord::name, "the .svar NAME")
+        .def_readonly("index", &VarRecord::index, "position in the table, as in names()")
         .def_readonly("type", &VarRecord::type, "the .svar TYPE: 'double', 'float', 'struct[32]', ...")
-        .def_readonly("nelem", &VarRecord::nelem)
+        .def_readonly("nelem", &VarRecord::nelem, "the .svar NELEM: number of elements")
         .def_readonly("elem_size", &VarRecord::elem_size, "bytes per element")
-        .def_readonly("desc", &VarRecord::desc)
-        .def_readonly("units", &VarRecord::units)
+        .def_readonly("desc", &VarRecord::desc, "the .svar DESC text")
+        .def_readonly("units", &VarRecord::units, "the .svar UNITS text")
         .def_readonly("dtype", &VarRecord::dtype, "numpy dtype of an element (uint8 for struct)")
         .def_readonly("shape", &VarRecord::shape, "(NELEM,), or (NELEM, N) for struct[N]")
         .def_readonly("init", &VarRecord::init, "INIT values as float64 (None for struct)")
@@ -40,7 +40,7 @@ void bind_svar(py::module_& m) {
         "table, whose read-only numpy views (arrays) it refreshes in place.")
         .def("read", [](Reader& r) { r.read(); return r.views(false); },
              "Copy the set from the table (one lock, GIL released); returns {name: view}.")
-        .def_property_readonly("names", &Reader::names)
+        .def_property_readonly("names", &Reader::names, "the variables of the set, in the order given")
         .def_property_readonly("arrays", [](Reader& r) { return r.views(false); },
                                "{name: read-only view into the local table}")
         .def_property_readonly("last_status", &Reader::last_status,
@@ -58,7 +58,8 @@ void bind_svar(py::module_& m) {
              }, py::arg("name"), py::arg("values"), "Check values and put them in the local table.")
         .def_property_readonly("arrays", [](Writer& w) { return w.views(true); },
                                "{name: writable view into the local table}")
-        .def_property_readonly("force", &Writer::force);
+        .def_property_readonly("force", &Writer::force,
+                               "True: write() skips the producer rule (no ProducerConflict)");
 
     py::class_<PyTable, std::shared_ptr<PyTable>>(m, "Table",
         "A subsystem's global state-variable table (SVAR, thesis §5.5), mapped into this process.")
@@ -68,13 +69,14 @@ void bind_svar(py::module_& m) {
                     py::arg("lock_timeout") = 0.1,
                     "Create a table from a .svar file (no master: for simulation and tests); it is "
                     "removed when this object goes and no other process maps it.")
-        .def_property_readonly("subsystem", &PyTable::subsystem)
-        .def_property_readonly("segment", [](PyTable& t) { return t.table().name(); })
+        .def_property_readonly("subsystem", &PyTable::subsystem, "the subsystem's name")
+        .def_property_readonly("segment", [](PyTable& t) { return t.table().name(); },
+                               "the shared-memory segment: /chimera.SUBSYSTEM.svar")
         .def_property("lock_timeout", &PyTable::lock_timeout, &PyTable::set_lock_timeout,
                       "seconds a read or write waits for the table lock before LockTimeout")
         .def("names", &PyTable::names, "The variables' names in table order.")
         .def("variables", &PyTable::variables, "Every variable with type, size, units, MIN/MAX, producers.")
-        .def("info", &PyTable::info, py::arg("name"))
+        .def("info", &PyTable::info, py::arg("name"), "One variable's VarInfo (KeyError naming the table's variables).")
         .def("read", &PyTable::read, py::arg("names"),
              "read('Q_REF') -> ndarray; read(['Q_REF', 'Q_MEZ']) -> {name: ndarray}: one consistent "
              "whole-set copy under one table lock.")
@@ -85,10 +87,12 @@ void bind_svar(py::module_& m) {
              "(ProducerConflict) unless force=True; then one copy under one table lock.")
         .def("reader", [](PyTable& t, const std::vector<std::string>& names) {
                  return std::make_shared<Reader>(t.shared_from_this(), names);
-             }, py::arg("names"))
+             }, py::arg("names"),
+             "A Reader of NAMES: one lock per read into its own local table (KeyError for an unknown name).")
         .def("writer", [](PyTable& t, const std::vector<std::string>& names, bool force) {
                  return std::make_shared<Writer>(t.shared_from_this(), names, force);
-             }, py::arg("names"), py::kw_only(), py::arg("force") = false)
+             }, py::arg("names"), py::kw_only(), py::arg("force") = false,
+             "A Writer of NAMES; force=True skips the producer rule (KeyError for an unknown name).")
         .def("stats", &PyTable::stats, "Lock recoveries, rollbacks, timeouts and forced resets since creation.")
         .def("__contains__", [](PyTable& t, const std::string& n) { return t.table().find(n).has_value(); })
         .def("__len__", [](PyTable& t) { return t.table().size(); })
@@ -135,6 +139,15 @@ PYBIND11_MODULE(_core, m) {
     static py::exception<cp::ProducerConflict> producer(m, "ProducerConflict", svar_error.ptr());
     static py::exception<cp::TbufError> tbuf_error(m, "TbufError", base.ptr());
     static py::exception<cp::SubsystemGone> gone(m, "SubsystemGone", base.ptr());
+    base.doc() = "Base of the extension's errors (SvarError, TbufError, SubsystemGone); raised itself when a "
+                 "shared-memory segment, a status segment, a sampler ring or a configuration file fails.";
+    svar_error.doc() = "A state-variable table error: the subsystem's table or status segment is missing, or a "
+                       "table operation failed (the message says which).";
+    lock_timeout.doc() = "The table lock was not had within the Table's lock_timeout seconds.";
+    producer.doc() = "A write to a variable a live task produces, without force=True (sbs setvar's rule).";
+    tbuf_error.doc() = "A TBUF read or write refused: the buffer is corrupt (the message says how).";
+    gone.doc() = "The master of the object's subsystem has finished; the object has let go of its segments "
+                 "(attach again once the subsystem runs again).";
     py::register_exception_translator([](std::exception_ptr p) {
         try {
             if (p) std::rethrow_exception(p);

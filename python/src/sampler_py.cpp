@@ -52,10 +52,11 @@ void bind_sampler(py::module_& m) {
             r->life.watch(Lifeline::subsystem_of(name), "Ring", [raw = r.get()] { raw->reader = sampler::RingReader(); });
             return r;
         }, py::arg("name"), "Map the ring NAME read-only; reading starts with the next sample written.")
-        .def_property_readonly("name", [](PyRing& r) { return r.live().name(); })
+        .def_property_readonly("name", [](PyRing& r) { return r.live().name(); }, "the ring's shared-memory segment")
         .def_property_readonly("channels", [](PyRing& r) { return r.live().channel_names(); },
                                "column names: 'Q_REF[0]', ..., or 'X' for a scalar")
-        .def_property_readonly("capacity", [](PyRing& r) { return r.live().capacity(); })
+        .def_property_readonly("capacity", [](PyRing& r) { return r.live().capacity(); },
+                               "samples the ring holds before the oldest is overwritten")
         .def_property_readonly("rate", [](PyRing& r) { return r.live().rate_hz(); }, "the sampling task's rate, Hz")
         .def_property_readonly("position", [](PyRing& r) { return r.live().position(); },
                                "number of the next sample this reader takes")

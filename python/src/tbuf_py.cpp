@@ -120,8 +120,9 @@ void bind_tbuf(py::module_& m) {
             t->life.watch(Lifeline::subsystem_of(name), "Tbuf", [raw = t.get()] { (void)raw->buf.destroy(); });
             return t;
         }, py::arg("name"))
-        .def_property_readonly("item_size", [](PyTbuf& t) { return t.live().item_size(); })
-        .def_property_readonly("missed_total", [](PyTbuf& t) { return t.live().missed_total(); })
+        .def_property_readonly("item_size", [](PyTbuf& t) { return t.live().item_size(); }, "bytes per item")
+        .def_property_readonly("missed_total", [](PyTbuf& t) { return t.live().missed_total(); },
+                               "items this object's reads found missed (written, never read), in total")
         .def("write", &PyTbuf::write, py::arg("item"), py::arg("time_ns") = py::none(),
              "Publish ITEM (bytes-like of item_size bytes) stamped now (or at TIME_NS); returns its counter.")
         .def("read", &PyTbuf::read, "The newest item, its bytes in .data.")
@@ -131,7 +132,7 @@ void bind_tbuf(py::module_& m) {
             t.life.check();
             t.owner = false;
             t.buf.detach();
-        });
+        }, "Unmap the buffer and leave its segment in place, even one this object created.");
 }
 
 }  // namespace chimera::python
