@@ -144,15 +144,19 @@ class Master:
         return self._do("spawn", name, rtpu).get("data", {})
 
     def on(self, rmod: str) -> None:
+        """Turn task RMOD on (`on`); MasterError when its state or a second producer of a variable forbids it."""
         self._do("on", rmod)
 
     def off(self, rmod: str) -> None:
+        """Turn task RMOD off (`off`); MasterError when its state forbids it."""
         self._do("off", rmod)
 
     def kill(self, rmod: str) -> None:
+        """Destroy task RMOD (`kill`), turning it off first when it is ON."""
         self._do("kill", rmod)
 
     def clear(self, rmod: str) -> None:
+        """Clear task RMOD out of ERROR (`clear`)."""
         self._do("clear", rmod)
 
     def reconfig(self, items: Iterable[Tuple[str, str]]) -> Dict[str, Any]:
@@ -184,9 +188,13 @@ class Master:
         return self._do("status", rmod or "all").get("data", {}).get("tasks", [])
 
     def setvar(self, name: str, *values: Word, force: bool = False) -> Dict[str, Any]:
+        """Write state variable NAME ('Q_REF', or 'Q_REF[2]' from element 2) as `setvar` does: checked against the
+        type and the .svar MIN/MAX, refused (MasterError) while a spawned task produces it unless FORCE."""
         return self._do("setvar", name, *values, "--force" if force else None).get("data", {})
 
     def display(self, rmod: str = "all", *names: str) -> List[Dict[str, Any]]:
+        """The values, types and units (`display`) of the variables task RMOD reads and writes, or of the whole
+        table for "all"; NAMES (with * and ?) pick some of them."""
         return self._do("display", rmod, *names).get("data", {}).get("vars", [])
 
     def sample(self, variables: Sequence[str], rate: Optional[float] = None, rtpu: Optional[str] = None,

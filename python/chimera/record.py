@@ -57,6 +57,7 @@ class Recording:
 
     @property
     def t(self) -> numpy.ndarray:
+        """Each sample's time in seconds from the first sample (float64)."""
         return (self.time_ns - self.time_ns[0]) / 1e9 if len(self.time_ns) else numpy.zeros(0)
 
     @property
