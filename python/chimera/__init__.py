@@ -15,11 +15,14 @@ go of its segments: attach again once the subsystem runs again.
 
 Nothing here runs on a real-time thread: every call that may wait for the table
 lock releases the GIL, and no Python code runs while the lock is held.
+
+chimera.__version__ is the project's version; TASK_STATUS_FIELDS names TaskStatus's fields in
+to_dict() and to_dataframe() order. Every public name says what it is under help().
 """
 
-from __future__ import annotations
-
-from typing import Iterable, List, Optional
+# The namespace is the API (__all__): helpers are imported under private names and the
+# parts live in private modules (_core, _master, _peer, _record, _serve).
+from typing import Iterable as _Iterable, List as _List, Optional as _Optional
 
 from ._core import (  # noqa: F401  (re-exported)
     TASK_STATUS_FIELDS,
@@ -41,10 +44,10 @@ from ._core import (  # noqa: F401  (re-exported)
     Writer,
     segment_name,
 )
-from .master import Master, MasterError  # noqa: F401
-from .peer import Peer  # noqa: F401
-from .record import Recording, Sampling, record, running_subsystems  # noqa: F401
-from .serve import ServedSubsystem, serve  # noqa: F401
+from ._master import Master, MasterError  # noqa: F401
+from ._peer import Peer  # noqa: F401
+from ._record import Recording, Sampling, record, running_subsystems  # noqa: F401
+from ._serve import ServedSubsystem, serve  # noqa: F401
 
 __all__ = [
     "attach", "status", "to_dataframe", "segment_name",
@@ -60,12 +63,12 @@ def attach(subsystem: str, lock_timeout: float = 0.1) -> Table:
     return Table.attach(subsystem, lock_timeout)
 
 
-def status(subsystem: str) -> List[TaskStatus]:
+def status(subsystem: str) -> _List[TaskStatus]:
     """Every task's status (§4.4.1), counted since its RTPU's last reset."""
     return StatusReader(subsystem).snapshot()
 
 
-def to_dataframe(records: Iterable[TaskStatus], index: Optional[str] = "rmod"):
+def to_dataframe(records: _Iterable[TaskStatus], index: _Optional[str] = "rmod"):
     """Task status records as a pandas DataFrame, one row per task (ImportError without pandas)."""
     import pandas  # optional: only this function needs it
 

@@ -17,7 +17,7 @@ bool peer_credentials(int fd, ucred& cred) noexcept {
     return ::getsockopt(fd, SOL_SOCKET, SO_PEERCRED, &cred, &len) == 0 && len == sizeof cred;
 }
 
-// The text is python/chimera/master.py's too (_untrusted_master): keep them alike.
+// The text is python/chimera/_master.py's too (_untrusted_master): keep them alike.
 std::string untrusted_master(int fd, const std::string& path) {
     ucred cred{};
     if (!peer_credentials(fd, cred)) return "socket " + path + ": its peer's user cannot be told: not trusted";

@@ -20,7 +20,7 @@ import tempfile
 import time
 from typing import List, Optional, Sequence
 
-from .master import Master
+from ._master import Master
 
 
 class ServedSubsystem:

@@ -25,7 +25,7 @@ from typing import Any, List, Optional, Sequence, Union
 import numpy
 
 from ._core import Ring, SubsystemGone, _master_alive
-from .master import Master
+from ._master import Master
 
 _COLUMN = re.compile(r"^(.*)\[(\d+)\]$")
 

@@ -24,8 +24,8 @@ from typing import Any, Dict, Iterator, List, Optional, Sequence
 import numpy
 
 from . import _core
-from .master import Master, MasterError
-from .record import _subsystem
+from ._master import Master, MasterError
+from ._record import _subsystem
 
 
 class Peer:
