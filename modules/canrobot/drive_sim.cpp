@@ -272,7 +272,7 @@ bool DriveSim::step_once(double h) {
     // semi-implicit Euler step is affine in the torque (qd + h M^-1 (tau -
     // bias), all at the step's start), so the joints concerned are solved
     // together from the response to a unit torque on each; a joint the
-    // correction pushes over joins them, at most n rounds.
+    // correction pushes over joins them, at most n rounds of one re-step.
     q_before_ = sim_.q();
     qd_before_ = sim_.qd();
     if (!sim_.step(tau_, h, 1)) return false;
@@ -305,16 +305,18 @@ bool DriveSim::find_over() noexcept {
 
 // One round: the response of the over_ joints' speeds to a unit torque on
 // each, the torque change that puts them just inside their limits, the step
-// again with it. False when the simulation diverged.
+// again with it. False when the simulation diverged. The response is read off
+// the step just taken: its speeds are qd + h M^-1 (tau - bias), and a change
+// on a moving joint changes neither bias nor which joints friction holds, so
+// column c is h M^-1 e_c, with no step taken.
 bool DriveSim::correct_over(double h) {
     qd_base_ = sim_.qd();
     const auto m = static_cast<Eigen::Index>(over_.size());
     for (Eigen::Index c = 0; c < m; ++c) {
-        tau_try_ = tau_;
-        tau_try_[over_[c]] += 1.0;
-        sim_.reset(q_before_, qd_before_);
-        if (!sim_.step(tau_try_, h, 1)) return false;
-        for (Eigen::Index r = 0; r < m; ++r) response_(r, c) = sim_.qd()[over_[r]] - qd_base_[over_[r]];
+        tau_try_.setZero();
+        tau_try_[over_[c]] = 1.0;
+        sim_.mass_factor().solveInPlace(tau_try_);
+        for (Eigen::Index r = 0; r < m; ++r) response_(r, c) = h * tau_try_[over_[r]];
     }
     for (Eigen::Index r = 0; r < m; ++r) {
         const Eigen::Index j = over_[r];

@@ -91,6 +91,10 @@ public:
     const Eigen::VectorXd& q() const noexcept { return q_; }
     const Eigen::VectorXd& qd() const noexcept { return qd_; }
     const Eigen::VectorXd& qdd() const noexcept { return qdd_; }
+    /// The factor of the mass matrix the last step solved with (held joints'
+    /// rows and columns the identity's): x = M^-1 b is how that step's
+    /// accelerations answer a torque change b, with no step taken.
+    const Eigen::LLT<Eigen::MatrixXd>& mass_factor() const noexcept { return llt_; }
     double time() const noexcept { return t_; }
 
 private:
