@@ -643,7 +643,9 @@ void NetworkServer::run() {
                 continue;
             }
             for (auto& p : pending_) {
-                if (p->fd != fds[i].fd) continue;
+                // A peer given control earlier in this round left its place
+                // empty (erased below): skip it, do not look through it.
+                if (!p || p->fd != fds[i].fd) continue;
                 if (!handle_input(*p)) {
                     close_peer(*p, p->end);
                 } else if (p->controlling) {
