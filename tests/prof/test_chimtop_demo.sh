@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # chimtop against the REAL Figure 3.7 subsystem (build/examples/demo, subsystem
-# fig3_7), whose task runtime publishes every task's status: --once and --json
+# fig3_7, run under a name of its own), whose task runtime publishes every task's status: --once and --json
 # show puma_torque, jtraj and jpid ON and cycling with the §4.4.1 fields
 # consistent with each other; --svar shows the variables each task reads and
 # writes; the live view (tmux) waits while the subsystem is gone and
@@ -11,11 +11,17 @@ set -u
 CHIMTOP=$1
 DEMO=$2
 SBS=$3
-SBS_FILE=$4
-SUB=fig3_7
+# Names are machine-wide: this run's subsystem is its own, and the member's
+# sbs reads a copy of the example's .sbs that names it.
+SUB=chimtop_demo_$$
 SEG=/dev/shm/chimera.$SUB.status
 SOCK=chimtopdemo_$$
 LOG=/tmp/chimtop_demo_$$
+mkdir -p "$LOG.sbs"
+sed "s/^SUBSYSTEM .*/SUBSYSTEM $SUB/" "$4" > "$LOG.sbs/fig3_7.sbs"
+cp "$(dirname "$4")/fig3_7.svar" "$LOG.sbs/"
+chmod -R go+rX "$LOG.sbs"
+SBS_FILE=$LOG.sbs/fig3_7.sbs
 fail=0
 check() {  # check "description" command...
     local what=$1; shift
@@ -28,12 +34,9 @@ cleanup() {
     tmux -L "$SOCK" kill-server 2>/dev/null
     tmux -L "$SOCK.member" kill-server 2>/dev/null
     [ -n "$demo_pid" ] && kill "$demo_pid" 2>/dev/null && wait "$demo_pid" 2>/dev/null
-    rm -f "$LOG".*
+    rm -rf "$LOG".*
 }
 trap cleanup EXIT
-
-# The subsystem name is fixed by fig3_7.sbs: let another run of the demo end.
-for _ in $(seq 300); do [ -e "$SEG" ] || break; sleep 0.1; done
 
 # True when a --json snapshot has the three tasks ON with cycle > 0.
 ready_py='
@@ -56,7 +59,7 @@ sleep 0.8
 check "tui: waits for the subsystem" has "$(tmux -L "$SOCK" capture-pane -p)" "waiting for subsystem '$SUB'"
 
 # ---- run 1: PID control for 4 s, then the swap to jpidg for 4 s
-"$DEMO" --seconds 8 --quiet > "$LOG.run1" 2>&1 &
+"$DEMO" --seconds 8 --quiet --name "$SUB" > "$LOG.run1" 2>&1 &
 demo_pid=$!
 if ! wait_ready; then
     echo "FAIL - the demo's tasks never showed ON with cycles"; cat "$LOG.run1"
@@ -85,7 +88,7 @@ json=$("$CHIMTOP" "$SUB" --json --svar)
 check "--json: §4.4.1 fields of the real tasks agree with each other" python3 -c '
 import json, sys
 j = json.loads(sys.argv[1])
-assert j["subsystem"] == "fig3_7"
+assert j["subsystem"] == sys.argv[2], (j["subsystem"], sys.argv[2])
 t = {x["rmod"]: x for x in j["tasks"]}
 assert set(t) == {"puma_torque", "jtraj", "jpid", "grav_comp", "jpidg"}, t.keys()
 ref = {"puma_torque": 500.0, "jtraj": 100.0, "jpid": 500.0, "grav_comp": 100.0, "jpidg": 500.0}
@@ -123,7 +126,7 @@ assert list(sv["out"]) == ["T_REF"] and len(sv["out"]["T_REF"]) == 6, sv
 assert list(t["puma_torque"]["svar"]["in"]) == ["T_REF"], t["puma_torque"]["svar"]
 assert len(t["puma_torque"]["svar"]["out"]["Q_MEZ"]) == 6
 assert set(t["jtraj"]["svar"]["out"]) == {"Q_REF", "Q^_REF", "Q^^_REF"}
-' "$json" || echo "$json"
+' "$json" "$SUB" || echo "$json"
 
 out=$("$CHIMTOP" "$SUB" --once --svar --fields rmod,state)
 check "--once --svar: jpid's pane lists T_REF with 6 values" \
@@ -165,7 +168,7 @@ check "tui: subsystem stopped -> waiting" has "$(tmux -L "$SOCK" capture-pane -p
 # ---- run 2: the same subsystem started again (jpid hands over to jpidg
 # half-way, so only the tasks that stay ON are looked at); long enough for
 # the member's checks on a loaded machine
-"$DEMO" --seconds 8 --quiet > "$LOG.run2" 2>&1 &
+"$DEMO" --seconds 8 --quiet --name "$SUB" > "$LOG.run2" 2>&1 &
 demo_pid=$!
 for _ in $(seq 150); do
     "$CHIMTOP" "$SUB" --once --fields rmod,state,cycle 2>/dev/null |
