@@ -760,6 +760,15 @@ TEST_F(Network, TwoPeersAuthenticatingInOneRoundAreBothAnswered) {
     std::atomic<bool> interrupt{false};
     auto serving = std::async(std::launch::async, [&] { return s->serve_forever(&interrupt); });
     const StopOnExit stop_first{*s};
+    // Once serve_forever offers control it stays offered between sessions:
+    // wait for that (one session), so every round below meets it offered.
+    bool offered = false;
+    for (auto end = std::chrono::steady_clock::now() + 5s; !offered && std::chrono::steady_clock::now() < end;
+         std::this_thread::sleep_for(10ms)) {
+        const json r = ask_from("127.0.0.1", s->tcp_port(), "token tok");
+        offered = r.is_object() && r.value("ok", false);
+    }
+    ASSERT_TRUE(offered) << "serve_forever never offered control within 5 s";
     for (int round = 0; round < 50; ++round) {
         const int a = greeted_tcp(s->tcp_port());
         const int b = greeted_tcp(s->tcp_port());
