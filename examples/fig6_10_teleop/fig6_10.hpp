@@ -64,7 +64,7 @@ inline std::string trackball_program() { return FIG6_10_TRACKBALL; }
 
 /// A trackball_sim process on a pseudo-terminal of its own, and the files jtball
 /// needs to read it: in a fresh folder `dir`, the IOD database trackball.iod
-/// (device `tball`, class SIO, driver termios, PATH the line's link) and a copy
+/// (device named as its folder, class SIO, driver termios, PATH the line's link) and a copy
 /// of jtball.rmod reading it, with LOCAL lines replaced by key (`local`). The
 /// process sends idle packets until start(), then runs the phases given
 /// (trackball_sim's PHASE arguments); the constructor returns once the line is
@@ -78,13 +78,16 @@ public:
         std::filesystem::remove_all(dir_);
         std::filesystem::create_directories(dir_);
         const auto link = dir_ / "tball";
+        // Device names are machine-wide (their port locks are): this line's is
+        // its folder's, so two runs at once each have their own.
+        const std::string device = dir_.filename().string();
         std::ofstream(dir_ / "trackball.iod") << "# The simulated trackball's serial line (trackball_sim).\n"
-                                                 "DEVICE tball SIO termios\n  PATH "
+                                                 "DEVICE " << device << " SIO termios\n  PATH "
                                               << link.string() << "\n  BAUD 9600\nEND\nEOF\n";
         std::ifstream in(rmod("jtball"));
         std::stringstream text;
         text << in.rdbuf();
-        std::string r = text.str();
+        std::string r = std::regex_replace(text.str(), std::regex("\nDEVICE +[^\n]*"), "\nDEVICE    " + device);
         for (const auto& [key, value] : local)
             r = std::regex_replace(r, std::regex("\n" + key + " +[^\n]*"), "\n" + key + " " + value);
         std::ofstream(dir_ / "jtball.rmod") << r;
